@@ -1,0 +1,23 @@
+//! # fwlidar — a streaming processor for airborne small-footprint full-waveform LiDAR
+//!
+//! ```text
+//!  digitizer frames ─┐                                                          ┌─> processed pulses
+//!  (capture | later  │                                                          ├─> summary / telemetry
+//!   udp, LAS, PLS)   ├─> source ─[edge]─> worker × N: denoise ─> … ─[edge]─> sink (order restored)
+//!  GNSS/INS bytes ───┘        └─[nav channel]─> navigation consumer
+//! ```
+//!
+//! The item that flows is a [`pulse::Pulse`]. Sources decode recorded or live input into pooled
+//! pulses; per-pulse [`pipeline::Stage`]s run on worker threads; sinks write outputs in arrival
+//! order. See `docs/architecture.md` for the threads, queues and the stage contract.
+#![deny(missing_docs)]
+
+pub mod cli;
+pub mod config;
+pub mod format;
+pub mod pipeline;
+pub mod pulse;
+pub mod signal;
+pub mod sim;
+pub mod sink;
+pub mod source;

@@ -1,0 +1,6 @@
+//! The streaming runtime: the stage contract, bounded edges, the runner and telemetry.
+
+pub mod stage;
+pub mod testing;
+
+pub use stage::{DropCounts, Emitter, Passthrough, Stage, StageError};

@@ -1,0 +1,248 @@
+//! The item that flows through the dataflow: one laser shot ([`Pulse`]) with its digitizer
+//! segments, and the [`PulsePool`] that recycles pulses so the hot path does not allocate.
+//!
+//! Units: times in nanoseconds unless a name says otherwise, GPS time in seconds, voltages in
+//! volts, raw samples in digitizer counts (DN).
+
+use std::time::Instant;
+
+use crossbeam_channel::{Receiver, Sender, TrySendError, bounded};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// What a sampled segment of a pulse records.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SegmentKind {
+    /// The outgoing (transmitted) pulse as the reference detector saw it.
+    Outgoing,
+    /// Energy that came back from the scene.
+    Return,
+}
+
+/// One contiguous run of digitizer samples of a pulse.
+///
+/// The samples themselves live in [`Pulse::raw`] (and, once processed, [`Pulse::signal`]) at
+/// `first .. first + len`; all segments of a pulse share those two flat buffers so a pulse can be
+/// reused without reallocating.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Segment {
+    /// Outgoing reference or return.
+    pub kind: SegmentKind,
+    /// Receiver channel (e.g. RIEGL high/low power); 0 when the sensor has one.
+    pub channel: u8,
+    /// Time of the first sample relative to the pulse's reference time t0, in nanoseconds.
+    pub start_ns: f64,
+    /// Index of the segment's first sample in [`Pulse::raw`] / [`Pulse::signal`].
+    pub first: u32,
+    /// Number of samples.
+    pub len: u32,
+}
+
+impl Segment {
+    /// The index range of this segment's samples in the pulse's flat sample buffers.
+    pub fn range(&self) -> std::ops::Range<usize> {
+        self.first as usize..(self.first as usize + self.len as usize)
+    }
+}
+
+/// Per-pulse noise figures estimated by the denoise stage.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct NoiseEstimate {
+    /// Baseline (noise floor) removed from the signal, in volts.
+    pub baseline_v: f32,
+    /// Noise level: mean absolute difference between the raw and low-passed signal, in volts.
+    pub noise_v: f32,
+}
+
+/// One laser shot and everything the chain has learnt about it so far.
+#[derive(Debug)]
+pub struct Pulse {
+    /// Order of arrival assigned by the source (0, 1, 2, ...); used to restore order after
+    /// parallel workers.
+    pub seq: u64,
+    /// Pulse identifier as the digitizer numbered it.
+    pub pulse_id: u64,
+    /// Time of emission, GPS seconds (the capture header states the time base).
+    pub gps_time: f64,
+    /// Scan angles in degrees: primary (mirror) and secondary (NaN when the scanner has one axis).
+    pub scan_angle_deg: [f32; 2],
+    /// Sample interval, nanoseconds.
+    pub sample_ns: f64,
+    /// Digitizer gain: volts per count (volts = offset + gain * counts).
+    pub gain_v_per_dn: f32,
+    /// Digitizer offset, volts.
+    pub offset_v: f32,
+    /// Bits per sample as digitized: 8 or 16.
+    pub bits: u8,
+    /// Segments (outgoing and returns) in recording order.
+    pub segments: Vec<Segment>,
+    /// Raw digitizer counts of every segment, concatenated.
+    pub raw: Vec<u16>,
+    /// Processed signal, same layout as `raw`; volts after denoise, filled by the stages.
+    pub signal: Vec<f32>,
+    /// Noise figures from the denoise stage.
+    pub noise: NoiseEstimate,
+    /// When the pulse entered the process (for latency measurement).
+    pub arrived: Instant,
+}
+
+impl Default for Pulse {
+    fn default() -> Self {
+        Pulse {
+            seq: 0,
+            pulse_id: 0,
+            gps_time: 0.0,
+            scan_angle_deg: [0.0, f32::NAN],
+            sample_ns: 1.0,
+            gain_v_per_dn: 1.0,
+            offset_v: 0.0,
+            bits: 16,
+            segments: Vec::with_capacity(4),
+            raw: Vec::new(),
+            signal: Vec::new(),
+            noise: NoiseEstimate::default(),
+            arrived: Instant::now(),
+        }
+    }
+}
+
+impl Pulse {
+    /// Clears the pulse for reuse, keeping the buffers' capacity.
+    pub fn reset(&mut self) {
+        self.seq = 0;
+        self.pulse_id = 0;
+        self.gps_time = 0.0;
+        self.scan_angle_deg = [0.0, f32::NAN];
+        self.sample_ns = 1.0;
+        self.gain_v_per_dn = 1.0;
+        self.offset_v = 0.0;
+        self.bits = 16;
+        self.segments.clear();
+        self.raw.clear();
+        self.signal.clear();
+        self.noise = NoiseEstimate::default();
+        self.arrived = Instant::now();
+    }
+
+    /// Appends a segment whose raw samples are `samples`; returns its index.
+    pub fn push_segment(
+        &mut self,
+        kind: SegmentKind,
+        channel: u8,
+        start_ns: f64,
+        samples: impl IntoIterator<Item = u16>,
+    ) -> usize {
+        let first = self.raw.len();
+        self.raw.extend(samples);
+        let len = self.raw.len() - first;
+        self.segments.push(Segment {
+            kind,
+            channel,
+            start_ns,
+            first: first as u32,
+            len: len as u32,
+        });
+        self.segments.len() - 1
+    }
+
+    /// Raw counts of segment `i`.
+    pub fn raw_of(&self, i: usize) -> &[u16] {
+        &self.raw[self.segments[i].range()]
+    }
+
+    /// Processed signal of segment `i` (empty before a stage has filled `signal`).
+    pub fn signal_of(&self, i: usize) -> &[f32] {
+        let r = self.segments[i].range();
+        self.signal.get(r).unwrap_or(&[])
+    }
+
+    /// Index of the first outgoing segment, if the pulse recorded one.
+    pub fn outgoing(&self) -> Option<usize> {
+        self.segments
+            .iter()
+            .position(|s| s.kind == SegmentKind::Outgoing)
+    }
+
+    /// Converts raw counts to volts with the pulse's digitizer gain and offset.
+    pub fn counts_to_volts(&self, counts: u16) -> f32 {
+        self.offset_v + self.gain_v_per_dn * counts as f32
+    }
+}
+
+/// A bounded free list of pulses shared by sources (which take) and by stages and sinks (which
+/// give back). After warm-up every pulse is a recycled one: the hot path does not allocate.
+#[derive(Clone)]
+pub struct PulsePool {
+    free_tx: Sender<Box<Pulse>>,
+    free_rx: Receiver<Box<Pulse>>,
+    allocated: Arc<AtomicU64>,
+}
+
+impl PulsePool {
+    /// A pool that keeps at most `capacity` idle pulses.
+    pub fn new(capacity: usize) -> Self {
+        let (free_tx, free_rx) = bounded(capacity.max(1));
+        PulsePool {
+            free_tx,
+            free_rx,
+            allocated: Arc::new(AtomicU64::new(0)),
+        }
+    }
+
+    /// A cleared pulse: a recycled one when available, otherwise a new allocation (counted).
+    pub fn take(&self) -> Box<Pulse> {
+        match self.free_rx.try_recv() {
+            Ok(mut p) => {
+                p.reset();
+                p
+            }
+            Err(_) => {
+                self.allocated.fetch_add(1, Ordering::Relaxed);
+                Box::default()
+            }
+        }
+    }
+
+    /// Returns a pulse to the pool; if the pool is full the pulse is freed.
+    pub fn give(&self, pulse: Box<Pulse>) {
+        match self.free_tx.try_send(pulse) {
+            Ok(()) | Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {}
+        }
+    }
+
+    /// How many pulses this pool has allocated in total (a bound on memory; flat after warm-up).
+    pub fn allocated(&self) -> u64 {
+        self.allocated.load(Ordering::Relaxed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn segments_share_flat_buffers() {
+        let mut p = Pulse::default();
+        let o = p.push_segment(SegmentKind::Outgoing, 0, -5.0, [1, 2, 3]);
+        let r = p.push_segment(SegmentKind::Return, 1, 900.0, [7, 8]);
+        assert_eq!(p.raw_of(o), &[1, 2, 3]);
+        assert_eq!(p.raw_of(r), &[7, 8]);
+        assert_eq!(p.outgoing(), Some(0));
+        assert!(p.signal_of(r).is_empty());
+    }
+
+    #[test]
+    fn pool_recycles_instead_of_allocating() {
+        let pool = PulsePool::new(4);
+        for _ in 0..100 {
+            let mut p = pool.take();
+            p.push_segment(SegmentKind::Return, 0, 0.0, [1, 2, 3]);
+            pool.give(p);
+        }
+        assert_eq!(pool.allocated(), 1);
+        let p = pool.take();
+        assert!(p.raw.is_empty() && p.segments.is_empty());
+        assert!(p.raw.capacity() >= 3, "buffer capacity is kept");
+    }
+}
