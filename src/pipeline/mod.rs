@@ -1,5 +1,6 @@
 //! The streaming runtime: the stage contract, bounded edges, the runner and telemetry.
 
+pub mod registry;
 pub mod stage;
 pub mod testing;
 

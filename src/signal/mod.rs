@@ -1,1 +1,5 @@
-//! (module under construction)
+//! Per-pulse signal processing stages: denoise (and, later, deconvolve and decompose).
+
+pub mod denoise;
+
+pub use denoise::{Denoise, DenoiseConfig};
