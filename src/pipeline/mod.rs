@@ -1,7 +1,11 @@
 //! The streaming runtime: the stage contract, bounded edges, the runner and telemetry.
 
+pub mod edge;
 pub mod registry;
+pub mod runner;
 pub mod stage;
+pub mod telemetry;
 pub mod testing;
 
+pub use runner::{NavConsumer, PipelineSpec, RunControl, RunReport, run};
 pub use stage::{DropCounts, Emitter, Passthrough, Stage, StageError};

@@ -48,3 +48,71 @@ pub fn run_stage(
         errors,
     })
 }
+
+/// A source of `count` identical small pulses (one 64-sample outgoing and one 256-sample return
+/// segment), for runtime tests and benchmarks. Pulse ids count from 0.
+pub struct SyntheticSource {
+    count: u64,
+    produced: u64,
+}
+
+impl SyntheticSource {
+    /// A source of `count` pulses.
+    pub fn new(count: u64) -> Self {
+        SyntheticSource { count, produced: 0 }
+    }
+}
+
+impl crate::source::Source for SyntheticSource {
+    fn name(&self) -> &'static str {
+        "synthetic"
+    }
+
+    fn next(
+        &mut self,
+        pool: &PulsePool,
+    ) -> Result<crate::source::SourceEvent, crate::source::SourceError> {
+        use crate::pulse::SegmentKind;
+        if self.produced == self.count {
+            return Ok(crate::source::SourceEvent::End);
+        }
+        let mut p = pool.take();
+        p.pulse_id = self.produced;
+        p.gps_time = self.produced as f64 * 1e-5;
+        p.push_segment(SegmentKind::Outgoing, 0, -32.0, (0..64u16).map(|i| i % 50));
+        p.push_segment(SegmentKind::Return, 0, 6600.0, (0..256u16).map(|i| 10 + i % 7));
+        self.produced += 1;
+        Ok(crate::source::SourceEvent::Pulse(p))
+    }
+
+    fn progress(&self) -> Option<(u64, u64)> {
+        Some((self.produced, self.count))
+    }
+}
+
+/// A sink that remembers the pulse ids it was given, in order.
+#[derive(Default)]
+pub struct IdSink {
+    /// Shared list of ids written.
+    pub ids: std::sync::Arc<std::sync::Mutex<Vec<u64>>>,
+    /// Set when `flush` was called.
+    pub flushed: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl crate::sink::PulseSink for IdSink {
+    fn name(&self) -> &'static str {
+        "ids"
+    }
+    fn write(&mut self, pulse: &Pulse) -> Result<(), crate::sink::SinkError> {
+        self.ids
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(pulse.pulse_id);
+        Ok(())
+    }
+    fn flush(&mut self) -> Result<(), crate::sink::SinkError> {
+        self.flushed
+            .store(true, std::sync::atomic::Ordering::SeqCst);
+        Ok(())
+    }
+}

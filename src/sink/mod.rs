@@ -1,1 +1,63 @@
-//! (module under construction)
+//! Sinks: where processed pulses go, in arrival order (processed waveforms now; voxel tiles and
+//! LAS returns as later issues land).
+
+pub mod nav_tally;
+
+use crate::pulse::Pulse;
+
+/// Errors a sink reports; all are fatal to the run (an output we cannot write is not an output).
+#[derive(Debug, thiserror::Error)]
+pub enum SinkError {
+    /// Writing failed.
+    #[error("cannot write {path}: {source}")]
+    Io {
+        /// The file being written.
+        path: String,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+}
+
+/// A consumer of processed pulses, run on the sink thread after order is restored.
+pub trait PulseSink: Send {
+    /// Short name for logs and reports.
+    fn name(&self) -> &'static str;
+
+    /// Writes one pulse.
+    fn write(&mut self, pulse: &Pulse) -> Result<(), SinkError>;
+
+    /// Flushes everything written so far to the operating system; called at the end of the run
+    /// (also on SIGINT/SIGTERM) and may be called periodically.
+    fn flush(&mut self) -> Result<(), SinkError>;
+}
+
+/// Discards pulses (benchmarks, dry runs).
+#[derive(Debug, Default)]
+pub struct NullSink;
+
+impl PulseSink for NullSink {
+    fn name(&self) -> &'static str {
+        "null"
+    }
+    fn write(&mut self, _pulse: &Pulse) -> Result<(), SinkError> {
+        Ok(())
+    }
+    fn flush(&mut self) -> Result<(), SinkError> {
+        Ok(())
+    }
+}
+
+/// Several sinks fed the same pulses in turn.
+pub struct FanOut(pub Vec<Box<dyn PulseSink>>);
+
+impl PulseSink for FanOut {
+    fn name(&self) -> &'static str {
+        "fan_out"
+    }
+    fn write(&mut self, pulse: &Pulse) -> Result<(), SinkError> {
+        self.0.iter_mut().try_for_each(|s| s.write(pulse))
+    }
+    fn flush(&mut self) -> Result<(), SinkError> {
+        self.0.iter_mut().try_for_each(|s| s.flush())
+    }
+}

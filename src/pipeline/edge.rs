@@ -1,0 +1,287 @@
+//! Bounded single-producer single-consumer edges between pipeline threads (ringbuf), with a
+//! declared policy when full: block (replay) or drop the newest item and count it (live input).
+//!
+//! Waiting threads park; the other side unparks them. The protocol is the classic
+//! flag-then-recheck with sequentially consistent fences on both sides, so a wake-up is never
+//! lost; a bounded park timeout is kept as a second line of defence.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering, fence};
+use std::sync::{Arc, OnceLock};
+use std::thread::{self, Thread};
+use std::time::Duration;
+
+use ringbuf::traits::{Consumer, Observer, Producer, Split};
+use ringbuf::{HeapCons, HeapProd, HeapRb};
+
+use crate::config::FullPolicy;
+
+/// How long a waiting thread parks before re-checking on its own.
+const PARK_TIMEOUT: Duration = Duration::from_millis(50);
+/// Spins before parking (cheap when the other side is about to act).
+const SPINS: u32 = 64;
+
+struct Shared {
+    tx_closed: AtomicBool,
+    rx_closed: AtomicBool,
+    rx_waiting: AtomicBool,
+    tx_waiting: AtomicBool,
+    rx_thread: OnceLock<Thread>,
+    tx_thread: OnceLock<Thread>,
+    sent: AtomicU64,
+    dropped_full: AtomicU64,
+    capacity: usize,
+}
+
+/// Live counters of an edge, readable from any thread.
+#[derive(Clone)]
+pub struct EdgeStats(Arc<Shared>);
+
+impl EdgeStats {
+    /// Items accepted into the queue so far.
+    pub fn sent(&self) -> u64 {
+        self.0.sent.load(Ordering::Relaxed)
+    }
+    /// Items dropped because the queue was full (drop-newest policy).
+    pub fn dropped_full(&self) -> u64 {
+        self.0.dropped_full.load(Ordering::Relaxed)
+    }
+    /// Capacity, items.
+    pub fn capacity(&self) -> usize {
+        self.0.capacity
+    }
+}
+
+/// The sending end of an edge.
+pub struct EdgeTx<T> {
+    prod: HeapProd<T>,
+    shared: Arc<Shared>,
+    policy: FullPolicy,
+}
+
+/// The receiving end of an edge.
+pub struct EdgeRx<T> {
+    cons: HeapCons<T>,
+    shared: Arc<Shared>,
+}
+
+/// What became of an item given to [`EdgeTx::send`].
+#[derive(Debug)]
+pub enum Sent<T> {
+    /// It is in the queue.
+    Queued,
+    /// The queue was full and the policy is drop-newest: here it is back, counted as dropped.
+    Dropped(T),
+    /// The receiver is gone: here it is back.
+    Closed(T),
+}
+
+/// Creates an edge holding at most `capacity` items.
+pub fn edge<T>(capacity: usize, policy: FullPolicy) -> (EdgeTx<T>, EdgeRx<T>) {
+    let capacity = capacity.max(1);
+    let (prod, cons) = HeapRb::<T>::new(capacity).split();
+    let shared = Arc::new(Shared {
+        tx_closed: AtomicBool::new(false),
+        rx_closed: AtomicBool::new(false),
+        rx_waiting: AtomicBool::new(false),
+        tx_waiting: AtomicBool::new(false),
+        rx_thread: OnceLock::new(),
+        tx_thread: OnceLock::new(),
+        sent: AtomicU64::new(0),
+        dropped_full: AtomicU64::new(0),
+        capacity,
+    });
+    (
+        EdgeTx {
+            prod,
+            shared: shared.clone(),
+            policy,
+        },
+        EdgeRx { cons, shared },
+    )
+}
+
+impl<T> EdgeTx<T> {
+    /// Live counters of this edge.
+    pub fn stats(&self) -> EdgeStats {
+        EdgeStats(self.shared.clone())
+    }
+
+    /// Items waiting in the queue now.
+    pub fn len(&self) -> usize {
+        self.prod.occupied_len()
+    }
+
+    /// True when no item waits in the queue.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Sends an item according to the edge's policy.
+    pub fn send(&mut self, item: T) -> Sent<T> {
+        let mut item = match self.prod.try_push(item) {
+            Ok(()) => return self.after_push(),
+            Err(item) => item,
+        };
+        if self.policy == FullPolicy::DropNewest {
+            if self.shared.rx_closed.load(Ordering::Acquire) {
+                return Sent::Closed(item);
+            }
+            self.shared.dropped_full.fetch_add(1, Ordering::Relaxed);
+            return Sent::Dropped(item);
+        }
+        let _ = self.shared.tx_thread.set(thread::current());
+        let mut spins = 0u32;
+        loop {
+            if self.shared.rx_closed.load(Ordering::Acquire) {
+                return Sent::Closed(item);
+            }
+            item = match self.prod.try_push(item) {
+                Ok(()) => return self.after_push(),
+                Err(item) => item,
+            };
+            if spins < SPINS {
+                spins += 1;
+                std::hint::spin_loop();
+                continue;
+            }
+            self.shared.tx_waiting.store(true, Ordering::SeqCst);
+            fence(Ordering::SeqCst);
+            if self.prod.is_full() && !self.shared.rx_closed.load(Ordering::SeqCst) {
+                thread::park_timeout(PARK_TIMEOUT);
+            }
+            self.shared.tx_waiting.store(false, Ordering::SeqCst);
+        }
+    }
+
+    fn after_push(&mut self) -> Sent<T> {
+        self.shared.sent.fetch_add(1, Ordering::Relaxed);
+        fence(Ordering::SeqCst);
+        if self.shared.rx_waiting.load(Ordering::SeqCst)
+            && let Some(t) = self.shared.rx_thread.get()
+        {
+            t.unpark();
+        }
+        Sent::Queued
+    }
+}
+
+impl<T> Drop for EdgeTx<T> {
+    fn drop(&mut self) {
+        self.shared.tx_closed.store(true, Ordering::SeqCst);
+        if let Some(t) = self.shared.rx_thread.get() {
+            t.unpark();
+        }
+    }
+}
+
+impl<T> EdgeRx<T> {
+    /// Items waiting in the queue now.
+    pub fn len(&self) -> usize {
+        self.cons.occupied_len()
+    }
+
+    /// True when no item waits in the queue.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Takes the next item, waiting for one; `None` once the sender is gone and the queue is
+    /// drained.
+    pub fn recv(&mut self) -> Option<T> {
+        let _ = self.shared.rx_thread.set(thread::current());
+        let mut spins = 0u32;
+        loop {
+            if let Some(item) = self.cons.try_pop() {
+                self.after_pop();
+                return Some(item);
+            }
+            if self.shared.tx_closed.load(Ordering::SeqCst) {
+                // The sender may have pushed just before closing.
+                let last = self.cons.try_pop();
+                if last.is_some() {
+                    self.after_pop();
+                }
+                return last;
+            }
+            if spins < SPINS {
+                spins += 1;
+                std::hint::spin_loop();
+                continue;
+            }
+            self.shared.rx_waiting.store(true, Ordering::SeqCst);
+            fence(Ordering::SeqCst);
+            if self.cons.is_empty() && !self.shared.tx_closed.load(Ordering::SeqCst) {
+                thread::park_timeout(PARK_TIMEOUT);
+            }
+            self.shared.rx_waiting.store(false, Ordering::SeqCst);
+        }
+    }
+
+    fn after_pop(&mut self) {
+        fence(Ordering::SeqCst);
+        if self.shared.tx_waiting.load(Ordering::SeqCst)
+            && let Some(t) = self.shared.tx_thread.get()
+        {
+            t.unpark();
+        }
+    }
+}
+
+impl<T> Drop for EdgeRx<T> {
+    fn drop(&mut self) {
+        self.shared.rx_closed.store(true, Ordering::SeqCst);
+        if let Some(t) = self.shared.tx_thread.get() {
+            t.unpark();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blocking_edge_delivers_everything_in_order() {
+        let (mut tx, mut rx) = edge::<u64>(4, FullPolicy::Block);
+        let h = thread::spawn(move || {
+            for i in 0..100_000u64 {
+                assert!(matches!(tx.send(i), Sent::Queued));
+            }
+        });
+        let mut expect = 0u64;
+        while let Some(v) = rx.recv() {
+            assert_eq!(v, expect);
+            expect += 1;
+        }
+        h.join().unwrap();
+        assert_eq!(expect, 100_000);
+    }
+
+    #[test]
+    fn drop_newest_counts_exactly() {
+        let (mut tx, mut rx) = edge::<u32>(3, FullPolicy::DropNewest);
+        let mut dropped = 0;
+        for i in 0..10 {
+            if let Sent::Dropped(v) = tx.send(i) {
+                assert_eq!(v, i);
+                dropped += 1;
+            }
+        }
+        assert_eq!(dropped, 7);
+        assert_eq!(tx.stats().dropped_full(), 7);
+        assert_eq!(tx.stats().sent(), 3);
+        drop(tx);
+        let got: Vec<u32> = std::iter::from_fn(|| rx.recv()).collect();
+        assert_eq!(got, vec![0, 1, 2]);
+    }
+
+    #[test]
+    fn blocked_sender_is_released_when_receiver_goes() {
+        let (mut tx, rx) = edge::<u32>(1, FullPolicy::Block);
+        assert!(matches!(tx.send(1), Sent::Queued));
+        let h = thread::spawn(move || tx.send(2));
+        thread::sleep(Duration::from_millis(20));
+        drop(rx);
+        assert!(matches!(h.join().unwrap(), Sent::Closed(2)));
+    }
+}

@@ -1,0 +1,488 @@
+//! The runner: one source thread, N worker threads running the per-pulse stage chain, one sink
+//! thread that restores arrival order, and one navigation thread, joined by bounded edges.
+//!
+//! ```text
+//!            ┌─[edge 0]─> worker 0: stage 1 → stage 2 → … ─[edge]─┐
+//!  source ───┼─[edge 1]─> worker 1: stage 1 → stage 2 → … ─[edge]─┼─> sink (round-robin merge)
+//!     │      └─ …                                                  ┘
+//!     └─[nav channel]─> navigation consumer
+//! ```
+//!
+//! The source deals accepted pulses round-robin to the workers; each worker ends the outputs of
+//! one input with a `Done` marker; the sink reads the workers in the same round-robin order, so
+//! it sees pulses in arrival order without a reorder buffer and with bounded memory. A pulse
+//! dropped at the input edge does not advance the round-robin, which keeps the two sides in step.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread;
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::bounded;
+use serde::Serialize;
+
+use crate::config::FullPolicy;
+use crate::pipeline::edge::{EdgeRx, EdgeTx, Sent, edge};
+use crate::pipeline::registry::StageConfig;
+use crate::pipeline::stage::{Emitter, Stage, StageError};
+use crate::pipeline::telemetry::{LatencyHistogram, LatencySummary, StageReport, StageTelemetry};
+use crate::pulse::{Pulse, PulsePool};
+use crate::sink::PulseSink;
+use crate::source::{NavChunk, Source, SourceEvent};
+
+/// Drop reason counted when the input edge is full under the drop-newest policy.
+pub const INPUT_QUEUE_FULL: &str = "input_queue_full";
+
+/// Builds one worker's chain of stages (called once per worker thread).
+pub type StageFactory = Arc<dyn Fn() -> Vec<Box<dyn Stage>> + Send + Sync>;
+
+/// A consumer of navigation bytes, run on its own thread.
+pub trait NavConsumer: Send {
+    /// Takes one chunk of navigation bytes.
+    fn consume(&mut self, chunk: NavChunk);
+    /// Its report for `summary.json`.
+    fn report(&self) -> serde_json::Value;
+}
+
+/// How to run a pipeline.
+#[derive(Clone)]
+pub struct PipelineSpec {
+    /// Worker threads (at least 1).
+    pub workers: usize,
+    /// Capacity of every edge, pulses.
+    pub queue_capacity: usize,
+    /// Policy of the edges from the source into the workers.
+    pub input_policy: FullPolicy,
+    /// Builds each worker's stage chain.
+    pub stages: StageFactory,
+    /// Stage kind names, in order (for reports when no worker ran).
+    pub stage_names: Vec<&'static str>,
+}
+
+impl PipelineSpec {
+    /// A spec from configured stages. `workers == 0` means one per core less one (at least 1).
+    pub fn from_config(
+        workers: usize,
+        queue_capacity: usize,
+        input_policy: FullPolicy,
+        stages: Vec<StageConfig>,
+    ) -> Self {
+        let names = stages.iter().map(|s| s.kind()).collect();
+        let stages = Arc::new(stages);
+        PipelineSpec {
+            workers: resolve_workers(workers),
+            queue_capacity,
+            input_policy,
+            stages: Arc::new(move || stages.iter().map(|s| s.build()).collect()),
+            stage_names: names,
+        }
+    }
+}
+
+/// `0` → one worker per core less one for the source and sink threads, at least 1.
+pub fn resolve_workers(workers: usize) -> usize {
+    if workers > 0 {
+        return workers;
+    }
+    let cores = thread::available_parallelism().map_or(1, |n| n.get());
+    cores.saturating_sub(1).max(1)
+}
+
+/// Live counters of a running pipeline, for progress bars and QC.
+#[derive(Debug, Default)]
+pub struct LiveCounters {
+    /// Pulses produced by the source.
+    pub pulses_in: AtomicU64,
+    /// Pulses written by the sink.
+    pub pulses_out: AtomicU64,
+    /// Pulses dropped at the input edge.
+    pub input_dropped: AtomicU64,
+    /// Source progress, its own unit (bytes for files).
+    pub progress_done: AtomicU64,
+    /// Source progress total (0 when unknown).
+    pub progress_total: AtomicU64,
+}
+
+/// Controls of a run: the stop flag (set by SIGINT/SIGTERM) and live counters.
+#[derive(Clone, Default)]
+pub struct RunControl {
+    /// When set, the source stops reading; everything in flight is processed and flushed.
+    pub stop: Arc<AtomicBool>,
+    /// Live counters.
+    pub live: Arc<LiveCounters>,
+}
+
+/// Everything a run did, as written to `summary.json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct RunReport {
+    /// fwlidar version that produced the report.
+    pub fwlidar_version: String,
+    /// Worker threads used.
+    pub workers: usize,
+    /// Pulses the source produced.
+    pub pulses_in: u64,
+    /// Pulses written by the sink.
+    pub pulses_out: u64,
+    /// Pulses dropped, by `reason` (input edge) or `stage.reason`.
+    pub dropped: BTreeMap<String, u64>,
+    /// Sum of `dropped`.
+    pub dropped_total: u64,
+    /// Pulses rejected as errors by stages.
+    pub errors: u64,
+    /// Per-stage telemetry, merged over workers.
+    pub stages: Vec<StageReport>,
+    /// Time from arrival to the sink, per pulse.
+    pub end_to_end: LatencySummary,
+    /// The source's own report (e.g. bytes skipped in a damaged capture).
+    pub source: serde_json::Value,
+    /// The navigation consumer's report.
+    pub nav: serde_json::Value,
+    /// Pulses the pool ever allocated: the bound on pulse memory.
+    pub pool_allocations: u64,
+    /// True when the run was stopped before the source's end (signal).
+    pub stopped_early: bool,
+    /// The fatal error that ended the run, if any.
+    pub fatal: Option<String>,
+    /// Wall-clock time, seconds.
+    pub wall_time_s: f64,
+    /// Pulses written per second of wall time.
+    pub pulses_per_s: f64,
+}
+
+enum WorkerOut {
+    Pulse(Box<Pulse>),
+    Done,
+}
+
+fn nanos(d: Duration) -> u64 {
+    d.as_nanos().min(u64::MAX as u128) as u64
+}
+
+/// Runs `source` through the stages into `sink` until the source ends or `control.stop` is set.
+/// `on_tick` is called about ten times a second on the calling thread (progress bars).
+pub fn run(
+    spec: &PipelineSpec,
+    mut source: Box<dyn Source>,
+    mut sink: Box<dyn PulseSink>,
+    mut nav: Box<dyn NavConsumer>,
+    control: &RunControl,
+    mut on_tick: impl FnMut(&LiveCounters),
+) -> RunReport {
+    let started = Instant::now();
+    let workers = spec.workers.max(1);
+    let cap = spec.queue_capacity.max(2);
+    // Bound on pulses in flight: every edge full plus one in hand per thread.
+    let pool = PulsePool::new(workers * (2 * cap + 8) + 8);
+    let fatal: Arc<Mutex<Option<String>>> = Arc::new(Mutex::new(None));
+    let set_fatal = {
+        let fatal = fatal.clone();
+        let stop = control.stop.clone();
+        move |msg: String| {
+            let mut f = fatal.lock().unwrap_or_else(|e| e.into_inner());
+            if f.is_none() {
+                *f = Some(msg);
+            }
+            stop.store(true, Ordering::SeqCst);
+        }
+    };
+
+    let mut in_txs = Vec::with_capacity(workers);
+    let mut in_rxs = Vec::with_capacity(workers);
+    let mut out_txs = Vec::with_capacity(workers);
+    let mut out_rxs = Vec::with_capacity(workers);
+    for _ in 0..workers {
+        let (tx, rx) = edge::<Box<Pulse>>(cap, spec.input_policy);
+        in_txs.push(tx);
+        in_rxs.push(rx);
+        let (tx, rx) = edge::<WorkerOut>(cap, FullPolicy::Block);
+        out_txs.push(tx);
+        out_rxs.push(rx);
+    }
+    let (nav_tx, nav_rx) = bounded::<NavChunk>(4096);
+
+    thread::scope(|scope| {
+        // Navigation consumer.
+        let nav_thread = thread::Builder::new()
+            .name("nav".into())
+            .spawn_scoped(scope, move || {
+                for chunk in nav_rx.iter() {
+                    nav.consume(chunk);
+                }
+                nav.report()
+            })
+            .expect("spawn nav thread");
+
+        // Workers.
+        let mut worker_threads = Vec::with_capacity(workers);
+        for (i, (rx, tx)) in in_rxs.into_iter().zip(out_txs).enumerate() {
+            let stages = (spec.stages)();
+            let pool = pool.clone();
+            let set_fatal = set_fatal.clone();
+            worker_threads.push(
+                thread::Builder::new()
+                    .name(format!("worker-{i}"))
+                    .spawn_scoped(scope, move || worker(rx, tx, stages, &pool, &set_fatal))
+                    .expect("spawn worker thread"),
+            );
+        }
+
+        // Sink: round-robin merge restores arrival order.
+        let sink_thread = {
+            let pool = pool.clone();
+            let live = control.live.clone();
+            let set_fatal = set_fatal.clone();
+            thread::Builder::new()
+                .name("sink".into())
+                .spawn_scoped(scope, move || {
+                    let mut e2e = LatencyHistogram::default();
+                    let mut finished = vec![false; out_rxs.len()];
+                    let mut k = 0usize;
+                    let mut failed = false;
+                    while !finished.iter().all(|f| *f) {
+                        if finished[k] {
+                            k = (k + 1) % out_rxs.len();
+                            continue;
+                        }
+                        match out_rxs[k].recv() {
+                            Some(WorkerOut::Pulse(p)) => {
+                                if !failed {
+                                    if let Err(e) = sink.write(&p) {
+                                        failed = true;
+                                        set_fatal(format!("sink `{}`: {e}", sink.name()));
+                                    } else {
+                                        e2e.record(nanos(p.arrived.elapsed()));
+                                        live.pulses_out.fetch_add(1, Ordering::Relaxed);
+                                    }
+                                }
+                                pool.give(p);
+                            }
+                            Some(WorkerOut::Done) => k = (k + 1) % out_rxs.len(),
+                            None => {
+                                finished[k] = true;
+                                k = (k + 1) % out_rxs.len();
+                            }
+                        }
+                    }
+                    if let Err(e) = sink.flush() {
+                        set_fatal(format!("sink `{}`: {e}", sink.name()));
+                    }
+                    e2e
+                })
+                .expect("spawn sink thread")
+        };
+
+        // Source, on this scope's own thread.
+        let source_thread = {
+            let pool = pool.clone();
+            let control = control.clone();
+            let set_fatal = set_fatal.clone();
+            thread::Builder::new()
+                .name("source".into())
+                .spawn_scoped(scope, move || {
+                    let live = &control.live;
+                    let mut stopped_early = false;
+                    let mut k = 0usize;
+                    let mut in_txs = in_txs;
+                    loop {
+                        if control.stop.load(Ordering::Relaxed) {
+                            stopped_early = true;
+                            break;
+                        }
+                        let ev = source.next(&pool);
+                        if let Some((done, total)) = source.progress() {
+                            live.progress_done.store(done, Ordering::Relaxed);
+                            live.progress_total.store(total, Ordering::Relaxed);
+                        }
+                        match ev {
+                            Ok(SourceEvent::Pulse(mut p)) => {
+                                live.pulses_in.fetch_add(1, Ordering::Relaxed);
+                                p.seq = live.pulses_in.load(Ordering::Relaxed) - 1;
+                                match in_txs[k].send(p) {
+                                    Sent::Queued => k = (k + 1) % in_txs.len(),
+                                    Sent::Dropped(p) => {
+                                        live.input_dropped.fetch_add(1, Ordering::Relaxed);
+                                        pool.give(p);
+                                    }
+                                    Sent::Closed(p) => {
+                                        pool.give(p);
+                                        break;
+                                    }
+                                }
+                            }
+                            Ok(SourceEvent::Nav(chunk)) => {
+                                if nav_tx.send(chunk).is_err() {
+                                    break;
+                                }
+                            }
+                            Ok(SourceEvent::End) => break,
+                            Err(e) => {
+                                set_fatal(format!("source `{}`: {e}", source.name()));
+                                break;
+                            }
+                        }
+                    }
+                    in_txs.clear();
+                    drop(nav_tx);
+                    (stopped_early, source.report())
+                })
+                .expect("spawn source thread")
+        };
+
+        while !(source_thread.is_finished() && sink_thread.is_finished()) {
+            on_tick(&control.live);
+            thread::sleep(Duration::from_millis(100));
+        }
+        on_tick(&control.live);
+
+        let (stopped_early, source_report) = source_thread.join().expect("source thread");
+        let e2e = sink_thread.join().expect("sink thread");
+        let nav_report = nav_thread.join().expect("nav thread");
+        let mut stages: Vec<StageTelemetry> = spec
+            .stage_names
+            .iter()
+            .map(|n| StageTelemetry::new(n))
+            .collect();
+        for w in worker_threads {
+            let tel = w.join().expect("worker thread");
+            if stages.len() != tel.len() {
+                stages = tel.iter().map(|t| StageTelemetry::new(t.name)).collect();
+            }
+            for (acc, t) in stages.iter_mut().zip(&tel) {
+                acc.merge(t);
+            }
+        }
+
+        let live = &control.live;
+        let mut dropped = BTreeMap::new();
+        let input_dropped = live.input_dropped.load(Ordering::Relaxed);
+        if input_dropped > 0 {
+            dropped.insert(INPUT_QUEUE_FULL.to_string(), input_dropped);
+        }
+        let mut errors = 0;
+        for s in &stages {
+            errors += s.errors;
+            for (r, c) in s.dropped.iter() {
+                *dropped.entry(format!("{}.{r}", s.name)).or_insert(0) += c;
+            }
+        }
+        let wall = started.elapsed().as_secs_f64();
+        let pulses_out = live.pulses_out.load(Ordering::Relaxed);
+        RunReport {
+            fwlidar_version: env!("CARGO_PKG_VERSION").to_string(),
+            workers,
+            pulses_in: live.pulses_in.load(Ordering::Relaxed),
+            pulses_out,
+            dropped_total: dropped.values().sum(),
+            dropped,
+            errors,
+            stages: stages.iter().map(|s| s.report()).collect(),
+            end_to_end: e2e.summary(),
+            source: source_report,
+            nav: nav_report,
+            pool_allocations: pool.allocated(),
+            stopped_early,
+            fatal: fatal.lock().unwrap_or_else(|e| e.into_inner()).clone(),
+            wall_time_s: wall,
+            pulses_per_s: if wall > 0.0 {
+                pulses_out as f64 / wall
+            } else {
+                0.0
+            },
+        }
+    })
+}
+
+/// One worker thread: runs every pulse it receives through the whole chain.
+fn worker(
+    mut rx: EdgeRx<Box<Pulse>>,
+    mut tx: EdgeTx<WorkerOut>,
+    mut stages: Vec<Box<dyn Stage>>,
+    pool: &PulsePool,
+    set_fatal: &dyn Fn(String),
+) -> Vec<StageTelemetry> {
+    let mut tel: Vec<StageTelemetry> = stages.iter().map(|s| StageTelemetry::new(s.name())).collect();
+    let mut cur: Vec<Box<Pulse>> = Vec::with_capacity(16);
+    let mut next: Vec<Box<Pulse>> = Vec::with_capacity(16);
+    let mut ok = true;
+    while let Some(p) = rx.recv() {
+        cur.push(p);
+        if let Err(e) = run_chain(&mut stages, &mut tel, &mut cur, &mut next, pool, 0) {
+            set_fatal(e.to_string());
+            ok = false;
+        }
+        if !forward(&mut tx, &mut cur, pool) || !ok {
+            break;
+        }
+        if let Sent::Closed(_) = tx.send(WorkerOut::Done) {
+            break;
+        }
+    }
+    // End of stream: flush each stage in order, running what it emits through the rest.
+    if ok {
+        for j in 0..stages.len() {
+            let t = &mut tel[j];
+            let mut em = Emitter::new(&mut cur, pool, &mut t.dropped, &mut t.errors);
+            let flushed = stages[j].flush(&mut em);
+            t.sent += cur.len() as u64;
+            let res = flushed.and_then(|()| {
+                run_chain(&mut stages, &mut tel, &mut cur, &mut next, pool, j + 1)
+            });
+            if let Err(e) = res {
+                set_fatal(e.to_string());
+                break;
+            }
+            forward(&mut tx, &mut cur, pool);
+        }
+    }
+    for p in cur.drain(..) {
+        pool.give(p);
+    }
+    // Anything still queued for us goes back to the pool.
+    drop(rx);
+    tel
+}
+
+/// Sends every pulse in `cur` to the sink; false when the sink is gone.
+fn forward(tx: &mut EdgeTx<WorkerOut>, cur: &mut Vec<Box<Pulse>>, pool: &PulsePool) -> bool {
+    let mut open = true;
+    for p in cur.drain(..) {
+        if !open {
+            pool.give(p);
+            continue;
+        }
+        if let Sent::Closed(WorkerOut::Pulse(p)) = tx.send(WorkerOut::Pulse(p)) {
+            pool.give(p);
+            open = false;
+        }
+    }
+    open
+}
+
+/// Runs the pulses in `cur` through stages `from..`, leaving the survivors in `cur`.
+fn run_chain(
+    stages: &mut [Box<dyn Stage>],
+    tel: &mut [StageTelemetry],
+    cur: &mut Vec<Box<Pulse>>,
+    next: &mut Vec<Box<Pulse>>,
+    pool: &PulsePool,
+    from: usize,
+) -> Result<(), StageError> {
+    for j in from..stages.len() {
+        let t = &mut tel[j];
+        for p in cur.drain(..) {
+            t.received += 1;
+            let arrived = p.arrived;
+            let before = next.len();
+            let start = Instant::now();
+            let mut em = Emitter::new(next, pool, &mut t.dropped, &mut t.errors);
+            stages[j].process(p, &mut em)?;
+            let end = Instant::now();
+            t.sent += (next.len() - before) as u64;
+            t.service.record(nanos(end - start));
+            t.since_arrival.record(nanos(end.saturating_duration_since(arrived)));
+        }
+        std::mem::swap(cur, next);
+    }
+    Ok(())
+}
