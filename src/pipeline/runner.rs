@@ -20,6 +20,7 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::bounded;
+use crossbeam_utils::CachePadded;
 use serde::Serialize;
 
 use crate::config::FullPolicy;
@@ -90,18 +91,20 @@ pub fn resolve_workers(workers: usize) -> usize {
 }
 
 /// Live counters of a running pipeline, for progress bars and QC.
+///
+/// Each counter has one writer thread and sits on its own cache line.
 #[derive(Debug, Default)]
 pub struct LiveCounters {
     /// Pulses produced by the source.
-    pub pulses_in: AtomicU64,
+    pub pulses_in: CachePadded<AtomicU64>,
     /// Pulses written by the sink.
-    pub pulses_out: AtomicU64,
+    pub pulses_out: CachePadded<AtomicU64>,
     /// Pulses dropped at the input edge.
-    pub input_dropped: AtomicU64,
+    pub input_dropped: CachePadded<AtomicU64>,
     /// Source progress, its own unit (bytes for files).
-    pub progress_done: AtomicU64,
+    pub progress_done: CachePadded<AtomicU64>,
     /// Source progress total (0 when unknown).
-    pub progress_total: AtomicU64,
+    pub progress_total: CachePadded<AtomicU64>,
 }
 
 /// Controls of a run: the stop flag (set by SIGINT/SIGTERM) and live counters.
@@ -150,8 +153,11 @@ pub struct RunReport {
     pub pulses_per_s: f64,
 }
 
+/// What a worker sends to the sink: the outputs of one input pulse, the last of them marked
+/// (`Last`), or `Done` alone when the input produced no output.
 enum WorkerOut {
     Pulse(Box<Pulse>),
+    Last(Box<Pulse>),
     Done,
 }
 
@@ -200,6 +206,8 @@ pub fn run(
         out_rxs.push(rx);
     }
     let (nav_tx, nav_rx) = bounded::<NavChunk>(4096);
+    // Disconnected when the sink thread ends: wakes the ticking caller at once.
+    let (sink_alive_tx, sink_alive_rx) = bounded::<()>(0);
 
     thread::scope(|scope| {
         // Navigation consumer.
@@ -235,6 +243,7 @@ pub fn run(
             thread::Builder::new()
                 .name("sink".into())
                 .spawn_scoped(scope, move || {
+                    let _alive = sink_alive_tx;
                     let mut e2e = LatencyHistogram::default();
                     let mut finished = vec![false; out_rxs.len()];
                     let mut k = 0usize;
@@ -244,27 +253,35 @@ pub fn run(
                             k = (k + 1) % out_rxs.len();
                             continue;
                         }
-                        match out_rxs[k].recv() {
-                            Some(WorkerOut::Pulse(p)) => {
-                                if !failed {
-                                    if let Err(e) = sink.write(&p) {
-                                        failed = true;
-                                        set_fatal(format!("sink `{}`: {e}", sink.name()));
-                                    } else {
-                                        e2e.record(nanos(p.arrived.elapsed()));
-                                        live.pulses_out.fetch_add(1, Ordering::Relaxed);
-                                    }
-                                }
-                                pool.give(p);
+                        let (p, last) = match out_rxs[k].recv() {
+                            Some(WorkerOut::Pulse(p)) => (p, false),
+                            Some(WorkerOut::Last(p)) => (p, true),
+                            Some(WorkerOut::Done) => {
+                                k = (k + 1) % out_rxs.len();
+                                continue;
                             }
-                            Some(WorkerOut::Done) => k = (k + 1) % out_rxs.len(),
                             None => {
                                 finished[k] = true;
                                 k = (k + 1) % out_rxs.len();
+                                continue;
+                            }
+                        };
+                        if !failed {
+                            if let Err(e) = sink.write(&p) {
+                                failed = true;
+                                set_fatal(format!("sink `{}`: {e}", sink.name()));
+                            } else {
+                                e2e.record(nanos(p.arrived.elapsed()));
+                                let n = live.pulses_out.load(Ordering::Relaxed);
+                                live.pulses_out.store(n + 1, Ordering::Relaxed);
                             }
                         }
+                        pool.give(p);
+                        if last {
+                            k = (k + 1) % out_rxs.len();
+                        }
                     }
-                    if let Err(e) = sink.flush() {
+                    if let Err(e) = sink.finish() {
                         set_fatal(format!("sink `{}`: {e}", sink.name()));
                     }
                     e2e
@@ -296,8 +313,8 @@ pub fn run(
                         }
                         match ev {
                             Ok(SourceEvent::Pulse(mut p)) => {
-                                live.pulses_in.fetch_add(1, Ordering::Relaxed);
-                                p.seq = live.pulses_in.load(Ordering::Relaxed) - 1;
+                                p.seq = live.pulses_in.load(Ordering::Relaxed);
+                                live.pulses_in.store(p.seq + 1, Ordering::Relaxed);
                                 match in_txs[k].send(p) {
                                     Sent::Queued => k = (k + 1) % in_txs.len(),
                                     Sent::Dropped(p) => {
@@ -331,7 +348,7 @@ pub fn run(
 
         while !(source_thread.is_finished() && sink_thread.is_finished()) {
             on_tick(&control.live);
-            thread::sleep(Duration::from_millis(100));
+            let _ = sink_alive_rx.recv_timeout(Duration::from_millis(100));
         }
         on_tick(&control.live);
 
@@ -411,10 +428,7 @@ fn worker(
             set_fatal(e.to_string());
             ok = false;
         }
-        if !forward(&mut tx, &mut cur, pool) || !ok {
-            break;
-        }
-        if let Sent::Closed(_) = tx.send(WorkerOut::Done) {
+        if !forward(&mut tx, &mut cur, pool, true) || !ok {
             break;
         }
     }
@@ -432,7 +446,7 @@ fn worker(
                 set_fatal(e.to_string());
                 break;
             }
-            forward(&mut tx, &mut cur, pool);
+            forward(&mut tx, &mut cur, pool, false);
         }
     }
     for p in cur.drain(..) {
@@ -443,18 +457,33 @@ fn worker(
     tel
 }
 
-/// Sends every pulse in `cur` to the sink; false when the sink is gone.
-fn forward(tx: &mut EdgeTx<WorkerOut>, cur: &mut Vec<Box<Pulse>>, pool: &PulsePool) -> bool {
+/// Sends every pulse in `cur` to the sink; with `end_group`, marks the end of one input's
+/// outputs (the last pulse as `Last`, or a lone `Done`). False when the sink is gone.
+fn forward(
+    tx: &mut EdgeTx<WorkerOut>,
+    cur: &mut Vec<Box<Pulse>>,
+    pool: &PulsePool,
+    end_group: bool,
+) -> bool {
+    let n = cur.len();
     let mut open = true;
-    for p in cur.drain(..) {
+    for (i, p) in cur.drain(..).enumerate() {
         if !open {
             pool.give(p);
             continue;
         }
-        if let Sent::Closed(WorkerOut::Pulse(p)) = tx.send(WorkerOut::Pulse(p)) {
+        let msg = if end_group && i + 1 == n {
+            WorkerOut::Last(p)
+        } else {
+            WorkerOut::Pulse(p)
+        };
+        if let Sent::Closed(WorkerOut::Pulse(p) | WorkerOut::Last(p)) = tx.send(msg) {
             pool.give(p);
             open = false;
         }
+    }
+    if open && end_group && n == 0 && matches!(tx.send(WorkerOut::Done), Sent::Closed(_)) {
+        open = false;
     }
     open
 }

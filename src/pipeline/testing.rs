@@ -54,12 +54,25 @@ pub fn run_stage(
 pub struct SyntheticSource {
     count: u64,
     produced: u64,
+    with_samples: bool,
 }
 
 impl SyntheticSource {
     /// A source of `count` pulses.
     pub fn new(count: u64) -> Self {
-        SyntheticSource { count, produced: 0 }
+        SyntheticSource {
+            count,
+            produced: 0,
+            with_samples: true,
+        }
+    }
+
+    /// A source of `count` pulses without segments: measures the runtime alone.
+    pub fn empty(count: u64) -> Self {
+        SyntheticSource {
+            with_samples: false,
+            ..Self::new(count)
+        }
     }
 }
 
@@ -79,8 +92,10 @@ impl crate::source::Source for SyntheticSource {
         let mut p = pool.take();
         p.pulse_id = self.produced;
         p.gps_time = self.produced as f64 * 1e-5;
-        p.push_segment(SegmentKind::Outgoing, 0, -32.0, (0..64u16).map(|i| i % 50));
-        p.push_segment(SegmentKind::Return, 0, 6600.0, (0..256u16).map(|i| 10 + i % 7));
+        if self.with_samples {
+            p.push_segment(SegmentKind::Outgoing, 0, -32.0, (0..64u16).map(|i| i % 50));
+            p.push_segment(SegmentKind::Return, 0, 6600.0, (0..256u16).map(|i| 10 + i % 7));
+        }
         self.produced += 1;
         Ok(crate::source::SourceEvent::Pulse(p))
     }

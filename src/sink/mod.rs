@@ -1,7 +1,9 @@
 //! Sinks: where processed pulses go, in arrival order (processed waveforms now; voxel tiles and
 //! LAS returns as later issues land).
 
+pub mod atomic_file;
 pub mod nav_tally;
+pub mod waveform_csv;
 
 use crate::pulse::Pulse;
 
@@ -29,6 +31,12 @@ pub trait PulseSink: Send {
     /// Flushes everything written so far to the operating system; called at the end of the run
     /// (also on SIGINT/SIGTERM) and may be called periodically.
     fn flush(&mut self) -> Result<(), SinkError>;
+
+    /// Completes the outputs at the end of the run (also after SIGINT/SIGTERM): flushes and, for
+    /// files written under a temporary name, moves them into place. Default: `flush`.
+    fn finish(&mut self) -> Result<(), SinkError> {
+        self.flush()
+    }
 }
 
 /// Discards pulses (benchmarks, dry runs).
@@ -59,5 +67,8 @@ impl PulseSink for FanOut {
     }
     fn flush(&mut self) -> Result<(), SinkError> {
         self.0.iter_mut().try_for_each(|s| s.flush())
+    }
+    fn finish(&mut self) -> Result<(), SinkError> {
+        self.0.iter_mut().try_for_each(|s| s.finish())
     }
 }
