@@ -11,6 +11,9 @@
 //! pulses; per-pulse [`pipeline::Stage`]s run on worker threads; sinks write outputs in arrival
 //! order. See `docs/architecture.md` for the threads, queues and the stage contract.
 #![deny(missing_docs)]
+// Pulses travel as `Box<Pulse>` on purpose: a pooled pulse moves between threads by pointer,
+// its buffers never copied, so `Vec<Box<Pulse>>` is the right shape for emit buffers.
+#![allow(clippy::vec_box)]
 
 pub mod cli;
 pub mod config;

@@ -74,7 +74,10 @@ fn order_is_restored_across_workers_with_drops() {
         assert!(flushed.load(Ordering::SeqCst));
         assert_eq!(report.pulses_in, 20_000);
         assert_eq!(report.pulses_out, expect.len() as u64);
-        assert_eq!(report.dropped["picky.divisible"], 20_000 - expect.len() as u64);
+        assert_eq!(
+            report.dropped["picky.divisible"],
+            20_000 - expect.len() as u64
+        );
         assert_eq!(report.pulses_in, report.pulses_out + report.dropped_total);
         assert_eq!(report.stages.len(), 3);
         assert_eq!(report.stages[0].received, 20_000);
@@ -171,7 +174,10 @@ fn fatal_stage_error_stops_the_run_and_is_reported() {
     let fatal = report.fatal.expect("fatal reported");
     assert!(fatal.contains("calibration lost"), "{fatal}");
     assert!(report.pulses_in < 1_000_000);
-    assert!(flushed.load(Ordering::SeqCst), "sink flushed even after a fatal error");
+    assert!(
+        flushed.load(Ordering::SeqCst),
+        "sink flushed even after a fatal error"
+    );
 }
 
 #[test]

@@ -418,7 +418,10 @@ fn worker(
     pool: &PulsePool,
     set_fatal: &dyn Fn(String),
 ) -> Vec<StageTelemetry> {
-    let mut tel: Vec<StageTelemetry> = stages.iter().map(|s| StageTelemetry::new(s.name())).collect();
+    let mut tel: Vec<StageTelemetry> = stages
+        .iter()
+        .map(|s| StageTelemetry::new(s.name()))
+        .collect();
     let mut cur: Vec<Box<Pulse>> = Vec::with_capacity(16);
     let mut next: Vec<Box<Pulse>> = Vec::with_capacity(16);
     let mut ok = true;
@@ -439,9 +442,8 @@ fn worker(
             let mut em = Emitter::new(&mut cur, pool, &mut t.dropped, &mut t.errors);
             let flushed = stages[j].flush(&mut em);
             t.sent += cur.len() as u64;
-            let res = flushed.and_then(|()| {
-                run_chain(&mut stages, &mut tel, &mut cur, &mut next, pool, j + 1)
-            });
+            let res = flushed
+                .and_then(|()| run_chain(&mut stages, &mut tel, &mut cur, &mut next, pool, j + 1));
             if let Err(e) = res {
                 set_fatal(e.to_string());
                 break;
@@ -509,7 +511,8 @@ fn run_chain(
             let end = Instant::now();
             t.sent += (next.len() - before) as u64;
             t.service.record(nanos(end - start));
-            t.since_arrival.record(nanos(end.saturating_duration_since(arrived)));
+            t.since_arrival
+                .record(nanos(end.saturating_duration_since(arrived)));
         }
         std::mem::swap(cur, next);
     }

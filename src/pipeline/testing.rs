@@ -94,7 +94,12 @@ impl crate::source::Source for SyntheticSource {
         p.gps_time = self.produced as f64 * 1e-5;
         if self.with_samples {
             p.push_segment(SegmentKind::Outgoing, 0, -32.0, (0..64u16).map(|i| i % 50));
-            p.push_segment(SegmentKind::Return, 0, 6600.0, (0..256u16).map(|i| 10 + i % 7));
+            p.push_segment(
+                SegmentKind::Return,
+                0,
+                6600.0,
+                (0..256u16).map(|i| 10 + i % 7),
+            );
         }
         self.produced += 1;
         Ok(crate::source::SourceEvent::Pulse(p))

@@ -71,7 +71,9 @@ impl AtomicFile {
         let Some(w) = self.out.take() else {
             return Ok(());
         };
-        let file = w.into_inner().map_err(|e| io_err(&self.tmp, e.into_error()))?;
+        let file = w
+            .into_inner()
+            .map_err(|e| io_err(&self.tmp, e.into_error()))?;
         file.sync_all().map_err(|e| io_err(&self.tmp, e))?;
         drop(file);
         std::fs::rename(&self.tmp, &self.path).map_err(|e| io_err(&self.path, e))
@@ -81,9 +83,7 @@ impl AtomicFile {
 /// Writes `bytes` to `path` atomically (temporary file, sync, rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), SinkError> {
     let mut f = AtomicFile::create(path)?;
-    f.writer()?
-        .write_all(bytes)
-        .map_err(|e| io_err(path, e))?;
+    f.writer()?.write_all(bytes).map_err(|e| io_err(path, e))?;
     f.commit()
 }
 

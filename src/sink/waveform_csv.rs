@@ -131,16 +131,21 @@ mod tests {
     fn rows_line_up_between_the_two_files() {
         let dir = tempfile::tempdir().unwrap();
         let mut sink = WaveformCsvSink::create(dir.path()).unwrap();
-        let mut p = Pulse::default();
-        p.pulse_id = 42;
-        p.gain_v_per_dn = 0.5;
+        let mut p = Pulse {
+            pulse_id: 42,
+            gain_v_per_dn: 0.5,
+            ..Default::default()
+        };
         p.push_segment(SegmentKind::Outgoing, 0, -3.0, [2, 4]);
         p.push_segment(SegmentKind::Return, 1, 100.0, [1, 2, 3]);
         p.signal = vec![0.0, 1.0, 0.25, 0.5, 0.75];
         sink.write(&p).unwrap();
         p.signal.clear();
         sink.write(&p).unwrap();
-        assert!(!dir.path().join("pulses.csv").exists(), "appears only at finish");
+        assert!(
+            !dir.path().join("pulses.csv").exists(),
+            "appears only at finish"
+        );
         sink.finish().unwrap();
         let pulses = std::fs::read_to_string(dir.path().join("pulses.csv")).unwrap();
         let waves = std::fs::read_to_string(dir.path().join("waveforms.csv")).unwrap();
