@@ -35,7 +35,7 @@ impl Stage for Picky {
         if !self.delay.is_zero() {
             std::thread::sleep(self.delay);
         }
-        if self.every > 0 && p.pulse_id % self.every == 0 {
+        if self.every > 0 && p.pulse_id.is_multiple_of(self.every) {
             out.drop_pulse(p, "divisible");
         } else {
             out.emit(p);
@@ -69,7 +69,7 @@ fn order_is_restored_across_workers_with_drops() {
             |_| {},
         );
         let ids = ids.lock().unwrap();
-        let expect: Vec<u64> = (0..20_000).filter(|i| i % 7 != 0).collect();
+        let expect: Vec<u64> = (0..20_000u64).filter(|i| !i.is_multiple_of(7)).collect();
         assert_eq!(*ids, expect, "workers={workers}");
         assert!(flushed.load(Ordering::SeqCst));
         assert_eq!(report.pulses_in, 20_000);
