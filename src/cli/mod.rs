@@ -1,6 +1,116 @@
-//! The command line (clap): one file per subcommand.
+//! The command line (clap): one file per subcommand. Exit codes: 0 success, 1 the job failed
+//! (bad input file, I/O error, fatal stage error), 2 usage or configuration error, 130 stopped by
+//! a second SIGINT/SIGTERM.
+
+use clap::{Parser, Subcommand, ValueEnum};
+
+pub mod inspect;
+pub mod replay;
+pub mod simulate;
+pub mod validate;
+
+/// fwlidar — streaming processing of airborne full-waveform LiDAR.
+#[derive(Debug, Parser)]
+#[command(name = "fwlidar", version, about, long_about = None)]
+pub struct Cli {
+    /// Log format on stderr.
+    #[arg(long, value_enum, default_value_t = LogFormat::Human, global = true)]
+    pub log_format: LogFormat,
+    /// More log detail (-v debug, -vv trace); `RUST_LOG` overrides.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    pub verbose: u8,
+    /// The command.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Log output formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum LogFormat {
+    /// Human-readable lines.
+    Human,
+    /// One JSON object per line, for machines.
+    Json,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Replay a recorded capture through the processing chain into an output folder.
+    Replay(replay::ReplayArgs),
+    /// Simulate a scene into a capture file.
+    Simulate(simulate::SimulateArgs),
+    /// Check configuration files (run configs, sensor profiles, scenes); report every error.
+    Validate(validate::ValidateArgs),
+    /// Describe a capture: header, record counts, damage; optionally every pulse as JSON.
+    Inspect(inspect::InspectArgs),
+}
+
+/// A failure to report: the message and the exit code.
+#[derive(Debug)]
+pub struct Failure {
+    /// Exit code (1 job failed, 2 usage/configuration).
+    pub code: i32,
+    /// What to print after `error: `.
+    pub message: String,
+}
+
+impl Failure {
+    /// A failed job (exit 1).
+    pub fn job(message: impl std::fmt::Display) -> Self {
+        Failure {
+            code: 1,
+            message: message.to_string(),
+        }
+    }
+    /// A usage or configuration error (exit 2).
+    pub fn usage(message: impl std::fmt::Display) -> Self {
+        Failure {
+            code: 2,
+            message: message.to_string(),
+        }
+    }
+}
+
+fn init_logging(format: LogFormat, verbose: u8) {
+    use tracing_subscriber::EnvFilter;
+    let default = match verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    };
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false);
+    let _ = match format {
+        LogFormat::Human => builder.try_init(),
+        LogFormat::Json => builder.json().try_init(),
+    };
+}
 
 /// Runs the command line; returns the process exit code.
 pub fn main() -> i32 {
-    0
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) => {
+            let _ = e.print();
+            return if e.use_stderr() { 2 } else { 0 };
+        }
+    };
+    init_logging(cli.log_format, cli.verbose);
+    let result = match cli.command {
+        Command::Replay(a) => replay::run(a),
+        Command::Simulate(a) => simulate::run(a),
+        Command::Validate(a) => validate::run(a),
+        Command::Inspect(a) => inspect::run(a),
+    };
+    match result {
+        Ok(()) => 0,
+        Err(f) => {
+            eprintln!("error: {}", f.message);
+            f.code
+        }
+    }
 }

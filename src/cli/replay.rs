@@ -1,0 +1,220 @@
+//! `fwlidar replay`: a recorded capture through the processing chain into an output folder, with
+//! a progress bar, `summary.json`, and a one-screen summary at the end.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::cli::Failure;
+use crate::config::RunConfig;
+use crate::pipeline::runner::{LiveCounters, PipelineSpec};
+use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
+use crate::sink::atomic_file::write_atomic;
+use crate::sink::nav_tally::NavTally;
+use crate::sink::waveform_csv::WaveformCsvSink;
+use crate::sink::{FanOut, PulseSink};
+use crate::source::capture::CaptureSource;
+
+/// The sample replayed when no input is named.
+pub const DEFAULT_SAMPLE: &str = "replay/two_layer.fwcap";
+
+/// Arguments of `fwlidar replay`.
+#[derive(Debug, clap::Args)]
+pub struct ReplayArgs {
+    /// Capture file to replay.
+    #[arg(default_value = DEFAULT_SAMPLE)]
+    pub input: PathBuf,
+    /// Output folder (created if missing; files in it are replaced only by complete new ones).
+    #[arg(long, short)]
+    pub out: Option<PathBuf>,
+    /// Run configuration file (default: the embedded `config/replay.toml`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Worker threads for the per-pulse stages (overrides the configuration; 0 = automatic).
+    #[arg(long)]
+    pub workers: Option<usize>,
+    /// Do not draw a progress bar.
+    #[arg(long)]
+    pub no_progress: bool,
+}
+
+/// Registers SIGINT and SIGTERM: the first sets `control.stop` (clean shutdown, every sink
+/// flushed); a second one exits at once with code 130.
+pub fn install_signal_handlers(control: &RunControl) -> Result<(), Failure> {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    for sig in [SIGINT, SIGTERM] {
+        signal_hook::flag::register_conditional_shutdown(sig, 130, control.stop.clone())
+            .and_then(|_| signal_hook::flag::register(sig, control.stop.clone()))
+            .map_err(|e| Failure::job(format!("cannot install signal handler: {e}")))?;
+    }
+    Ok(())
+}
+
+/// Runs `fwlidar replay`.
+pub fn run(args: ReplayArgs) -> Result<(), Failure> {
+    let config: RunConfig = crate::config::load_run_config(args.config.as_deref())
+        .map_err(Failure::usage)?;
+    let out_dir = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from(&config.output.dir));
+    let source = CaptureSource::open(&args.input).map_err(Failure::job)?;
+    prepare_out_dir(&out_dir)?;
+
+    let p = &config.pipeline;
+    let spec = PipelineSpec::from_config(
+        args.workers.unwrap_or(p.workers),
+        p.queue_capacity,
+        p.input_edge,
+        p.stages.clone(),
+    );
+    let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
+    if config.output.waveforms {
+        sinks.push(Box::new(
+            WaveformCsvSink::create(&out_dir).map_err(Failure::job)?,
+        ));
+    }
+    let control = RunControl::default();
+    install_signal_handlers(&control)?;
+    tracing::info!(
+        input = %args.input.display(),
+        out = %out_dir.display(),
+        workers = spec.workers,
+        stages = ?spec.stage_names,
+        "replay started"
+    );
+
+    let bar = (!args.no_progress).then(|| {
+        let bar = ProgressBar::new(0);
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {wide_bar} {bytes}/{total_bytes} {msg}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.enable_steady_tick(Duration::from_millis(200));
+        bar
+    });
+    let tick = |live: &LiveCounters| {
+        if let Some(bar) = &bar {
+            bar.set_length(live.progress_total.load(Ordering::Relaxed));
+            bar.set_position(live.progress_done.load(Ordering::Relaxed));
+            bar.set_message(format!(
+                "{} pulses in, {} out",
+                live.pulses_in.load(Ordering::Relaxed),
+                live.pulses_out.load(Ordering::Relaxed)
+            ));
+        }
+    };
+    let report = run_pipeline(
+        &spec,
+        Box::new(source),
+        Box::new(FanOut(sinks)),
+        Box::new(NavTally::default()),
+        &control,
+        tick,
+    );
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+
+    let summary_path = out_dir.join("summary.json");
+    let json = serde_json::to_vec_pretty(&report)
+        .map_err(|e| Failure::job(format!("cannot encode summary: {e}")))?;
+    write_atomic(&summary_path, &json).map_err(Failure::job)?;
+    print_summary(&report, &args.input, &out_dir);
+    if let Some(f) = &report.fatal {
+        return Err(Failure::job(format!("replay of {} failed: {f}", args.input.display())));
+    }
+    if report.stopped_early {
+        tracing::warn!("replay stopped by signal; outputs hold what was processed until then");
+    }
+    Ok(())
+}
+
+fn prepare_out_dir(dir: &Path) -> Result<(), Failure> {
+    if dir.exists() && !dir.is_dir() {
+        return Err(Failure::job(format!(
+            "output folder {} exists and is not a folder",
+            dir.display()
+        )));
+    }
+    std::fs::create_dir_all(dir)
+        .map_err(|e| Failure::job(format!("cannot create output folder {}: {e}", dir.display())))
+}
+
+fn us(ns: u64) -> f64 {
+    ns as f64 / 1000.0
+}
+
+/// Prints the one-screen summary of a run to stdout.
+pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
+    println!();
+    println!("fwlidar replay  {}  ->  {}", input.display(), out.display());
+    println!(
+        "  pulses: {} in, {} out, {} dropped, {} errors{}",
+        r.pulses_in,
+        r.pulses_out,
+        r.dropped_total,
+        r.errors,
+        if r.stopped_early {
+            "  (stopped early by signal)"
+        } else {
+            ""
+        }
+    );
+    for (reason, n) in &r.dropped {
+        println!("    dropped {n:>10}  {reason}");
+    }
+    if let Some(skipped) = r.source.get("skipped") {
+        let bytes = skipped.get("bytes_skipped").and_then(|v| v.as_u64()).unwrap_or(0);
+        let tail = skipped
+            .get("truncated_tail_bytes")
+            .and_then(|v| v.as_u64())
+            .unwrap_or(0);
+        let bad = skipped.get("bad_checksums").and_then(|v| v.as_u64()).unwrap_or(0);
+        println!(
+            "  capture damage: {bytes} bytes skipped ({bad} bad checksums), {tail} bytes of truncated tail"
+        );
+    }
+    if let Some(ports) = r.nav.get("ports").and_then(|p| p.as_object()) {
+        for (port, v) in ports {
+            println!(
+                "  navigation port {port}: {} chunks, {} bytes",
+                v["chunks"], v["bytes"]
+            );
+        }
+    }
+    println!(
+        "  {:<14} {:>10} {:>10} {:>10} {:>10} {:>10}   (service time, µs)",
+        "stage", "received", "p50", "p99", "p99.9", "max"
+    );
+    for s in &r.stages {
+        println!(
+            "  {:<14} {:>10} {:>10.2} {:>10.2} {:>10.2} {:>10.2}",
+            s.name,
+            s.received,
+            us(s.service.p50_ns),
+            us(s.service.p99_ns),
+            us(s.service.p999_ns),
+            us(s.service.max_ns)
+        );
+    }
+    let e = &r.end_to_end;
+    println!(
+        "  end-to-end latency µs: p50 {:.1}  p99 {:.1}  p99.9 {:.1}  max {:.1}",
+        us(e.p50_ns),
+        us(e.p99_ns),
+        us(e.p999_ns),
+        us(e.max_ns)
+    );
+    println!(
+        "  {:.2} s wall, {:.0} pulses/s, {} workers; summary in {}",
+        r.wall_time_s,
+        r.pulses_per_s,
+        r.workers,
+        out.join("summary.json").display()
+    );
+}
