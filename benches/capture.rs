@@ -59,8 +59,12 @@ fn build_capture() -> (Vec<u8>, u64) {
     while w.bytes_written() < TARGET_BYTES {
         w.write_pulse(&pulse(i)).expect("frame");
         if i % 100 == 0 {
-            w.write_nav(1, i, b"$GPGGA,123519,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,*47\r\n")
-                .expect("nav");
+            w.write_nav(
+                1,
+                i,
+                b"$GPGGA,123519,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,*47\r\n",
+            )
+            .expect("nav");
         }
         i += 1;
     }
@@ -132,13 +136,17 @@ fn capture_read(c: &mut Criterion) {
     group.bench_function("write_frames/vec", |b| {
         b.iter(|| {
             sink.clear();
-            let mut w = CaptureWriter::from_writer(&mut sink, "bench", "", no_flush())
-                .expect("writer");
+            let mut w =
+                CaptureWriter::from_writer(&mut sink, "bench", "", no_flush()).expect("writer");
             for i in 0..frames {
                 w.write_pulse(&pulses[(i % 1000) as usize]).expect("frame");
                 if i % 100 == 0 {
-                    w.write_nav(1, i, b"$GPGGA,123519,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,*47\r\n")
-                        .expect("nav");
+                    w.write_nav(
+                        1,
+                        i,
+                        b"$GPGGA,123519,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,*47\r\n",
+                    )
+                    .expect("nav");
                 }
             }
             w.finish().expect("finish");

@@ -230,7 +230,6 @@ impl<R: Read> CaptureReader<R> {
     /// The next record, `None` at the end of the input. Damaged stretches are skipped and
     /// counted in [`skipped`](Self::skipped); only an I/O error is returned as `Err` (after which
     /// the reader returns `None`). Never panics, whatever the input.
-    #[allow(clippy::should_implement_trait)]
     pub fn next_record(&mut self) -> Option<Result<Record<'_>, CaptureError>> {
         if self.done {
             return None;
@@ -532,6 +531,42 @@ mod tests {
         fn read(&mut self, _: &mut [u8]) -> io::Result<usize> {
             Err(io::Error::other("disk on fire"))
         }
+    }
+
+    /// Hands out `good`, then fails.
+    struct FailAfter<'a>(&'a [u8]);
+    impl Read for FailAfter<'_> {
+        fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+            if self.0.is_empty() {
+                return Err(io::Error::other("cable pulled"));
+            }
+            let n = buf.len().min(self.0.len());
+            buf[..n].copy_from_slice(&self.0[..n]);
+            self.0 = &self.0[n..];
+            Ok(n)
+        }
+    }
+
+    #[test]
+    fn an_io_error_mid_stream_is_returned_once() {
+        let bytes = capture(5);
+        let cut = bytes.len() - 30;
+        let mut r = CaptureReader::new(FailAfter(&bytes[..cut]), "usb").unwrap();
+        let mut ok = 0;
+        let mut errs = Vec::new();
+        while let Some(rec) = r.next_record() {
+            match rec {
+                Ok(_) => ok += 1,
+                Err(e) => errs.push(e.to_string()),
+            }
+        }
+        assert_eq!(ok, 10, "records before the failure are returned");
+        assert_eq!(errs.len(), 1);
+        assert!(
+            errs[0].contains("usb") && errs[0].contains("cable pulled"),
+            "{errs:?}"
+        );
+        assert!(r.next_record().is_none());
     }
 
     #[test]
