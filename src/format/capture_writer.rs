@@ -438,6 +438,52 @@ mod tests {
     }
 
     #[test]
+    fn flushed_records_are_in_the_file_before_finish() {
+        let dir = tempfile::tempdir().unwrap();
+        let every = FlushPolicy {
+            every_records: 2,
+            every_ms: 0,
+            fsync: FsyncPolicy::OnFlush,
+        };
+        let path = dir.path().join("every2.fwc");
+        let mut w = CaptureWriter::create(&path, "h", every).unwrap();
+        let on_disk = |p: &Path| std::fs::metadata(p).unwrap().len();
+        assert_eq!(
+            on_disk(&path),
+            w.bytes_written(),
+            "header is flushed by create"
+        );
+        w.write_pulse(&pulse()).unwrap();
+        assert!(
+            on_disk(&path) < w.bytes_written(),
+            "one record stays buffered"
+        );
+        w.write_pulse(&pulse()).unwrap();
+        assert_eq!(on_disk(&path), w.bytes_written(), "second record flushes");
+        // dropping without finish (as a crash would) loses nothing already flushed
+        let flushed = w.bytes_written();
+        std::mem::forget(w);
+        assert_eq!(on_disk(&path), flushed);
+
+        let never = FlushPolicy {
+            every_records: 0,
+            every_ms: 0,
+            fsync: FsyncPolicy::Never,
+        };
+        let path = dir.path().join("never.fwc");
+        let mut w = CaptureWriter::create(&path, "h", never).unwrap();
+        let after_header = on_disk(&path);
+        for _ in 0..10 {
+            w.write_pulse(&pulse()).unwrap();
+        }
+        assert_eq!(on_disk(&path), after_header);
+        w.flush_if_due().unwrap();
+        assert_eq!(on_disk(&path), after_header);
+        w.flush().unwrap();
+        assert_eq!(on_disk(&path), w.bytes_written());
+    }
+
+    #[test]
     fn append_refuses_non_captures() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("not.fwc");
