@@ -1,1 +1,18 @@
-//! (module under construction)
+//! File formats fwlidar reads and writes: raw, byte-exact layers that validate as little as
+//! possible and never panic on input, below the checked domain types.
+//!
+//! - [`capture`]: the native capture container v1.0 (constants, errors, skip report, flush
+//!   policy); [`capture_reader`] and [`capture_writer`] read and write it.
+//! - [`frame`]: the digitizer frame and nav payloads inside capture records.
+//!
+//! Byte layouts are specified in `docs/formats.md`.
+
+pub mod capture;
+pub mod capture_reader;
+pub mod capture_writer;
+pub mod frame;
+
+pub use capture::{CaptureError, FlushPolicy, FsyncPolicy, RecordKind, SkipReport};
+pub use capture_reader::{CaptureReader, FrameRecord, Record};
+pub use capture_writer::CaptureWriter;
+pub use frame::FrameError;
