@@ -11,8 +11,10 @@ pub mod capture;
 pub mod capture_reader;
 pub mod capture_writer;
 pub mod frame;
+pub mod header;
 
 pub use capture::{CaptureError, FlushPolicy, FsyncPolicy, RecordKind, SkipReport};
 pub use capture_reader::{CaptureReader, FrameRecord, Record};
 pub use capture_writer::CaptureWriter;
 pub use frame::FrameError;
+pub use header::{CaptureHeader, CaptureMeta};

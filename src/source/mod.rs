@@ -1,6 +1,8 @@
 //! Sources: where pulses and navigation bytes come from (a recorded capture now; the network,
 //! serial ports, LAS and PulseWaves files as later issues land).
 
+pub mod capture;
+
 use crate::pulse::{Pulse, PulsePool};
 
 /// Raw navigation bytes as they came off a port, kept intact so that replay runs the very same
