@@ -28,9 +28,7 @@ fn cao_like_pulse() -> Pulse {
         SegmentKind::Return,
         0,
         6500.0,
-        (0..256).map(|i| {
-            (12.0 + g(i, 67.0, 40.0) + g(i, 167.0, 36.0) + ripple(i)).round() as u16
-        }),
+        (0..256).map(|i| (12.0 + g(i, 67.0, 40.0) + g(i, 167.0, 36.0) + ripple(i)).round() as u16),
     );
     p
 }
