@@ -15,9 +15,11 @@ fn cao_like_pulse() -> Pulse {
         a * (-0.5 * d * d).exp()
     };
     let ripple = |i: usize| 3.0 * ((i * 7919 % 13) as f64 / 6.0 - 1.0);
-    let mut p = Pulse::default();
-    p.sample_ns = 1.0;
-    p.gain_v_per_dn = 0.004;
+    let mut p = Pulse {
+        sample_ns: 1.0,
+        gain_v_per_dn: 0.004,
+        ..Pulse::default()
+    };
     p.push_segment(
         SegmentKind::Outgoing,
         0,

@@ -21,7 +21,6 @@ use nmea::FlightLine;
 
 /// One item of the simulated stream.
 #[derive(Debug)]
-#[allow(clippy::large_enum_variant)]
 pub enum SimItem {
     /// A digitized pulse (its `gps_time` is its emission time).
     Pulse(Pulse),

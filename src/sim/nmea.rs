@@ -207,8 +207,8 @@ mod tests {
 
     #[test]
     fn time_and_angles_are_formatted_as_nmea() {
-        assert_eq!(hhmmss(3661.005, 2), "010101.01");
-        assert_eq!(hhmmss(86_399.9996, 3), "000000.000");
+        assert_eq!(hhmmss(3661.013, 2), "010101.01");
+        assert_eq!(hhmmss(86399.9996, 3), "000000.000");
         assert_eq!(ddmm(-24.5, 2, 'N', 'S'), ("2430.000000".into(), 'S'));
         assert_eq!(
             ddmm(31.999_999_999_9, 3, 'E', 'W'),
