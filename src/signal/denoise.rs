@@ -1,10 +1,77 @@
 //! The denoise stage: digitizer counts to volts, baseline and noise level per pulse, the seed's
 //! level shift, and an FFT low-pass (seed default cut-off 0.2 GHz at 1 ns sampling).
+//!
+//! Per pulse and per segment (outgoing and returns alike), in this order:
+//!
+//! 1. **Baseline** (noise floor), estimated on the raw counts: the median of the first
+//!    [`DenoiseConfig::pretrigger_samples`] samples when the segment holds at least four times
+//!    that many samples; otherwise an *upper-clipped median*: the median of the segment, then
+//!    repeatedly the median of the samples not above `median + 3 × 1.4826 × MAD` (at most
+//!    [`CLIP_ITERATIONS`] rounds). Returns are positive-going, so clipping only the upper side
+//!    strips them while leaving the symmetric noise around the floor, whose median is unbiased
+//!    (a plain "median of the lower half" would sit half a noise amplitude below the floor).
+//! 2. **Counts to volts** (`offset_v + gain × counts`); with [`DenoiseConfig::level_shift`] the
+//!    baseline is subtracted *before* the FFT (the seed's level shift).
+//! 3. **Low-pass**: the segment is zero-padded to twice its length (so the FFT's circular
+//!    convolution does not wrap the end of the record onto its start), transformed with a real
+//!    FFT, every bin with frequency `k / (m × sample_ns)` GHz above the cut-off is zeroed
+//!    (`m` = padded length), transformed back and normalised by `m`. The zero padding is what
+//!    makes the level shift matter, exactly as in the seed: the recording's on/off edge is a
+//!    step from the pedestal to zero that rings (Gibbs) unless the pedestal was removed first.
+//! 4. Without the level shift the baseline is subtracted *after* filtering, so
+//!    [`Pulse::signal`] is always in volts above the noise floor.
+//! 5. **Noise figures** ([`Pulse::noise`]): `baseline_v` is the baseline of the return segments
+//!    (their sample-weighted mean; the outgoing segment's when the pulse has no return samples),
+//!    `noise_v` the mean of `|raw − baseline − smoothed|` over all return samples, in volts.
+//!    This is the seed's noise level; it measures the part of the noise above the cut-off only
+//!    (for white noise of standard deviation σ and cut-off fc below Nyquist fN it is about
+//!    `sqrt(2/π) × σ × sqrt(1 − fc/fN)`).
+//!
+//! Pulses the stage cannot use are dropped with a counted reason:
+//! `no_segments` (dropped), `segment_too_long` (dropped: longer than
+//! [`DenoiseConfig::max_samples`]), `cutoff_above_nyquist` (dropped: the pulse's sample interval
+//! puts the Nyquist frequency at or below the cut-off, so the filter would be the identity; a
+//! configuration/sensor mismatch, not bad data), `bad_digitizer_parameters` (rejected: a
+//! non-finite gain or offset, or a non-finite or non-positive sample interval) and
+//! `segment_out_of_bounds` (rejected: a segment indexes past the raw samples).
+//! A cut-off that is not a positive finite number makes every pulse meaningless: [`Denoise::new`]
+//! does not fail (the registry builds it infallibly), but [`Stage::process`] then returns a fatal
+//! [`StageError`]. Call [`DenoiseConfig::validate`] (or [`Denoise::try_new`]) to catch it early.
+//!
+//! Work per pulse is bounded (two FFTs of twice the segment length, a sort of at most
+//! `max_samples` counts and a fixed number of clipping rounds per segment) and, after the first
+//! pulse of each segment length, does not allocate: FFT plans are cached by length and every
+//! buffer is a field sized from `max_samples` when the stage is built.
 
+use std::sync::Arc;
+
+use realfft::num_complex::Complex;
+use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 use serde::{Deserialize, Serialize};
 
 use crate::pipeline::stage::{Emitter, Stage, StageError};
-use crate::pulse::Pulse;
+use crate::pulse::{Pulse, SegmentKind};
+
+/// Maximum number of upper-clipping rounds of the robust baseline estimate.
+pub const CLIP_ITERATIONS: usize = 5;
+
+/// Clipping threshold of the robust baseline estimate, in robust standard deviations
+/// (1.4826 × MAD).
+const CLIP_SIGMAS: f32 = 3.0;
+
+/// Scale from the median absolute deviation to the standard deviation of a normal distribution.
+const MAD_TO_SIGMA: f32 = 1.4826;
+
+/// Errors of the denoise configuration.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum DenoiseError {
+    /// The cut-off frequency is zero, negative or not a number.
+    #[error("cutoff_ghz must be a positive finite frequency in GHz, got {cutoff_ghz}")]
+    NonPositiveCutoff {
+        /// The configured cut-off, GHz.
+        cutoff_ghz: f64,
+    },
+}
 
 /// Configuration of the denoise stage (`type = "denoise"` in `[[pipeline.stages]]`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -53,20 +120,227 @@ impl Default for DenoiseConfig {
     }
 }
 
+impl DenoiseConfig {
+    /// Checks what can be checked without a pulse: the cut-off must be a positive finite
+    /// frequency. (Whether it lies below a pulse's Nyquist frequency depends on the pulse's
+    /// sample interval and is checked per pulse.)
+    pub fn validate(&self) -> Result<(), DenoiseError> {
+        if self.cutoff_ghz.is_finite() && self.cutoff_ghz > 0.0 {
+            Ok(())
+        } else {
+            Err(DenoiseError::NonPositiveCutoff {
+                cutoff_ghz: self.cutoff_ghz,
+            })
+        }
+    }
+}
+
+/// A forward/inverse real FFT pair planned for one padded length.
+struct Plan {
+    /// Real length of the transform (twice the segment length), samples.
+    len: usize,
+    forward: Arc<dyn RealToComplex<f32>>,
+    inverse: Arc<dyn ComplexToReal<f32>>,
+    /// Scratch length needed by either direction, complex values.
+    scratch_len: usize,
+}
+
+/// Baseline and noise sums of one filtered segment.
+struct SegmentResult {
+    /// Baseline, volts.
+    baseline_v: f32,
+    /// Sum of |raw − baseline − smoothed| over the segment, volts.
+    abs_residual_sum_v: f64,
+}
+
 /// The denoise stage.
 pub struct Denoise {
     config: DenoiseConfig,
+    planner: RealFftPlanner<f32>,
+    /// Plans cached by padded length (few distinct lengths per sensor: a linear search).
+    plans: Vec<Plan>,
+    /// Time-domain work buffer, `2 × max_samples` values (segment plus zero padding), volts.
+    time: Vec<f32>,
+    /// Spectrum work buffer, `max_samples + 1` bins.
+    spectrum: Vec<Complex<f32>>,
+    /// FFT scratch, grown (only) when a newly planned length needs more.
+    scratch: Vec<Complex<f32>>,
+    /// Sorted copy of a segment's counts for the baseline, `max_samples` values.
+    sorted: Vec<u16>,
+    /// Absolute deviations for the MAD, `max_samples` values, counts.
+    deviations: Vec<f32>,
 }
 
 impl Denoise {
-    /// Builds the stage (plans FFTs and sizes buffers once).
+    /// Builds the stage and sizes its buffers once for [`DenoiseConfig::max_samples`]. Never
+    /// fails: an invalid cut-off is reported as a fatal error by the first `process` call (see
+    /// [`Denoise::try_new`] for the checked constructor).
     pub fn new(config: DenoiseConfig) -> Self {
-        Denoise { config }
+        let max = config.max_samples;
+        Denoise {
+            planner: RealFftPlanner::new(),
+            plans: Vec::with_capacity(8),
+            time: vec![0.0; 2 * max],
+            spectrum: vec![Complex::new(0.0, 0.0); max + 1],
+            scratch: vec![Complex::new(0.0, 0.0); 2 * max],
+            sorted: vec![0; max],
+            deviations: vec![0.0; max],
+            config,
+        }
+    }
+
+    /// Builds the stage after [`DenoiseConfig::validate`].
+    pub fn try_new(config: DenoiseConfig) -> Result<Self, DenoiseError> {
+        config.validate()?;
+        Ok(Denoise::new(config))
     }
 
     /// The configuration in force.
     pub fn config(&self) -> &DenoiseConfig {
         &self.config
+    }
+
+    /// Capacities of the internal buffers and the number of cached plans (for the no-allocation
+    /// test).
+    #[cfg(test)]
+    fn buffer_capacities(&self) -> [usize; 6] {
+        [
+            self.time.capacity(),
+            self.spectrum.capacity(),
+            self.scratch.capacity(),
+            self.sorted.capacity(),
+            self.deviations.capacity(),
+            self.plans.capacity(),
+        ]
+    }
+
+    /// Index of the plan for padded length `len`, planning it on first use.
+    fn plan_index(&mut self, len: usize) -> usize {
+        if let Some(i) = self.plans.iter().position(|p| p.len == len) {
+            return i;
+        }
+        let forward = self.planner.plan_fft_forward(len);
+        let inverse = self.planner.plan_fft_inverse(len);
+        let scratch_len = forward.get_scratch_len().max(inverse.get_scratch_len());
+        if self.scratch.len() < scratch_len {
+            self.scratch.resize(scratch_len, Complex::new(0.0, 0.0));
+        }
+        self.plans.push(Plan {
+            len,
+            forward,
+            inverse,
+            scratch_len,
+        });
+        self.plans.len() - 1
+    }
+
+    /// Robust baseline of `counts` (non-empty, at most `max_samples` long), counts.
+    fn baseline_counts(&mut self, counts: &[u16]) -> f32 {
+        let p = self.config.pretrigger_samples;
+        if p > 0 && counts.len() >= p.saturating_mul(4) {
+            let s = &mut self.sorted[..p];
+            s.copy_from_slice(&counts[..p]);
+            s.sort_unstable();
+            return median_sorted(s);
+        }
+        let n = counts.len();
+        let s = &mut self.sorted[..n];
+        s.copy_from_slice(counts);
+        s.sort_unstable();
+        // The kept samples are always a prefix of the sorted counts (upper clipping only).
+        let mut kept = n;
+        let mut median = median_sorted(&s[..kept]);
+        for _ in 0..CLIP_ITERATIONS {
+            let dev = &mut self.deviations[..kept];
+            for (d, &c) in dev.iter_mut().zip(&s[..kept]) {
+                *d = (c as f32 - median).abs();
+            }
+            let mid = kept / 2;
+            let (_, &mut mad, _) = dev.select_nth_unstable_by(mid, f32::total_cmp);
+            let limit = median + CLIP_SIGMAS * MAD_TO_SIGMA * mad;
+            let new_kept = s[..kept].partition_point(|&c| c as f32 <= limit).max(1);
+            if new_kept == kept {
+                break;
+            }
+            kept = new_kept;
+            median = median_sorted(&s[..kept]);
+        }
+        median
+    }
+
+    /// Filters one non-empty segment of at most `max_samples` counts into `out` (same length,
+    /// volts above the baseline). `gain` in V/DN, `offset` in V, `sample_ns` in ns.
+    fn filter_segment(
+        &mut self,
+        counts: &[u16],
+        out: &mut [f32],
+        gain: f32,
+        offset: f32,
+        sample_ns: f64,
+    ) -> SegmentResult {
+        let n = counts.len();
+        let baseline_dn = self.baseline_counts(counts);
+        let baseline_v = offset + gain * baseline_dn;
+        let shift = if self.config.level_shift {
+            baseline_v
+        } else {
+            0.0
+        };
+        let m = 2 * n;
+        let plan_i = self.plan_index(m);
+        let plan = &self.plans[plan_i];
+
+        let time = &mut self.time[..m];
+        for (t, &c) in time[..n].iter_mut().zip(counts) {
+            *t = offset + gain * c as f32 - shift;
+        }
+        time[n..].fill(0.0);
+        let bins = m / 2 + 1;
+        let spectrum = &mut self.spectrum[..bins];
+        let scratch = &mut self.scratch[..plan.scratch_len];
+        plan.forward
+            .process_with_scratch(time, spectrum, scratch)
+            .expect("buffer lengths match the plan");
+
+        // Keep bin k while k / (m * sample_ns) <= cutoff_ghz.
+        let keep = (self.config.cutoff_ghz * m as f64 * sample_ns).floor();
+        let first_zeroed = if keep >= (bins - 1) as f64 {
+            bins
+        } else {
+            keep as usize + 1
+        };
+        spectrum[first_zeroed..].fill(Complex::new(0.0, 0.0));
+        // A real signal's DC and Nyquist bins are real; clear rounding residue so the inverse
+        // transform accepts them.
+        spectrum[0].im = 0.0;
+        spectrum[bins - 1].im = 0.0;
+        plan.inverse
+            .process_with_scratch(spectrum, time, scratch)
+            .expect("buffer lengths match the plan");
+
+        let scale = 1.0 / m as f32;
+        let post_shift = baseline_v - shift;
+        let mut abs_sum = 0.0f64;
+        for ((o, &t), &c) in out.iter_mut().zip(&time[..n]).zip(counts) {
+            let smoothed = t * scale - post_shift;
+            let raw = offset + gain * c as f32 - baseline_v;
+            abs_sum += (raw - smoothed).abs() as f64;
+            *o = smoothed;
+        }
+        SegmentResult {
+            baseline_v,
+            abs_residual_sum_v: abs_sum,
+        }
+    }
+}
+
+/// Median of sorted counts (mean of the two middle values for an even count).
+fn median_sorted(s: &[u16]) -> f32 {
+    let n = s.len();
+    if n % 2 == 1 {
+        s[n / 2] as f32
+    } else {
+        0.5 * (s[n / 2 - 1] as f32 + s[n / 2] as f32)
     }
 }
 
@@ -75,8 +349,450 @@ impl Stage for Denoise {
         "denoise"
     }
 
-    fn process(&mut self, pulse: Box<Pulse>, out: &mut Emitter<'_>) -> Result<(), StageError> {
+    fn process(&mut self, mut pulse: Box<Pulse>, out: &mut Emitter<'_>) -> Result<(), StageError> {
+        if let Err(e) = self.config.validate() {
+            out.drop_pulse(pulse, "invalid_cutoff");
+            return Err(StageError::Fatal {
+                stage: "denoise",
+                message: e.to_string(),
+            });
+        }
+        if pulse.segments.is_empty() {
+            out.drop_pulse(pulse, "no_segments");
+            return Ok(());
+        }
+        let sample_ns = pulse.sample_ns;
+        if !pulse.gain_v_per_dn.is_finite()
+            || !pulse.offset_v.is_finite()
+            || !sample_ns.is_finite()
+            || sample_ns <= 0.0
+        {
+            out.reject(pulse, "bad_digitizer_parameters");
+            return Ok(());
+        }
+        if self.config.cutoff_ghz * sample_ns >= 0.5 {
+            out.drop_pulse(pulse, "cutoff_above_nyquist");
+            return Ok(());
+        }
+        let n_raw = pulse.raw.len();
+        if pulse
+            .segments
+            .iter()
+            .any(|s| s.first as usize + s.len as usize > n_raw)
+        {
+            out.reject(pulse, "segment_out_of_bounds");
+            return Ok(());
+        }
+        if pulse
+            .segments
+            .iter()
+            .any(|s| s.len as usize > self.config.max_samples)
+        {
+            out.drop_pulse(pulse, "segment_too_long");
+            return Ok(());
+        }
+
+        let gain = pulse.gain_v_per_dn;
+        let offset = pulse.offset_v;
+        let p = &mut *pulse;
+        p.signal.clear();
+        p.signal.resize(n_raw, 0.0);
+        let mut return_samples = 0usize;
+        let mut return_baseline_sum = 0.0f64;
+        let mut return_abs_sum = 0.0f64;
+        let mut outgoing_baseline = None;
+        for seg in &p.segments {
+            if seg.len == 0 {
+                continue;
+            }
+            let r = seg.range();
+            let res =
+                self.filter_segment(&p.raw[r.clone()], &mut p.signal[r], gain, offset, sample_ns);
+            match seg.kind {
+                SegmentKind::Return => {
+                    return_samples += seg.len as usize;
+                    return_baseline_sum += res.baseline_v as f64 * seg.len as f64;
+                    return_abs_sum += res.abs_residual_sum_v;
+                }
+                SegmentKind::Outgoing => {
+                    outgoing_baseline.get_or_insert(res.baseline_v);
+                }
+            }
+        }
+        p.noise = if return_samples > 0 {
+            crate::pulse::NoiseEstimate {
+                baseline_v: (return_baseline_sum / return_samples as f64) as f32,
+                noise_v: (return_abs_sum / return_samples as f64) as f32,
+            }
+        } else {
+            crate::pulse::NoiseEstimate {
+                baseline_v: outgoing_baseline.unwrap_or(0.0),
+                noise_v: 0.0,
+            }
+        };
         out.emit(pulse);
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::testing::run_stage;
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// A pulse with one return segment holding `values` (counts, rounded and clamped to u16).
+    fn pulse_with_return(values: &[f64]) -> Pulse {
+        let mut p = Pulse::default();
+        p.push_segment(
+            SegmentKind::Return,
+            0,
+            0.0,
+            values.iter().map(|v| v.round().clamp(0.0, 65535.0) as u16),
+        );
+        p
+    }
+
+    fn denoise_one(config: DenoiseConfig, pulse: Pulse) -> Box<Pulse> {
+        let mut stage = Denoise::new(config);
+        let mut run = run_stage(&mut stage, [pulse]).unwrap();
+        assert_eq!(run.emitted.len(), 1, "dropped: {:?}", run.dropped);
+        run.emitted.pop().unwrap()
+    }
+
+    /// Amplitude of a sinusoid of `period` samples fitted over `y[range]` (the range must hold a
+    /// whole number of periods), by projection after removing the mean.
+    fn sine_amplitude(y: &[f32], range: std::ops::Range<usize>, period: f64) -> f64 {
+        let n = range.len() as f64;
+        let mean = y[range.clone()].iter().map(|&v| v as f64).sum::<f64>() / n;
+        let (mut s, mut c) = (0.0, 0.0);
+        for i in range {
+            let ph = 2.0 * std::f64::consts::PI * i as f64 / period;
+            s += (y[i] as f64 - mean) * ph.sin();
+            c += (y[i] as f64 - mean) * ph.cos();
+        }
+        2.0 / n * s.hypot(c)
+    }
+
+    fn sine(n: usize, period: f64, amplitude: f64, dc: f64) -> Vec<f64> {
+        (0..n)
+            .map(|i| dc + amplitude * (2.0 * std::f64::consts::PI * i as f64 / period).sin())
+            .collect()
+    }
+
+    #[test]
+    fn sinusoid_below_cutoff_passes_with_its_amplitude() {
+        // 0.05 GHz at 1 ns: period 20 samples, well inside the 0.2 GHz pass band.
+        let out = denoise_one(
+            DenoiseConfig::default(),
+            pulse_with_return(&sine(1024, 20.0, 1000.0, 2000.0)),
+        );
+        let a = sine_amplitude(&out.signal, 256..756, 20.0);
+        assert!((a / 1000.0 - 1.0).abs() < 0.01, "amplitude {a}");
+    }
+
+    #[test]
+    fn sinusoid_above_cutoff_is_removed() {
+        // 0.3 GHz at 1 ns: period 10/3 samples, above the 0.2 GHz cut-off.
+        let out = denoise_one(
+            DenoiseConfig::default(),
+            pulse_with_return(&sine(1024, 10.0 / 3.0, 1000.0, 2000.0)),
+        );
+        let a = sine_amplitude(&out.signal, 256..756, 10.0 / 3.0);
+        assert!(a < 10.0, "residual amplitude {a} of 1000");
+        let mean = out.signal[256..756].iter().sum::<f32>() / 500.0;
+        let max_dev = out.signal[256..756]
+            .iter()
+            .map(|v| (v - mean).abs())
+            .fold(0.0, f32::max);
+        assert!(max_dev < 10.0, "residual {max_dev} of 1000");
+    }
+
+    #[test]
+    fn white_noise_is_reduced_by_the_square_root_of_the_kept_band() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let values: Vec<f64> = (0..4096)
+            .map(|_| 1000.0 + rng.random_range(-100.0..=100.0))
+            .collect();
+        let out = denoise_one(DenoiseConfig::default(), pulse_with_return(&values));
+        let std = |v: &mut dyn Iterator<Item = f64>| {
+            let v: Vec<f64> = v.collect();
+            let m = v.iter().sum::<f64>() / v.len() as f64;
+            (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / v.len() as f64).sqrt()
+        };
+        let before = std(&mut values[512..3584].iter().copied());
+        let after = std(&mut out.signal[512..3584].iter().map(|&v| v as f64));
+        let ratio = after / before;
+        let expected = (0.2f64 / 0.5).sqrt();
+        assert!(
+            (ratio - expected).abs() < 0.06,
+            "ratio {ratio}, expected about {expected}"
+        );
+    }
+
+    /// Peak position of `y`, samples: the vertex of the parabola through the logarithms of the
+    /// largest sample and its neighbours (exact for a sampled Gaussian).
+    fn gaussian_peak<T: Copy + Into<f64>>(y: &[T]) -> f64 {
+        let k = (1..y.len() - 1)
+            .max_by(|&a, &b| y[a].into().total_cmp(&y[b].into()))
+            .unwrap();
+        let (l, c, r) = (y[k - 1].into().ln(), y[k].into().ln(), y[k + 1].into().ln());
+        k as f64 + 0.5 * (l - r) / (l - 2.0 * c + r)
+    }
+
+    #[test]
+    fn gaussian_return_keeps_its_position() {
+        for &(mu, sigma) in &[(100.0, 2.0), (100.25, 2.0), (100.5, 1.5), (120.8, 3.0)] {
+            let clean: Vec<f64> = (0..256)
+                .map(|i| {
+                    let d = (i as f64 - mu) / sigma;
+                    3000.0 * (-0.5 * d * d).exp()
+                })
+                .collect();
+            let values: Vec<f64> = clean.iter().map(|v| v + 500.0).collect();
+            let out = denoise_one(DenoiseConfig::default(), pulse_with_return(&values));
+            let before = gaussian_peak(&clean);
+            let after = gaussian_peak(&out.signal);
+            assert!(
+                (after - before).abs() < 0.05,
+                "centre {mu}, sigma {sigma}: peak {before} before, {after} after filtering"
+            );
+        }
+    }
+
+    fn gaussian_on_pedestal(
+        rng: &mut ChaCha8Rng,
+        n: usize,
+        pedestal: f64,
+        noise: f64,
+        mu: f64,
+        sigma: f64,
+    ) -> Vec<f64> {
+        (0..n)
+            .map(|i| {
+                let d = (i as f64 - mu) / sigma;
+                pedestal + 500.0 * (-0.5 * d * d).exp() + rng.random_range(-noise..=noise)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn baseline_with_a_known_dc_offset_is_recovered() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let (gain, offset) = (0.002f32, -0.1f32);
+        let expected = offset + gain * 40.0;
+        // Long segment: pre-trigger median of the first 8 samples.
+        let mut p = pulse_with_return(&gaussian_on_pedestal(&mut rng, 256, 40.0, 5.0, 150.0, 4.0));
+        p.gain_v_per_dn = gain;
+        p.offset_v = offset;
+        let out = denoise_one(DenoiseConfig::default(), p);
+        assert!(
+            (out.noise.baseline_v - expected).abs() < 3.0 * gain,
+            "pre-trigger baseline {} V, expected {expected} V",
+            out.noise.baseline_v
+        );
+        // No pre-trigger: upper-clipped median of the whole segment.
+        let mut p = pulse_with_return(&gaussian_on_pedestal(&mut rng, 256, 40.0, 5.0, 150.0, 4.0));
+        p.gain_v_per_dn = gain;
+        p.offset_v = offset;
+        let config = DenoiseConfig {
+            pretrigger_samples: 0,
+            ..Default::default()
+        };
+        let out = denoise_one(config, p);
+        assert!(
+            (out.noise.baseline_v - expected).abs() < 1.0 * gain,
+            "robust baseline {} V, expected {expected} V",
+            out.noise.baseline_v
+        );
+        // Short segment (< 4 x pre-trigger) with the return covering a third of it.
+        let mut p = pulse_with_return(&gaussian_on_pedestal(&mut rng, 30, 40.0, 2.0, 15.0, 1.5));
+        p.gain_v_per_dn = gain;
+        p.offset_v = offset;
+        let out = denoise_one(DenoiseConfig::default(), p);
+        assert!(
+            (out.noise.baseline_v - expected).abs() < 1.5 * gain,
+            "short-segment baseline {} V, expected {expected} V",
+            out.noise.baseline_v
+        );
+    }
+
+    #[test]
+    fn level_shift_removes_the_ringing_of_the_recording_edges() {
+        let max_abs = |level_shift: bool| {
+            let config = DenoiseConfig {
+                level_shift,
+                ..Default::default()
+            };
+            let out = denoise_one(config, pulse_with_return(&[30.0; 256]));
+            assert_eq!(out.noise.baseline_v, 30.0);
+            out.signal.iter().map(|v| v.abs()).fold(0.0, f32::max)
+        };
+        let on = max_abs(true);
+        let off = max_abs(false);
+        assert!(on < 1e-4, "constant input rings with the level shift: {on}");
+        assert!(
+            off > 1.0,
+            "expected edge ringing without the level shift: {off}"
+        );
+        assert!(on < off / 1000.0);
+    }
+
+    #[test]
+    fn noise_level_of_uniform_noise_matches_the_high_passed_mad() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let a = 11.0f64;
+        let values: Vec<f64> = (0..2048).map(|_| 50.0 + rng.random_range(-a..=a)).collect();
+        let mut p = pulse_with_return(&values);
+        p.gain_v_per_dn = 0.01;
+        let out = denoise_one(DenoiseConfig::default(), p);
+        // raw - smoothed keeps the noise above the cut-off: a fraction 1 - 0.2/0.5 of its
+        // variance, close to normal, so mean |.| = sqrt(2/pi) * sigma * sqrt(0.6).
+        let sigma = a / 3f64.sqrt();
+        let expected = (2.0 / std::f64::consts::PI).sqrt() * sigma * 0.6f64.sqrt() * 0.01;
+        let got = out.noise.noise_v as f64;
+        assert!(
+            (got / expected - 1.0).abs() < 0.2,
+            "noise level {got} V, expected {expected} V"
+        );
+    }
+
+    #[test]
+    fn every_drop_reason_triggers() {
+        let good = || {
+            let mut p = Pulse::default();
+            p.push_segment(SegmentKind::Outgoing, 0, -10.0, [10u16; 20]);
+            p.push_segment(SegmentKind::Return, 0, 900.0, [10u16; 100]);
+            p
+        };
+        let empty = Pulse::default();
+        let mut nan_gain = good();
+        nan_gain.gain_v_per_dn = f32::NAN;
+        let mut inf_offset = good();
+        inf_offset.offset_v = f32::INFINITY;
+        let mut zero_interval = good();
+        zero_interval.sample_ns = 0.0;
+        let mut nan_interval = good();
+        nan_interval.sample_ns = f64::NAN;
+        let mut coarse = good();
+        coarse.sample_ns = 4.0; // Nyquist 0.125 GHz < 0.2 GHz
+        let mut at_nyquist = good();
+        at_nyquist.sample_ns = 2.5; // Nyquist exactly 0.2 GHz
+        let mut out_of_bounds = good();
+        out_of_bounds.segments[1].len = 1000;
+        let mut too_long = good();
+        too_long.push_segment(SegmentKind::Return, 0, 0.0, [10u16; 300]);
+
+        let mut stage = Denoise::new(DenoiseConfig {
+            max_samples: 256,
+            ..Default::default()
+        });
+        let run = run_stage(
+            &mut stage,
+            [
+                good(),
+                empty,
+                nan_gain,
+                inf_offset,
+                zero_interval,
+                nan_interval,
+                coarse,
+                at_nyquist,
+                out_of_bounds,
+                too_long,
+            ],
+        )
+        .unwrap();
+        assert_eq!(run.emitted.len(), 1);
+        assert_eq!(run.dropped.get("no_segments"), 1);
+        assert_eq!(run.dropped.get("bad_digitizer_parameters"), 4);
+        assert_eq!(run.dropped.get("cutoff_above_nyquist"), 2);
+        assert_eq!(run.dropped.get("segment_out_of_bounds"), 1);
+        assert_eq!(run.dropped.get("segment_too_long"), 1);
+        assert_eq!(run.errors, 5, "bad parameters and bad bounds are errors");
+    }
+
+    #[test]
+    fn zero_length_segments_are_skipped() {
+        let mut p = Pulse::default();
+        p.push_segment(SegmentKind::Outgoing, 0, -10.0, [5u16; 0]);
+        p.push_segment(SegmentKind::Return, 0, 900.0, [7u16; 40]);
+        p.push_segment(SegmentKind::Return, 1, 900.0, [7u16; 0]);
+        let out = denoise_one(DenoiseConfig::default(), p);
+        assert_eq!(out.signal.len(), 40);
+        assert_eq!(out.noise.baseline_v, 7.0);
+        assert!(out.signal.iter().all(|v| v.abs() < 1e-4));
+        // Only empty segments: emitted with an empty signal.
+        let mut p = Pulse::default();
+        p.push_segment(SegmentKind::Return, 0, 900.0, [7u16; 0]);
+        let out = denoise_one(DenoiseConfig::default(), p);
+        assert!(out.signal.is_empty());
+        assert_eq!(out.noise, crate::pulse::NoiseEstimate::default());
+    }
+
+    #[test]
+    fn a_non_positive_cutoff_is_a_typed_error_not_a_panic() {
+        for cutoff_ghz in [0.0, -0.2, f64::NAN, f64::INFINITY] {
+            let config = DenoiseConfig {
+                cutoff_ghz,
+                ..Default::default()
+            };
+            assert!(matches!(
+                config.validate(),
+                Err(DenoiseError::NonPositiveCutoff { .. })
+            ));
+            assert!(Denoise::try_new(config.clone()).is_err());
+            let mut stage = Denoise::new(config);
+            let mut p = Pulse::default();
+            p.push_segment(SegmentKind::Return, 0, 0.0, [1u16; 16]);
+            assert!(matches!(
+                run_stage(&mut stage, [p]),
+                Err(StageError::Fatal { .. })
+            ));
+        }
+        assert!(Denoise::try_new(DenoiseConfig::default()).is_ok());
+    }
+
+    fn realistic_pulse(rng: &mut ChaCha8Rng) -> Pulse {
+        let mut p = Pulse::default();
+        let outgoing: Vec<u16> = (0..64)
+            .map(|i| {
+                let d = (i as f64 - 32.0) / 6.8;
+                (12.0 + 200.0 * (-0.5 * d * d).exp() + rng.random_range(-3.0..=3.0)).round() as u16
+            })
+            .collect();
+        let ret: Vec<u16> = gaussian_on_pedestal(rng, 256, 12.0, 3.0, 160.0, 6.8)
+            .into_iter()
+            .map(|v| v.round() as u16)
+            .collect();
+        p.push_segment(SegmentKind::Outgoing, 0, -32.0, outgoing);
+        p.push_segment(SegmentKind::Return, 0, 6500.0, ret);
+        p
+    }
+
+    #[test]
+    fn buffers_do_not_grow_after_the_first_pulse() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut stage = Denoise::new(DenoiseConfig::default());
+        run_stage(&mut stage, [realistic_pulse(&mut rng)]).unwrap();
+        let caps = stage.buffer_capacities();
+        let plans = stage.plans.len();
+        let pulses: Vec<Pulse> = (0..999).map(|_| realistic_pulse(&mut rng)).collect();
+        let run = run_stage(&mut stage, pulses).unwrap();
+        assert_eq!(run.emitted.len(), 999);
+        assert_eq!(stage.buffer_capacities(), caps);
+        assert_eq!(stage.plans.len(), plans, "no new FFT plans");
+    }
+
+    #[test]
+    fn signal_is_resized_to_the_raw_length_reusing_its_capacity() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let mut p = realistic_pulse(&mut rng);
+        p.signal = Vec::with_capacity(1000);
+        p.signal.extend([1.0; 500]);
+        let out = denoise_one(DenoiseConfig::default(), p);
+        assert_eq!(out.signal.len(), out.raw.len());
+        assert_eq!(out.signal.capacity(), 1000);
     }
 }

@@ -1,1 +1,185 @@
-//! (module under construction)
+//! The simulator: synthetic pulses and navigation messages from a described scene, with the
+//! truth to score processing against.
+//!
+//! - [`scene`]: the `[scene]` configuration (TOML) and its validation;
+//! - [`analytic`]: the first scene generator, analytic nadir waveforms of flat ground under one
+//!   partially covering plane;
+//! - [`nmea`]: NMEA 0183 GGA/PASHR sentences for a straight flight line.
+//!
+//! [`SimItems`] interleaves the two streams in time order, as a capture would hold them.
+
+pub mod analytic;
+pub mod nmea;
+pub mod scene;
+
+pub use analytic::{AnalyticSim, PulseTruth, SurfaceKind, SurfaceTruth};
+pub use scene::{FlightConfig, NoiseConfig, Scene, SceneError, SceneFile};
+
+use crate::config::sensor::SensorProfile;
+use crate::pulse::Pulse;
+use nmea::FlightLine;
+
+/// One item of the simulated stream.
+#[derive(Debug)]
+pub enum SimItem {
+    /// A digitized pulse (its `gps_time` is its emission time).
+    Pulse(Pulse),
+    /// Bytes from the navigation receiver (serial port 0): one GGA and one PASHR sentence.
+    Nav {
+        /// When the bytes arrived: the epoch's GPS time in nanoseconds (same time base as the
+        /// pulses' `gps_time`, seconds × 1e9, rounded).
+        receive_time_ns: u64,
+        /// The sentences, CR LF terminated.
+        bytes: Vec<u8>,
+    },
+}
+
+/// The simulated stream of a scene in time order: navigation epochs at `nav_rate_hz` from the
+/// first pulse's time until one epoch at or after the last pulse (so a trajectory brackets every
+/// pulse), interleaved with the pulses; an epoch at the same time as a pulse comes first.
+#[derive(Debug)]
+pub struct SimItems {
+    sim: AnalyticSim,
+    flight: FlightLine,
+    next_nav: u64,
+    nav_epochs: u64,
+}
+
+impl SimItems {
+    /// The stream of `scene` seen by `sensor`.
+    pub fn new(scene: &Scene, sensor: &SensorProfile) -> Result<Self, SceneError> {
+        let sim = AnalyticSim::new(scene, sensor)?;
+        let nav_epochs = if scene.pulses == 0 {
+            0
+        } else {
+            let span_s = sim.gps_time(scene.pulses - 1) - scene.gps_time_start_s;
+            (span_s * scene.flight.nav_rate_hz - 1e-9).ceil().max(0.0) as u64 + 1
+        };
+        Ok(SimItems {
+            flight: FlightLine::new(&scene.flight, scene.gps_time_start_s, scene.altitude_m),
+            sim,
+            next_nav: 0,
+            nav_epochs,
+        })
+    }
+
+    /// The pulse generator (for the truth: [`AnalyticSim::truth`]).
+    pub fn sim(&self) -> &AnalyticSim {
+        &self.sim
+    }
+
+    /// The flight line the navigation messages describe.
+    pub fn flight(&self) -> &FlightLine {
+        &self.flight
+    }
+
+    fn nav_time(&self, j: u64) -> f64 {
+        let s = self.sim.scene();
+        s.gps_time_start_s + j as f64 / s.flight.nav_rate_hz
+    }
+}
+
+impl Iterator for SimItems {
+    type Item = SimItem;
+
+    fn next(&mut self) -> Option<SimItem> {
+        let pulse_time = (self.sim.remaining() > 0).then(|| {
+            self.sim
+                .gps_time(self.sim.scene().pulses - self.sim.remaining())
+        });
+        let nav_time = (self.next_nav < self.nav_epochs).then(|| self.nav_time(self.next_nav));
+        match (nav_time, pulse_time) {
+            (Some(tn), tp) if tp.is_none_or(|tp| tn <= tp) => {
+                self.next_nav += 1;
+                Some(SimItem::Nav {
+                    receive_time_ns: (tn * 1e9).round() as u64,
+                    bytes: self.flight.epoch_bytes(tn),
+                })
+            }
+            (_, Some(_)) => self.sim.next_pulse().map(SimItem::Pulse),
+            _ => None,
+        }
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod test_support {
+    use crate::config::sensor::SensorProfile;
+
+    /// A CAO-like inline sensor (the real profile file is maintained elsewhere): 16 ns FWHM,
+    /// 1 ns sampling, 8-bit, 50 kHz.
+    pub(crate) fn test_sensor() -> SensorProfile {
+        SensorProfile {
+            name: "test sensor (CAO-like)".into(),
+            wavelength_nm: 1064.0,
+            pulse_fwhm_ns: 16.0,
+            pulse_rate_hz: 50_000.0,
+            beam_divergence_mrad: 0.56,
+            sample_interval_ns: 1.0,
+            bits_per_sample: 8,
+            digitizer_gain_v_per_dn: 1.0,
+            digitizer_offset_v: 0.0,
+            noise_level_dn: Some(11.0),
+            nominal_altitude_m: Some(1000.0),
+            max_scan_angle_deg: None,
+            lever_arm_m: [0.1, 0.0, -0.2],
+            boresight_deg: [0.0; 3],
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use test_support::test_sensor;
+
+    #[test]
+    fn items_come_in_time_order_and_navigation_brackets_the_pulses() {
+        let scene = Scene {
+            pulses: 250,
+            pulse_rate_hz: Some(1000.0),
+            gps_time_start_s: 5000.0,
+            sensor: Some(test_sensor()),
+            ..Scene::default()
+        };
+        let items = SimItems::new(&scene, &test_sensor()).unwrap();
+        let mut last_ns = 0u64;
+        let (mut n_pulses, mut nav_times) = (0, Vec::new());
+        for item in items {
+            let t = match &item {
+                SimItem::Pulse(p) => {
+                    assert_eq!(p.seq, n_pulses);
+                    n_pulses += 1;
+                    (p.gps_time * 1e9).round() as u64
+                }
+                SimItem::Nav {
+                    receive_time_ns,
+                    bytes,
+                } => {
+                    let text = std::str::from_utf8(bytes).unwrap();
+                    let lines: Vec<&str> = text.split_inclusive("\r\n").collect();
+                    assert_eq!(lines.len(), 2);
+                    assert!(lines[0].starts_with("$GPGGA") && lines[1].starts_with("$PASHR"));
+                    assert!(lines.iter().all(|l| nmea::checksum_ok(l)));
+                    nav_times.push(*receive_time_ns);
+                    *receive_time_ns
+                }
+            };
+            assert!(t >= last_ns, "out of order");
+            last_ns = t;
+        }
+        assert_eq!(n_pulses, 250);
+        // 0.249 s of pulses at 10 Hz: epochs at 0.0, 0.1, 0.2 and 0.3 s.
+        assert_eq!(
+            nav_times,
+            vec![
+                5_000_000_000_000,
+                5_000_100_000_000,
+                5_000_200_000_000,
+                5_000_300_000_000
+            ]
+        );
+        let empty = Scene { pulses: 0, ..scene };
+        assert_eq!(SimItems::new(&empty, &test_sensor()).unwrap().count(), 0);
+    }
+}

@@ -1,0 +1,57 @@
+//! Benchmarks of the per-pulse signal stages.
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use fwlidar::pipeline::{DropCounts, Emitter, Stage};
+use fwlidar::pulse::{Pulse, PulsePool, SegmentKind};
+use fwlidar::signal::{Denoise, DenoiseConfig};
+use std::hint::black_box;
+
+/// A CAO-like pulse at 1 ns sampling: a 64-sample outgoing pulse (16 ns FWHM) and a 256-sample
+/// return with two surfaces on a 12 DN baseline, with a little deterministic ripple as noise.
+fn cao_like_pulse() -> Pulse {
+    let sigma = 16.0 / 2.354_82;
+    let g = |i: usize, mu: f64, a: f64| {
+        let d = (i as f64 - mu) / sigma;
+        a * (-0.5 * d * d).exp()
+    };
+    let ripple = |i: usize| 3.0 * ((i * 7919 % 13) as f64 / 6.0 - 1.0);
+    let mut p = Pulse {
+        sample_ns: 1.0,
+        gain_v_per_dn: 0.004,
+        ..Pulse::default()
+    };
+    p.push_segment(
+        SegmentKind::Outgoing,
+        0,
+        -32.0,
+        (0..64).map(|i| (12.0 + g(i, 32.0, 200.0) + ripple(i)).round() as u16),
+    );
+    p.push_segment(
+        SegmentKind::Return,
+        0,
+        6500.0,
+        (0..256).map(|i| (12.0 + g(i, 67.0, 40.0) + g(i, 167.0, 36.0) + ripple(i)).round() as u16),
+    );
+    p
+}
+
+fn denoise(c: &mut Criterion) {
+    let mut stage = Denoise::new(DenoiseConfig::default());
+    let pool = PulsePool::new(4);
+    let mut out = Vec::with_capacity(1);
+    let mut dropped = DropCounts::default();
+    let mut errors = 0u64;
+    let mut pulse = Some(Box::new(cao_like_pulse()));
+    c.bench_function("denoise_outgoing64_return256_1ns", |b| {
+        b.iter(|| {
+            let p = pulse.take().expect("the pulse comes back every iteration");
+            let mut em = Emitter::new(&mut out, &pool, &mut dropped, &mut errors);
+            stage.process(black_box(p), &mut em).expect("denoise");
+            pulse = out.pop();
+        })
+    });
+    assert_eq!(dropped.total(), 0);
+}
+
+criterion_group!(benches, denoise);
+criterion_main!(benches);
