@@ -728,8 +728,10 @@ mod tests {
         load_str(text, "sensor.toml")
     }
 
-    /// (path, line, column, reason) of every issue.
-    fn issues(e: &ConfigErrors) -> Vec<(String, Option<(usize, usize)>, String)> {
+    /// Path, (line, column) and reason of an issue.
+    type Summary = (String, Option<(usize, usize)>, String);
+
+    fn issues(e: &ConfigErrors) -> Vec<Summary> {
         e.issues
             .iter()
             .map(|i| {

@@ -29,7 +29,7 @@ impl Validate for DenoiseConfig {
         {
             let nyquist_ghz = 1.0 / (2.0 * dt_ns);
             v.require(
-                !(self.cutoff_ghz >= nyquist_ghz),
+                self.cutoff_ghz < nyquist_ghz,
                 cutoff,
                 format!(
                     "must be below the Nyquist frequency {nyquist_ghz} GHz of the sensor's \
