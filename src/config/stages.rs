@@ -23,10 +23,12 @@ impl Validate for DenoiseConfig {
     fn validate(&self, path: &str, v: &mut Validator) {
         let cutoff = field(path, "cutoff_ghz");
         v.positive(self.cutoff_ghz, &cutoff);
-        if let Some(dt_ns) = v
+        // A non-positive cut-off is reported once, above, not again against Nyquist.
+        let positive = self.cutoff_ghz.is_finite() && self.cutoff_ghz > 0.0;
+        let dt_ns = v
             .sample_interval_ns()
-            .filter(|dt| dt.is_finite() && *dt > 0.0)
-        {
+            .filter(|dt| dt.is_finite() && *dt > 0.0);
+        if let Some(dt_ns) = dt_ns.filter(|_| positive) {
             let nyquist_ghz = 1.0 / (2.0 * dt_ns);
             v.require(
                 self.cutoff_ghz < nyquist_ghz,
