@@ -3,7 +3,16 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::load::{Validate, Validator, field, index, load_file};
+use super::sensor::SensorFile;
 use crate::pipeline::registry::StageConfig;
+
+/// Smallest edge capacity, pulses (one in flight, one being filled).
+pub const MIN_QUEUE_CAPACITY: usize = 2;
+/// Largest edge capacity, pulses (pulses are pooled up front; more is a typo).
+pub const MAX_QUEUE_CAPACITY: usize = 1_048_576;
+/// Most worker threads accepted (more is a typo).
+pub const MAX_WORKERS: usize = 1024;
 
 /// What to do when an edge (bounded queue) is full.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -95,5 +104,83 @@ impl Default for OutputConfig {
             dir: default_out_dir(),
             waveforms: true,
         }
+    }
+}
+
+impl Validate for RunConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        if let Some(profile) = &self.sensor_profile {
+            let at = field(path, "sensor_profile");
+            if profile.trim().is_empty() {
+                v.report(at, "must name a sensor profile file, or be left out");
+            } else {
+                let resolved = match v.base_dir() {
+                    Some(dir) => dir.join(profile),
+                    None => profile.into(),
+                };
+                match load_file::<SensorFile>(&resolved) {
+                    Ok(file) => v.set_sample_interval_ns(Some(file.sensor.sample_interval_ns)),
+                    Err(e) => {
+                        let first = e.issues.first().map_or(String::new(), |i| {
+                            if i.path.is_empty() {
+                                i.reason.clone()
+                            } else {
+                                format!("{}: {}", i.path, i.reason)
+                            }
+                        });
+                        v.report(
+                            at,
+                            format!(
+                                "sensor profile {} is not usable ({} problem(s); first: {first})",
+                                resolved.display(),
+                                e.issues.len()
+                            ),
+                        );
+                    }
+                }
+            }
+        }
+        self.pipeline.validate(&field(path, "pipeline"), v);
+        self.output.validate(&field(path, "output"), v);
+    }
+}
+
+impl Validate for PipelineConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        v.require(
+            self.workers <= MAX_WORKERS,
+            field(path, "workers"),
+            format!(
+                "must be at most {MAX_WORKERS} (0 = automatic), got {}",
+                self.workers
+            ),
+        );
+        v.require(
+            (MIN_QUEUE_CAPACITY..=MAX_QUEUE_CAPACITY).contains(&self.queue_capacity),
+            field(path, "queue_capacity"),
+            format!(
+                "must be in {MIN_QUEUE_CAPACITY}..={MAX_QUEUE_CAPACITY} pulses, got {}",
+                self.queue_capacity
+            ),
+        );
+        let stages = field(path, "stages");
+        v.require(
+            !self.stages.is_empty(),
+            &stages,
+            "must list at least one stage (use type = \"passthrough\" for none)",
+        );
+        for (i, stage) in self.stages.iter().enumerate() {
+            stage.validate(&index(&stages, i), v);
+        }
+    }
+}
+
+impl Validate for OutputConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        v.require(
+            !self.dir.trim().is_empty(),
+            field(path, "dir"),
+            "must not be empty",
+        );
     }
 }

@@ -5,6 +5,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::load::{Validate, Validator, field, index};
+
 /// The top level of a sensor profile file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -65,5 +67,74 @@ impl SensorProfile {
     /// Footprint diameter at `range_m`, metres (small-angle: range × divergence).
     pub fn footprint_m(&self, range_m: f64) -> f64 {
         range_m * self.beam_divergence_mrad * 1e-3
+    }
+}
+
+impl Validate for SensorFile {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        self.sensor.validate(&field(path, "sensor"), v);
+    }
+}
+
+impl Validate for SensorProfile {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        let at = |name: &str| field(path, name);
+        v.require(
+            !self.name.trim().is_empty(),
+            at("name"),
+            "must not be empty",
+        );
+        v.positive(self.wavelength_nm, at("wavelength_nm"));
+        v.positive(self.pulse_fwhm_ns, at("pulse_fwhm_ns"));
+        v.positive(self.pulse_rate_hz, at("pulse_rate_hz"));
+        v.positive(self.beam_divergence_mrad, at("beam_divergence_mrad"));
+        v.positive(self.sample_interval_ns, at("sample_interval_ns"));
+        v.require(
+            matches!(self.bits_per_sample, 8 | 16),
+            at("bits_per_sample"),
+            format!("must be 8 or 16, got {}", self.bits_per_sample),
+        );
+        v.require(
+            self.digitizer_gain_v_per_dn.is_finite() && self.digitizer_gain_v_per_dn != 0.0,
+            at("digitizer_gain_v_per_dn"),
+            format!(
+                "must be a finite, non-zero number, got {}",
+                self.digitizer_gain_v_per_dn
+            ),
+        );
+        v.require(
+            self.digitizer_offset_v.is_finite(),
+            at("digitizer_offset_v"),
+            format!("must be finite, got {}", self.digitizer_offset_v),
+        );
+        if let Some(noise) = self.noise_level_dn {
+            v.require(
+                noise.is_finite() && noise >= 0.0,
+                at("noise_level_dn"),
+                format!("must be zero or positive, got {noise}"),
+            );
+        }
+        if let Some(h) = self.nominal_altitude_m {
+            v.positive(h, at("nominal_altitude_m"));
+        }
+        if let Some(a) = self.max_scan_angle_deg {
+            v.require(
+                (0.0..90.0).contains(&a),
+                at("max_scan_angle_deg"),
+                format!("must be in [0, 90) degrees off nadir, got {a}"),
+            );
+        }
+        for (name, values) in [
+            ("lever_arm_m", self.lever_arm_m),
+            ("boresight_deg", self.boresight_deg),
+        ] {
+            for (i, x) in values.iter().enumerate() {
+                v.require(
+                    x.is_finite(),
+                    index(&at(name), i),
+                    format!("must be finite, got {x}"),
+                );
+            }
+        }
     }
 }

@@ -11,9 +11,20 @@ use crate::signal::denoise::{Denoise, DenoiseConfig};
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum StageConfig {
     /// Emits every pulse unchanged (runtime overhead measurement).
+    // serde ignores extra keys of a unit variant of an internally tagged enum, even with
+    // `deny_unknown_fields`; `no_keys` rejects them.
+    #[serde(deserialize_with = "no_keys")]
     Passthrough,
     /// FFT low-pass noise reduction.
     Denoise(DenoiseConfig),
+}
+
+/// Accepts only an empty table: the keys of a stage kind that has none.
+fn no_keys<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<(), D::Error> {
+    #[derive(Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct NoKeys {}
+    NoKeys::deserialize(deserializer).map(|_| ())
 }
 
 impl StageConfig {

@@ -1,0 +1,1057 @@
+//! Loading a configuration file with every error reported at once.
+//!
+//! serde stops at the first error, so the loader works in rounds on a parsed TOML value:
+//!
+//! 1. Parse the text (all syntax errors, with line and column; nothing else is tried after one).
+//! 2. Deserialize with `serde_path_to_error` to learn the path of the first error; record it and
+//!    repair the value so the next round gets further: an unknown key is removed; a value of the
+//!    wrong type is removed (the field's default, if any, takes its place); a missing required
+//!    key gets a placeholder whose consequences are not reported; an entry of a tagged list
+//!    (`[[pipeline.stages]]`) with an unknown `type` is removed. Repeat, up to a bound.
+//! 3. When the value deserializes, run the semantic checks ([`Validate`]); issues about fields
+//!    already reported (or repaired) are left out.
+//!
+//! Every issue carries the dotted path of the field (`pipeline.stages[0].cutoff_ghz`), a reason,
+//! and the line and column of the key or value in the file where it exists there.
+
+use std::fmt::Write as _;
+use std::io::ErrorKind;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use serde::de::DeserializeOwned;
+use toml::de::{DeTable, DeValue};
+use toml::{Spanned, Table, Value};
+
+use super::error::{ConfigErrors, ConfigIssue, IssueKind, Location};
+use super::{RunConfig, SensorFile};
+
+/// Bound on the repair rounds of one file (each round finds at most one schema error).
+const MAX_ROUNDS: usize = 200;
+
+/// Semantic checks of a deserialized configuration: values in range and consistent.
+pub trait Validate {
+    /// Reports every problem of `self` to `v`, with field paths below `path` (`""` at the top
+    /// of a file; join with [`field`] and [`index`]).
+    fn validate(&self, path: &str, v: &mut Validator);
+}
+
+/// Collects the problems found by [`Validate`] and carries what the checks need to know beyond
+/// the value itself.
+#[derive(Debug, Default)]
+pub struct Validator {
+    base_dir: Option<PathBuf>,
+    sample_interval_ns: Option<f64>,
+    issues: Vec<(String, String)>,
+}
+
+impl Validator {
+    /// A validator for a file in `base_dir` (relative references are resolved against it).
+    pub fn new(base_dir: Option<PathBuf>) -> Validator {
+        Validator {
+            base_dir,
+            ..Validator::default()
+        }
+    }
+
+    /// Records a problem of the field at `path`.
+    pub fn report(&mut self, path: impl Into<String>, reason: impl Into<String>) {
+        self.issues.push((path.into(), reason.into()));
+    }
+
+    /// Records `reason` at `path` unless `ok`.
+    pub fn require(&mut self, ok: bool, path: impl Into<String>, reason: impl Into<String>) {
+        if !ok {
+            self.report(path, reason);
+        }
+    }
+
+    /// Checks that `value` is a finite number greater than zero.
+    pub fn positive(&mut self, value: f64, path: impl Into<String>) {
+        self.require(
+            value.is_finite() && value > 0.0,
+            path,
+            format!("must be a positive number, got {value}"),
+        );
+    }
+
+    /// The folder of the file being validated, if it came from a file.
+    pub fn base_dir(&self) -> Option<&Path> {
+        self.base_dir.as_deref()
+    }
+
+    /// The digitizer sample interval in force (from the referenced sensor profile), nanoseconds.
+    pub fn sample_interval_ns(&self) -> Option<f64> {
+        self.sample_interval_ns
+    }
+
+    /// Sets the digitizer sample interval in force, nanoseconds.
+    pub fn set_sample_interval_ns(&mut self, ns: Option<f64>) {
+        self.sample_interval_ns = ns;
+    }
+
+    /// The problems recorded so far, as (path, reason).
+    pub fn issues(&self) -> &[(String, String)] {
+        &self.issues
+    }
+}
+
+/// The path of field `name` below `path`.
+pub fn field(path: &str, name: &str) -> String {
+    if path.is_empty() {
+        name.to_string()
+    } else {
+        format!("{path}.{name}")
+    }
+}
+
+/// The path of element `i` of the list at `path`.
+pub fn index(path: &str, i: usize) -> String {
+    format!("{path}[{i}]")
+}
+
+/// A configuration file, validated, as recognised by [`validate_any`].
+#[derive(Clone, Debug, PartialEq)]
+pub enum Validated {
+    /// A sensor profile (a `[sensor]` table).
+    Sensor(SensorFile),
+    /// A run configuration (`sensor_profile`, `[pipeline]`, `[output]`).
+    Run(RunConfig),
+}
+
+/// Reads, parses, deserializes and validates the file at `path` as a `T`, reporting every
+/// problem found (see the module documentation). Never panics.
+pub fn load_file<T: DeserializeOwned + Validate>(
+    path: impl AsRef<Path>,
+) -> Result<T, ConfigErrors> {
+    let path = path.as_ref();
+    let text = read_text(path)?;
+    load_str(&text, path)
+}
+
+/// As [`load_file`], for `text` that came from `origin` (used in messages and to resolve
+/// relative references such as `sensor_profile`).
+pub fn load_str<T: DeserializeOwned + Validate>(
+    text: &str,
+    origin: impl AsRef<Path>,
+) -> Result<T, ConfigErrors> {
+    let origin = origin.as_ref();
+    let doc = parse(text, origin)?;
+    Loader::new(text, origin, &doc.spans).run(doc.table)
+}
+
+/// Validates the file at `path` as whichever kind it is, decided by its top-level tables: a
+/// `[sensor]` table makes it a sensor profile, a `[scene]` table a simulator scene (not
+/// validated by this build: an [`IssueKind::UnknownKind`] error), anything else a run
+/// configuration.
+pub fn validate_any(path: impl AsRef<Path>) -> Result<Validated, ConfigErrors> {
+    let path = path.as_ref();
+    let text = read_text(path)?;
+    let doc = parse(&text, path)?;
+    let loader = Loader::new(&text, path, &doc.spans);
+    if doc.table.contains_key("sensor") {
+        loader.run(doc.table).map(Validated::Sensor)
+    } else if doc.table.contains_key("scene") {
+        Err(ConfigErrors::single(
+            path,
+            IssueKind::UnknownKind,
+            "scene",
+            "scene files are validated by the simulator, which this build does not have; \
+             recognised kinds: sensor profile (a [sensor] table), run configuration \
+             (sensor_profile, [pipeline], [output])",
+            loader.location(&[Seg::Key("scene".into())], true),
+        ))
+    } else {
+        loader.run(doc.table).map(Validated::Run)
+    }
+}
+
+/// Reads a configuration file as UTF-8 text, naming the file in every error.
+fn read_text(path: &Path) -> Result<String, ConfigErrors> {
+    let io_error = |reason: String| ConfigErrors::single(path, IssueKind::Io, "", reason, None);
+    if path.is_dir() {
+        return Err(io_error(
+            "is a directory; expected a TOML configuration file".into(),
+        ));
+    }
+    let bytes = std::fs::read(path).map_err(|e| {
+        io_error(match e.kind() {
+            ErrorKind::NotFound => "no such file".to_string(),
+            ErrorKind::PermissionDenied => "permission denied".to_string(),
+            _ => format!("cannot read: {e}"),
+        })
+    })?;
+    String::from_utf8(bytes).map_err(|e| {
+        let valid = e.utf8_error().valid_up_to();
+        let text = String::from_utf8_lossy(&e.as_bytes()[..valid]);
+        ConfigErrors::single(
+            path,
+            IssueKind::Io,
+            "",
+            format!("not UTF-8 text (invalid byte at offset {valid}); TOML files must be UTF-8"),
+            Some(Location::from_offset(&text, valid)),
+        )
+    })
+}
+
+/// A parsed document: the value to deserialize, and the spans of its keys and values.
+struct Document<'t> {
+    table: Table,
+    spans: Spanned<DeTable<'t>>,
+}
+
+/// Parses TOML text, reporting every syntax error the parser recovers from.
+fn parse<'t>(text: &'t str, origin: &Path) -> Result<Document<'t>, ConfigErrors> {
+    let (spans, errors) = DeTable::parse_recoverable(text);
+    let syntax = |e: &toml::de::Error| ConfigIssue {
+        kind: IssueKind::Syntax,
+        path: String::new(),
+        reason: format!("invalid TOML: {}", e.message().trim_end()),
+        location: e.span().map(|s| Location::from_offset(text, s.start)),
+    };
+    if !errors.is_empty() {
+        return Err(ConfigErrors {
+            file: origin.to_path_buf(),
+            issues: errors.iter().map(syntax).collect(),
+        });
+    }
+    match toml::from_str::<Table>(text) {
+        Ok(table) => Ok(Document { table, spans }),
+        Err(e) => Err(ConfigErrors {
+            file: origin.to_path_buf(),
+            issues: vec![syntax(&e)],
+        }),
+    }
+}
+
+/// One step of a field path.
+#[derive(Clone, Debug, PartialEq, Eq)]
+enum Seg {
+    Key(String),
+    Index(usize),
+}
+
+fn path_string(path: &[Seg]) -> String {
+    let mut s = String::new();
+    for seg in path {
+        match seg {
+            Seg::Key(k) if s.is_empty() => s.push_str(k),
+            Seg::Key(k) => {
+                s.push('.');
+                s.push_str(k);
+            }
+            Seg::Index(i) => {
+                let _ = write!(s, "[{i}]");
+            }
+        }
+    }
+    s
+}
+
+/// Whether the dotted path `path` is `prefix` or lies below it.
+fn is_under(path: &str, prefix: &str) -> bool {
+    prefix.is_empty()
+        || path == prefix
+        || (path.starts_with(prefix)
+            && matches!(path.as_bytes().get(prefix.len()), Some(b'.' | b'[')))
+}
+
+fn get<'v>(root: &'v Value, path: &[Seg]) -> Option<&'v Value> {
+    path.iter().try_fold(root, |v, seg| match (seg, v) {
+        (Seg::Key(k), Value::Table(t)) => t.get(k),
+        (Seg::Index(i), Value::Array(a)) => a.get(*i),
+        _ => None,
+    })
+}
+
+fn get_mut<'v>(root: &'v mut Value, path: &[Seg]) -> Option<&'v mut Value> {
+    path.iter().try_fold(root, |v, seg| match (seg, v) {
+        (Seg::Key(k), Value::Table(t)) => t.get_mut(k),
+        (Seg::Index(i), Value::Array(a)) => a.get_mut(*i),
+        _ => None,
+    })
+}
+
+/// Removes the value at `path`; false if there is none (or `path` is the root).
+fn remove(root: &mut Value, path: &[Seg]) -> bool {
+    let Some((last, parent)) = path.split_last() else {
+        return false;
+    };
+    match (last, get_mut(root, parent)) {
+        (Seg::Key(k), Some(Value::Table(t))) => t.remove(k).is_some(),
+        (Seg::Index(i), Some(Value::Array(a))) if *i < a.len() => {
+            a.remove(*i);
+            true
+        }
+        _ => false,
+    }
+}
+
+/// Sets the key at `path` (whose parent must be a table) to `value`.
+fn set(root: &mut Value, path: &[Seg], value: Value) -> bool {
+    let Some((Seg::Key(k), parent)) = path.split_last() else {
+        return false;
+    };
+    match get_mut(root, parent) {
+        Some(Value::Table(t)) => {
+            t.insert(k.clone(), value);
+            true
+        }
+        _ => false,
+    }
+}
+
+/// The name between the first pair of backticks of a serde message.
+fn quoted_name(message: &str) -> Option<&str> {
+    let start = message.find('`')? + 1;
+    let len = message[start..].find('`')?;
+    Some(&message[start..start + len])
+}
+
+/// If `path` is the `type` key of a table that is an element of a list, the element's path.
+fn tag_of_list_entry(root: &Value, path: &[Seg]) -> Option<Vec<Seg>> {
+    let (last, entry) = path.split_last()?;
+    if *last != Seg::Key("type".into()) || !matches!(entry.last(), Some(Seg::Index(_))) {
+        return None;
+    }
+    matches!(get(root, entry), Some(Value::Table(_))).then(|| entry.to_vec())
+}
+
+/// Values tried, in order, in place of a missing required key so later errors can be found.
+fn placeholders() -> [Value; 5] {
+    [
+        Value::Integer(0),
+        Value::String(String::new()),
+        Value::Boolean(false),
+        Value::Table(Table::new()),
+        Value::Array(Vec::new()),
+    ]
+}
+
+/// Deserializes a whole document as the loader's target type: the path and message of the first
+/// error.
+type Probe<'p> = &'p dyn Fn(Value) -> Result<(), (Vec<Seg>, String)>;
+
+fn probe<T: DeserializeOwned>(value: Value) -> Result<(), (Vec<Seg>, String)> {
+    serde_path_to_error::deserialize::<_, T>(value)
+        .map(|_| ())
+        .map_err(|e| (to_segs(e.path()), e.inner().message().to_string()))
+}
+
+/// What a round's error tells the loader to do.
+enum Repair {
+    /// Remove the value at this (current) path.
+    Remove(Vec<Seg>),
+    /// Put placeholder number `n` at this (current) path.
+    Placeholder(Vec<Seg>, usize),
+}
+
+/// The rounds of deserialization and repair for one document.
+struct Loader<'a, 't> {
+    text: &'a str,
+    origin: &'a Path,
+    spans: &'a Spanned<DeTable<'t>>,
+    /// Original indices removed from each list, by the list's original dotted path.
+    removed: Vec<(String, Vec<usize>)>,
+    /// Placeholders in force: original dotted path, current path, candidate number.
+    placed: Vec<(String, Vec<Seg>, usize)>,
+    issues: Vec<ConfigIssue>,
+}
+
+impl<'a, 't> Loader<'a, 't> {
+    fn new(text: &'a str, origin: &'a Path, spans: &'a Spanned<DeTable<'t>>) -> Self {
+        Loader {
+            text,
+            origin,
+            spans,
+            removed: Vec::new(),
+            placed: Vec::new(),
+            issues: Vec::new(),
+        }
+    }
+
+    fn run<T: DeserializeOwned + Validate>(mut self, table: Table) -> Result<T, ConfigErrors> {
+        let mut root = Value::Table(table);
+        let mut parsed = None;
+        for _ in 0..MAX_ROUNDS {
+            match serde_path_to_error::deserialize::<_, T>(root.clone()) {
+                Ok(value) => {
+                    parsed = Some(value);
+                    break;
+                }
+                Err(e) => {
+                    let path = to_segs(e.path());
+                    let message = e.inner().message().to_string();
+                    if !self.repair(&mut root, path, &message, &probe::<T>) {
+                        break;
+                    }
+                }
+            }
+        }
+        let Some(value) = parsed else {
+            if self.issues.is_empty() {
+                // Only reachable if a repair could not be made for an error already reported
+                // as a consequence; say so rather than return nothing.
+                self.issues.push(ConfigIssue {
+                    kind: IssueKind::Schema,
+                    path: String::new(),
+                    reason: "the file does not fit the schema".into(),
+                    location: None,
+                });
+            }
+            return Err(self.finish());
+        };
+        let mut v = Validator::new(self.origin.parent().map(Path::to_path_buf));
+        value.validate("", &mut v);
+        let skip: Vec<String> = self
+            .issues
+            .iter()
+            .map(|i| i.path.clone())
+            .chain(self.placed.iter().map(|p| p.0.clone()))
+            .collect();
+        for (path, reason) in v.issues {
+            // Paths of the validated value are current paths: map them back to the file's.
+            let path = self.original(&dotted_to_segs(&path));
+            // A field already reported (or filled in) is not judged again, nor is a list or
+            // table that lost entries to a reported problem.
+            if skip
+                .iter()
+                .any(|s| !s.is_empty() && (is_under(&path, s) || is_under(s, &path)))
+            {
+                continue;
+            }
+            let location = self.location(&dotted_to_segs(&path), false);
+            self.issues.push(ConfigIssue {
+                kind: IssueKind::Invalid,
+                path,
+                reason,
+                location,
+            });
+        }
+        if self.issues.is_empty() {
+            Ok(value)
+        } else {
+            Err(self.finish())
+        }
+    }
+
+    fn finish(mut self) -> ConfigErrors {
+        self.issues.sort_by_key(|i| {
+            i.location
+                .map_or((usize::MAX, usize::MAX), |l| (l.line, l.column))
+        });
+        ConfigErrors {
+            file: self.origin.to_path_buf(),
+            issues: self.issues,
+        }
+    }
+
+    /// Records the error of one round and repairs `root`; false when no progress is possible.
+    fn repair(
+        &mut self,
+        root: &mut Value,
+        mut path: Vec<Seg>,
+        message: &str,
+        probe: Probe,
+    ) -> bool {
+        let mut message = message.to_string();
+        // Inside an internally tagged enum (`type = "..."`) serde buffers the table, so the path
+        // stops at the table: find the culprit key.
+        if let Some((key, msg)) = self.narrow_tagged(root, &path, &message, probe) {
+            path.push(Seg::Key(key));
+            message = msg;
+        }
+        let action;
+        let reason;
+        if let Some(name) = message
+            .strip_prefix("unknown field ")
+            .and_then(|_| quoted_name(&message))
+        {
+            if path.last() != Some(&Seg::Key(name.to_string())) {
+                path.push(Seg::Key(name.to_string()));
+            }
+            reason = message.replacen("unknown field", "unknown key", 1);
+            action = Repair::Remove(path.clone());
+        } else if let Some(name) = message
+            .strip_prefix("missing field ")
+            .and_then(|_| quoted_name(&message))
+        {
+            let name = name.to_string();
+            let tag_missing = name == "type"
+                && matches!(get(root, &path), Some(Value::Table(t)) if !t.contains_key("type"));
+            reason = format!("missing required key `{name}`");
+            if tag_missing {
+                action = Repair::Remove(path.clone());
+                path.push(Seg::Key(name));
+            } else {
+                path.push(Seg::Key(name));
+                action = Repair::Placeholder(path.clone(), 0);
+            }
+        } else if let Some(entry) = tag_of_list_entry(root, &path) {
+            // The `type` of a tagged list entry (`[[pipeline.stages]]`) is unknown or not a
+            // string: the entry is unusable; drop it.
+            action = Repair::Remove(entry);
+            reason = message.clone();
+        } else if message.starts_with("unknown variant") && self.is_tagged(root, &path) {
+            action = Repair::Remove(path.clone());
+            path.push(Seg::Key("type".into()));
+            reason = message.clone();
+        } else if let Some(n) = self.placeholder_at(&path) {
+            // Our own placeholder has the wrong type: try the next one, report nothing.
+            return self.place(root, path, n + 1);
+        } else {
+            reason = message.clone();
+            action = Repair::Remove(path.clone());
+        }
+
+        let original = self.original(&path);
+        let consequence = self
+            .issues
+            .iter()
+            .map(|i| i.path.as_str())
+            .chain(self.placed.iter().map(|p| p.0.as_str()))
+            .any(|p| !p.is_empty() && is_under(&original, p));
+        if !consequence {
+            let want_key = reason.starts_with("unknown key");
+            let location = self.location(&dotted_to_segs(&original), want_key);
+            self.issues.push(ConfigIssue {
+                kind: IssueKind::Schema,
+                path: original,
+                reason,
+                location,
+            });
+        }
+        match action {
+            Repair::Remove(p) => self.remove(root, &p),
+            Repair::Placeholder(p, n) => self.place(root, p, n),
+        }
+    }
+
+    fn remove(&mut self, root: &mut Value, path: &[Seg]) -> bool {
+        if let Some((Seg::Index(i), list)) = path.split_last() {
+            let list_orig = self.original(list);
+            let orig_index = self.original_index(&list_orig, *i);
+            if !remove(root, path) {
+                return false;
+            }
+            match self.removed.iter_mut().find(|(p, _)| *p == list_orig) {
+                Some((_, idx)) => idx.push(orig_index),
+                None => self.removed.push((list_orig, vec![orig_index])),
+            }
+            true
+        } else {
+            remove(root, path)
+        }
+    }
+
+    fn place(&mut self, root: &mut Value, path: Vec<Seg>, n: usize) -> bool {
+        let Some(value) = placeholders().into_iter().nth(n) else {
+            return false;
+        };
+        if !set(root, &path, value) {
+            return false;
+        }
+        let original = self.original(&path);
+        self.placed.retain(|p| p.1 != path);
+        self.placed.push((original, path, n));
+        true
+    }
+
+    fn placeholder_at(&self, path: &[Seg]) -> Option<usize> {
+        self.placed.iter().find(|p| p.1 == path).map(|p| p.2)
+    }
+
+    fn is_tagged(&self, root: &Value, path: &[Seg]) -> bool {
+        matches!(get(root, path), Some(Value::Table(t)) if matches!(t.get("type"), Some(Value::String(_))))
+    }
+
+    /// For an error reported at a tagged table (`type = "..."`), finds the key that causes it by
+    /// deserializing the table with one key at a time. Returns the key and its own message.
+    fn narrow_tagged(
+        &self,
+        root: &Value,
+        path: &[Seg],
+        message: &str,
+        probe: Probe,
+    ) -> Option<(String, String)> {
+        if message.starts_with("unknown field")
+            || message.starts_with("missing field")
+            || message.starts_with("unknown variant")
+            || !self.is_tagged(root, path)
+        {
+            return None;
+        }
+        let Some(Value::Table(table)) = get(root, path) else {
+            return None;
+        };
+        let tag = table.get("type")?;
+        // Deserialize the whole document with the entry cut down to its tag and one key: the
+        // key whose error reappears at the entry is the culprit. No error before the entry can
+        // occur (this error was the first), so an error at the entry is the entry's own.
+        for (key, value) in table.iter().filter(|(k, _)| k.as_str() != "type") {
+            let mut alone = Table::new();
+            alone.insert("type".into(), tag.clone());
+            alone.insert(key.clone(), value.clone());
+            let mut trial = root.clone();
+            if let Some(slot) = get_mut(&mut trial, path) {
+                *slot = Value::Table(alone);
+            }
+            if let Err((at, msg)) = probe(trial)
+                && at == path
+                && !msg.starts_with("missing field")
+            {
+                return Some((key.clone(), msg));
+            }
+        }
+        None
+    }
+
+    /// Translates a current path (after removals of list elements) to the path in the file.
+    fn original(&self, path: &[Seg]) -> String {
+        let mut out: Vec<Seg> = Vec::with_capacity(path.len());
+        for seg in path {
+            match seg {
+                Seg::Index(i) => {
+                    let list = path_string(&out);
+                    out.push(Seg::Index(self.original_index(&list, *i)));
+                }
+                Seg::Key(k) => out.push(Seg::Key(k.clone())),
+            }
+        }
+        path_string(&out)
+    }
+
+    /// The original index of the element now at `i` of the list at original path `list`.
+    fn original_index(&self, list: &str, i: usize) -> usize {
+        let Some((_, gone)) = self.removed.iter().find(|(p, _)| p == list) else {
+            return i;
+        };
+        let mut survivors = 0;
+        let mut j = 0;
+        loop {
+            if !gone.contains(&j) {
+                if survivors == i {
+                    return j;
+                }
+                survivors += 1;
+            }
+            j += 1;
+        }
+    }
+
+    /// The line and column of the field at `path` in the file (of its key when `want_key`,
+    /// else of its value); for a field absent from the file, of the nearest enclosing table
+    /// written in the file; `None` at the top level.
+    fn location(&self, path: &[Seg], want_key: bool) -> Option<Location> {
+        let span = span_of(self.spans, path, want_key)?;
+        Some(Location::from_offset(self.text, span.start))
+    }
+}
+
+fn span_of(doc: &Spanned<DeTable<'_>>, path: &[Seg], want_key: bool) -> Option<Range<usize>> {
+    enum Node<'d, 'i> {
+        Table(&'d DeTable<'i>),
+        Array(&'d [Spanned<DeValue<'i>>]),
+        Leaf,
+    }
+    let mut node = Node::Table(doc.get_ref());
+    let mut best = None;
+    for (n, seg) in path.iter().enumerate() {
+        let value = match (seg, node) {
+            (Seg::Key(k), Node::Table(t)) => {
+                match t
+                    .iter()
+                    .find(|(key, _)| key.get_ref().as_ref() == k.as_str())
+                {
+                    Some((key, value)) => {
+                        if n + 1 == path.len() && want_key {
+                            return Some(key.span());
+                        }
+                        value
+                    }
+                    None => break,
+                }
+            }
+            (Seg::Index(i), Node::Array(a)) => match a.get(*i) {
+                Some(v) => v,
+                None => break,
+            },
+            _ => break,
+        };
+        best = Some(value.span());
+        node = match value.get_ref() {
+            DeValue::Table(t) => Node::Table(t),
+            DeValue::Array(a) => Node::Array(&a[..]),
+            _ => Node::Leaf,
+        };
+    }
+    best
+}
+
+fn to_segs(path: &serde_path_to_error::Path) -> Vec<Seg> {
+    path.iter()
+        .filter_map(|seg| match seg {
+            serde_path_to_error::Segment::Seq { index } => Some(Seg::Index(*index)),
+            serde_path_to_error::Segment::Map { key } => Some(Seg::Key(key.clone())),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Parses a path written by [`path_string`] (keys of this project's schemas contain no `.`,
+/// `[` or `]`).
+fn dotted_to_segs(path: &str) -> Vec<Seg> {
+    let mut segs = Vec::new();
+    for part in path.split('.').filter(|p| !p.is_empty()) {
+        let (key, rest) = part.split_at(part.find('[').unwrap_or(part.len()));
+        if !key.is_empty() {
+            segs.push(Seg::Key(key.to_string()));
+        }
+        for idx in rest.split('[').filter(|s| !s.is_empty()) {
+            if let Ok(i) = idx.trim_end_matches(']').parse() {
+                segs.push(Seg::Index(i));
+            }
+        }
+    }
+    segs
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(text: &str) -> Result<RunConfig, ConfigErrors> {
+        load_str(text, "run.toml")
+    }
+
+    fn sensor(text: &str) -> Result<SensorFile, ConfigErrors> {
+        load_str(text, "sensor.toml")
+    }
+
+    /// Path, (line, column) and reason of an issue.
+    type Summary = (String, Option<(usize, usize)>, String);
+
+    fn issues(e: &ConfigErrors) -> Vec<Summary> {
+        e.issues
+            .iter()
+            .map(|i| {
+                (
+                    i.path.clone(),
+                    i.location.map(|l| (l.line, l.column)),
+                    i.reason.clone(),
+                )
+            })
+            .collect()
+    }
+
+    fn paths(e: &ConfigErrors) -> Vec<&str> {
+        e.issues.iter().map(|i| i.path.as_str()).collect()
+    }
+
+    const GOOD_SENSOR: &str = r#"
+[sensor]
+name = "test"
+wavelength_nm = 1064
+pulse_fwhm_ns = 4.0
+pulse_rate_hz = 100000
+beam_divergence_mrad = 0.5
+sample_interval_ns = 1.0
+bits_per_sample = 8
+"#;
+
+    #[test]
+    fn config_empty_run_file_gets_defaults() {
+        assert_eq!(run("").unwrap(), RunConfig::default());
+        assert_eq!(sensor(GOOD_SENSOR).unwrap().sensor.bits_per_sample, 8);
+    }
+
+    #[test]
+    fn config_unknown_top_level_key_has_path_and_location() {
+        let e = run("sensor_profile = \"x.toml\"\nbogus = 1\n").unwrap_err();
+        let i = issues(&e);
+        // The sensor profile does not exist, which is reported too.
+        assert_eq!(paths(&e), ["sensor_profile", "bogus"], "{e}");
+        assert_eq!(i[1].1, Some((2, 1)));
+        assert!(i[1].2.starts_with("unknown key `bogus`"), "{e}");
+        assert_eq!(e.issues[1].kind, IssueKind::Schema);
+        assert_eq!(e.issues[0].kind, IssueKind::Invalid);
+        assert!(i[0].2.contains("no such file"), "{e}");
+    }
+
+    #[test]
+    fn config_unknown_key_inside_stage_has_indexed_path() {
+        let text = "[[pipeline.stages]]\ntype = \"passthrough\"\n\n\
+                    [[pipeline.stages]]\ntype = \"denoise\"\n  bogus = 1\n";
+        let e = run(text).unwrap_err();
+        let i = issues(&e);
+        assert_eq!(paths(&e), ["pipeline.stages[1].bogus"], "{e}");
+        assert_eq!(i[0].1, Some((6, 3)));
+        let e = run("[[pipeline.stages]]\ntype = \"passthrough\"\nbogus = 1\n").unwrap_err();
+        assert_eq!(paths(&e), ["pipeline.stages[0].bogus"], "{e}");
+        assert_eq!(issues(&e)[0].1, Some((3, 1)));
+    }
+
+    #[test]
+    fn config_wrong_type_is_reported_at_the_value() {
+        let e = run("[pipeline]\nqueue_capacity = \"big\"\n").unwrap_err();
+        let i = issues(&e);
+        assert_eq!(paths(&e), ["pipeline.queue_capacity"], "{e}");
+        assert_eq!(i[0].1, Some((2, 18)));
+        assert!(i[0].2.contains("invalid type"), "{e}");
+        // Inside a tagged stage entry serde loses the path; the loader finds the key.
+        let e = run(
+            "[[pipeline.stages]]\ntype = \"denoise\"\nmax_samples = 64\ncutoff_ghz = \"high\"\n",
+        )
+        .unwrap_err();
+        let i = issues(&e);
+        assert_eq!(paths(&e), ["pipeline.stages[0].cutoff_ghz"], "{e}");
+        assert_eq!(i[0].1, Some((4, 14)));
+        assert!(i[0].2.contains("invalid type: string \"high\""), "{e}");
+    }
+
+    #[test]
+    fn config_independent_errors_are_all_reported_in_one_run() {
+        let text = r#"bogus = 1
+[pipeline]
+workers = -1
+queue_capacity = 1
+input_edge = "sometimes"
+
+[[pipeline.stages]]
+type = "wavelet"
+
+[[pipeline.stages]]
+type = "denoise"
+cutoff_ghz = "high"
+extra = true
+
+[[pipeline.stages]]
+type = "denoise"
+max_samples = 8
+pretrigger_samples = 2
+
+[output]
+dir = ""
+waveforms = "yes"
+"#;
+        let e = run(text).unwrap_err();
+        assert_eq!(
+            paths(&e),
+            [
+                "bogus",
+                "pipeline.workers",
+                "pipeline.queue_capacity",
+                "pipeline.input_edge",
+                "pipeline.stages[0].type",
+                "pipeline.stages[1].cutoff_ghz",
+                "pipeline.stages[1].extra",
+                "pipeline.stages[2].max_samples",
+                "output.dir",
+                "output.waveforms",
+            ],
+            "{e}"
+        );
+        let lines: Vec<usize> = e.issues.iter().map(|i| i.location.unwrap().line).collect();
+        assert_eq!(lines, [1, 3, 4, 5, 8, 12, 13, 17, 21, 22], "{e}");
+    }
+
+    #[test]
+    fn config_required_key_of_wrong_type_is_reported_once() {
+        let text = GOOD_SENSOR.replace("wavelength_nm = 1064", "wavelength_nm = \"1064\"");
+        let e = sensor(&text).unwrap_err();
+        assert_eq!(paths(&e), ["sensor.wavelength_nm"], "{e}");
+    }
+
+    #[test]
+    fn config_missing_keys_are_all_reported() {
+        let e = sensor("[sensor]\nname = \"x\"\nbits_per_sample = 12\n").unwrap_err();
+        assert_eq!(
+            paths(&e),
+            [
+                "sensor.wavelength_nm",
+                "sensor.pulse_fwhm_ns",
+                "sensor.pulse_rate_hz",
+                "sensor.beam_divergence_mrad",
+                "sensor.sample_interval_ns",
+                "sensor.bits_per_sample",
+            ],
+            "{e}"
+        );
+        assert!(e.issues[1].reason.starts_with("missing required key"));
+        assert_eq!(e.issues[5].kind, IssueKind::Invalid);
+        // Missing keys point at their table.
+        assert_eq!(e.issues[1].location, Some(Location { line: 1, column: 1 }));
+        let e = sensor("").unwrap_err();
+        assert_eq!(paths(&e), ["sensor"], "{e}");
+        assert_eq!(e.issues[0].location, None);
+    }
+
+    #[test]
+    fn config_missing_stage_type_is_reported() {
+        let e = run("[[pipeline.stages]]\ncutoff_ghz = 0.1\n[[pipeline.stages]]\ntype = 3\n")
+            .unwrap_err();
+        assert_eq!(
+            paths(&e),
+            ["pipeline.stages[0].type", "pipeline.stages[1].type"],
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn config_semantic_issues_are_all_reported() {
+        let text = GOOD_SENSOR
+            .replace("bits_per_sample = 8", "bits_per_sample = 12")
+            .replace("wavelength_nm = 1064", "wavelength_nm = -1")
+            .replace("pulse_rate_hz = 100000", "pulse_rate_hz = nan");
+        let e = sensor(&text).unwrap_err();
+        assert_eq!(
+            paths(&e),
+            [
+                "sensor.wavelength_nm",
+                "sensor.pulse_rate_hz",
+                "sensor.bits_per_sample"
+            ],
+            "{e}"
+        );
+        assert!(e.issues.iter().all(|i| i.kind == IssueKind::Invalid));
+        assert_eq!(e.issues[2].reason, "must be 8 or 16, got 12");
+        let e = run("[pipeline]\nqueue_capacity = 2000000\nstages = []\n").unwrap_err();
+        assert_eq!(
+            paths(&e),
+            ["pipeline.queue_capacity", "pipeline.stages"],
+            "{e}"
+        );
+        let e = run("[[pipeline.stages]]\ntype = \"denoise\"\npretrigger_samples = 4096\n")
+            .unwrap_err();
+        assert_eq!(paths(&e), ["pipeline.stages[0].pretrigger_samples"], "{e}");
+    }
+
+    #[test]
+    fn config_cutoff_is_checked_against_the_referenced_sensor() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir(dir.path().join("sensors")).unwrap();
+        let slow = GOOD_SENSOR.replace("sample_interval_ns = 1.0", "sample_interval_ns = 4.0");
+        std::fs::write(dir.path().join("sensors/slow.toml"), slow).unwrap();
+        let run_file = dir.path().join("run.toml");
+        std::fs::write(
+            &run_file,
+            "sensor_profile = \"sensors/slow.toml\"\n[[pipeline.stages]]\ntype = \"denoise\"\n",
+        )
+        .unwrap();
+        let e = load_file::<RunConfig>(&run_file).unwrap_err();
+        assert_eq!(paths(&e), ["pipeline.stages[0].cutoff_ghz"], "{e}");
+        assert!(
+            e.issues[0].reason.contains("Nyquist frequency 0.125 GHz"),
+            "{e}"
+        );
+        // The stage exists in the file; its default cut-off is not, so the entry is located.
+        assert_eq!(e.issues[0].location.map(|l| l.line), Some(2));
+        std::fs::write(
+            &run_file,
+            "sensor_profile = \"sensors/slow.toml\"\n[[pipeline.stages]]\ntype = \"denoise\"\ncutoff_ghz = 0.1\n",
+        )
+        .unwrap();
+        load_file::<RunConfig>(&run_file).unwrap();
+        std::fs::write(&run_file, "sensor_profile = \"sensors/none.toml\"\n").unwrap();
+        let e = load_file::<RunConfig>(&run_file).unwrap_err();
+        assert_eq!(paths(&e), ["sensor_profile"], "{e}");
+    }
+
+    #[test]
+    fn config_missing_file_directory_and_binary_are_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("nope.toml");
+        let e = load_file::<RunConfig>(&missing).unwrap_err();
+        assert_eq!(e.file, missing);
+        assert_eq!(e.issues[0].kind, IssueKind::Io);
+        assert_eq!(
+            e.to_string(),
+            format!("{}: no such file", missing.display())
+        );
+        let e = load_file::<RunConfig>(dir.path()).unwrap_err();
+        assert!(e.to_string().contains("is a directory"), "{e}");
+        assert!(e.to_string().starts_with(&dir.path().display().to_string()));
+        let binary = dir.path().join("bin.toml");
+        std::fs::write(&binary, b"a = 1\nb = \"\xff\xfe\"\n").unwrap();
+        let e = validate_any(&binary).unwrap_err();
+        assert_eq!(e.issues[0].kind, IssueKind::Io);
+        assert_eq!(e.issues[0].location, Some(Location { line: 2, column: 6 }));
+        assert!(e.to_string().contains("not UTF-8"), "{e}");
+    }
+
+    #[test]
+    fn config_invalid_toml_reports_line_and_column() {
+        let e = run("[pipeline]\nworkers = \nqueue_capacity = 4\n").unwrap_err();
+        assert_eq!(e.issues[0].kind, IssueKind::Syntax);
+        assert_eq!(e.issues[0].location.map(|l| l.line), Some(2), "{e}");
+        let e = run("[pipeline\n").unwrap_err();
+        assert_eq!(e.issues[0].kind, IssueKind::Syntax);
+        assert_eq!(e.issues[0].location.map(|l| l.line), Some(1), "{e}");
+        // Duplicate keys are syntax errors in TOML.
+        let e = run("[output]\ndir = \"a\"\ndir = \"b\"\n").unwrap_err();
+        assert_eq!(e.issues[0].kind, IssueKind::Syntax, "{e}");
+        assert_eq!(e.issues[0].location.map(|l| l.line), Some(3), "{e}");
+    }
+
+    #[test]
+    fn config_display_prints_file_line_column_path_reason() {
+        let e = run("[pipeline]\nqueue_capacity = 1\n").unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "run.toml:2:18: pipeline.queue_capacity: must be in 2..=1048576 pulses, got 1"
+        );
+    }
+
+    #[test]
+    fn config_validate_any_decides_by_top_level_tables() {
+        let dir = tempfile::tempdir().unwrap();
+        let write = |name: &str, text: &str| {
+            let p = dir.path().join(name);
+            std::fs::write(&p, text).unwrap();
+            p
+        };
+        let s = write("s.toml", GOOD_SENSOR);
+        assert!(matches!(validate_any(&s), Ok(Validated::Sensor(_))));
+        let r = write("r.toml", "[pipeline]\nworkers = 2\n");
+        assert!(matches!(validate_any(&r), Ok(Validated::Run(_))));
+        let c = write("c.toml", "[scene]\ntrees = 6\n");
+        let e = validate_any(&c).unwrap_err();
+        assert_eq!(e.issues[0].kind, IssueKind::UnknownKind);
+        assert_eq!(e.issues[0].location, Some(Location { line: 1, column: 2 }));
+        assert!(e.to_string().contains("[sensor]"), "{e}");
+        // A file that mixes kinds is checked against the first kind found.
+        let m = write(
+            "m.toml",
+            &format!("{GOOD_SENSOR}\n[pipeline]\nworkers = 2\n"),
+        );
+        let e = validate_any(&m).unwrap_err();
+        assert_eq!(paths(&e), ["pipeline"], "{e}");
+    }
+
+    #[test]
+    fn config_loader_never_panics_on_truncated_or_mangled_text() {
+        let text = r#"sensor_profile = "sensors/none.toml"
+[pipeline]
+workers = 2
+queue_capacity = 64
+input_edge = "drop_newest"
+[[pipeline.stages]]
+type = "denoise"
+cutoff_ghz = 0.2
+[[pipeline.stages]]
+type = "passthrough"
+[output]
+dir = "out"
+"#;
+        for cut in 0..=text.len() {
+            let _ = run(&text[..cut]);
+            let _ = sensor(&text[..cut]);
+            let mangled: String = text
+                .chars()
+                .enumerate()
+                .map(|(i, c)| if i == cut { '"' } else { c })
+                .collect();
+            let _ = run(&mangled);
+        }
+    }
+}

@@ -1,0 +1,148 @@
+//! Semantic checks of the stage configurations of `[[pipeline.stages]]` (the configurations
+//! themselves live with their stages).
+
+use super::load::{Validate, Validator, field};
+use crate::pipeline::registry::StageConfig;
+use crate::signal::denoise::DenoiseConfig;
+
+/// Largest segment a stage may be configured for, samples.
+pub(crate) const MAX_SEGMENT_SAMPLES: usize = 1_048_576;
+/// Smallest segment buffer a stage may be configured for, samples.
+pub(crate) const MIN_SEGMENT_SAMPLES: usize = 16;
+
+impl Validate for StageConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        match self {
+            StageConfig::Passthrough => {}
+            StageConfig::Denoise(c) => c.validate(path, v),
+        }
+    }
+}
+
+impl Validate for DenoiseConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        let cutoff = field(path, "cutoff_ghz");
+        v.positive(self.cutoff_ghz, &cutoff);
+        // A non-positive cut-off is reported once, above, not again against Nyquist.
+        let positive = self.cutoff_ghz.is_finite() && self.cutoff_ghz > 0.0;
+        let dt_ns = v
+            .sample_interval_ns()
+            .filter(|dt| dt.is_finite() && *dt > 0.0);
+        if let Some(dt_ns) = dt_ns.filter(|_| positive) {
+            let nyquist_ghz = 1.0 / (2.0 * dt_ns);
+            v.require(
+                self.cutoff_ghz < nyquist_ghz,
+                cutoff,
+                format!(
+                    "must be below the Nyquist frequency {nyquist_ghz} GHz of the sensor's \
+                     {dt_ns} ns sample interval, got {}",
+                    self.cutoff_ghz
+                ),
+            );
+        }
+        v.require(
+            (MIN_SEGMENT_SAMPLES..=MAX_SEGMENT_SAMPLES).contains(&self.max_samples),
+            field(path, "max_samples"),
+            format!(
+                "must be in {MIN_SEGMENT_SAMPLES}..={MAX_SEGMENT_SAMPLES} samples, got {}",
+                self.max_samples
+            ),
+        );
+        v.require(
+            self.pretrigger_samples < self.max_samples,
+            field(path, "pretrigger_samples"),
+            format!(
+                "must be less than max_samples ({}), got {}",
+                self.max_samples, self.pretrigger_samples
+            ),
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn stage(text: &str) -> Result<StageConfig, toml::de::Error> {
+        toml::from_str(text)
+    }
+
+    #[test]
+    fn stage_config_rejects_unknown_key_in_denoise() {
+        let e = stage("type = \"denoise\"\nbogus = 1").unwrap_err();
+        assert!(e.message().contains("unknown field `bogus`"), "{e}");
+    }
+
+    #[test]
+    fn stage_config_rejects_unknown_key_in_passthrough() {
+        let e = stage("type = \"passthrough\"\nbogus = 1").unwrap_err();
+        assert!(e.message().contains("bogus"), "{e}");
+    }
+
+    #[test]
+    fn stage_config_denoise_alone_gets_defaults() {
+        assert_eq!(
+            stage("type = \"denoise\"").unwrap(),
+            StageConfig::Denoise(DenoiseConfig::default())
+        );
+        assert_eq!(
+            stage("type = \"passthrough\"").unwrap(),
+            StageConfig::Passthrough
+        );
+    }
+
+    #[test]
+    fn stage_config_rejects_unknown_and_missing_type() {
+        assert!(stage("type = \"wavelet\"").is_err());
+        assert!(stage("cutoff_ghz = 0.2").is_err());
+    }
+
+    #[test]
+    fn stage_config_round_trips() {
+        for s in [
+            StageConfig::Passthrough,
+            StageConfig::Denoise(DenoiseConfig::default()),
+        ] {
+            let text = toml::to_string(&s).unwrap();
+            assert_eq!(stage(&text).unwrap(), s, "{text}");
+        }
+    }
+
+    fn check(c: &DenoiseConfig, dt_ns: Option<f64>) -> Vec<String> {
+        let mut v = Validator::new(None);
+        v.set_sample_interval_ns(dt_ns);
+        c.validate("s", &mut v);
+        v.issues()
+            .iter()
+            .map(|(p, r)| format!("{p}: {r}"))
+            .collect()
+    }
+
+    #[test]
+    fn denoise_config_checks_ranges_and_nyquist() {
+        let ok = DenoiseConfig::default();
+        assert!(check(&ok, None).is_empty());
+        assert!(check(&ok, Some(1.0)).is_empty());
+        // 0.2 GHz is above the 0.125 GHz Nyquist of 4 ns sampling.
+        let issues = check(&ok, Some(4.0));
+        assert_eq!(issues.len(), 1, "{issues:?}");
+        assert!(issues[0].starts_with("s.cutoff_ghz: must be below the Nyquist"));
+        // At Nyquist exactly is rejected too.
+        let at = DenoiseConfig {
+            cutoff_ghz: 0.5,
+            ..ok.clone()
+        };
+        assert_eq!(check(&at, Some(1.0)).len(), 1);
+        let bad = DenoiseConfig {
+            cutoff_ghz: f64::NAN,
+            max_samples: 8,
+            pretrigger_samples: 8,
+            ..ok
+        };
+        let issues = check(&bad, Some(1.0));
+        assert_eq!(issues.len(), 3, "{issues:?}");
+        assert!(issues[0].starts_with("s.cutoff_ghz: must be a positive number"));
+        assert!(issues[1].starts_with("s.max_samples: must be in 16..=1048576"));
+        assert!(issues[2].starts_with("s.pretrigger_samples: must be less than"));
+    }
+}
