@@ -117,6 +117,8 @@ pub enum Validated {
     Sensor(SensorFile),
     /// A run configuration (`sensor_profile`, `[pipeline]`, `[output]`).
     Run(RunConfig),
+    /// A simulator scene (a `[scene]` table).
+    Scene(Box<crate::sim::SceneFile>),
 }
 
 /// Reads, parses, deserializes and validates the file at `path` as a `T`, reporting every
@@ -141,9 +143,8 @@ pub fn load_str<T: DeserializeOwned + Validate>(
 }
 
 /// Validates the file at `path` as whichever kind it is, decided by its top-level tables: a
-/// `[sensor]` table makes it a sensor profile, a `[scene]` table a simulator scene (not
-/// validated by this build: an [`IssueKind::UnknownKind`] error), anything else a run
-/// configuration.
+/// `[sensor]` table makes it a sensor profile, a `[scene]` table a simulator scene (schema,
+/// values and its sensor profile), anything else a run configuration.
 pub fn validate_any(path: impl AsRef<Path>) -> Result<Validated, ConfigErrors> {
     let path = path.as_ref();
     let text = read_text(path)?;
@@ -152,15 +153,9 @@ pub fn validate_any(path: impl AsRef<Path>) -> Result<Validated, ConfigErrors> {
     if doc.table.contains_key("sensor") {
         loader.run(doc.table).map(Validated::Sensor)
     } else if doc.table.contains_key("scene") {
-        Err(ConfigErrors::single(
-            path,
-            IssueKind::UnknownKind,
-            "scene",
-            "scene files are validated by the simulator, which this build does not have; \
-             recognised kinds: sensor profile (a [sensor] table), run configuration \
-             (sensor_profile, [pipeline], [output])",
-            loader.location(&[Seg::Key("scene".into())], true),
-        ))
+        loader
+            .run(doc.table)
+            .map(|f| Validated::Scene(Box::new(f)))
     } else {
         loader.run(doc.table).map(Validated::Run)
     }
@@ -1016,9 +1011,8 @@ waveforms = "yes"
         assert!(matches!(validate_any(&r), Ok(Validated::Run(_))));
         let c = write("c.toml", "[scene]\ntrees = 6\n");
         let e = validate_any(&c).unwrap_err();
-        assert_eq!(e.issues[0].kind, IssueKind::UnknownKind);
-        assert_eq!(e.issues[0].location, Some(Location { line: 1, column: 2 }));
-        assert!(e.to_string().contains("[sensor]"), "{e}");
+        assert_eq!(e.issues[0].kind, IssueKind::Schema);
+        assert!(e.to_string().contains("scene.trees"), "{e}");
         // A file that mixes kinds is checked against the first kind found.
         let m = write(
             "m.toml",

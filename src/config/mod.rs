@@ -15,3 +15,15 @@ pub use error::{ConfigErrors, ConfigIssue, IssueKind, Location};
 pub use load::{Validate, Validated, Validator, load_file, load_str, validate_any};
 pub use run::{FullPolicy, OutputConfig, PipelineConfig, RunConfig};
 pub use sensor::{SensorFile, SensorProfile};
+
+/// The default run configuration for `fwlidar replay`, embedded in the binary
+/// (`config/replay.toml`).
+pub const DEFAULT_REPLAY_CONFIG: &str = include_str!("../../config/replay.toml");
+
+/// Loads the run configuration at `path`, or the embedded default when `None`.
+pub fn load_run_config(path: Option<&std::path::Path>) -> Result<RunConfig, ConfigErrors> {
+    match path {
+        Some(p) => load_file(p),
+        None => load_str(DEFAULT_REPLAY_CONFIG, "config/replay.toml (embedded)"),
+    }
+}

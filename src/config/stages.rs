@@ -14,7 +14,7 @@ impl Validate for StageConfig {
     fn validate(&self, path: &str, v: &mut Validator) {
         match self {
             StageConfig::Passthrough => {}
-            StageConfig::Denoise(c) => c.validate(path, v),
+            StageConfig::Denoise(c) => Validate::validate(c, path, v),
         }
     }
 }
