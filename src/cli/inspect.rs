@@ -136,7 +136,7 @@ pub fn run(args: InspectArgs) -> Result<(), Failure> {
             }
         }
     }
-    ov.skipped = reader.skipped().clone();
+    ov.skipped = *reader.skipped();
     if args.pulses {
         return out.flush().map_err(write_err);
     }

@@ -54,8 +54,8 @@ pub fn install_signal_handlers(control: &RunControl) -> Result<(), Failure> {
 
 /// Runs `fwlidar replay`.
 pub fn run(args: ReplayArgs) -> Result<(), Failure> {
-    let config: RunConfig = crate::config::load_run_config(args.config.as_deref())
-        .map_err(Failure::usage)?;
+    let config: RunConfig =
+        crate::config::load_run_config(args.config.as_deref()).map_err(Failure::usage)?;
     let out_dir = args
         .out
         .clone()
@@ -126,7 +126,10 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     write_atomic(&summary_path, &json).map_err(Failure::job)?;
     print_summary(&report, &args.input, &out_dir);
     if let Some(f) = &report.fatal {
-        return Err(Failure::job(format!("replay of {} failed: {f}", args.input.display())));
+        return Err(Failure::job(format!(
+            "replay of {} failed: {f}",
+            args.input.display()
+        )));
     }
     if report.stopped_early {
         tracing::warn!("replay stopped by signal; outputs hold what was processed until then");
@@ -141,8 +144,12 @@ fn prepare_out_dir(dir: &Path) -> Result<(), Failure> {
             dir.display()
         )));
     }
-    std::fs::create_dir_all(dir)
-        .map_err(|e| Failure::job(format!("cannot create output folder {}: {e}", dir.display())))
+    std::fs::create_dir_all(dir).map_err(|e| {
+        Failure::job(format!(
+            "cannot create output folder {}: {e}",
+            dir.display()
+        ))
+    })
 }
 
 fn us(ns: u64) -> f64 {
@@ -169,12 +176,18 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
         println!("    dropped {n:>10}  {reason}");
     }
     if let Some(skipped) = r.source.get("skipped") {
-        let bytes = skipped.get("bytes_skipped").and_then(|v| v.as_u64()).unwrap_or(0);
+        let bytes = skipped
+            .get("bytes_skipped")
+            .and_then(|v| v.as_u64())
+            .unwrap_or(0);
         let tail = skipped
             .get("truncated_tail_bytes")
             .and_then(|v| v.as_u64())
             .unwrap_or(0);
-        let bad = skipped.get("bad_checksums").and_then(|v| v.as_u64()).unwrap_or(0);
+        let bad = skipped
+            .get("bad_checksums")
+            .and_then(|v| v.as_u64())
+            .unwrap_or(0);
         println!(
             "  capture damage: {bytes} bytes skipped ({bad} bad checksums), {tail} bytes of truncated tail"
         );

@@ -63,8 +63,10 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
     let bar = (!args.no_progress).then(|| {
         let bar = ProgressBar::new(scene.pulses);
         bar.set_style(
-            ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} pulses")
-                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} pulses",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
         );
         bar
     });

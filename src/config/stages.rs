@@ -111,7 +111,7 @@ mod tests {
     fn check(c: &DenoiseConfig, dt_ns: Option<f64>) -> Vec<String> {
         let mut v = Validator::new(None);
         v.set_sample_interval_ns(dt_ns);
-        c.validate("s", &mut v);
+        Validate::validate(c, "s", &mut v);
         v.issues()
             .iter()
             .map(|(p, r)| format!("{p}: {r}"))

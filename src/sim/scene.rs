@@ -491,6 +491,31 @@ fn check_sensor(s: &SensorProfile) -> Result<(), SceneError> {
     )
 }
 
+impl crate::config::Validate for SceneFile {
+    fn validate(&self, _path: &str, v: &mut crate::config::Validator) {
+        let issue = |e: SceneError| match e {
+            SceneError::Invalid { field, reason } => (field.to_string(), reason),
+            SceneError::Parse { field, message, .. } => (
+                "scene.sensor_profile".to_string(),
+                format!("{field}: {message}"),
+            ),
+            SceneError::Io { path, source } => (
+                "scene.sensor_profile".to_string(),
+                format!("cannot read {}: {source}", path.display()),
+            ),
+        };
+        if let Err(e) = self.scene.validate() {
+            let (p, r) = issue(e);
+            v.report(p, r);
+        }
+        let base = v.base_dir().map(Path::to_path_buf).unwrap_or_default();
+        if let Err(e) = self.scene.resolve_sensor(&base) {
+            let (p, r) = issue(e);
+            v.report(p, r);
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -664,29 +689,5 @@ mod tests {
             Some(NoiseConfig::Uniform { amplitude_dn: 3.0 })
         );
         assert!(scene.sensor_profile.is_some());
-    }
-}
-
-impl crate::config::Validate for SceneFile {
-    fn validate(&self, _path: &str, v: &mut crate::config::Validator) {
-        let issue = |e: SceneError| match e {
-            SceneError::Invalid { field, reason } => (field.to_string(), reason),
-            SceneError::Parse { field, message, .. } => {
-                ("scene.sensor_profile".to_string(), format!("{field}: {message}"))
-            }
-            SceneError::Io { path, source } => (
-                "scene.sensor_profile".to_string(),
-                format!("cannot read {}: {source}", path.display()),
-            ),
-        };
-        if let Err(e) = self.scene.validate() {
-            let (p, r) = issue(e);
-            v.report(p, r);
-        }
-        let base = v.base_dir().map(Path::to_path_buf).unwrap_or_default();
-        if let Err(e) = self.scene.resolve_sensor(&base) {
-            let (p, r) = issue(e);
-            v.report(p, r);
-        }
     }
 }

@@ -1,0 +1,448 @@
+//! The command line end to end, through the real binary: simulate → capture → replay → outputs,
+//! bad input (clear errors naming the file and field, non-zero exit, nothing written over),
+//! SIGTERM (clean stop, every output flushed) and kill -9 of the capture writer.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use fwlidar::format::{CaptureReader, Record};
+
+const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+fn fwlidar(args: &[&str]) -> Output {
+    Command::new(BIN)
+        .args(args)
+        .current_dir(ROOT)
+        .output()
+        .expect("run fwlidar")
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+fn sample() -> PathBuf {
+    Path::new(ROOT).join("replay/two_layer.fwcap")
+}
+
+fn scene() -> PathBuf {
+    Path::new(ROOT).join("config/scenes/two_layer.toml")
+}
+
+#[test]
+fn sample_capture_is_reproducible() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("again.fwcap");
+    let o = fwlidar(&[
+        "simulate",
+        "--scene",
+        scene().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let fresh = std::fs::read(&out).unwrap();
+    let committed = std::fs::read(sample()).unwrap();
+    assert!(
+        fresh == committed,
+        "replay/two_layer.fwcap differs from a fresh simulation: regenerate it (replay/README.md)"
+    );
+}
+
+/// Reads `waveforms.csv` into rows of f64.
+fn read_waveforms(path: &Path) -> Vec<Vec<f64>> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .map(|l| l.split(',').map(|v| v.parse::<f64>().unwrap()).collect())
+        .collect()
+}
+
+#[test]
+fn replay_of_the_sample_writes_consistent_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let o = fwlidar(&[
+        "replay",
+        sample().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let stdout = text(&o.stdout);
+    assert!(stdout.contains("2000 in, 2000 out"), "{stdout}");
+
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["pulses_in"], 2000);
+    assert_eq!(summary["pulses_out"], 2000);
+    assert_eq!(summary["dropped_total"], 0);
+    assert_eq!(summary["source"]["records"]["frames"], 2000);
+    assert_eq!(summary["source"]["skipped"]["bytes_skipped"], 0);
+    assert_eq!(summary["stages"][0]["name"], "denoise");
+    assert_eq!(summary["stages"][0]["received"], 2000);
+    let svc = &summary["stages"][0]["service"];
+    assert!(svc["p50_ns"].as_u64().unwrap() > 0);
+    assert!(svc["p99_ns"].as_u64().unwrap() >= svc["p50_ns"].as_u64().unwrap());
+    assert!(svc["max_ns"].as_u64().unwrap() >= svc["p999_ns"].as_u64().unwrap());
+    assert!(summary["pulses_per_s"].as_f64().unwrap() > 0.0);
+    assert!(summary["nav"]["ports"]["0"]["bytes"].as_u64().unwrap() > 0);
+
+    // pulses.csv and waveforms.csv line up row for row, with the declared lengths.
+    let pulses = std::fs::read_to_string(out.join("pulses.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = pulses
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    let waves = read_waveforms(&out.join("waveforms.csv"));
+    assert_eq!(rows.len(), 4000);
+    assert_eq!(waves.len(), 4000);
+    for (r, w) in rows.iter().zip(&waves) {
+        assert_eq!(r[8].parse::<usize>().unwrap(), w.len());
+    }
+
+    // The physics survived: the mean denoised return has its two peaks where the scene put the
+    // plane (15 m above ground) and the ground: 15 m apart = 100 bins at 1 ns.
+    let returns: Vec<&Vec<f64>> = rows
+        .iter()
+        .zip(&waves)
+        .filter(|(r, _)| r[4] == "return")
+        .map(|(_, w)| w)
+        .collect();
+    let n = returns[0].len();
+    let mean: Vec<f64> = (0..n)
+        .map(|i| returns.iter().map(|w| w[i]).sum::<f64>() / returns.len() as f64)
+        .collect();
+    let mut peaks: Vec<(usize, f64)> = (1..n - 1)
+        .filter(|&i| mean[i] > mean[i - 1] && mean[i] >= mean[i + 1] && mean[i] > 5.0)
+        .map(|i| (i, mean[i]))
+        .collect();
+    peaks.sort_by(|a, b| b.1.total_cmp(&a.1));
+    assert!(peaks.len() >= 2, "{peaks:?}");
+    let (a, b) = (peaks[0].0.min(peaks[1].0), peaks[0].0.max(peaks[1].0));
+    assert!((b - a).abs_diff(100) <= 1, "peaks at {a} and {b}");
+    // The baseline (12 DN, volts = counts for this sensor) was removed: the tail is near zero.
+    assert!(mean[n - 5].abs() < 1.0, "tail {}", mean[n - 5]);
+}
+
+#[test]
+fn replay_defaults_to_the_bundled_sample_and_embedded_config() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("o");
+    let o = fwlidar(&["replay", "--out", out.to_str().unwrap(), "--no-progress"]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert!(out.join("summary.json").exists());
+    assert!(text(&o.stdout).contains("two_layer.fwcap"));
+}
+
+#[test]
+fn json_logs_are_json() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("o");
+    let o = fwlidar(&[
+        "--log-format",
+        "json",
+        "replay",
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success());
+    let err = text(&o.stderr);
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert!(!lines.is_empty());
+    for l in lines {
+        let v: serde_json::Value = serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}"));
+        assert!(v.get("level").is_some());
+    }
+}
+
+#[test]
+fn inspect_lists_every_pulse_as_json() {
+    let o = fwlidar(&["inspect", sample().to_str().unwrap(), "--pulses", "--json"]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let out = text(&o.stdout);
+    let lines: Vec<serde_json::Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 2000);
+    let first = &lines[0];
+    assert!(first["gps_time"].as_f64().unwrap() > 0.0);
+    let segs = first["segments"].as_array().unwrap();
+    assert_eq!(segs[0]["kind"], "outgoing");
+    assert_eq!(segs[1]["kind"], "return");
+    assert_eq!(segs[1]["samples"].as_array().unwrap().len(), 225);
+    assert_eq!(segs[1]["sample_ns"], 1.0);
+    // Times increase pulse by pulse.
+    assert!(
+        lines
+            .windows(2)
+            .all(|w| w[1]["gps_time"].as_f64() > w[0]["gps_time"].as_f64())
+    );
+    let o = fwlidar(&["inspect", sample().to_str().unwrap()]);
+    assert!(text(&o.stdout).contains("2000 frames"));
+}
+
+// ---- bad input -------------------------------------------------------------------------------
+
+fn assert_fails(o: &Output, code: i32, needles: &[&str]) {
+    let err = text(&o.stderr);
+    assert_eq!(o.status.code(), Some(code), "stderr: {err}");
+    for n in needles {
+        assert!(err.contains(n), "expected `{n}` in: {err}");
+    }
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+#[test]
+fn replay_of_a_missing_file_or_a_directory_fails_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("o");
+    let o = fwlidar(&[
+        "replay",
+        "/nonexistent/x.fwcap",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_fails(&o, 1, &["/nonexistent/x.fwcap"]);
+    assert!(!out.exists(), "nothing written for a missing input");
+    let o = fwlidar(&[
+        "replay",
+        dir.path().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_fails(&o, 1, &[dir.path().to_str().unwrap()]);
+}
+
+#[test]
+fn replay_of_an_empty_or_newer_capture_fails_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let empty = dir.path().join("empty.fwcap");
+    std::fs::write(&empty, b"").unwrap();
+    let o = fwlidar(&["replay", empty.to_str().unwrap(), "--out", "/tmp/never"]);
+    assert_fails(&o, 1, &["empty.fwcap", "empty"]);
+
+    let mut newer = std::fs::read(sample()).unwrap();
+    newer[8] = 2; // major version 2
+    let p = dir.path().join("newer.fwcap");
+    std::fs::write(&p, &newer).unwrap();
+    let o = fwlidar(&["replay", p.to_str().unwrap(), "--out", "/tmp/never"]);
+    assert_fails(&o, 1, &["newer.fwcap", "2.0"]);
+
+    let junk = dir.path().join("notes.txt");
+    std::fs::write(&junk, b"flight notes, not a capture\n").unwrap();
+    let o = fwlidar(&["inspect", junk.to_str().unwrap()]);
+    assert_fails(&o, 1, &["notes.txt", "not an fwlidar capture"]);
+}
+
+#[test]
+fn bad_configuration_is_reported_with_file_line_and_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("bad.toml");
+    std::fs::write(
+        &cfg,
+        "[pipeline]\nworkers = \"two\"\nqueue_capacity = 64\n[[pipeline.stages]]\ntype = \"denoise\"\ncutof_ghz = 0.2\n",
+    )
+    .unwrap();
+    let out = dir.path().join("o");
+    let o = fwlidar(&[
+        "replay",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_fails(
+        &o,
+        2,
+        &[
+            "bad.toml:2:",
+            "pipeline.workers",
+            "bad.toml:6:",
+            "pipeline.stages[0].cutof_ghz",
+        ],
+    );
+    assert!(!out.exists());
+    let o = fwlidar(&["validate", cfg.to_str().unwrap()]);
+    assert_fails(
+        &o,
+        2,
+        &["pipeline.workers", "cutof_ghz", "1 of 1 file(s) failed"],
+    );
+    let o = fwlidar(&["replay", "--config", dir.path().to_str().unwrap()]);
+    assert_fails(&o, 2, &["directory"]);
+}
+
+#[test]
+fn every_shipped_config_validates_through_the_cli() {
+    let mut files = Vec::new();
+    for sub in ["config", "config/sensors", "config/scenes"] {
+        for e in std::fs::read_dir(Path::new(ROOT).join(sub)).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x == "toml") {
+                files.push(p.to_str().unwrap().to_string());
+            }
+        }
+    }
+    assert!(files.len() >= 5, "{files:?}");
+    let mut args = vec!["validate"];
+    args.extend(files.iter().map(String::as_str));
+    let o = fwlidar(&args);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+}
+
+#[test]
+fn existing_files_are_never_written_over() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("keep.fwcap");
+    std::fs::write(&cap, b"precious").unwrap();
+    let o = fwlidar(&[
+        "simulate",
+        "--scene",
+        scene().to_str().unwrap(),
+        "--out",
+        cap.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert_fails(&o, 1, &["keep.fwcap", "exists"]);
+    assert_eq!(std::fs::read(&cap).unwrap(), b"precious");
+
+    // An output folder that is a file is refused and left alone.
+    let file = dir.path().join("out");
+    std::fs::write(&file, b"not a folder").unwrap();
+    let o = fwlidar(&["replay", "--out", file.to_str().unwrap(), "--no-progress"]);
+    assert_fails(&o, 1, &["not a folder"]);
+    assert_eq!(std::fs::read(&file).unwrap(), b"not a folder");
+}
+
+// ---- signals and crashes -------------------------------------------------------------------------
+
+fn simulate_big(dir: &Path, pulses: u64) -> PathBuf {
+    let cap = dir.join("big.fwcap");
+    let o = fwlidar(&[
+        "simulate",
+        "--scene",
+        scene().to_str().unwrap(),
+        "--out",
+        cap.to_str().unwrap(),
+        "--pulses",
+        &pulses.to_string(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    cap
+}
+
+#[test]
+fn sigterm_stops_replay_cleanly_with_every_output_flushed() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = simulate_big(dir.path(), 200_000);
+    let out = dir.path().join("o");
+    let child = Command::new(BIN)
+        .args([
+            "replay",
+            cap.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--no-progress",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Wait until processing is under way, then ask it to stop.
+    let start = Instant::now();
+    while !out.join("waveforms.csv.partial").exists() && start.elapsed() < Duration::from_secs(20) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(200));
+    let st = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let o = child.wait_with_output().unwrap();
+    assert!(
+        o.status.success(),
+        "exit {:?}: {}",
+        o.status,
+        text(&o.stderr)
+    );
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(
+        summary["stopped_early"], true,
+        "replay finished before the signal"
+    );
+    let n_out = summary["pulses_out"].as_u64().unwrap();
+    assert!(n_out > 0 && n_out < 200_000, "{n_out}");
+    assert_eq!(
+        summary["pulses_in"].as_u64().unwrap(),
+        n_out,
+        "in-flight pulses were processed"
+    );
+    // Every pulse that was counted is in the outputs, complete.
+    let pulses = std::fs::read_to_string(out.join("pulses.csv")).unwrap();
+    assert_eq!(pulses.lines().count() as u64, 1 + 2 * n_out);
+    let waves = std::fs::read_to_string(out.join("waveforms.csv")).unwrap();
+    assert_eq!(waves.lines().count() as u64, 2 * n_out);
+    assert!(waves.ends_with('\n'));
+    assert!(!out.join("waveforms.csv.partial").exists());
+}
+
+#[test]
+fn kill_9_of_the_capture_writer_loses_at_most_the_unflushed_tail() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("killed.fwcap");
+    let mut child = Command::new(BIN)
+        .args([
+            "simulate",
+            "--scene",
+            scene().to_str().unwrap(),
+            "--out",
+            cap.to_str().unwrap(),
+            "--pulses",
+            "50000000",
+            "--no-progress",
+        ])
+        .current_dir(ROOT)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    while std::fs::metadata(&cap).map_or(0, |m| m.len()) < 2_000_000
+        && start.elapsed() < Duration::from_secs(30)
+    {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+
+    let mut r = CaptureReader::open(&cap).unwrap();
+    let mut ids = Vec::new();
+    let mut headers = 0;
+    while let Some(rec) = r.next_record() {
+        match rec.unwrap() {
+            Record::Header(_) => headers += 1,
+            Record::Frame(f) => ids.push(f.pulse_id()),
+            Record::Nav { .. } => {}
+        }
+    }
+    let s = *r.skipped();
+    assert_eq!(headers, 1);
+    assert!(ids.len() > 1000, "{} frames recovered", ids.len());
+    // The recovered frames are exactly the first N written, with no hole.
+    assert!(ids.iter().enumerate().all(|(i, id)| *id == i as u64));
+    // The only damage is a partial record at the end, smaller than one record.
+    assert_eq!(s.bytes_skipped, 0, "{s:?}");
+    assert_eq!(s.bad_checksums, 0, "{s:?}");
+    assert!(s.truncated_tail_bytes < 400, "{s:?}");
+}
