@@ -128,6 +128,27 @@ fn replay_of_the_sample_writes_consistent_outputs() {
     assert!((b - a).abs_diff(100) <= 1, "peaks at {a} and {b}");
     // The baseline (12 DN, volts = counts for this sensor) was removed: the tail is near zero.
     assert!(mean[n - 5].abs() < 1.0, "tail {}", mean[n - 5]);
+    // ... and so are the pre-trigger samples of the outgoing pulse, whose peak is ~200 DN.
+    let outgoing: Vec<&Vec<f64>> = rows
+        .iter()
+        .zip(&waves)
+        .filter(|(r, _)| r[4] == "outgoing")
+        .map(|(_, w)| w)
+        .collect();
+    let head: f64 = outgoing
+        .iter()
+        .map(|w| w[..4].iter().sum::<f64>() / 4.0)
+        .sum::<f64>()
+        / outgoing.len() as f64;
+    let peak = outgoing
+        .iter()
+        .map(|w| w.iter().cloned().fold(f64::MIN, f64::max))
+        .sum::<f64>()
+        / outgoing.len() as f64;
+    assert!(
+        head.abs() < 1.0 && peak > 150.0,
+        "outgoing head {head}, peak {peak}"
+    );
 }
 
 #[test]

@@ -35,9 +35,8 @@ unsafe impl GlobalAlloc for Counting {
 static GLOBAL: Counting = Counting;
 
 fn allocations_for(pulses: u64, workers: usize) -> u64 {
-    let factory: StageFactory = Arc::new(|| {
-        vec![Box::new(Denoise::new(DenoiseConfig::default())) as Box<dyn Stage>]
-    });
+    let factory: StageFactory =
+        Arc::new(|| vec![Box::new(Denoise::new(DenoiseConfig::default())) as Box<dyn Stage>]);
     let spec = PipelineSpec {
         workers,
         queue_capacity: 8,
