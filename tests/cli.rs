@@ -467,3 +467,48 @@ fn kill_9_of_the_capture_writer_loses_at_most_the_unflushed_tail() {
     assert_eq!(s.bad_checksums, 0, "{s:?}");
     assert!(s.truncated_tail_bytes < 400, "{s:?}");
 }
+
+#[test]
+fn replay_of_a_damaged_capture_recovers_every_intact_record_and_says_what_it_skipped() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut bytes = std::fs::read(sample()).unwrap();
+    let len = bytes.len();
+    bytes[len / 2] ^= 0x55; // one flipped byte in the middle: one record lost
+    bytes.truncate(len - 100); // a cut-off tail: the last record lost
+    bytes.splice(
+        len / 4..len / 4,
+        b"garbage from a bad disk block".iter().copied(),
+    );
+    let cap = dir.path().join("damaged.fwcap");
+    std::fs::write(&cap, &bytes).unwrap();
+    let out = dir.path().join("o");
+    let o = fwlidar(&[
+        "replay",
+        cap.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let skipped = &summary["source"]["skipped"];
+    let records = &summary["source"]["records"];
+    // 2000 frames + 2 navigation records; three are damaged: the one the garbage landed in, the
+    // one with the flipped byte, the cut-off last one. Every other record is recovered.
+    let frames = records["frames"].as_u64().unwrap();
+    let nav = records["nav_records"].as_u64().unwrap();
+    assert_eq!(frames + nav, 2002 - 3, "{summary}");
+    assert_eq!(summary["pulses_in"], frames);
+    assert_eq!(summary["pulses_out"], frames);
+    assert_eq!(skipped["bad_checksums"], 2, "{skipped}");
+    assert!(
+        skipped["bytes_skipped"].as_u64().unwrap() >= 29,
+        "{skipped}"
+    );
+    assert!(
+        skipped["truncated_tail_bytes"].as_u64().unwrap() > 0,
+        "{skipped}"
+    );
+    assert!(text(&o.stdout).contains("capture damage:"));
+}
