@@ -362,10 +362,15 @@ fn simulate_big(dir: &Path, pulses: u64) -> PathBuf {
 }
 
 #[test]
-fn sigterm_stops_replay_cleanly_with_every_output_flushed() {
+fn sigterm_and_sigint_stop_replay_cleanly_with_every_output_flushed() {
     let dir = tempfile::tempdir().unwrap();
     let cap = simulate_big(dir.path(), 200_000);
-    let out = dir.path().join("o");
+    for signal in ["-TERM", "-INT"] {
+        stop_replay_with(&cap, &dir.path().join(signal), signal);
+    }
+}
+
+fn stop_replay_with(cap: &Path, out: &Path, signal: &str) {
     let child = Command::new(BIN)
         .args([
             "replay",
@@ -385,7 +390,7 @@ fn sigterm_stops_replay_cleanly_with_every_output_flushed() {
     }
     std::thread::sleep(Duration::from_millis(200));
     let st = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
+        .args([signal, &child.id().to_string()])
         .status()
         .unwrap();
     assert!(st.success());
