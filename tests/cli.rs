@@ -23,6 +23,10 @@ fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()
 }
 
+fn read_summary(out: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap()
+}
+
 fn sample() -> PathBuf {
     Path::new(ROOT).join("replay/two_layer.fwcap")
 }
@@ -76,8 +80,7 @@ fn replay_of_the_sample_writes_consistent_outputs() {
     let stdout = text(&o.stdout);
     assert!(stdout.contains("2000 in, 2000 out"), "{stdout}");
 
-    let summary: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let summary = read_summary(&out);
     assert_eq!(summary["pulses_in"], 2000);
     assert_eq!(summary["pulses_out"], 2000);
     assert_eq!(summary["dropped_total"], 0);
@@ -401,8 +404,7 @@ fn stop_replay_with(cap: &Path, out: &Path, signal: &str) {
         o.status,
         text(&o.stderr)
     );
-    let summary: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let summary = read_summary(&out);
     assert_eq!(
         summary["stopped_early"], true,
         "replay finished before the signal"
@@ -495,8 +497,7 @@ fn replay_of_a_damaged_capture_recovers_every_intact_record_and_says_what_it_ski
         "--no-progress",
     ]);
     assert!(o.status.success(), "{}", text(&o.stderr));
-    let summary: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let summary = read_summary(&out);
     let skipped = &summary["source"]["skipped"];
     let records = &summary["source"]["records"];
     // 2000 frames + 2 navigation records; three are damaged: the one the garbage landed in, the

@@ -38,6 +38,27 @@ struct Shared {
     dropped_full: CachePadded<AtomicU64>,
 }
 
+/// One step of waiting for the other side: spin, then yield, then park. Before parking, the
+/// waiter raises its `waiting` flag and re-checks `still_blocked` behind a SeqCst fence; the other
+/// side acts, fences, then reads the flag and unparks: one of the two always sees the other.
+fn wait(spins: &mut u32, waiting: &AtomicBool, still_blocked: impl Fn() -> bool) {
+    if *spins < SPINS + YIELDS {
+        *spins += 1;
+        if *spins <= SPINS {
+            std::hint::spin_loop();
+        } else {
+            thread::yield_now();
+        }
+        return;
+    }
+    waiting.store(true, Ordering::SeqCst);
+    fence(Ordering::SeqCst);
+    if still_blocked() {
+        thread::park_timeout(PARK_TIMEOUT);
+    }
+    waiting.store(false, Ordering::SeqCst);
+}
+
 /// Live counters of an edge, readable from any thread.
 #[derive(Clone)]
 pub struct EdgeStats(Arc<Shared>);
@@ -145,21 +166,10 @@ impl<T> EdgeTx<T> {
                 Ok(()) => return self.after_push(),
                 Err(item) => item,
             };
-            if spins < SPINS + YIELDS {
-                spins += 1;
-                if spins <= SPINS {
-                    std::hint::spin_loop();
-                } else {
-                    thread::yield_now();
-                }
-                continue;
-            }
-            self.shared.tx_waiting.store(true, Ordering::SeqCst);
-            fence(Ordering::SeqCst);
-            if self.prod.is_full() && !self.shared.rx_closed.load(Ordering::SeqCst) {
-                thread::park_timeout(PARK_TIMEOUT);
-            }
-            self.shared.tx_waiting.store(false, Ordering::SeqCst);
+            let (prod, shared) = (&self.prod, &self.shared);
+            wait(&mut spins, &shared.tx_waiting, || {
+                prod.is_full() && !shared.rx_closed.load(Ordering::SeqCst)
+            });
         }
     }
 
@@ -215,21 +225,10 @@ impl<T> EdgeRx<T> {
                 }
                 return last;
             }
-            if spins < SPINS + YIELDS {
-                spins += 1;
-                if spins <= SPINS {
-                    std::hint::spin_loop();
-                } else {
-                    thread::yield_now();
-                }
-                continue;
-            }
-            self.shared.rx_waiting.store(true, Ordering::SeqCst);
-            fence(Ordering::SeqCst);
-            if self.cons.is_empty() && !self.shared.tx_closed.load(Ordering::SeqCst) {
-                thread::park_timeout(PARK_TIMEOUT);
-            }
-            self.shared.rx_waiting.store(false, Ordering::SeqCst);
+            let (cons, shared) = (&self.cons, &self.shared);
+            wait(&mut spins, &shared.rx_waiting, || {
+                cons.is_empty() && !shared.tx_closed.load(Ordering::SeqCst)
+            });
         }
     }
 
