@@ -404,7 +404,7 @@ fn stop_replay_with(cap: &Path, out: &Path, signal: &str) {
         o.status,
         text(&o.stderr)
     );
-    let summary = read_summary(&out);
+    let summary = read_summary(out);
     assert_eq!(
         summary["stopped_early"], true,
         "replay finished before the signal"
