@@ -29,6 +29,28 @@ use super::{RunConfig, SensorFile};
 /// Bound on the repair rounds of one file (each round finds at most one schema error).
 const MAX_ROUNDS: usize = 200;
 
+/// Largest configuration file (run, sensor profile, scene) that is read, bytes: far above any
+/// real one (a few KiB), low enough that a path naming a device such as `/dev/zero` or a huge
+/// file is refused instead of read until memory runs out.
+pub const MAX_CONFIG_BYTES: u64 = 1024 * 1024;
+
+/// Reads at most [`MAX_CONFIG_BYTES`] of the file at `path`; a longer file is an
+/// [`ErrorKind::InvalidData`] error saying so (without reading the rest).
+pub(crate) fn read_bounded(path: &Path) -> std::io::Result<Vec<u8>> {
+    use std::io::Read as _;
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)?
+        .take(MAX_CONFIG_BYTES + 1)
+        .read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > MAX_CONFIG_BYTES {
+        return Err(std::io::Error::new(
+            ErrorKind::InvalidData,
+            format!("larger than {MAX_CONFIG_BYTES} bytes; not a configuration file"),
+        ));
+    }
+    Ok(bytes)
+}
+
 /// Semantic checks of a deserialized configuration: values in range and consistent.
 pub trait Validate {
     /// Reports every problem of `self` to `v`, with field paths below `path` (`""` at the top
@@ -167,10 +189,11 @@ fn read_text(path: &Path) -> Result<String, ConfigErrors> {
             "is a directory; expected a TOML configuration file".into(),
         ));
     }
-    let bytes = std::fs::read(path).map_err(|e| {
+    let bytes = read_bounded(path).map_err(|e| {
         io_error(match e.kind() {
             ErrorKind::NotFound => "no such file".to_string(),
             ErrorKind::PermissionDenied => "permission denied".to_string(),
+            ErrorKind::InvalidData => e.to_string(),
             _ => format!("cannot read: {e}"),
         })
     })?;

@@ -272,11 +272,15 @@ fn parse_toml<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> Result<
     })
 }
 
+/// Reads a referenced file as UTF-8 text, at most [`crate::config::load::MAX_CONFIG_BYTES`].
 fn read(path: &Path) -> Result<String, SceneError> {
-    std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+    let io = |source| SceneError::Io {
         path: path.to_path_buf(),
         source,
-    })
+    };
+    let bytes = crate::config::load::read_bounded(path).map_err(io)?;
+    String::from_utf8(bytes)
+        .map_err(|e| io(std::io::Error::new(std::io::ErrorKind::InvalidData, e)))
 }
 
 fn check(ok: bool, field: &'static str, reason: impl FnOnce() -> String) -> Result<(), SceneError> {

@@ -1,0 +1,42 @@
+#!/bin/sh
+# Seeds fuzz/corpus/ from files of the repository (corpora are not committed).
+#   capture_reader: replay/two_layer.fwcap cut to its first 8 KiB, prefixed with a mode byte
+#                   0x00 (even: the bytes are read as they are, preamble included), plus the same
+#                   records without the preamble behind mode byte 0x01 (odd: the target adds it).
+#   frame_decode:   the payloads of the first frame and nav records of that capture.
+#   config_load:    every file of config/.
+set -eu
+here=$(cd "$(dirname "$0")" && pwd)
+root=$(dirname "$here")
+cap="$root/replay/two_layer.fwcap"
+mkdir -p "$here/corpus/capture_reader" "$here/corpus/frame_decode" "$here/corpus/config_load"
+
+# capture_reader
+{ printf '\000'; head -c 8192 "$cap"; } > "$here/corpus/capture_reader/two_layer_8k_raw"
+{ printf '\001'; head -c 8192 "$cap" | tail -c +17; } > "$here/corpus/capture_reader/two_layer_8k_body"
+
+# frame_decode: payloads of the first records (record = 12-byte header, payload, 4-byte CRC).
+python3 - "$cap" "$here/corpus/frame_decode" <<'PY'
+import struct, sys
+data = open(sys.argv[1], "rb").read(1 << 16)
+out = sys.argv[2]
+at, n = 16, 0
+while at + 16 <= len(data) and n < 16:
+    if data[at:at + 4] != b"\xf5WLR":
+        break
+    kind = data[at + 4]
+    (length,) = struct.unpack_from("<I", data, at + 8)
+    payload = data[at + 12:at + 12 + length]
+    if len(payload) < length:
+        break
+    if kind in (2, 3):
+        open(f"{out}/record{n:02}_kind{kind}", "wb").write(payload)
+        n += 1
+    at += 16 + length
+PY
+
+# config_load
+find "$root/config" -name '*.toml' | while read -r f; do
+    cp "$f" "$here/corpus/config_load/$(basename "$(dirname "$f")")_$(basename "$f")"
+done
+ls -l "$here"/corpus/*
