@@ -55,6 +55,23 @@ pub struct NoiseEstimate {
     pub noise_v: f32,
 }
 
+/// A discrete return found by Gaussian decomposition of one segment.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct FittedReturn {
+    /// Index of the segment in [`Pulse::segments`].
+    pub segment: u16,
+    /// Centre of the Gaussian, in bins from the segment's first sample (fractional).
+    pub position_bins: f32,
+    /// Centre as time after the pulse's reference time t0, ns.
+    pub time_ns: f64,
+    /// Peak amplitude, in the units of the fitted signal (volts after denoise).
+    pub amplitude: f32,
+    /// Standard deviation, bins.
+    pub sigma_bins: f32,
+    /// RMS residual of the whole fit over the segment, signal units.
+    pub residual: f32,
+}
+
 /// One laser shot and everything the chain has learnt about it so far.
 #[derive(Debug)]
 pub struct Pulse {
@@ -83,6 +100,8 @@ pub struct Pulse {
     pub signal: Vec<f32>,
     /// Noise figures from the denoise stage.
     pub noise: NoiseEstimate,
+    /// Returns found by the decomposition stage (empty before it).
+    pub returns: Vec<FittedReturn>,
     /// When the pulse entered the process (for latency measurement).
     pub arrived: Instant,
 }
@@ -102,6 +121,7 @@ impl Default for Pulse {
             raw: Vec::new(),
             signal: Vec::new(),
             noise: NoiseEstimate::default(),
+            returns: Vec::new(),
             arrived: Instant::now(),
         }
     }
@@ -122,6 +142,7 @@ impl Pulse {
         self.raw.clear();
         self.signal.clear();
         self.noise = NoiseEstimate::default();
+        self.returns.clear();
         self.arrived = Instant::now();
     }
 

@@ -1,5 +1,6 @@
 //! Per-pulse signal processing stages: denoise (and, later, deconvolve and decompose).
 
 pub mod denoise;
+pub mod kernel;
 
 pub use denoise::{Denoise, DenoiseConfig};
