@@ -1,0 +1,124 @@
+//! Deconvolution: recovering the cross-section σ(t) from a received segment `P = R ⊛ σ + N`,
+//! method from configuration (Richardson-Lucy, Gold, Wiener, NNLS), each with a fixed worst-case
+//! cost per pulse for a given configuration.
+//!
+//! Every method implements [`Deconvolver`] on plain slices (one segment at a time, volts above
+//! baseline) so the stage, `fwlidar process` and the benchmarks share the same code.
+
+pub mod gold;
+pub mod nnls;
+pub mod richardson_lucy;
+pub mod wiener;
+
+use serde::{Deserialize, Serialize};
+
+use crate::signal::kernel::Kernel;
+
+pub use gold::{Gold, GoldConfig};
+pub use nnls::{Nnls, NnlsConfig};
+pub use richardson_lucy::{RichardsonLucy, RlConfig};
+pub use wiener::{Wiener, WienerConfig};
+
+/// Why a segment could not be deconvolved (the stage drops the pulse with this reason).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DeconvError {
+    /// The input holds NaN or infinite samples.
+    #[error("non-finite input sample")]
+    NonFiniteInput,
+    /// The segment is longer than the buffers were sized for.
+    #[error("segment of {len} samples exceeds the maximum of {max}")]
+    TooLong {
+        /// Samples given.
+        len: usize,
+        /// Maximum.
+        max: usize,
+    },
+    /// The kernel is longer than the buffers were sized for.
+    #[error("kernel of {len} taps exceeds the maximum of {max}")]
+    KernelTooLong {
+        /// Taps given.
+        len: usize,
+        /// Maximum.
+        max: usize,
+    },
+    /// `out` and the input differ in length.
+    #[error("output length {out} differs from input length {input}")]
+    LengthMismatch {
+        /// Input length.
+        input: usize,
+        /// Output length.
+        out: usize,
+    },
+}
+
+impl DeconvError {
+    /// The short drop reason counted in telemetry.
+    pub fn reason(&self) -> &'static str {
+        match self {
+            DeconvError::NonFiniteInput => "non_finite_input",
+            DeconvError::TooLong { .. } => "segment_too_long",
+            DeconvError::KernelTooLong { .. } => "kernel_too_long",
+            DeconvError::LengthMismatch { .. } => "length_mismatch",
+        }
+    }
+}
+
+/// What one deconvolution run did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct MethodStats {
+    /// Iterations performed (0 for direct methods).
+    pub iterations: u32,
+    /// True when an early-stop criterion ended the run before its budget.
+    pub stopped_early: bool,
+}
+
+/// A deconvolution method with its buffers sized once.
+pub trait Deconvolver: Send {
+    /// Method name as in configuration (`richardson_lucy`, `gold`, `wiener`, `nnls`).
+    fn name(&self) -> &'static str;
+
+    /// Deconvolves `y` (one segment, volts above baseline, sample interval `sample_ns`) by `k`
+    /// into `out` (same length). `noise_v` is the segment's noise level (used by Wiener and for
+    /// early stops). Never panics; never allocates within the sizes given at construction.
+    fn run(
+        &mut self,
+        y: &[f32],
+        k: &Kernel,
+        noise_v: f32,
+        sample_ns: f64,
+        out: &mut [f32],
+    ) -> Result<MethodStats, DeconvError>;
+
+    /// Worst-case floating-point operations for a segment of `n` samples and a kernel of `m`
+    /// taps with this configuration: the fixed cost budget the configuration states.
+    fn worst_case_flops(&self, n: usize, m: usize) -> u64;
+}
+
+/// The method and its settings (`method = "..."` in a `deconvolve` stage).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "method", rename_all = "snake_case")]
+pub enum MethodConfig {
+    /// Richardson-Lucy.
+    RichardsonLucy(RlConfig),
+    /// Gold (iterations × repetitions × boost).
+    Gold(GoldConfig),
+    /// Wiener filter fused with the low-pass.
+    Wiener(WienerConfig),
+    /// Non-negative least squares on the banded Toeplitz system.
+    Nnls(NnlsConfig),
+}
+
+impl MethodConfig {
+    /// Builds the method with buffers for segments of up to `max_samples` and kernels of up to
+    /// `max_taps`.
+    pub fn build(&self, max_samples: usize, max_taps: usize) -> Box<dyn Deconvolver> {
+        match self {
+            MethodConfig::RichardsonLucy(c) => {
+                Box::new(RichardsonLucy::new(c.clone(), max_samples, max_taps))
+            }
+            MethodConfig::Gold(c) => Box::new(Gold::new(c.clone(), max_samples, max_taps)),
+            MethodConfig::Wiener(c) => Box::new(Wiener::new(c.clone(), max_samples, max_taps)),
+            MethodConfig::Nnls(c) => Box::new(Nnls::new(c.clone(), max_samples, max_taps)),
+        }
+    }
+}
