@@ -5,9 +5,13 @@
 //! Every method implements [`Deconvolver`] on plain slices (one segment at a time, volts above
 //! baseline) so the stage, `fwlidar process` and the benchmarks share the same code.
 
+mod direct;
 pub mod gold;
 pub mod nnls;
 pub mod richardson_lucy;
+pub mod stage;
+#[cfg(test)]
+mod tests;
 pub mod wiener;
 
 use serde::{Deserialize, Serialize};
@@ -17,6 +21,7 @@ use crate::signal::kernel::Kernel;
 pub use gold::{Gold, GoldConfig};
 pub use nnls::{Nnls, NnlsConfig};
 pub use richardson_lucy::{RichardsonLucy, RlConfig};
+pub use stage::{Deconvolve, DeconvolveConfig, KernelSource};
 pub use wiener::{Wiener, WienerConfig};
 
 /// Why a segment could not be deconvolved (the stage drops the pulse with this reason).
@@ -41,6 +46,9 @@ pub enum DeconvError {
         /// Maximum.
         max: usize,
     },
+    /// The kernel has no taps, a non-finite tap or its centre outside the taps.
+    #[error("kernel is empty, non-finite or its centre lies outside its taps")]
+    BadKernel,
     /// `out` and the input differ in length.
     #[error("output length {out} differs from input length {input}")]
     LengthMismatch {
@@ -59,6 +67,7 @@ impl DeconvError {
             DeconvError::TooLong { .. } => "segment_too_long",
             DeconvError::KernelTooLong { .. } => "kernel_too_long",
             DeconvError::LengthMismatch { .. } => "length_mismatch",
+            DeconvError::BadKernel => "bad_kernel",
         }
     }
 }
@@ -120,5 +129,54 @@ impl MethodConfig {
             MethodConfig::Wiener(c) => Box::new(Wiener::new(c.clone(), max_samples, max_taps)),
             MethodConfig::Nnls(c) => Box::new(Nnls::new(c.clone(), max_samples, max_taps)),
         }
+    }
+}
+
+/// The checks every method makes before touching a segment: lengths, capacities, a usable
+/// kernel and finite input. Returns the largest absolute input value (volts) on success.
+pub(crate) fn check_inputs(
+    y: &[f32],
+    k: &Kernel,
+    out: &[f32],
+    max_samples: usize,
+    max_taps: usize,
+) -> Result<f32, DeconvError> {
+    if out.len() != y.len() {
+        return Err(DeconvError::LengthMismatch {
+            input: y.len(),
+            out: out.len(),
+        });
+    }
+    if y.len() > max_samples {
+        return Err(DeconvError::TooLong {
+            len: y.len(),
+            max: max_samples,
+        });
+    }
+    if k.taps.len() > max_taps {
+        return Err(DeconvError::KernelTooLong {
+            len: k.taps.len(),
+            max: max_taps,
+        });
+    }
+    if k.taps.is_empty() || k.center >= k.taps.len() || k.taps.iter().any(|t| !t.is_finite()) {
+        return Err(DeconvError::BadKernel);
+    }
+    let mut max_abs = 0.0f32;
+    for &v in y {
+        if !v.is_finite() {
+            return Err(DeconvError::NonFiniteInput);
+        }
+        max_abs = max_abs.max(v.abs());
+    }
+    Ok(max_abs)
+}
+
+/// Writes `out[i] = (x[i] · scale)` computed in f64 and clamped to the finite f32 range (the
+/// methods work on data normalised to a unit maximum and scale back with this).
+pub(crate) fn scale_out(x: &[f32], scale: f64, out: &mut [f32]) {
+    let lim = f32::MAX as f64;
+    for (o, &v) in out.iter_mut().zip(x) {
+        *o = (v as f64 * scale).clamp(-lim, lim) as f32;
     }
 }
