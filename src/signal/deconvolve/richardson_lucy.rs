@@ -162,6 +162,15 @@ impl Deconvolver for RichardsonLucy {
                 };
             }
             correlate_padded(ratio, pad, &k.taps, k.center, correction);
+            stats.iterations += 1;
+            let Some(tol) = self.config.early_stop else {
+                // No early stop: a reduction-free update the compiler vectorises.
+                for (s, &c) in sigma[pad..pad + n].iter_mut().zip(correction.iter()) {
+                    let new = (*s * c.max(0.0)).min(ESTIMATE_CAP);
+                    *s = if new < FLUSH { 0.0 } else { new };
+                }
+                continue;
+            };
             let mut change = 0.0f32;
             let mut total = 0.0f32;
             for (s, &c) in sigma[pad..pad + n].iter_mut().zip(correction.iter()) {
@@ -173,10 +182,7 @@ impl Deconvolver for RichardsonLucy {
                 total += *s;
                 *s = new;
             }
-            stats.iterations += 1;
-            if let Some(tol) = self.config.early_stop
-                && change <= tol * total
-            {
+            if change <= tol * total {
                 stats.stopped_early = stats.iterations < self.config.iterations;
                 break;
             }

@@ -472,7 +472,8 @@ proptest! {
         noise_v in 0f32..100.0,
     ) {
         let mut taps = taps;
-        taps[0] = taps[0].abs() + 1.0; // positive sum
+        let negatives: f32 = taps.iter().map(|t| t.abs()).sum();
+        taps[0] = negatives + 1.0; // positive sum
         let mut k = Kernel::default();
         k.set_from_taps(&taps, centre % taps.len(), MAX_M).unwrap();
         for mut m in methods() {
