@@ -106,10 +106,10 @@ pub struct Wiener {
 pub(crate) fn fast_len(min: usize) -> usize {
     let mut n = min.max(2);
     loop {
-        if n % 2 == 0 {
+        if n.is_multiple_of(2) {
             let mut r = n;
             for p in [2, 3, 5] {
-                while r % p == 0 {
+                while r.is_multiple_of(p) {
                     r /= p;
                 }
             }
