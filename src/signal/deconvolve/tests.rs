@@ -459,6 +459,14 @@ fn deconvolve_wiener_plans_are_cached() {
     w.run(&y, &k, 0.01, 1.0, &mut out).unwrap();
     w.run(&y, &k, 0.01, 1.0, &mut out).unwrap();
     assert_eq!(w.plan_count(), 1);
+    // A changed kernel is transformed again, not served from the cache.
+    let mut first = out.clone();
+    let k2 = gaussian_kernel(8.0);
+    w.run(&y, &k2, 0.01, 1.0, &mut out).unwrap();
+    assert_ne!(first, out);
+    let mut fresh = Wiener::new(WienerConfig::default(), MAX_N, MAX_M);
+    fresh.run(&y, &k2, 0.01, 1.0, &mut first).unwrap();
+    assert_eq!(first, out);
     assert_eq!(wiener::fast_len(297), 300);
 }
 

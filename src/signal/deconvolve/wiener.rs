@@ -27,9 +27,11 @@
 //!   `|P|⁴` inside f32 for full-scale and denormal inputs.
 //! - Output is **not** forced non-negative (Wiener is linear; small negative lobes remain).
 //!
-//! Cost: three real FFTs of length `N` (segment and kernel forward, one inverse; the kernel's
-//! spectrum is recomputed per call because per-shot kernels change every pulse) plus about 20
-//! flops per bin. Plans are cached per `N`.
+//! Cost: three real FFTs of length `N` (segment and kernel forward, one inverse) plus about 20
+//! flops per bin. Plans are cached per `N`. The kernel's spectrum is kept with a copy of the
+//! taps it came from and reused when the next call's kernel (taps, centre, `N`) is identical
+//! (a calibrated kernel): then only two FFTs run. Per-shot kernels change every pulse and pay
+//! the third FFT.
 
 use std::sync::Arc;
 
@@ -100,6 +102,10 @@ pub struct Wiener {
     /// Kernel spectrum.
     kernel_spectrum: Vec<Complex<f32>>,
     scratch: Vec<Complex<f32>>,
+    /// The kernel whose spectrum `kernel_spectrum` holds (taps, centre, padded length), so an
+    /// unchanged (calibrated) kernel is not transformed again; `None` until the first run.
+    cached_kernel: Vec<f32>,
+    cached_key: Option<(usize, usize)>,
 }
 
 /// Smallest even `N ≥ min` whose prime factors are 2, 3 and 5.
@@ -138,6 +144,8 @@ impl Wiener {
             spectrum: vec![Complex::new(0.0, 0.0); bins],
             kernel_spectrum: vec![Complex::new(0.0, 0.0); bins],
             scratch: vec![Complex::new(0.0, 0.0); max_len],
+            cached_kernel: Vec::with_capacity(max_taps),
+            cached_key: None,
         }
     }
 
@@ -204,18 +212,24 @@ impl Deconvolver for Wiener {
             *t = (v as f64 * inv) as f32;
         }
         time[n..].fill(0.0);
-        let kt = &mut self.kernel_time[..len];
-        kt.fill(0.0);
-        for (j, &t) in k.taps.iter().enumerate() {
-            // (j − center) mod len; len ≥ m > center.
-            kt[(j + len - k.center) % len] = t;
-        }
         let spectrum = &mut self.spectrum[..bins];
         let rs = &mut self.kernel_spectrum[..bins];
         let scratch = &mut self.scratch[..plan.scratch_len];
         // Lengths match the plan by construction; an error cannot occur.
         let _ = plan.forward.process_with_scratch(time, spectrum, scratch);
-        let _ = plan.forward.process_with_scratch(kt, rs, scratch);
+        let key = Some((k.center, len));
+        if self.cached_key != key || self.cached_kernel != k.taps {
+            let kt = &mut self.kernel_time[..len];
+            kt.fill(0.0);
+            for (j, &t) in k.taps.iter().enumerate() {
+                // (j − center) mod len; len ≥ m > center.
+                kt[(j + len - k.center) % len] = t;
+            }
+            let _ = plan.forward.process_with_scratch(kt, rs, scratch);
+            self.cached_kernel.clear();
+            self.cached_kernel.extend_from_slice(&k.taps);
+            self.cached_key = key;
+        }
 
         let noise_n = if noise_v.is_finite() {
             (noise_v.abs() as f64 * inv) as f32
