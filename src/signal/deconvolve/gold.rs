@@ -34,7 +34,9 @@
 use serde::{Deserialize, Serialize};
 
 use crate::signal::deconvolve::direct::{convolve_padded, correlate_padded};
-use crate::signal::deconvolve::{DeconvError, Deconvolver, MethodStats, check_inputs, scale_out};
+use crate::signal::deconvolve::{
+    DeconvError, Deconvolver, MethodStats, check_inputs, normalise, scale_out,
+};
 use crate::signal::kernel::Kernel;
 
 /// Floor of the denominator `KᵀKσ` (normalised units).
@@ -142,14 +144,11 @@ impl Deconvolver for Gold {
         let m = k.taps.len();
         let pad = m;
         let scale = max_abs as f64;
-        let inv = 1.0 / scale;
         let sigma = &mut self.sigma[..n + 2 * pad];
         let blurred = &mut self.blurred[..n + 2 * pad];
         sigma.fill(0.0);
         blurred.fill(0.0);
-        for (d, &v) in sigma[pad..pad + n].iter_mut().zip(y) {
-            *d = (v as f64 * inv) as f32;
-        }
+        normalise(y, max_abs, &mut sigma[pad..pad + n]);
         let yn = &mut self.y[..n];
         yn.copy_from_slice(&sigma[pad..pad + n]);
         let b = &mut self.b[..n];

@@ -162,21 +162,45 @@ pub(crate) fn check_inputs(
     if k.taps.is_empty() || k.center >= k.taps.len() || k.taps.iter().any(|t| !t.is_finite()) {
         return Err(DeconvError::BadKernel);
     }
-    let mut max_abs = 0.0f32;
-    for &v in y {
-        if !v.is_finite() {
-            return Err(DeconvError::NonFiniteInput);
-        }
-        max_abs = max_abs.max(v.abs());
+    // Branch-free scan (vectorises): any non-finite sample, and the largest magnitude.
+    let (finite, max_abs) = y.iter().fold((true, 0.0f32), |(ok, mx), &v| {
+        (ok & v.is_finite(), mx.max(v.abs()))
+    });
+    if !finite {
+        return Err(DeconvError::NonFiniteInput);
     }
     Ok(max_abs)
 }
 
-/// Writes `out[i] = (x[i] · scale)` computed in f64 and clamped to the finite f32 range (the
-/// methods work on data normalised to a unit maximum and scale back with this).
+/// Writes `out[i] = x[i] · scale` clamped to the finite f32 range (the methods work on data
+/// normalised to a unit maximum and scale back with this). In f32 when `scale` is a normal f32,
+/// otherwise in f64 (denormal or out-of-range scales).
 pub(crate) fn scale_out(x: &[f32], scale: f64, out: &mut [f32]) {
-    let lim = f32::MAX as f64;
-    for (o, &v) in out.iter_mut().zip(x) {
-        *o = (v as f64 * scale).clamp(-lim, lim) as f32;
+    let s32 = scale as f32;
+    if s32.is_normal() {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = (v * s32).clamp(-f32::MAX, f32::MAX);
+        }
+    } else {
+        let lim = f32::MAX as f64;
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = (v as f64 * scale).clamp(-lim, lim) as f32;
+        }
+    }
+}
+
+/// Writes `out[i] = x[i] / max` (the normalisation of [`scale_out`]); `max` positive and finite.
+/// In f32 when `1/max` is a normal f32, otherwise in f64.
+pub(crate) fn normalise(x: &[f32], max: f32, out: &mut [f32]) {
+    let inv = 1.0 / max as f64;
+    let inv32 = inv as f32;
+    if inv32.is_normal() {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = v * inv32;
+        }
+    } else {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = (v as f64 * inv) as f32;
+        }
     }
 }

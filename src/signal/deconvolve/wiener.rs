@@ -39,7 +39,9 @@ use realfft::num_complex::Complex;
 use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 use serde::{Deserialize, Serialize};
 
-use crate::signal::deconvolve::{DeconvError, Deconvolver, MethodStats, check_inputs, scale_out};
+use crate::signal::deconvolve::{
+    DeconvError, Deconvolver, MethodStats, check_inputs, normalise, scale_out,
+};
 use crate::signal::kernel::Kernel;
 
 /// Settings of the fused Wiener filter (`method = "wiener"`).
@@ -208,9 +210,7 @@ impl Deconvolver for Wiener {
         let inv = 1.0 / scale;
 
         let time = &mut self.time[..len];
-        for (t, &v) in time.iter_mut().zip(y) {
-            *t = (v as f64 * inv) as f32;
-        }
+        normalise(y, max_abs, &mut time[..n]);
         time[n..].fill(0.0);
         let spectrum = &mut self.spectrum[..bins];
         let rs = &mut self.kernel_spectrum[..bins];
@@ -271,12 +271,8 @@ impl Deconvolver for Wiener {
         spectrum[0].im = 0.0;
         spectrum[bins - 1].im = 0.0;
         let _ = plan.inverse.process_with_scratch(spectrum, time, scratch);
+        // Finite: every bin is finite (guarded above) and `scale_out` clamps.
         scale_out(&time[..n], scale / len as f64, out);
-        for o in out.iter_mut() {
-            if !o.is_finite() {
-                *o = 0.0;
-            }
-        }
         Ok(MethodStats::default())
     }
 
