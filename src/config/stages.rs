@@ -3,6 +3,7 @@
 
 use super::load::{Validate, Validator, field};
 use crate::pipeline::registry::StageConfig;
+use crate::signal::deconvolve::{DeconvolveConfig, KernelSource, MethodConfig};
 use crate::signal::denoise::DenoiseConfig;
 
 /// Largest segment a stage may be configured for, samples.
@@ -15,6 +16,7 @@ impl Validate for StageConfig {
         match self {
             StageConfig::Passthrough => {}
             StageConfig::Denoise(c) => Validate::validate(c, path, v),
+            StageConfig::Deconvolve(c) => Validate::validate(c, path, v),
         }
     }
 }
@@ -56,6 +58,110 @@ impl Validate for DenoiseConfig {
                 self.max_samples, self.pretrigger_samples
             ),
         );
+    }
+}
+
+/// Largest iteration budget a deconvolution method may be configured for (per repetition).
+pub(crate) const MAX_DECONV_ITERATIONS: u32 = 10_000;
+/// Largest kernel a deconvolve stage may be configured for, taps.
+pub(crate) const MAX_KERNEL_TAPS: usize = 65_536;
+
+/// Checks a cut-off frequency (GHz) at `path`: positive and below the sensor's Nyquist frequency
+/// when the sample interval is known.
+fn check_cutoff(cutoff_ghz: f64, path: String, v: &mut Validator) {
+    v.positive(cutoff_ghz, path.clone());
+    let positive = cutoff_ghz.is_finite() && cutoff_ghz > 0.0;
+    let dt_ns = v
+        .sample_interval_ns()
+        .filter(|dt| dt.is_finite() && *dt > 0.0);
+    if let Some(dt_ns) = dt_ns.filter(|_| positive) {
+        let nyquist_ghz = 1.0 / (2.0 * dt_ns);
+        v.require(
+            cutoff_ghz < nyquist_ghz,
+            path,
+            format!(
+                "must be below the Nyquist frequency {nyquist_ghz} GHz of the sensor's \
+                 {dt_ns} ns sample interval, got {cutoff_ghz}"
+            ),
+        );
+    }
+}
+
+fn check_iterations(n: u32, path: String, v: &mut Validator) {
+    v.require(
+        (1..=MAX_DECONV_ITERATIONS).contains(&n),
+        path,
+        format!("must be in 1..={MAX_DECONV_ITERATIONS}, got {n}"),
+    );
+}
+
+impl Validate for DeconvolveConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        v.require(
+            (MIN_SEGMENT_SAMPLES..=MAX_SEGMENT_SAMPLES).contains(&self.max_samples),
+            field(path, "max_samples"),
+            format!(
+                "must be in {MIN_SEGMENT_SAMPLES}..={MAX_SEGMENT_SAMPLES} samples, got {}",
+                self.max_samples
+            ),
+        );
+        v.require(
+            (1..=MAX_KERNEL_TAPS).contains(&self.max_taps),
+            field(path, "max_taps"),
+            format!(
+                "must be in 1..={MAX_KERNEL_TAPS} taps, got {}",
+                self.max_taps
+            ),
+        );
+        let method = field(path, "method");
+        match &self.method {
+            MethodConfig::RichardsonLucy(c) => {
+                check_iterations(c.iterations, field(&method, "iterations"), v);
+                if let Some(tol) = c.early_stop {
+                    v.positive(tol as f64, field(&method, "early_stop"));
+                }
+            }
+            MethodConfig::Gold(c) => {
+                check_iterations(c.iterations, field(&method, "iterations"), v);
+                check_iterations(c.repetitions, field(&method, "repetitions"), v);
+                v.positive(c.boost as f64, field(&method, "boost"));
+            }
+            MethodConfig::Wiener(c) => {
+                check_cutoff(c.cutoff_ghz, field(&method, "cutoff_ghz"), v);
+                v.require(
+                    c.noise_scale.is_finite() && c.noise_scale >= 0.0,
+                    field(&method, "noise_scale"),
+                    format!("must be a finite number ≥ 0, got {}", c.noise_scale),
+                );
+                v.positive(c.regularisation as f64, field(&method, "regularisation"));
+            }
+            // NNLS settings are checked with the method (written separately).
+            MethodConfig::Nnls(_) => {}
+        }
+        if let KernelSource::Taps { taps, center } = &self.kernel {
+            let kernel = field(path, "kernel");
+            let finite = taps.iter().all(|t| t.is_finite());
+            let sum: f64 = taps.iter().map(|&t| t as f64).sum();
+            v.require(
+                !taps.is_empty() && taps.len() <= self.max_taps,
+                field(&kernel, "taps"),
+                format!(
+                    "must hold 1..={} taps (max_taps), got {}",
+                    self.max_taps,
+                    taps.len()
+                ),
+            );
+            v.require(
+                finite && sum > 0.0,
+                field(&kernel, "taps"),
+                "must be finite numbers with a positive sum",
+            );
+            v.require(
+                *center < taps.len(),
+                field(&kernel, "center"),
+                format!("must index one of the {} taps, got {center}", taps.len()),
+            );
+        }
     }
 }
 
@@ -116,6 +222,74 @@ mod tests {
             .iter()
             .map(|(p, r)| format!("{p}: {r}"))
             .collect()
+    }
+
+    #[test]
+    fn stage_config_deconvolve_round_trips_and_checks() {
+        use crate::signal::deconvolve::{GoldConfig, RlConfig, WienerConfig};
+        let s = stage("type = \"deconvolve\"\nmethod = { method = \"gold\" }").unwrap();
+        assert_eq!(
+            s,
+            StageConfig::Deconvolve(DeconvolveConfig::with_method(MethodConfig::Gold(
+                GoldConfig::default()
+            )))
+        );
+        assert_eq!(s.kind(), "deconvolve");
+        let text = toml::to_string(&s).unwrap();
+        assert_eq!(stage(&text).unwrap(), s, "{text}");
+        assert!(stage("type = \"deconvolve\"\nmethod = { method = \"gold\" }\nbogus = 1").is_err());
+        let mut v = Validator::new(None);
+        v.set_sample_interval_ns(Some(4.0));
+        let bad = DeconvolveConfig {
+            kernel: KernelSource::Taps {
+                taps: vec![0.0, f32::NAN],
+                center: 5,
+            },
+            max_samples: 8,
+            max_taps: 0,
+            ..DeconvolveConfig::with_method(MethodConfig::Wiener(WienerConfig {
+                cutoff_ghz: 0.2,
+                noise_scale: -1.0,
+                regularisation: 0.0,
+            }))
+        };
+        Validate::validate(&bad, "s", &mut v);
+        let paths: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+        assert_eq!(
+            paths,
+            [
+                "s.max_samples",
+                "s.max_taps",
+                "s.method.cutoff_ghz",
+                "s.method.noise_scale",
+                "s.method.regularisation",
+                "s.kernel.taps",
+                "s.kernel.taps",
+                "s.kernel.center"
+            ]
+        );
+        let mut v = Validator::new(None);
+        let bad = DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
+            iterations: 0,
+            early_stop: Some(-1.0),
+        }));
+        Validate::validate(&bad, "s", &mut v);
+        assert_eq!(v.issues().len(), 2);
+        let mut v = Validator::new(None);
+        let bad = DeconvolveConfig::with_method(MethodConfig::Gold(GoldConfig {
+            iterations: 1,
+            repetitions: 0,
+            boost: f32::INFINITY,
+        }));
+        Validate::validate(&bad, "s", &mut v);
+        assert_eq!(v.issues().len(), 2);
+        let mut v = Validator::new(None);
+        Validate::validate(
+            &DeconvolveConfig::with_method(MethodConfig::Wiener(WienerConfig::default())),
+            "s",
+            &mut v,
+        );
+        assert!(v.issues().is_empty());
     }
 
     #[test]

@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::pipeline::stage::{Passthrough, Stage};
+use crate::signal::deconvolve::{Deconvolve, DeconvolveConfig};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 
 /// One entry of `[[pipeline.stages]]`, selected by its `type` key.
@@ -17,6 +18,8 @@ pub enum StageConfig {
     Passthrough,
     /// FFT low-pass noise reduction.
     Denoise(DenoiseConfig),
+    /// Deconvolution of the return segments (Richardson-Lucy, Gold, Wiener, NNLS).
+    Deconvolve(DeconvolveConfig),
 }
 
 /// Accepts only an empty table: the keys of a stage kind that has none.
@@ -33,6 +36,7 @@ impl StageConfig {
         match self {
             StageConfig::Passthrough => "passthrough",
             StageConfig::Denoise(_) => "denoise",
+            StageConfig::Deconvolve(_) => "deconvolve",
         }
     }
 
@@ -41,6 +45,7 @@ impl StageConfig {
         match self {
             StageConfig::Passthrough => Box::new(Passthrough),
             StageConfig::Denoise(c) => Box::new(Denoise::new(c.clone())),
+            StageConfig::Deconvolve(c) => Box::new(Deconvolve::new(c.clone())),
         }
     }
 }

@@ -5,9 +5,13 @@
 //! Every method implements [`Deconvolver`] on plain slices (one segment at a time, volts above
 //! baseline) so the stage, `fwlidar process` and the benchmarks share the same code.
 
+mod direct;
 pub mod gold;
 pub mod nnls;
 pub mod richardson_lucy;
+pub mod stage;
+#[cfg(test)]
+mod tests;
 pub mod wiener;
 
 use serde::{Deserialize, Serialize};
@@ -17,6 +21,7 @@ use crate::signal::kernel::Kernel;
 pub use gold::{Gold, GoldConfig};
 pub use nnls::{Nnls, NnlsConfig};
 pub use richardson_lucy::{RichardsonLucy, RlConfig};
+pub use stage::{Deconvolve, DeconvolveConfig, KernelSource};
 pub use wiener::{Wiener, WienerConfig};
 
 /// Why a segment could not be deconvolved (the stage drops the pulse with this reason).
@@ -41,6 +46,9 @@ pub enum DeconvError {
         /// Maximum.
         max: usize,
     },
+    /// The kernel has no taps, a non-finite tap or its centre outside the taps.
+    #[error("kernel is empty, non-finite or its centre lies outside its taps")]
+    BadKernel,
     /// `out` and the input differ in length.
     #[error("output length {out} differs from input length {input}")]
     LengthMismatch {
@@ -59,6 +67,7 @@ impl DeconvError {
             DeconvError::TooLong { .. } => "segment_too_long",
             DeconvError::KernelTooLong { .. } => "kernel_too_long",
             DeconvError::LengthMismatch { .. } => "length_mismatch",
+            DeconvError::BadKernel => "bad_kernel",
         }
     }
 }
@@ -119,6 +128,79 @@ impl MethodConfig {
             MethodConfig::Gold(c) => Box::new(Gold::new(c.clone(), max_samples, max_taps)),
             MethodConfig::Wiener(c) => Box::new(Wiener::new(c.clone(), max_samples, max_taps)),
             MethodConfig::Nnls(c) => Box::new(Nnls::new(c.clone(), max_samples, max_taps)),
+        }
+    }
+}
+
+/// The checks every method makes before touching a segment: lengths, capacities, a usable
+/// kernel and finite input. Returns the largest absolute input value (volts) on success.
+pub(crate) fn check_inputs(
+    y: &[f32],
+    k: &Kernel,
+    out: &[f32],
+    max_samples: usize,
+    max_taps: usize,
+) -> Result<f32, DeconvError> {
+    if out.len() != y.len() {
+        return Err(DeconvError::LengthMismatch {
+            input: y.len(),
+            out: out.len(),
+        });
+    }
+    if y.len() > max_samples {
+        return Err(DeconvError::TooLong {
+            len: y.len(),
+            max: max_samples,
+        });
+    }
+    if k.taps.len() > max_taps {
+        return Err(DeconvError::KernelTooLong {
+            len: k.taps.len(),
+            max: max_taps,
+        });
+    }
+    if k.taps.is_empty() || k.center >= k.taps.len() || k.taps.iter().any(|t| !t.is_finite()) {
+        return Err(DeconvError::BadKernel);
+    }
+    // Branch-free scan (vectorises): any non-finite sample, and the largest magnitude.
+    let (finite, max_abs) = y.iter().fold((true, 0.0f32), |(ok, mx), &v| {
+        (ok & v.is_finite(), mx.max(v.abs()))
+    });
+    if !finite {
+        return Err(DeconvError::NonFiniteInput);
+    }
+    Ok(max_abs)
+}
+
+/// Writes `out[i] = x[i] · scale` clamped to the finite f32 range (the methods work on data
+/// normalised to a unit maximum and scale back with this). In f32 when `scale` is a normal f32,
+/// otherwise in f64 (denormal or out-of-range scales).
+pub(crate) fn scale_out(x: &[f32], scale: f64, out: &mut [f32]) {
+    let s32 = scale as f32;
+    if s32.is_normal() {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = (v * s32).clamp(-f32::MAX, f32::MAX);
+        }
+    } else {
+        let lim = f32::MAX as f64;
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = (v as f64 * scale).clamp(-lim, lim) as f32;
+        }
+    }
+}
+
+/// Writes `out[i] = x[i] / max` (the normalisation of [`scale_out`]); `max` positive and finite.
+/// In f32 when `1/max` is a normal f32, otherwise in f64.
+pub(crate) fn normalise(x: &[f32], max: f32, out: &mut [f32]) {
+    let inv = 1.0 / max as f64;
+    let inv32 = inv as f32;
+    if inv32.is_normal() {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = v * inv32;
+        }
+    } else {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = (v as f64 * inv) as f32;
         }
     }
 }

@@ -1,24 +1,184 @@
-//! PLACEHOLDER being written in parallel; replaced before merge.
+//! Wiener deconvolution fused with the low-pass: one pass in the frequency domain.
+//!
+//! The segment `y` (length `n`) and the kernel (length `m`) are zero-padded to a length
+//! `N ≥ n + m` whose prime factors are 2, 3 and 5 (so the FFT is fast and its circular
+//! convolution cannot wrap the end of the segment onto its start). The kernel is placed
+//! circularly with its centre tap at index 0 (tap `j` at `(j − center) mod N`), so its phase
+//! is referenced to its centre and a centred kernel does not shift returns. With `P` and `R`
+//! the real FFTs of the padded segment and kernel:
+//!
+//! ```text
+//! Σ(f) = P(f) · conj(R(f)) · |P(f)|² / ( |P(f)|² · (|R(f)|² + ρ) + |N|² · max(|R(f)|², ρ) ) · LP(f)
+//! ```
+//!
+//! This is `P · conj(R) / (|R|² + |N|²/|S|²)` with the signal spectrum estimated from the
+//! data as `|S|² = |P|² / max(|R|², ρ)` (the seed's weight `W = |P|²/(|P|²+|N|²)`: where
+//! `|R|² ≥ ρ` it equals the seed's `(P/R) · W` up to the Tikhonov term ρ), plus `ρ`
+//! ([`WienerConfig::regularisation`], relative to `|R(0)|² = 1` for a unit-sum kernel) in the
+//! denominator, which bounds the gain at `1/(2√ρ)` even without noise.
+//!
+//! - **Noise spectrum** (white): `|N|² = noise_scale · n · noise_v²` per bin (the unnormalised
+//!   DFT of `n` samples of white noise of standard deviation `noise_v`), `noise_v` being the
+//!   segment's noise level from the denoise stage, volts.
+//! - **Low-pass** `LP(f)`: bins with frequency `k / (N · sample_ns)` above
+//!   [`WienerConfig::cutoff_ghz`] are zeroed (so this also replaces a separate low-pass).
+//! - **Normalisation**: the segment and `noise_v` are divided by the segment's largest absolute
+//!   value (f64) and the result multiplied back (the filter is scale-equivariant), keeping
+//!   `|P|⁴` inside f32 for full-scale and denormal inputs.
+//! - Output is **not** forced non-negative (Wiener is linear; small negative lobes remain).
+//!
+//! Cost: three real FFTs of length `N` (segment and kernel forward, one inverse) plus about 20
+//! flops per bin. Plans are cached per `N`. The kernel's spectrum is kept with a copy of the
+//! taps it came from and reused when the next call's kernel (taps, centre, `N`) is identical
+//! (a calibrated kernel): then only two FFTs run. Per-shot kernels change every pulse and pay
+//! the third FFT.
 
+use std::sync::Arc;
+
+use realfft::num_complex::Complex;
+use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 use serde::{Deserialize, Serialize};
 
-use crate::signal::deconvolve::{DeconvError, Deconvolver, MethodStats};
+use crate::signal::deconvolve::{
+    DeconvError, Deconvolver, MethodStats, check_inputs, normalise, scale_out,
+};
 use crate::signal::kernel::Kernel;
 
-/// Settings.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+/// Settings of the fused Wiener filter (`method = "wiener"`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct WienerConfig {}
+pub struct WienerConfig {
+    /// Low-pass cut-off, GHz: bins above it are zeroed. Default 0.2.
+    #[serde(default = "default_cutoff_ghz")]
+    pub cutoff_ghz: f64,
+    /// Multiplies the noise power `n · noise_v²` (dimensionless, ≥ 0). Default 1.0.
+    #[serde(default = "default_noise_scale")]
+    pub noise_scale: f32,
+    /// Tikhonov floor ρ on the kernel power `|R(f)|²`, relative to `|R(0)|² = 1`
+    /// (dimensionless, > 0); bounds the gain at `1/(2√ρ)`. Default 1e-3.
+    #[serde(default = "default_regularisation")]
+    pub regularisation: f32,
+}
 
-/// The method.
+fn default_cutoff_ghz() -> f64 {
+    0.2
+}
+fn default_noise_scale() -> f32 {
+    1.0
+}
+fn default_regularisation() -> f32 {
+    1e-3
+}
+
+impl Default for WienerConfig {
+    fn default() -> Self {
+        WienerConfig {
+            cutoff_ghz: default_cutoff_ghz(),
+            noise_scale: default_noise_scale(),
+            regularisation: default_regularisation(),
+        }
+    }
+}
+
+/// A forward/inverse real FFT pair planned for one padded length.
+struct Plan {
+    len: usize,
+    forward: Arc<dyn RealToComplex<f32>>,
+    inverse: Arc<dyn ComplexToReal<f32>>,
+    scratch_len: usize,
+}
+
+/// The fused Wiener filter with plans cached and buffers sized once.
 pub struct Wiener {
-    _config: WienerConfig,
+    config: WienerConfig,
+    max_samples: usize,
+    max_taps: usize,
+    planner: RealFftPlanner<f32>,
+    plans: Vec<Plan>,
+    /// Padded segment / output, time domain.
+    time: Vec<f32>,
+    /// Padded kernel, time domain.
+    kernel_time: Vec<f32>,
+    /// Segment spectrum, then the estimate's spectrum.
+    spectrum: Vec<Complex<f32>>,
+    /// Kernel spectrum.
+    kernel_spectrum: Vec<Complex<f32>>,
+    scratch: Vec<Complex<f32>>,
+    /// The kernel whose spectrum `kernel_spectrum` holds (taps, centre, padded length), so an
+    /// unchanged (calibrated) kernel is not transformed again; `None` until the first run.
+    cached_kernel: Vec<f32>,
+    cached_key: Option<(usize, usize)>,
+}
+
+/// Smallest even `N ≥ min` whose prime factors are 2, 3 and 5.
+pub(crate) fn fast_len(min: usize) -> usize {
+    let mut n = min.max(2);
+    loop {
+        if n.is_multiple_of(2) {
+            let mut r = n;
+            for p in [2, 3, 5] {
+                while r.is_multiple_of(p) {
+                    r /= p;
+                }
+            }
+            if r == 1 {
+                return n;
+            }
+        }
+        n += 1;
+    }
 }
 
 impl Wiener {
-    /// Builds it.
-    pub fn new(config: WienerConfig, _max_samples: usize, _max_taps: usize) -> Self {
-        Wiener { _config: config }
+    /// Builds the filter for segments of up to `max_samples` samples and kernels of up to
+    /// `max_taps` taps (buffers sized for the largest padded length).
+    pub fn new(config: WienerConfig, max_samples: usize, max_taps: usize) -> Self {
+        let max_len = fast_len(max_samples + max_taps);
+        let bins = max_len / 2 + 1;
+        Wiener {
+            config,
+            max_samples,
+            max_taps,
+            planner: RealFftPlanner::new(),
+            plans: Vec::with_capacity(8),
+            time: vec![0.0; max_len],
+            kernel_time: vec![0.0; max_len],
+            spectrum: vec![Complex::new(0.0, 0.0); bins],
+            kernel_spectrum: vec![Complex::new(0.0, 0.0); bins],
+            scratch: vec![Complex::new(0.0, 0.0); max_len],
+            cached_kernel: Vec::with_capacity(max_taps),
+            cached_key: None,
+        }
+    }
+
+    /// The configuration in force.
+    pub fn config(&self) -> &WienerConfig {
+        &self.config
+    }
+
+    fn plan_index(&mut self, len: usize) -> usize {
+        if let Some(i) = self.plans.iter().position(|p| p.len == len) {
+            return i;
+        }
+        let forward = self.planner.plan_fft_forward(len);
+        let inverse = self.planner.plan_fft_inverse(len);
+        let scratch_len = forward.get_scratch_len().max(inverse.get_scratch_len());
+        if self.scratch.len() < scratch_len {
+            self.scratch.resize(scratch_len, Complex::new(0.0, 0.0));
+        }
+        self.plans.push(Plan {
+            len,
+            forward,
+            inverse,
+            scratch_len,
+        });
+        self.plans.len() - 1
+    }
+
+    /// Number of cached FFT plans (for the no-allocation tests).
+    #[cfg(test)]
+    pub(crate) fn plan_count(&self) -> usize {
+        self.plans.len()
     }
 }
 
@@ -26,18 +186,98 @@ impl Deconvolver for Wiener {
     fn name(&self) -> &'static str {
         "wiener"
     }
+
     fn run(
         &mut self,
         y: &[f32],
-        _k: &Kernel,
-        _noise_v: f32,
-        _sample_ns: f64,
+        k: &Kernel,
+        noise_v: f32,
+        sample_ns: f64,
         out: &mut [f32],
     ) -> Result<MethodStats, DeconvError> {
-        out.copy_from_slice(y);
+        let max_abs = check_inputs(y, k, out, self.max_samples, self.max_taps)?;
+        let n = y.len();
+        if n == 0 || max_abs <= 0.0 {
+            out.fill(0.0);
+            return Ok(MethodStats::default());
+        }
+        let m = k.taps.len();
+        let len = fast_len(n + m);
+        let plan_i = self.plan_index(len);
+        let plan = &self.plans[plan_i];
+        let bins = len / 2 + 1;
+        let scale = max_abs as f64;
+        let inv = 1.0 / scale;
+
+        let time = &mut self.time[..len];
+        normalise(y, max_abs, &mut time[..n]);
+        time[n..].fill(0.0);
+        let spectrum = &mut self.spectrum[..bins];
+        let rs = &mut self.kernel_spectrum[..bins];
+        let scratch = &mut self.scratch[..plan.scratch_len];
+        // Lengths match the plan by construction; an error cannot occur.
+        let _ = plan.forward.process_with_scratch(time, spectrum, scratch);
+        let key = Some((k.center, len));
+        if self.cached_key != key || self.cached_kernel != k.taps {
+            let kt = &mut self.kernel_time[..len];
+            kt.fill(0.0);
+            for (j, &t) in k.taps.iter().enumerate() {
+                // (j − center) mod len; len ≥ m > center.
+                kt[(j + len - k.center) % len] = t;
+            }
+            let _ = plan.forward.process_with_scratch(kt, rs, scratch);
+            self.cached_kernel.clear();
+            self.cached_kernel.extend_from_slice(&k.taps);
+            self.cached_key = key;
+        }
+
+        let noise_n = if noise_v.is_finite() {
+            (noise_v.abs() as f64 * inv) as f32
+        } else {
+            0.0
+        };
+        let scale_noise = if self.config.noise_scale.is_finite() {
+            self.config.noise_scale.max(0.0)
+        } else {
+            0.0
+        };
+        let n2 = scale_noise * n as f32 * noise_n * noise_n;
+        let n2 = if n2.is_finite() { n2 } else { f32::MAX };
+        let rho = if self.config.regularisation.is_finite() && self.config.regularisation > 0.0 {
+            self.config.regularisation
+        } else {
+            default_regularisation()
+        };
+        let keep = self.config.cutoff_ghz * len as f64 * sample_ns;
+        let first_zeroed = if keep.is_finite() && keep >= 0.0 {
+            ((keep.floor() as usize).saturating_add(1)).min(bins)
+        } else if keep.is_finite() {
+            0
+        } else {
+            // NaN or infinite: keep everything (the stage validates the configuration).
+            bins
+        };
+        for (s, r) in spectrum[..first_zeroed].iter_mut().zip(rs.iter()) {
+            let p2 = s.norm_sqr();
+            let r2 = r.norm_sqr();
+            let den = p2 * (r2 + rho) + n2 * r2.max(rho);
+            *s = if den > 0.0 && den.is_finite() {
+                *s * r.conj() * (p2 / den)
+            } else {
+                Complex::new(0.0, 0.0)
+            };
+        }
+        spectrum[first_zeroed..].fill(Complex::new(0.0, 0.0));
+        spectrum[0].im = 0.0;
+        spectrum[bins - 1].im = 0.0;
+        let _ = plan.inverse.process_with_scratch(spectrum, time, scratch);
+        // Finite: every bin is finite (guarded above) and `scale_out` clamps.
+        scale_out(&time[..n], scale / len as f64, out);
         Ok(MethodStats::default())
     }
-    fn worst_case_flops(&self, _n: usize, _m: usize) -> u64 {
-        0
+
+    fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
+        let len = fast_len(n + m) as f64;
+        (3.0 * 2.5 * len * len.log2() + 20.0 * (len / 2.0 + 1.0)) as u64
     }
 }

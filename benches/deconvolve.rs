@@ -1,0 +1,87 @@
+//! Deconvolution of one 256-sample segment by a 16 ns FWHM Gaussian kernel at 1 ns sampling
+//! (taps to ±3σ: 41 taps): Richardson-Lucy 20 iterations, Gold 20 iterations, Wiener fused with
+//! the low-pass, with the same kernel every call (its spectrum cached) and with a kernel that
+//! changes every call (per-shot kernels: spectrum computed per call).
+
+use std::hint::black_box;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use fwlidar::signal::deconvolve::{
+    Deconvolver, Gold, GoldConfig, RichardsonLucy, RlConfig, Wiener, WienerConfig,
+};
+use fwlidar::signal::kernel::{Kernel, convolve_same};
+
+fn gaussian_kernel(fwhm_ns: f32) -> Kernel {
+    let sigma = fwhm_ns / 2.354_82;
+    let half = (3.0 * sigma).ceil() as usize;
+    let taps: Vec<f32> = (0..=2 * half)
+        .map(|j| {
+            let d = (j as f32 - half as f32) / sigma;
+            (-0.5 * d * d).exp()
+        })
+        .collect();
+    let mut k = Kernel::default();
+    k.set_from_taps(&taps, half, 256).expect("valid kernel");
+    k
+}
+
+fn segment(k: &Kernel) -> Vec<f32> {
+    let mut truth = vec![0.0f32; 256];
+    truth[90] = 1.0;
+    truth[120] = 0.5;
+    truth[200] = 0.3;
+    let mut y = vec![0.0; 256];
+    convolve_same(&truth, k, &mut y);
+    // Deterministic small "noise".
+    for (i, v) in y.iter_mut().enumerate() {
+        *v += 0.001 * (((i * 7919) % 13) as f32 - 6.0);
+    }
+    y
+}
+
+fn bench(c: &mut Criterion) {
+    let k = gaussian_kernel(16.0);
+    let y = segment(&k);
+    let mut out = vec![0.0f32; 256];
+    let mut methods: Vec<(&str, Box<dyn Deconvolver>)> = vec![
+        (
+            "richardson_lucy_20",
+            Box::new(RichardsonLucy::new(RlConfig::default(), 4096, 256)),
+        ),
+        (
+            "gold_20",
+            Box::new(Gold::new(GoldConfig::default(), 4096, 256)),
+        ),
+        (
+            "wiener_fused_same_kernel",
+            Box::new(Wiener::new(WienerConfig::default(), 4096, 256)),
+        ),
+    ];
+    let mut group = c.benchmark_group("deconvolve_256_samples_41_taps");
+    for (name, m) in methods.iter_mut() {
+        group.bench_function(*name, |b| {
+            b.iter(|| {
+                m.run(black_box(&y), black_box(&k), 0.002, 1.0, &mut out)
+                    .expect("runs");
+                black_box(&out);
+            })
+        });
+    }
+    // Per-shot kernels: alternate two kernels so the Wiener kernel-spectrum cache never hits.
+    let k2 = gaussian_kernel(16.5);
+    let mut w = Wiener::new(WienerConfig::default(), 4096, 256);
+    let mut flip = false;
+    group.bench_function("wiener_fused_per_shot_kernel", |b| {
+        b.iter(|| {
+            flip = !flip;
+            let kk = if flip { &k } else { &k2 };
+            w.run(black_box(&y), black_box(kk), 0.002, 1.0, &mut out)
+                .expect("runs");
+            black_box(&out);
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

@@ -1,0 +1,496 @@
+//! Hard cases, accuracy and property tests of Richardson-Lucy, Gold and Wiener (one `#[test]`
+//! per case; each loops over the three methods).
+
+use proptest::prelude::*;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::*;
+use crate::signal::kernel::convolve_same;
+
+const MAX_N: usize = 4096;
+const MAX_M: usize = 256;
+
+/// The three methods written here (NNLS is tested with its own module).
+fn methods() -> Vec<Box<dyn Deconvolver>> {
+    vec![
+        MethodConfig::RichardsonLucy(RlConfig::default()).build(MAX_N, MAX_M),
+        MethodConfig::Gold(GoldConfig::default()).build(MAX_N, MAX_M),
+        MethodConfig::Wiener(WienerConfig::default()).build(MAX_N, MAX_M),
+    ]
+}
+
+/// True for the methods that promise a non-negative output.
+fn non_negative(name: &str) -> bool {
+    name == "richardson_lucy" || name == "gold"
+}
+
+/// Unit-sum Gaussian kernel of full width at half maximum `fwhm` samples, taps to ±3σ, centred.
+fn gaussian_kernel(fwhm: f32) -> Kernel {
+    let sigma = fwhm / 2.354_82;
+    let half = (3.0 * sigma).ceil() as usize;
+    let taps: Vec<f32> = (0..=2 * half)
+        .map(|j| {
+            let d = (j as f32 - half as f32) / sigma;
+            (-0.5 * d * d).exp()
+        })
+        .collect();
+    let mut k = Kernel::default();
+    k.set_from_taps(&taps, half, MAX_M).unwrap();
+    k
+}
+
+/// Spikes `(position, amplitude)` in `n` samples.
+fn spikes(n: usize, s: &[(usize, f32)]) -> Vec<f32> {
+    let mut x = vec![0.0; n];
+    for &(i, a) in s {
+        x[i] = a;
+    }
+    x
+}
+
+fn blur(x: &[f32], k: &Kernel) -> Vec<f32> {
+    let mut y = vec![0.0; x.len()];
+    convolve_same(x, k, &mut y);
+    y
+}
+
+/// Runs every method on `y` and checks the universal promises (Ok, finite output,
+/// non-negative for RL/Gold); returns `(name, output)`.
+fn run_checked(y: &[f32], k: &Kernel, noise_v: f32) -> Vec<(&'static str, Vec<f32>)> {
+    let mut results = Vec::new();
+    for mut m in methods() {
+        let mut out = vec![f32::NAN; y.len()];
+        let stats = m
+            .run(y, k, noise_v, 1.0, &mut out)
+            .unwrap_or_else(|e| panic!("{}: {e}", m.name()));
+        assert!(stats.iterations <= 20, "{}", m.name());
+        assert!(
+            out.iter().all(|v| v.is_finite()),
+            "{}: non-finite output",
+            m.name()
+        );
+        if non_negative(m.name()) {
+            assert!(
+                out.iter().all(|&v| v >= 0.0),
+                "{}: negative output",
+                m.name()
+            );
+        }
+        results.push((m.name(), out));
+    }
+    results
+}
+
+fn sum(x: &[f32]) -> f64 {
+    x.iter().map(|&v| v as f64).sum()
+}
+
+/// RL conserves Σσ exactly (up to rounding) on non-negative data; Gold within 10 % after its
+/// default 20 iterations on clean blurred inputs (it is not energy conserving by construction).
+fn assert_energy(results: &[(&'static str, Vec<f32>)], y: &[f32]) {
+    let e = sum(y);
+    for (name, out) in results {
+        let tol = match *name {
+            "richardson_lucy" => 1e-3,
+            "gold" => 0.10,
+            _ => continue,
+        };
+        let rel = (sum(out) / e - 1.0).abs();
+        assert!(rel < tol, "{name}: energy off by {rel} (tolerance {tol})");
+    }
+}
+
+fn argmax(x: &[f32]) -> usize {
+    x.iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map_or(0, |p| p.0)
+}
+
+fn noise(rng: &mut ChaCha8Rng, n: usize, amp: f32) -> Vec<f32> {
+    // Uniform in ±amp·√3 has standard deviation amp.
+    let a = amp * 3f32.sqrt();
+    (0..n).map(|_| rng.random_range(-a..=a)).collect()
+}
+
+#[test]
+fn deconvolve_hard_all_zero() {
+    let k = gaussian_kernel(16.0);
+    for (name, out) in run_checked(&[0.0; 256], &k, 0.0) {
+        assert!(out.iter().all(|&v| v == 0.0), "{name}");
+    }
+}
+
+#[test]
+fn deconvolve_hard_constant() {
+    let k = gaussian_kernel(16.0);
+    for (name, out) in run_checked(&[0.7; 256], &k, 0.01) {
+        // Away from the edges a constant stays roughly constant.
+        let mid = &out[64..192];
+        let mean = sum(mid) / mid.len() as f64;
+        assert!((mean / 0.7 - 1.0).abs() < 0.2, "{name}: mean {mean}");
+    }
+}
+
+#[test]
+fn deconvolve_hard_single_spike() {
+    let k = gaussian_kernel(16.0);
+    let y = spikes(256, &[(128, 1.0)]);
+    let results = run_checked(&y, &k, 0.0);
+    // Not a blurred input (narrower than the kernel): only RL's exact conservation holds.
+    assert!((sum(&results[0].1) - 1.0).abs() < 1e-3);
+    for (name, out) in &results {
+        assert!((argmax(out) as i32 - 128).abs() <= 1, "{name}");
+    }
+}
+
+#[test]
+fn deconvolve_hard_saturated_plateau() {
+    let k = gaussian_kernel(16.0);
+    let truth = spikes(256, &[(128, 2.0 * 65535.0 * 17.0)]);
+    let y: Vec<f32> = blur(&truth, &k).iter().map(|v| v.min(65535.0)).collect();
+    assert!(y.iter().filter(|&&v| v == 65535.0).count() > 5);
+    let results = run_checked(&y, &k, 1.0);
+    assert_energy(&results, &y);
+    for (name, out) in &results {
+        assert!((argmax(out) as i32 - 128).abs() <= 8, "{name}");
+    }
+}
+
+#[test]
+fn deconvolve_hard_negative_after_baseline() {
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let k = gaussian_kernel(8.0);
+    let clean = blur(&spikes(256, &[(100, 1.0)]), &k);
+    let n = noise(&mut rng, 256, 0.02);
+    let y: Vec<f32> = clean.iter().zip(&n).map(|(a, b)| a + b - 0.03).collect();
+    assert!(y.iter().filter(|&&v| v < 0.0).count() > 100);
+    for (name, out) in run_checked(&y, &k, 0.02) {
+        assert!((argmax(&out) as i32 - 100).abs() <= 1, "{name}");
+    }
+}
+
+#[test]
+fn deconvolve_hard_non_finite_input_is_an_error() {
+    let k = gaussian_kernel(8.0);
+    for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+        let mut y = vec![0.5; 64];
+        y[10] = bad;
+        for mut m in methods() {
+            let mut out = vec![0.0; 64];
+            assert_eq!(
+                m.run(&y, &k, 0.01, 1.0, &mut out),
+                Err(DeconvError::NonFiniteInput),
+                "{}",
+                m.name()
+            );
+            assert!(out.iter().all(|v| v.is_finite()), "{}", m.name());
+        }
+    }
+    assert_eq!(DeconvError::NonFiniteInput.reason(), "non_finite_input");
+}
+
+#[test]
+fn deconvolve_hard_denormals() {
+    let k = gaussian_kernel(16.0);
+    let y: Vec<f32> = blur(&spikes(256, &[(128, 1.0)]), &k)
+        .iter()
+        .map(|v| v * 1e-38)
+        .collect();
+    assert!(y.iter().any(|v| v.is_subnormal()));
+    for (name, out) in run_checked(&y, &k, 1e-41) {
+        assert!(out.iter().any(|&v| v != 0.0), "{name}: all zero");
+        assert!((argmax(&out) as i32 - 128).abs() <= 1, "{name}");
+    }
+}
+
+#[test]
+fn deconvolve_hard_u16_max_amplitudes() {
+    let k = gaussian_kernel(16.0);
+    let truth = spikes(256, &[(100, 1.0), (160, 0.5)]);
+    let y: Vec<f32> = blur(&truth, &k)
+        .iter()
+        .map(|v| v * 65535.0 / 0.06)
+        .collect();
+    let peak = y.iter().fold(0.0f32, |a, &v| a.max(v));
+    assert!(peak > 60000.0, "{peak}");
+    let results = run_checked(&y, &k, 10.0);
+    assert_energy(&results, &y);
+}
+
+#[test]
+fn deconvolve_hard_kernel_longer_than_segment() {
+    let k = gaussian_kernel(16.0); // 41 taps
+    let y = blur(&spikes(16, &[(8, 1.0)]), &k);
+    run_checked(&y, &k, 0.0);
+}
+
+#[test]
+fn deconvolve_hard_wiener_near_zero_high_frequencies() {
+    // σ = 12 bins: the kernel's spectrum falls far below f32 resolution above ~0.1 cycle/bin.
+    let k = gaussian_kernel(28.0);
+    let y = blur(&spikes(256, &[(128, 1.0)]), &k);
+    let ymax = y.iter().fold(0.0f32, |a, &v| a.max(v));
+    for cutoff in [0.2, 0.49] {
+        let mut w = Wiener::new(
+            WienerConfig {
+                cutoff_ghz: cutoff,
+                noise_scale: 0.0,
+                ..Default::default()
+            },
+            MAX_N,
+            MAX_M,
+        );
+        let mut out = vec![0.0; 256];
+        w.run(&y, &k, 0.0, 1.0, &mut out).unwrap();
+        assert!(out.iter().all(|v| v.is_finite()));
+        // The regularisation bounds the gain at 1/(2√ρ) ≈ 15.8 per bin.
+        let omax = out.iter().fold(0.0f32, |a, &v| a.max(v.abs()));
+        assert!(omax < 16.0 * sum(&y) as f32, "{omax} vs {ymax}");
+        assert!((argmax(&out) as i32 - 128).abs() <= 1);
+    }
+    run_checked(&y, &k, 0.0);
+}
+
+#[test]
+fn deconvolve_hard_echoes_at_snr_1() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let k = gaussian_kernel(8.0);
+    let clean = blur(&spikes(256, &[(80, 1.0), (170, 1.0)]), &k);
+    let peak = clean.iter().fold(0.0f32, |a, &v| a.max(v));
+    let n = noise(&mut rng, 256, peak);
+    let y: Vec<f32> = clean.iter().zip(&n).map(|(a, b)| a + b).collect();
+    run_checked(&y, &k, peak);
+}
+
+#[test]
+fn deconvolve_hard_two_echoes_half_fwhm_apart() {
+    let k = gaussian_kernel(8.0);
+    let y = blur(&spikes(256, &[(100, 1.0), (104, 1.0)]), &k);
+    let results = run_checked(&y, &k, 0.0);
+    assert_energy(&results, &y);
+}
+
+#[test]
+fn deconvolve_hard_one_sample_segment() {
+    let k = gaussian_kernel(8.0);
+    for (name, out) in run_checked(&[0.3], &k, 0.0) {
+        assert_eq!(out.len(), 1, "{name}");
+    }
+    run_checked(&[], &k, 0.0);
+}
+
+#[test]
+fn deconvolve_hard_4096_sample_segment() {
+    let k = gaussian_kernel(16.0);
+    let truth = spikes(4096, &[(500, 1.0), (2000, 0.5), (4000, 0.8)]);
+    let y = blur(&truth, &k);
+    let results = run_checked(&y, &k, 0.0);
+    assert_energy(&results, &y);
+    // One sample more than the buffers hold is a typed error.
+    for mut m in methods() {
+        let mut out = vec![0.0; 4097];
+        assert!(matches!(
+            m.run(&[0.0; 4097], &k, 0.0, 1.0, &mut out),
+            Err(DeconvError::TooLong { .. })
+        ));
+    }
+}
+
+#[test]
+fn deconvolve_hard_asymmetric_off_centre_kernel_does_not_shift() {
+    let mut k = Kernel::default();
+    k.set_from_taps(
+        &[0.1, 0.5, 1.0, 0.8, 0.6, 0.45, 0.3, 0.2, 0.12, 0.06, 0.03],
+        2,
+        MAX_M,
+    )
+    .unwrap();
+    let y = blur(&spikes(256, &[(100, 1.0), (150, 0.6)]), &k);
+    let results = run_checked(&y, &k, 0.0);
+    assert_energy(&results, &y);
+    for (name, out) in &results {
+        assert_eq!(argmax(out), 100, "{name}");
+        assert!(
+            (argmax(&out[125..]) as i32 + 125 - 150).abs() <= 1,
+            "{name}"
+        );
+    }
+}
+
+#[test]
+fn deconvolve_hard_ringing_kernel_with_negative_lobes() {
+    let mut k = Kernel::default();
+    k.set_from_taps(&[-0.1, 0.2, 1.0, 0.3, -0.25, -0.1, 0.05, 0.02], 2, MAX_M)
+        .unwrap();
+    let y = blur(&spikes(256, &[(100, 1.0), (140, 0.5)]), &k);
+    for (name, out) in run_checked(&y, &k, 0.001) {
+        assert!((argmax(&out) as i32 - 100).abs() <= 1, "{name}");
+    }
+}
+
+#[test]
+fn deconvolve_hard_bad_kernels_and_lengths_are_errors() {
+    let y = [1.0f32; 8];
+    for mut m in methods() {
+        let mut out = [0.0f32; 8];
+        assert_eq!(
+            m.run(&y, &Kernel::default(), 0.0, 1.0, &mut out),
+            Err(DeconvError::BadKernel)
+        );
+        let k = gaussian_kernel(4.0);
+        assert!(matches!(
+            m.run(&y, &k, 0.0, 1.0, &mut out[..7]),
+            Err(DeconvError::LengthMismatch { .. })
+        ));
+        let long = Kernel {
+            taps: vec![0.001; MAX_M + 1],
+            center: 0,
+        };
+        assert!(matches!(
+            m.run(&y, &long, 0.0, 1.0, &mut out),
+            Err(DeconvError::KernelTooLong { .. })
+        ));
+    }
+}
+
+/// Two spikes blurred by an 8 ns Gaussian plus small noise: every method finds both peaks
+/// within one bin, and RL's RMSE against the truth is well below the blurred waveform's.
+#[test]
+fn deconvolve_accuracy_two_spikes() {
+    let mut rng = ChaCha8Rng::seed_from_u64(42);
+    let k = gaussian_kernel(8.0);
+    let truth = spikes(256, &[(100, 1.0), (130, 0.6)]);
+    let clean = blur(&truth, &k);
+    let n = noise(&mut rng, 256, 0.002);
+    let y: Vec<f32> = clean.iter().zip(&n).map(|(a, b)| a + b).collect();
+    let rmse = |x: &[f32]| {
+        (x.iter()
+            .zip(&truth)
+            .map(|(a, b)| ((a - b) as f64).powi(2))
+            .sum::<f64>()
+            / x.len() as f64)
+            .sqrt()
+    };
+    let raw = rmse(&y);
+    for (name, out) in run_checked(&y, &k, 0.002) {
+        let p1 = 85 + argmax(&out[85..115]);
+        let p2 = 115 + argmax(&out[115..145]);
+        assert!((p1 as i32 - 100).abs() <= 1, "{name}: first peak at {p1}");
+        assert!((p2 as i32 - 130).abs() <= 1, "{name}: second peak at {p2}");
+        let e = rmse(&out);
+        eprintln!("{name}: RMSE {e:.4} (blurred {raw:.4})");
+        if name == "richardson_lucy" {
+            // 20 iterations from the blurred start: about 11 % below the blurred waveform.
+            assert!(e < 0.92 * raw, "RL RMSE {e} vs blurred {raw}");
+        }
+    }
+    // RL converges slowly towards spikes: 200 iterations bring the RMSE well below.
+    let mut rl = RichardsonLucy::new(
+        RlConfig {
+            iterations: 200,
+            early_stop: None,
+        },
+        MAX_N,
+        MAX_M,
+    );
+    let mut out = vec![0.0; 256];
+    rl.run(&y, &k, 0.002, 1.0, &mut out).unwrap();
+    let e = rmse(&out);
+    assert!(e < 0.7 * raw, "RL(200) RMSE {e} vs blurred {raw}");
+}
+
+#[test]
+fn deconvolve_rl_early_stop() {
+    let k = gaussian_kernel(8.0);
+    let y = blur(&spikes(256, &[(100, 1.0)]), &k);
+    let mut rl = RichardsonLucy::new(
+        RlConfig {
+            iterations: 1000,
+            early_stop: Some(1e-2),
+        },
+        MAX_N,
+        MAX_M,
+    );
+    let mut out = vec![0.0; 256];
+    let stats = rl.run(&y, &k, 0.0, 1.0, &mut out).unwrap();
+    assert!(stats.stopped_early && stats.iterations < 1000, "{stats:?}");
+}
+
+#[test]
+fn deconvolve_gold_boosted_repetitions_sharpen() {
+    let k = gaussian_kernel(8.0);
+    let y = blur(&spikes(256, &[(100, 1.0), (106, 1.0)]), &k);
+    let mut plain = Gold::new(
+        GoldConfig {
+            iterations: 20,
+            repetitions: 5,
+            boost: 1.0,
+        },
+        MAX_N,
+        MAX_M,
+    );
+    let mut boosted = Gold::new(
+        GoldConfig {
+            iterations: 20,
+            repetitions: 5,
+            boost: 1.2,
+        },
+        MAX_N,
+        MAX_M,
+    );
+    let (mut a, mut b) = (vec![0.0; 256], vec![0.0; 256]);
+    plain.run(&y, &k, 0.0, 1.0, &mut a).unwrap();
+    let stats = boosted.run(&y, &k, 0.0, 1.0, &mut b).unwrap();
+    assert_eq!(stats.iterations, 100);
+    let pa = a.iter().fold(0.0f32, |x, &v| x.max(v));
+    let pb = b.iter().fold(0.0f32, |x, &v| x.max(v));
+    assert!(pb > pa, "boosted peak {pb} vs plain {pa}");
+    assert!(b.iter().all(|v| v.is_finite() && *v >= 0.0));
+}
+
+#[test]
+fn deconvolve_wiener_plans_are_cached() {
+    let k = gaussian_kernel(16.0);
+    let y = blur(&spikes(256, &[(100, 1.0)]), &k);
+    let mut w = Wiener::new(WienerConfig::default(), MAX_N, MAX_M);
+    let mut out = vec![0.0; 256];
+    w.run(&y, &k, 0.01, 1.0, &mut out).unwrap();
+    w.run(&y, &k, 0.01, 1.0, &mut out).unwrap();
+    assert_eq!(w.plan_count(), 1);
+    // A changed kernel is transformed again, not served from the cache.
+    let mut first = out.clone();
+    let k2 = gaussian_kernel(8.0);
+    w.run(&y, &k2, 0.01, 1.0, &mut out).unwrap();
+    assert_ne!(first, out);
+    let mut fresh = Wiener::new(WienerConfig::default(), MAX_N, MAX_M);
+    fresh.run(&y, &k2, 0.01, 1.0, &mut first).unwrap();
+    assert_eq!(first, out);
+    assert_eq!(wiener::fast_len(297), 300);
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+    #[test]
+    fn deconvolve_proptest_random_waveforms_and_kernels(
+        y in prop::collection::vec(-1e5f32..1e5, 0..300),
+        taps in prop::collection::vec(-0.5f32..1.0, 1..60),
+        centre in 0usize..60,
+        noise_v in 0f32..100.0,
+    ) {
+        let mut taps = taps;
+        let negatives: f32 = taps.iter().map(|t| t.abs()).sum();
+        taps[0] = negatives + 1.0; // positive sum
+        let mut k = Kernel::default();
+        k.set_from_taps(&taps, centre % taps.len(), MAX_M).unwrap();
+        for mut m in methods() {
+            let mut out = vec![0.0; y.len()];
+            m.run(&y, &k, noise_v, 1.0, &mut out).unwrap();
+            prop_assert!(out.iter().all(|v| v.is_finite()), "{}", m.name());
+            if non_negative(m.name()) {
+                prop_assert!(out.iter().all(|&v| v >= 0.0), "{}", m.name());
+            }
+        }
+    }
+}
