@@ -209,7 +209,7 @@ impl Nnls {
         }
         let gjj = g.gram(&self.q, j, j);
         let piv = gjj - sq;
-        if !(piv > DEPENDENT_PIVOT * gjj) || !piv.is_finite() {
+        if piv.is_nan() || piv <= DEPENDENT_PIVOT * gjj || !piv.is_finite() {
             return false;
         }
         self.chol[k * st + k] = piv.sqrt();
@@ -351,7 +351,7 @@ impl Deconvolver for Nnls {
             }
         }
         let bmax = self.b[..n].iter().fold(0.0f64, |a, &v| a.max(v.abs()));
-        if !(bmax > 0.0) || !bmax.is_finite() {
+        if bmax.is_nan() || bmax <= 0.0 || !bmax.is_finite() {
             return Ok(MethodStats::default());
         }
         let tol = (self.config.tolerance.max(0.0) as f64) * bmax;
@@ -387,7 +387,7 @@ impl Deconvolver for Nnls {
             loop {
                 self.chol_solve();
                 let kk = self.passive.len();
-                if first && !(self.z[kk - 1] > 0.0) {
+                if first && (self.z[kk - 1].is_nan() || self.z[kk - 1] <= 0.0) {
                     // The new sample cannot enter (rounding): exclude it, keep x.
                     self.passive.pop();
                     self.flags[j_best] = EXCLUDED;
@@ -398,7 +398,7 @@ impl Deconvolver for Nnls {
                 let mut blocking = usize::MAX;
                 for p in 0..kk {
                     let zp = self.z[p];
-                    if !(zp > 0.0) {
+                    if zp.is_nan() || zp <= 0.0 {
                         let xp = self.x[self.passive[p]];
                         let a = xp / (xp - zp);
                         let a = if a.is_finite() { a } else { 0.0 };
@@ -418,7 +418,11 @@ impl Deconvolver for Nnls {
                 for p in 0..kk {
                     let s = self.passive[p];
                     let v = self.x[s] + alpha * (self.z[p] - self.x[s]);
-                    self.x[s] = if p == blocking || !(v > 0.0) { 0.0 } else { v };
+                    self.x[s] = if p == blocking || v.is_nan() || v <= 0.0 {
+                        0.0
+                    } else {
+                        v
+                    };
                 }
                 self.rebuild(&g);
                 if self.passive.is_empty() {
@@ -429,7 +433,11 @@ impl Deconvolver for Nnls {
 
         for (o, &v) in out.iter_mut().zip(&self.x[..n]) {
             let v = v * peak;
-            *o = if v > 0.0 { v.min(f32::MAX as f64) as f32 } else { 0.0 };
+            *o = if v > 0.0 {
+                v.min(f32::MAX as f64) as f32
+            } else {
+                0.0
+            };
         }
         Ok(stats)
     }
@@ -548,9 +556,12 @@ mod tests {
                 conv(&e, k)
             })
             .collect();
-        let g = |a: usize, b: usize| -> f64 { cols[a].iter().zip(&cols[b]).map(|(p, q)| p * q).sum() };
+        let g =
+            |a: usize, b: usize| -> f64 { cols[a].iter().zip(&cols[b]).map(|(p, q)| p * q).sum() };
         let yb: Vec<f64> = y.iter().map(|&v| v as f64).collect();
-        let bvec: Vec<f64> = (0..n).map(|s| cols[s].iter().zip(&yb).map(|(p, q)| p * q).sum()).collect();
+        let bvec: Vec<f64> = (0..n)
+            .map(|s| cols[s].iter().zip(&yb).map(|(p, q)| p * q).sum())
+            .collect();
         let solve = |p: &[usize]| -> Vec<f64> {
             let kk = p.len();
             let mut a: Vec<Vec<f64>> = (0..kk)
@@ -561,12 +572,15 @@ mod tests {
                 })
                 .collect();
             for c in 0..kk {
-                let piv = (c..kk).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs())).unwrap();
+                let piv = (c..kk)
+                    .max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))
+                    .unwrap();
                 a.swap(c, piv);
                 for r in c + 1..kk {
                     let f = a[r][c] / a[c][c];
-                    for cc in c..=kk {
-                        a[r][cc] -= f * a[c][cc];
+                    let (top, bottom) = a.split_at_mut(r);
+                    for (dst, src) in bottom[0][c..].iter_mut().zip(&top[c][c..]) {
+                        *dst -= f * src;
                     }
                 }
             }
@@ -610,9 +624,9 @@ mod tests {
                     x[s] += alpha * (z[i] - x[s]);
                 }
                 p.retain(|&s| x[s] > 1e-14);
-                for s in 0..n {
+                for (s, xs) in x.iter_mut().enumerate() {
                     if !p.contains(&s) {
-                        x[s] = 0.0;
+                        *xs = 0.0;
                     }
                 }
             }
@@ -654,7 +668,11 @@ mod tests {
         };
         let out = run(cfg, &y, &k).unwrap();
         let s: Vec<f64> = out.iter().map(|&v| v as f64).collect();
-        let r: Vec<f64> = conv(&s, &k).iter().zip(&y).map(|(a, &b)| a - b as f64).collect();
+        let r: Vec<f64> = conv(&s, &k)
+            .iter()
+            .zip(&y)
+            .map(|(a, &b)| a - b as f64)
+            .collect();
         let grad = corr(&r, &k);
         let yb: Vec<f64> = y.iter().map(|&v| v as f64).collect();
         let bmax = corr(&yb, &k).iter().fold(0.0f64, |a, v| a.max(v.abs()));
@@ -678,7 +696,9 @@ mod tests {
             let mut k = gaussian(fw);
             if trial % 3 == 1 {
                 // Asymmetric, off-centre kernel.
-                let taps: Vec<f32> = (0..7).map(|i| 1.0 + (i as f32) * 0.6 - (i * i) as f32 * 0.08).collect();
+                let taps: Vec<f32> = (0..7)
+                    .map(|i| 1.0 + (i as f32) * 0.6 - (i * i) as f32 * 0.08)
+                    .collect();
                 k.set_from_taps(&taps, 1, 16).unwrap();
             }
             let mut t = vec![0.0; n];
@@ -760,7 +780,9 @@ mod tests {
     #[test]
     fn denormals() {
         let k = gaussian(16.0);
-        let y: Vec<f32> = (0..128).map(|i| f32::from_bits(1 + (i % 5) as u32)).collect();
+        let y: Vec<f32> = (0..128)
+            .map(|i| f32::from_bits(1 + (i % 5) as u32))
+            .collect();
         assert_sane(&y, &k);
         let y = two_echoes(128, &k, [(40, 1e-40), (90, 5e-41)]);
         assert_sane(&y, &k);
@@ -878,7 +900,10 @@ mod tests {
             Err(DeconvError::LengthMismatch { .. })
         ));
         // An empty kernel and an empty segment are fine.
-        assert!(d.run(&[1.0; 32], &Kernel::default(), 0.0, 1.0, &mut out).is_ok());
+        assert!(
+            d.run(&[1.0; 32], &Kernel::default(), 0.0, 1.0, &mut out)
+                .is_ok()
+        );
         assert!(d.run(&[], &k, 0.0, 1.0, &mut []).is_ok());
     }
 
