@@ -94,5 +94,52 @@ fn nnls(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, nnls);
+/// A dense canopy: 80 pseudo-random non-negative scatterers convolved with the kernel, no
+/// early stop, so every one of the 50 iterations runs (the budget-bound case).
+fn nnls_cap(c: &mut Criterion) {
+    let k = kernel();
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut truth = [0.0f64; 256];
+    for _ in 0..80 {
+        truth[(next() * 256.0) as usize] += next();
+    }
+    let half = k.center as isize;
+    let y: Vec<f32> = (0..256isize)
+        .map(|i| {
+            let mut acc = 0.0;
+            for (j, &t) in k.taps.iter().enumerate() {
+                let s = i + half - j as isize;
+                if (0..256).contains(&s) {
+                    acc += t as f64 * truth[s as usize];
+                }
+            }
+            (acc + 0.01 * (next() - 0.5)) as f32
+        })
+        .collect();
+    let mut d = Nnls::new(
+        NnlsConfig {
+            max_iterations: 50,
+            tolerance: 0.0,
+        },
+        256,
+        64,
+    );
+    let mut out = vec![0.0f32; 256];
+    let stats = d.run(&y, &k, 0.01, 1.0, &mut out).expect("nnls");
+    println!("dense canopy run: {stats:?}");
+    c.bench_function("nnls_return256_gauss16ns_dense_canopy_cap", |b| {
+        b.iter(|| {
+            d.run(black_box(&y), &k, 0.01, 1.0, &mut out).expect("nnls");
+            black_box(&out);
+        })
+    });
+}
+
+criterion_group!(benches, nnls, nnls_cap);
 criterion_main!(benches);
