@@ -228,12 +228,14 @@ impl Nnls {
             }
             self.tmp[p] = v / self.chol[p * st + p];
         }
+        // Back substitution by rows of L (column-oriented on Lᵀ): contiguous axpys.
         for p in (0..k).rev() {
-            let mut v = self.tmp[p];
-            for r in p + 1..k {
-                v -= self.chol[r * st + p] * self.z[r];
+            let zp = self.tmp[p] / self.chol[p * st + p];
+            self.z[p] = zp;
+            let row = &self.chol[p * st..p * st + p];
+            for (t, l) in self.tmp[..p].iter_mut().zip(row) {
+                *t -= l * zp;
             }
-            self.z[p] = v / self.chol[p * st + p];
         }
     }
 
