@@ -37,6 +37,21 @@
 //!
 //! `noise_v` and `sample_ns` are not used: the problem is posed in samples, and the stop rule is
 //! relative to `max|RᵀP|`.
+//!
+//! # Units
+//!
+//! Input `P`: volts above baseline per sample. Output `σ`: volts per sample bin of the
+//! cross-section (the kernel has unit sum, so `Σσ` equals the return's area `ΣP` in V·samples
+//! when the fit is exact). [`MethodStats::iterations`] counts outer iterations.
+//!
+//! # Cost (measured, 256 samples, 41-tap 16 ns Gaussian, 1 ns, `benches/nnls.rs`)
+//!
+//! About 15 µs median for a two-surface return (early stop after ~12 iterations) and about
+//! 140 µs when all 50 iterations run (dense canopy, no early stop); the stated worst case
+//! `worst_case_flops(256, 41)` is about 1.9 Mflop at the defaults.
+//!
+//! With the default tolerance (1e-4), two noise-free echoes 0.5 FWHM apart stop before the pair
+//! is split (the fit is already within tolerance); 1e-6 resolves them exactly.
 
 use serde::{Deserialize, Serialize};
 
@@ -1016,7 +1031,7 @@ mod tests {
     fn worst_case_is_stated() {
         let d = Nnls::new(NnlsConfig::default(), 256, 41);
         let f = d.worst_case_flops(256, 41);
-        assert!(f > 2 * 256 * 41 && f < 2_000_000, "{f}");
+        assert_eq!(f, 1_860_770);
         assert_eq!(d.worst_case_flops(0, 0), 0);
     }
 
