@@ -1,0 +1,145 @@
+//! Benchmark of NNLS deconvolution on a CAO-like 256-sample return at 1 ns sampling with a
+//! 16 ns FWHM Gaussian system response (taps to ±3σ: 41 taps). Target: ≤ 200 µs median.
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use fwlidar::signal::deconvolve::{Deconvolver, Nnls, NnlsConfig};
+use fwlidar::signal::kernel::Kernel;
+use std::hint::black_box;
+
+/// The 16 ns FWHM Gaussian kernel at 1 ns (41 taps, centred).
+fn kernel() -> Kernel {
+    let sigma = 16.0 / 2.354_82;
+    let half = (3.0f64 * sigma).round() as i64;
+    let taps: Vec<f32> = (-half..=half)
+        .map(|i| (-0.5 * (i as f64 / sigma).powi(2)).exp() as f32)
+        .collect();
+    let mut k = Kernel::with_capacity(taps.len());
+    k.set_from_taps(&taps, half as usize, taps.len())
+        .expect("kernel");
+    k
+}
+
+/// Two surfaces (16 ns wide returns, 40 and 36 DN) with ±3 DN deterministic ripple, in volts
+/// above baseline (0.004 V/DN).
+fn segment(ripple: bool) -> Vec<f32> {
+    let sigma = 16.0 / 2.354_82;
+    let g = |i: usize, mu: f64, a: f64| {
+        let d = (i as f64 - mu) / sigma;
+        a * (-0.5 * d * d).exp()
+    };
+    let r = |i: usize| {
+        if ripple {
+            3.0 * ((i * 7919 % 13) as f64 / 6.0 - 1.0)
+        } else {
+            0.0
+        }
+    };
+    (0..256)
+        .map(|i| (0.004 * (g(i, 67.0, 40.0) + g(i, 167.0, 36.0) + r(i))) as f32)
+        .collect()
+}
+
+fn nnls(c: &mut Criterion) {
+    let k = kernel();
+    assert_eq!(k.len(), 41);
+    let mut d = Nnls::new(NnlsConfig::default(), 256, 64);
+    let mut out = vec![0.0f32; 256];
+    for (name, y) in [
+        ("nnls_return256_gauss16ns_noisy", segment(true)),
+        ("nnls_return256_gauss16ns_clean", segment(false)),
+    ] {
+        let stats = d.run(&y, &k, 0.012, 1.0, &mut out).expect("nnls");
+        println!("{name}: {stats:?}");
+    }
+    for (name, y) in [
+        ("nnls_return256_gauss16ns_noisy", segment(true)),
+        ("nnls_return256_gauss16ns_clean", segment(false)),
+    ] {
+        c.bench_function(name, |b| {
+            b.iter(|| {
+                d.run(black_box(&y), &k, 0.012, 1.0, &mut out)
+                    .expect("nnls");
+                black_box(&out);
+            })
+        });
+    }
+    // The budget-bound case: no early stop, up to all 50 iterations (the worst case's shape).
+    let mut full = Nnls::new(
+        NnlsConfig {
+            max_iterations: 50,
+            tolerance: 0.0,
+        },
+        256,
+        64,
+    );
+    // Rougher noise (±8 DN, pseudo-random) so that the true optimum needs more non-zeros.
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let y: Vec<f32> = segment(true)
+        .iter()
+        .map(|&v| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            v + 0.004 * 16.0 * ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) as f32
+        })
+        .collect();
+    let stats = full.run(&y, &k, 0.012, 1.0, &mut out).expect("nnls");
+    println!("no-early-stop run: {stats:?}");
+    c.bench_function("nnls_return256_gauss16ns_noisy_full_budget", |b| {
+        b.iter(|| {
+            full.run(black_box(&y), &k, 0.012, 1.0, &mut out)
+                .expect("nnls");
+            black_box(&out);
+        })
+    });
+}
+
+/// A dense canopy: 80 pseudo-random non-negative scatterers convolved with the kernel, no
+/// early stop, so every one of the 50 iterations runs (the budget-bound case).
+fn nnls_cap(c: &mut Criterion) {
+    let k = kernel();
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut truth = [0.0f64; 256];
+    for _ in 0..80 {
+        truth[(next() * 256.0) as usize] += next();
+    }
+    let half = k.center as isize;
+    let y: Vec<f32> = (0..256isize)
+        .map(|i| {
+            let mut acc = 0.0;
+            for (j, &t) in k.taps.iter().enumerate() {
+                let s = i + half - j as isize;
+                if (0..256).contains(&s) {
+                    acc += t as f64 * truth[s as usize];
+                }
+            }
+            (acc + 0.01 * (next() - 0.5)) as f32
+        })
+        .collect();
+    let mut d = Nnls::new(
+        NnlsConfig {
+            max_iterations: 50,
+            tolerance: 0.0,
+        },
+        256,
+        64,
+    );
+    let mut out = vec![0.0f32; 256];
+    let stats = d.run(&y, &k, 0.01, 1.0, &mut out).expect("nnls");
+    println!("dense canopy run: {stats:?}");
+    c.bench_function("nnls_return256_gauss16ns_dense_canopy_cap", |b| {
+        b.iter(|| {
+            d.run(black_box(&y), &k, 0.01, 1.0, &mut out).expect("nnls");
+            black_box(&out);
+        })
+    });
+}
+
+criterion_group!(benches, nnls, nnls_cap);
+criterion_main!(benches);
