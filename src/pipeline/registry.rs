@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::pipeline::stage::{Passthrough, Stage};
+use crate::signal::decompose::{Decompose, DecomposeConfig};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 
 /// One entry of `[[pipeline.stages]]`, selected by its `type` key.
@@ -17,6 +18,8 @@ pub enum StageConfig {
     Passthrough,
     /// FFT low-pass noise reduction.
     Denoise(DenoiseConfig),
+    /// Gaussian decomposition of the return segments into discrete returns.
+    Decompose(DecomposeConfig),
 }
 
 /// Accepts only an empty table: the keys of a stage kind that has none.
@@ -33,6 +36,7 @@ impl StageConfig {
         match self {
             StageConfig::Passthrough => "passthrough",
             StageConfig::Denoise(_) => "denoise",
+            StageConfig::Decompose(_) => "decompose",
         }
     }
 
@@ -41,6 +45,7 @@ impl StageConfig {
         match self {
             StageConfig::Passthrough => Box::new(Passthrough),
             StageConfig::Denoise(c) => Box::new(Denoise::new(c.clone())),
+            StageConfig::Decompose(c) => Box::new(Decompose::new(c.clone())),
         }
     }
 }
