@@ -38,8 +38,9 @@ const LAMBDA_START: f64 = 1e-3;
 const LAMBDA_MAX: f64 = 1e10;
 /// Smallest damping.
 const LAMBDA_MIN: f64 = 1e-12;
-/// Relative decrease of the residual sum of squares below which the fit has converged.
-const RELATIVE_TOLERANCE: f64 = 1e-9;
+/// Relative decrease of the residual sum of squares (achieved, or predicted by the linearised
+/// model for the next step) below which the fit has converged.
+const RELATIVE_TOLERANCE: f64 = 1e-6;
 
 /// One Gaussian component.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -166,13 +167,21 @@ impl GaussFitter {
                 break;
             }
             iterations += 1;
-            if !self.solve_damped(m, lambda) {
+            let frozen = self.active_bounds(comps, bounds);
+            if !self.solve_damped(m, lambda, &frozen) {
                 lambda *= 10.0;
                 if lambda > LAMBDA_MAX {
                     converged = true;
                     break;
                 }
                 continue;
+            }
+            // Reduction of the RSS the linearised model predicts for this step:
+            // 2δ·Jᵀr − δᵀJᵀJδ. When even that is negligible, no step can make progress.
+            let predicted = self.predicted_reduction(m);
+            if predicted <= RELATIVE_TOLERANCE * rss {
+                converged = true;
+                break;
             }
             for (j, (t, g)) in trial.iter_mut().zip(comps.iter()).enumerate() {
                 *t = Gaussian {
@@ -258,7 +267,7 @@ impl GaussFitter {
     /// `D = diag(JᵀJ)` floored at a small fraction of its largest entry (a component whose
     /// amplitude hit 0 has zero centre and width columns). Returns false when the damped matrix
     /// is not positive definite (numerically).
-    fn solve_damped(&mut self, m: usize, lambda: f64) -> bool {
+    fn solve_damped(&mut self, m: usize, lambda: f64, frozen: &[bool; MAX_PARAMS]) -> bool {
         let max_diag = (0..m).map(|j| self.jtj[j][j]).fold(0.0f64, f64::max);
         let floor = 1e-12 * max_diag + f64::MIN_POSITIVE;
         for i in 0..m {
@@ -270,7 +279,60 @@ impl GaussFitter {
             let d = self.jtj[i][i].max(floor);
             self.factor[i][i] = self.jtj[i][i] + lambda * d + floor;
         }
-        cholesky_solve(&mut self.factor, m, &self.jtr, &mut self.step)
+        let mut rhs = self.jtr;
+        for j in 0..m {
+            if frozen[j] {
+                for i in 0..m {
+                    self.factor[i][j] = 0.0;
+                    self.factor[j][i] = 0.0;
+                }
+                self.factor[j][j] = 1.0;
+                rhs[j] = 0.0;
+            }
+        }
+        cholesky_solve(&mut self.factor, m, &rhs, &mut self.step)
+    }
+
+    /// `2δ·Jᵀr − δᵀ(JᵀJ)δ` for the current step δ (first `m` parameters; `jtj` upper triangle).
+    fn predicted_reduction(&self, m: usize) -> f64 {
+        let d = &self.step;
+        let mut quad = 0.0;
+        let mut lin = 0.0;
+        for i in 0..m {
+            lin += d[i] * self.jtr[i];
+            quad += self.jtj[i][i] * d[i] * d[i];
+            for j in i + 1..m {
+                quad += 2.0 * self.jtj[i][j] * d[i] * d[j];
+            }
+        }
+        2.0 * lin - quad
+    }
+
+    /// The active set of the box constraints: parameters sitting on a bound whose descent
+    /// direction (`Jᵀr`, the negative half-gradient of the RSS) points out of the box. They are
+    /// held fixed for the step; otherwise the projection of the unconstrained step (e.g. a dead
+    /// component's amplitude pushed below 0) would spoil the step of every coupled parameter.
+    fn active_bounds(&self, comps: &[Gaussian], bounds: &Bounds) -> [bool; MAX_PARAMS] {
+        let mut frozen = [false; MAX_PARAMS];
+        for (k, g) in comps.iter().enumerate() {
+            let at = |v: f64, lo: f64, hi: f64, grad: f64| {
+                (v <= lo && grad < 0.0) || (v >= hi && grad > 0.0)
+            };
+            frozen[3 * k] = at(g.amplitude, 0.0, f64::INFINITY, self.jtr[3 * k]);
+            frozen[3 * k + 1] = at(
+                g.center_bins,
+                bounds.center_min_bins,
+                bounds.center_max_bins,
+                self.jtr[3 * k + 1],
+            );
+            frozen[3 * k + 2] = at(
+                g.sigma_bins,
+                bounds.sigma_min_bins,
+                bounds.sigma_max_bins,
+                self.jtr[3 * k + 2],
+            );
+        }
+        frozen
     }
 }
 
