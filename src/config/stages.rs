@@ -84,6 +84,15 @@ impl Validate for DecomposeConfig {
             format!("must be a positive number, got {}", self.min_snr),
         );
         v.require(
+            self.min_relative_amplitude.is_finite()
+                && (0.0..1.0).contains(&self.min_relative_amplitude),
+            field(path, "min_relative_amplitude"),
+            format!(
+                "must be a fraction in 0..1 of the segment's maximum, got {}",
+                self.min_relative_amplitude
+            ),
+        );
+        v.require(
             self.min_separation_bins >= 1,
             field(path, "min_separation_bins"),
             "must be at least 1 bin",
@@ -242,6 +251,7 @@ mod tests {
         let bad = DecomposeConfig {
             max_components: 9,
             min_snr: f32::NAN,
+            min_relative_amplitude: 1.5,
             min_separation_bins: 0,
             sigma_min_bins: 0.0,
             sigma_max_bins: f32::INFINITY,
@@ -251,10 +261,11 @@ mod tests {
             max_samples: 8,
         };
         let issues = check_decompose(&bad);
-        assert_eq!(issues.len(), 8, "{issues:?}");
+        assert_eq!(issues.len(), 9, "{issues:?}");
         for (i, name) in [
             "max_components",
             "min_snr",
+            "min_relative_amplitude",
             "min_separation_bins",
             "sigma_min_bins",
             "sigma_max_bins",

@@ -6,7 +6,8 @@
 //! Per segment ([`Decomposer::fit`]):
 //!
 //! 1. **Detection** ([`crate::signal::peaks`]): local maxima (sign change of the first
-//!    difference) at least [`DecomposeConfig::min_snr`] × `noise_v` high and
+//!    difference) at least [`DecomposeConfig::min_snr`] × `noise_v` (and, optionally,
+//!    [`DecomposeConfig::min_relative_amplitude`] × the segment's maximum) high and
 //!    [`DecomposeConfig::min_separation_bins`] apart, the highest
 //!    [`DecomposeConfig::max_components`] kept; optionally shoulders (second-difference minima).
 //! 2. **Initial guesses**: amplitude = the sample value at the peak, μ = the peak's bin,
@@ -61,6 +62,11 @@ pub struct DecomposeConfig {
     /// `min_snr × noise_v` are not returns. Default 3.
     #[serde(default = "default_min_snr")]
     pub min_snr: f32,
+    /// Detection threshold as a fraction of the segment's largest sample (0..1): peaks,
+    /// residual peaks and fitted amplitudes must also reach `min_relative_amplitude × max(y)`.
+    /// 0 (default) disables it; the waveformlidar R package's `decom` uses 0.22.
+    #[serde(default)]
+    pub min_relative_amplitude: f32,
     /// Smallest distance between two detected peaks, bins. Default 3.
     #[serde(default = "default_min_separation_bins")]
     pub min_separation_bins: usize,
@@ -116,6 +122,7 @@ impl Default for DecomposeConfig {
         DecomposeConfig {
             max_components: default_max_components(),
             min_snr: default_min_snr(),
+            min_relative_amplitude: 0.0,
             min_separation_bins: default_min_separation_bins(),
             sigma_min_bins: default_sigma_min_bins(),
             sigma_max_bins: default_sigma_max_bins(),
@@ -184,6 +191,9 @@ impl Decomposer {
         if !(config.min_snr.is_finite() && config.min_snr >= 0.0) {
             config.min_snr = default_min_snr();
         }
+        if !(config.min_relative_amplitude.is_finite() && config.min_relative_amplitude >= 0.0) {
+            config.min_relative_amplitude = 0.0;
+        }
         Decomposer {
             config,
             max_samples,
@@ -223,7 +233,10 @@ impl Decomposer {
             return Ok(stats);
         }
         let cfg = &self.config;
-        let threshold = (cfg.min_snr * noise_v.max(0.0)).max(f32::MIN_POSITIVE);
+        let y_max = y.iter().copied().fold(0.0f32, f32::max);
+        let threshold = (cfg.min_snr * noise_v.max(0.0))
+            .max(cfg.min_relative_amplitude * y_max)
+            .max(f32::MIN_POSITIVE);
         let (s_min, s_max) = (cfg.sigma_min_bins, cfg.sigma_max_bins);
         let bounds = Bounds {
             center_min_bins: 0.0,
