@@ -351,6 +351,8 @@ pub fn model_at(comps: &[Gaussian], t: f64) -> f64 {
 /// Solves `a x = b` for the leading `m × m` block of the symmetric positive definite `a`
 /// (overwritten by its Cholesky factor `L`, lower triangle). Returns false if a pivot is not
 /// positive and finite.
+// Textbook index notation reads closest to the algorithm for a factorisation.
+#[allow(clippy::needless_range_loop)]
 pub fn cholesky_solve(
     a: &mut [[f64; MAX_PARAMS]; MAX_PARAMS],
     m: usize,

@@ -97,6 +97,7 @@ impl PeakFinder {
         // Shoulders: minima of the second difference, negative enough, not near a maximum.
         self.candidates.clear();
         let d2 = |i: usize| y[i - 1] - 2.0 * y[i] + y[i + 1];
+        #[allow(clippy::needless_range_loop)] // i indexes y at i − 1, i and i + 1
         for i in 2..n - 2 {
             let c = d2(i);
             if c < -settings.shoulder_curvature
