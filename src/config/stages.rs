@@ -3,8 +3,10 @@
 
 use super::load::{Validate, Validator, field};
 use crate::pipeline::registry::StageConfig;
+use crate::signal::decompose::DecomposeConfig;
 use crate::signal::deconvolve::{DeconvolveConfig, KernelSource, MethodConfig};
 use crate::signal::denoise::DenoiseConfig;
+use crate::signal::gauss_fit::MAX_COMPONENTS;
 
 /// Largest segment a stage may be configured for, samples.
 pub(crate) const MAX_SEGMENT_SAMPLES: usize = 1_048_576;
@@ -17,6 +19,7 @@ impl Validate for StageConfig {
             StageConfig::Passthrough => {}
             StageConfig::Denoise(c) => Validate::validate(c, path, v),
             StageConfig::Deconvolve(c) => Validate::validate(c, path, v),
+            StageConfig::Decompose(c) => Validate::validate(c, path, v),
         }
     }
 }
@@ -165,6 +168,86 @@ impl Validate for DeconvolveConfig {
     }
 }
 
+/// Most Levenberg-Marquardt steps a decomposition may be configured for (bounds the per-pulse
+/// cost).
+pub(crate) const MAX_DECOMPOSE_ITERATIONS: u32 = 10_000;
+/// Most residual refinement rounds.
+pub(crate) const MAX_REFINE_PASSES: u32 = MAX_COMPONENTS as u32;
+
+impl Validate for DecomposeConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        v.require(
+            (1..=MAX_COMPONENTS).contains(&self.max_components),
+            field(path, "max_components"),
+            format!(
+                "must be in 1..={MAX_COMPONENTS}, got {}",
+                self.max_components
+            ),
+        );
+        v.require(
+            self.min_snr.is_finite() && self.min_snr > 0.0,
+            field(path, "min_snr"),
+            format!("must be a positive number, got {}", self.min_snr),
+        );
+        v.require(
+            self.min_relative_amplitude.is_finite()
+                && (0.0..1.0).contains(&self.min_relative_amplitude),
+            field(path, "min_relative_amplitude"),
+            format!(
+                "must be a fraction in 0..1 of the segment's maximum, got {}",
+                self.min_relative_amplitude
+            ),
+        );
+        v.require(
+            self.min_separation_bins >= 1,
+            field(path, "min_separation_bins"),
+            "must be at least 1 bin",
+        );
+        let sigma_min_ok = self.sigma_min_bins.is_finite() && self.sigma_min_bins > 0.0;
+        v.require(
+            sigma_min_ok,
+            field(path, "sigma_min_bins"),
+            format!(
+                "must be a positive number of bins, got {}",
+                self.sigma_min_bins
+            ),
+        );
+        v.require(
+            self.sigma_max_bins.is_finite()
+                && (!sigma_min_ok || self.sigma_max_bins > self.sigma_min_bins),
+            field(path, "sigma_max_bins"),
+            format!(
+                "must be a finite number of bins above sigma_min_bins ({}), got {}",
+                self.sigma_min_bins, self.sigma_max_bins
+            ),
+        );
+        v.require(
+            (1..=MAX_DECOMPOSE_ITERATIONS).contains(&self.max_iterations),
+            field(path, "max_iterations"),
+            format!(
+                "must be in 1..={MAX_DECOMPOSE_ITERATIONS}, got {}",
+                self.max_iterations
+            ),
+        );
+        v.require(
+            self.refine_passes <= MAX_REFINE_PASSES,
+            field(path, "refine_passes"),
+            format!(
+                "must be at most {MAX_REFINE_PASSES}, got {}",
+                self.refine_passes
+            ),
+        );
+        v.require(
+            (MIN_SEGMENT_SAMPLES..=MAX_SEGMENT_SAMPLES).contains(&self.max_samples),
+            field(path, "max_samples"),
+            format!(
+                "must be in {MIN_SEGMENT_SAMPLES}..={MAX_SEGMENT_SAMPLES} samples, got {}",
+                self.max_samples
+            ),
+        );
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -208,6 +291,7 @@ mod tests {
         for s in [
             StageConfig::Passthrough,
             StageConfig::Denoise(DenoiseConfig::default()),
+            StageConfig::Decompose(DecomposeConfig::default()),
         ] {
             let text = toml::to_string(&s).unwrap();
             assert_eq!(stage(&text).unwrap(), s, "{text}");
@@ -318,5 +402,63 @@ mod tests {
         assert!(issues[0].starts_with("s.cutoff_ghz: must be a positive number"));
         assert!(issues[1].starts_with("s.max_samples: must be in 16..=1048576"));
         assert!(issues[2].starts_with("s.pretrigger_samples: must be less than"));
+    }
+
+    fn check_decompose(c: &DecomposeConfig) -> Vec<String> {
+        let mut v = Validator::new(None);
+        Validate::validate(c, "s", &mut v);
+        v.issues()
+            .iter()
+            .map(|(p, r)| format!("{p}: {r}"))
+            .collect()
+    }
+
+    #[test]
+    fn decompose_config_defaults_and_ranges() {
+        assert_eq!(
+            stage("type = \"decompose\"").unwrap(),
+            StageConfig::Decompose(DecomposeConfig::default())
+        );
+        let e = stage("type = \"decompose\"\nbogus = 1").unwrap_err();
+        assert!(e.message().contains("unknown field `bogus`"), "{e}");
+        assert!(check_decompose(&DecomposeConfig::default()).is_empty());
+        let bad = DecomposeConfig {
+            max_components: 9,
+            min_snr: f32::NAN,
+            min_relative_amplitude: 1.5,
+            min_separation_bins: 0,
+            sigma_min_bins: 0.0,
+            sigma_max_bins: f32::INFINITY,
+            max_iterations: 0,
+            refine_passes: 99,
+            shoulders: false,
+            max_samples: 8,
+        };
+        let issues = check_decompose(&bad);
+        assert_eq!(issues.len(), 9, "{issues:?}");
+        for (i, name) in [
+            "max_components",
+            "min_snr",
+            "min_relative_amplitude",
+            "min_separation_bins",
+            "sigma_min_bins",
+            "sigma_max_bins",
+            "max_iterations",
+            "refine_passes",
+            "max_samples",
+        ]
+        .iter()
+        .enumerate()
+        {
+            assert!(issues[i].starts_with(&format!("s.{name}: ")), "{issues:?}");
+        }
+        let inverted = DecomposeConfig {
+            sigma_min_bins: 5.0,
+            sigma_max_bins: 4.0,
+            ..Default::default()
+        };
+        let issues = check_decompose(&inverted);
+        assert_eq!(issues.len(), 1, "{issues:?}");
+        assert!(issues[0].starts_with("s.sigma_max_bins: "));
     }
 }

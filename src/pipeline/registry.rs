@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::pipeline::stage::{Passthrough, Stage};
+use crate::signal::decompose::{Decompose, DecomposeConfig};
 use crate::signal::deconvolve::{Deconvolve, DeconvolveConfig};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 
@@ -20,6 +21,8 @@ pub enum StageConfig {
     Denoise(DenoiseConfig),
     /// Deconvolution of the return segments (Richardson-Lucy, Gold, Wiener, NNLS).
     Deconvolve(DeconvolveConfig),
+    /// Gaussian decomposition of the return segments into discrete returns.
+    Decompose(DecomposeConfig),
 }
 
 /// Accepts only an empty table: the keys of a stage kind that has none.
@@ -37,6 +40,7 @@ impl StageConfig {
             StageConfig::Passthrough => "passthrough",
             StageConfig::Denoise(_) => "denoise",
             StageConfig::Deconvolve(_) => "deconvolve",
+            StageConfig::Decompose(_) => "decompose",
         }
     }
 
@@ -46,6 +50,7 @@ impl StageConfig {
             StageConfig::Passthrough => Box::new(Passthrough),
             StageConfig::Denoise(c) => Box::new(Denoise::new(c.clone())),
             StageConfig::Deconvolve(c) => Box::new(Deconvolve::new(c.clone())),
+            StageConfig::Decompose(c) => Box::new(Decompose::new(c.clone())),
         }
     }
 }

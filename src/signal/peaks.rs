@@ -1,0 +1,220 @@
+//! Peak detection on one segment: local maxima found by a sign change of the first difference
+//! (the seed's peak detector), above an amplitude threshold, at least a minimum separation
+//! apart; and, as an option, *shoulders* (hidden peaks on the flank of a stronger one) found at
+//! local minima of the second difference.
+//!
+//! Positions are bins from the segment's first sample; amplitudes are in the units of the
+//! signal. A flat top (a plateau of equal samples between a rise and a fall) counts as one
+//! maximum at its middle. The first and last samples are never maxima (no sign change there).
+//!
+//! Work is linear in the segment length plus a sort of the candidates; the candidate buffer of
+//! [`PeakFinder`] is sized once, so detection does not allocate.
+
+/// One detected peak.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Peak {
+    /// Index of the sample at (or, for a plateau of even length, just left of) the peak.
+    pub index: usize,
+    /// Position, bins from the segment's first sample (a plateau's middle).
+    pub position_bins: f32,
+    /// Sample value at the peak, signal units.
+    pub amplitude: f32,
+    /// True for a shoulder (second-difference minimum) rather than a local maximum.
+    pub shoulder: bool,
+}
+
+/// Settings of one detection.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PeakSettings {
+    /// Smallest amplitude a peak may have, signal units.
+    pub threshold: f32,
+    /// Smallest distance between two kept peaks, bins; of two closer ones the higher is kept.
+    pub min_separation_bins: usize,
+    /// Most peaks kept (the highest ones).
+    pub max_peaks: usize,
+    /// Also look for shoulders: local minima of the second difference that are negative by at
+    /// least `shoulder_curvature` (signal units per bin²) away from every kept maximum.
+    pub shoulders: bool,
+    /// Smallest `−Δ²y` of a shoulder, signal units per bin².
+    pub shoulder_curvature: f32,
+}
+
+/// Finds peaks; holds the candidate buffer.
+pub struct PeakFinder {
+    candidates: Vec<Peak>,
+}
+
+impl PeakFinder {
+    /// A finder for segments of up to `max_samples` samples.
+    pub fn new(max_samples: usize) -> Self {
+        PeakFinder {
+            candidates: Vec::with_capacity(max_samples / 2 + 2),
+        }
+    }
+
+    /// Detects peaks of `y` (at most as many samples as the finder was built for; beyond that
+    /// candidates past the buffer are ignored) into `out` (cleared first; at most `settings.max_peaks`,
+    /// sorted by position).
+    pub fn find(&mut self, y: &[f32], settings: &PeakSettings, out: &mut Vec<Peak>) {
+        out.clear();
+        self.candidates.clear();
+        // A local maximum or a second-difference minimum takes at least two samples, so the
+        // buffer sized in `new` holds every candidate; the check below only guards misuse.
+        let cap = self.candidates.capacity();
+        let n = y.len();
+        if n < 3 || settings.max_peaks == 0 {
+            return;
+        }
+        // Local maxima: a rise followed, possibly after a plateau, by a fall.
+        let mut i = 1;
+        while i + 1 < n {
+            if y[i] > y[i - 1] {
+                let mut j = i;
+                while j + 1 < n && y[j + 1] == y[i] {
+                    j += 1;
+                }
+                if j + 1 < n && y[j + 1] < y[i] {
+                    if y[i] >= settings.threshold && self.candidates.len() < cap {
+                        self.candidates.push(Peak {
+                            index: (i + j) / 2,
+                            position_bins: 0.5 * (i + j) as f32,
+                            amplitude: y[i],
+                            shoulder: false,
+                        });
+                    }
+                    i = j + 1;
+                    continue;
+                }
+                i = j.max(i) + 1;
+                continue;
+            }
+            i += 1;
+        }
+        select(&mut self.candidates, settings, out);
+        if !settings.shoulders || out.len() >= settings.max_peaks || n < 5 {
+            return;
+        }
+        // Shoulders: minima of the second difference, negative enough, not near a maximum.
+        self.candidates.clear();
+        let d2 = |i: usize| y[i - 1] - 2.0 * y[i] + y[i + 1];
+        #[allow(clippy::needless_range_loop)] // i indexes y at i − 1, i and i + 1
+        for i in 2..n - 2 {
+            let c = d2(i);
+            if c < -settings.shoulder_curvature
+                && c < d2(i - 1)
+                && c <= d2(i + 1)
+                && y[i] >= settings.threshold
+                && self.candidates.len() < cap
+                && !out
+                    .iter()
+                    .any(|p| p.index.abs_diff(i) < settings.min_separation_bins.max(1))
+            {
+                self.candidates.push(Peak {
+                    index: i,
+                    position_bins: i as f32,
+                    amplitude: y[i],
+                    shoulder: true,
+                });
+            }
+        }
+        let kept = out.len();
+        let rest = PeakSettings {
+            max_peaks: settings.max_peaks - kept,
+            ..*settings
+        };
+        // `select` clears its output, so collect shoulders behind the maxima by hand.
+        self.candidates
+            .sort_unstable_by(|a, b| b.amplitude.total_cmp(&a.amplitude));
+        for c in self.candidates.iter() {
+            if out.len() - kept >= rest.max_peaks {
+                break;
+            }
+            if out
+                .iter()
+                .all(|p| p.index.abs_diff(c.index) >= settings.min_separation_bins.max(1))
+            {
+                out.push(*c);
+            }
+        }
+        out.sort_unstable_by_key(|p| p.index);
+    }
+}
+
+/// Keeps the highest candidates at least the minimum separation apart, sorted by position.
+fn select(candidates: &mut [Peak], settings: &PeakSettings, out: &mut Vec<Peak>) {
+    candidates.sort_unstable_by(|a, b| b.amplitude.total_cmp(&a.amplitude));
+    for c in candidates.iter() {
+        if out.len() >= settings.max_peaks {
+            break;
+        }
+        if out
+            .iter()
+            .all(|p| p.index.abs_diff(c.index) >= settings.min_separation_bins.max(1))
+        {
+            out.push(*c);
+        }
+    }
+    out.sort_unstable_by_key(|p| p.index);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn settings(threshold: f32) -> PeakSettings {
+        PeakSettings {
+            threshold,
+            min_separation_bins: 3,
+            max_peaks: 8,
+            shoulders: false,
+            shoulder_curvature: 0.0,
+        }
+    }
+
+    fn find(y: &[f32], s: &PeakSettings) -> Vec<Peak> {
+        let mut f = PeakFinder::new(y.len().max(16));
+        let mut out = Vec::with_capacity(8);
+        f.find(y, s, &mut out);
+        out
+    }
+
+    #[test]
+    fn maxima_above_threshold_and_plateaus() {
+        let y = [
+            0.0, 1.0, 5.0, 1.0, 0.0, 2.0, 2.0, 2.0, 0.0, 9.0, 9.0, 3.0, 0.0,
+        ];
+        let p = find(&y, &settings(1.5));
+        let pos: Vec<f32> = p.iter().map(|p| p.position_bins).collect();
+        assert_eq!(pos, vec![2.0, 6.0, 9.5]);
+        let p = find(&y, &settings(3.0));
+        assert_eq!(p.len(), 2);
+    }
+
+    #[test]
+    fn close_maxima_keep_the_higher_and_edges_are_not_peaks() {
+        let y = [9.0, 1.0, 5.0, 4.0, 6.0, 1.0, 0.0, 3.0];
+        let p = find(&y, &settings(0.5));
+        assert_eq!(p.len(), 1);
+        assert_eq!(p[0].index, 4);
+        assert!(find(&[1.0, 2.0], &settings(0.0)).is_empty());
+        assert!(find(&[], &settings(0.0)).is_empty());
+        assert!(find(&[3.0; 50], &settings(0.0)).is_empty());
+    }
+
+    #[test]
+    fn shoulder_on_a_flank_is_found() {
+        let g = |t: f32, mu: f32, s: f32, a: f32| a * (-0.5 * ((t - mu) / s).powi(2)).exp();
+        let y: Vec<f32> = (0..100)
+            .map(|i| g(i as f32, 40.0, 3.0, 50.0) + g(i as f32, 46.0, 3.0, 20.0))
+            .collect();
+        assert_eq!(find(&y, &settings(1.0)).len(), 1);
+        let s = PeakSettings {
+            shoulders: true,
+            shoulder_curvature: 0.1,
+            ..settings(1.0)
+        };
+        let p = find(&y, &s);
+        assert_eq!(p.len(), 2, "{p:?}");
+        assert!(p[1].shoulder && p[1].index.abs_diff(46) <= 1, "{p:?}");
+    }
+}

@@ -1,0 +1,66 @@
+//! The Gaussian decomposition allocates nothing per segment: every buffer is sized when the
+//! [`Decomposer`] is built. A counting global allocator sees every allocation of this process
+//! (this file holds a single test so no other test allocates concurrently).
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use fwlidar::signal::DecomposeConfig;
+use fwlidar::signal::decompose::Decomposer;
+
+struct Counting;
+static ALLOCS: AtomicU64 = AtomicU64::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+#[test]
+fn decomposer_fits_without_allocating() {
+    let echoes = [
+        (60.0f64, 60.0f64, 4.0f64),
+        (40.0, 130.0, 4.0),
+        (35.0, 136.0, 4.0),
+    ];
+    let segments: Vec<Vec<f32>> = (0..8)
+        .map(|k| {
+            (0..256 + 64 * k)
+                .map(|i| {
+                    let t = i as f64;
+                    let s: f64 = echoes
+                        .iter()
+                        .map(|&(a, mu, s)| a * (-0.5 * ((t - mu - k as f64) / s).powi(2)).exp())
+                        .sum();
+                    (s + 0.3 * ((i * 7919 % 13) as f64 / 6.0 - 1.0)) as f32
+                })
+                .collect()
+        })
+        .collect();
+    let mut d = Decomposer::new(DecomposeConfig::default(), 4096);
+    let mut out = Vec::with_capacity(8);
+    let before = ALLOCS.load(Ordering::SeqCst);
+    let mut found = 0;
+    for _ in 0..50 {
+        for y in &segments {
+            out.clear();
+            d.fit(y, 0.15, &mut out).unwrap();
+            found += out.len();
+        }
+    }
+    let allocations = ALLOCS.load(Ordering::SeqCst) - before;
+    assert_eq!(allocations, 0);
+    assert_eq!(found, 50 * 8 * 3);
+}

@@ -1,0 +1,232 @@
+//! Gaussian decomposition of real NEON (Harvard Forest) return waveforms, compared with the
+//! decomposition the waveformlidar R package ships for the same 500 waveforms
+//! (`decom_result.csv`: 713 components in 482 waveforms).
+//!
+//! Fixtures: `return.csv` holds 500 waveforms × 208 columns (header `V1..V208`), 1 ns bins,
+//! digitizer counts on a ~200-220 DN baseline, zero-padded at the end (real lengths 68-196).
+//! Eight waveforms also contain an inner run of zeros: a gap between two recorded segments
+//! (the R package turns zeros into NA and keeps the bin numbering). Each non-zero run becomes a
+//! return segment of a pulse, starting at its bin, so positions stay in record bins.
+//!
+//! The chain is the crate's own: the `denoise` stage (median of the first 8 samples as the
+//! baseline, 0.2 GHz low-pass, noise level) then the `decompose` stage with default settings.
+//! That is closer to the real pipeline than a hand-made baseline removal, at the cost of a
+//! different baseline convention from the R package (see the amplitude offset below).
+//!
+//! The R package's `decom` (read from its source, not copied): bins `x = 1, 2, …` (1-based,
+//! so its `u − 1` is our 0-based bin), baseline `min(y) − 1`, a 3-bin running mean, local maxima
+//! above 0.22 × the waveform's maximum as initial peaks, `nlsLM` without bounds, fits with a
+//! negative amplitude discarded (the 18 waveforms without a result). Its peaks below 22 % of the
+//! maximum are never fitted, so components we find there count as "extra" by construction.
+
+use std::path::PathBuf;
+
+use fwlidar::pipeline::testing::run_stage;
+use fwlidar::pulse::{Pulse, SegmentKind};
+use fwlidar::signal::{Decompose, DecomposeConfig, Denoise, DenoiseConfig};
+
+/// The fixtures folder: `FWLIDAR_FIXTURES`, else `<manifest>/../shared/fixtures`, else
+/// `/work/shared/fixtures`; `Err` with the places looked at when none exists.
+fn fixtures() -> Result<PathBuf, String> {
+    if let Some(p) = std::env::var_os("FWLIDAR_FIXTURES") {
+        let p = PathBuf::from(p);
+        return if p.is_dir() {
+            Ok(p)
+        } else {
+            Err(format!("{} (FWLIDAR_FIXTURES)", p.display()))
+        };
+    }
+    let candidates = [
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"),
+        PathBuf::from("/work/shared/fixtures"),
+    ];
+    candidates
+        .iter()
+        .find(|p| p.is_dir())
+        .cloned()
+        .ok_or_else(|| {
+            candidates
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        })
+}
+
+/// One component of the R package's result: waveform index (1-based), A, u (1-based bin), σ.
+struct Reference {
+    waveform: usize,
+    amplitude: f64,
+    center_bins: f64,
+    sigma_bins: f64,
+}
+
+fn read_reference(text: &str) -> Vec<Reference> {
+    let mut lines = text.lines();
+    let header = lines.next().expect("header");
+    assert!(header.starts_with("index,A,u,sigma"), "{header}");
+    lines
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| {
+            let v: Vec<f64> = l.split(',').map(|x| x.trim().parse().unwrap()).collect();
+            Reference {
+                waveform: v[0] as usize,
+                amplitude: v[1],
+                // 1-based bins to our 0-based ones.
+                center_bins: v[2] - 1.0,
+                sigma_bins: v[3],
+            }
+        })
+        .collect()
+}
+
+/// Pulses built from `return.csv`: one return segment per run of non-zero counts.
+fn read_waveforms(text: &str) -> Vec<Pulse> {
+    let mut lines = text.lines();
+    let header = lines.next().expect("header");
+    assert!(
+        header.starts_with("V1,"),
+        "expected a V1.. header: {header}"
+    );
+    lines
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| {
+            let counts: Vec<u16> = l.split(',').map(|x| x.trim().parse().unwrap()).collect();
+            let mut p = Pulse {
+                sample_ns: 1.0,
+                ..Pulse::default()
+            };
+            let mut i = 0;
+            while i < counts.len() {
+                if counts[i] == 0 {
+                    i += 1;
+                    continue;
+                }
+                let start = i;
+                while i < counts.len() && counts[i] != 0 {
+                    i += 1;
+                }
+                p.push_segment(
+                    SegmentKind::Return,
+                    0,
+                    start as f64,
+                    counts[start..i].iter().copied(),
+                );
+            }
+            p
+        })
+        .collect()
+}
+
+#[test]
+fn neon_harv_decomposition_matches_the_reference() {
+    let dir = match fixtures() {
+        Ok(d) => d.join("waveform/neon_harv"),
+        Err(looked) => {
+            assert!(
+                std::env::var_os("CI").is_none(),
+                "fixtures missing at {looked} (CI is set)"
+            );
+            println!("SKIPPED: fixtures missing at {looked}");
+            return;
+        }
+    };
+    let waveforms = std::fs::read_to_string(dir.join("return.csv")).expect("return.csv");
+    let reference = std::fs::read_to_string(dir.join("decom_result.csv")).expect("decom csv");
+    let pulses = read_waveforms(&waveforms);
+    let reference = read_reference(&reference);
+    assert_eq!(pulses.len(), 500);
+    assert_eq!(reference.len(), 713);
+
+    let denoised = run_stage(&mut Denoise::new(DenoiseConfig::default()), pulses).unwrap();
+    assert_eq!(denoised.emitted.len(), 500);
+    let run = run_stage(
+        &mut Decompose::new(DecomposeConfig {
+            // The reference's selection rule (peaks above 22 % of the waveform maximum); with
+            // the default (0: only min_snr × noise) the residual refinement also splits the
+            // asymmetric tails of the NEON system response into extra Gaussians and only
+            // ~42 % of the reference components keep their centre within 1 ns (measured).
+            min_relative_amplitude: 0.22,
+            ..DecomposeConfig::default()
+        }),
+        denoised.emitted.into_iter().map(|p| *p),
+    )
+    .unwrap();
+    assert_eq!(run.emitted.len(), 500, "dropped: {:?}", run.dropped);
+
+    // Greedy one-to-one matching per waveform: each reference component takes the nearest of
+    // our unused components within ±1 ns (1 bin).
+    let mut matched = 0usize;
+    let mut ours_total = 0usize;
+    let mut ours_in_ref_waveforms = 0usize;
+    let mut extra_in_ref_waveforms = 0usize;
+    let (mut d_mu, mut d_sigma, mut r_amp, mut d_amp) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for (w, p) in run.emitted.iter().enumerate() {
+        let ours = &p.returns;
+        ours_total += ours.len();
+        let refs: Vec<&Reference> = reference.iter().filter(|r| r.waveform == w + 1).collect();
+        if refs.is_empty() {
+            continue;
+        }
+        ours_in_ref_waveforms += ours.len();
+        let mut used = vec![false; ours.len()];
+        for r in &refs {
+            let best = ours
+                .iter()
+                .enumerate()
+                .filter(|(i, o)| !used[*i] && (o.time_ns - r.center_bins).abs() <= 1.0)
+                .min_by(|a, b| {
+                    (a.1.time_ns - r.center_bins)
+                        .abs()
+                        .total_cmp(&(b.1.time_ns - r.center_bins).abs())
+                });
+            if let Some((i, o)) = best {
+                used[i] = true;
+                matched += 1;
+                d_mu.push(o.time_ns - r.center_bins);
+                d_sigma.push(o.sigma_bins as f64 - r.sigma_bins);
+                r_amp.push(o.amplitude as f64 / r.amplitude);
+                d_amp.push(o.amplitude as f64 - r.amplitude);
+            }
+        }
+        extra_in_ref_waveforms += used.iter().filter(|u| !**u).count();
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let share = matched as f64 / reference.len() as f64;
+    println!(
+        "NEON HARV: matched {matched}/{} reference components within ±1 ns ({:.1} %); \
+         ours {ours_total} in 500 waveforms, {ours_in_ref_waveforms} in the 482 with a \
+         reference, {extra_in_ref_waveforms} of those unmatched (extra)",
+        reference.len(),
+        100.0 * share
+    );
+    println!(
+        "matched offsets (ours − reference), medians: μ {:+.3} bin, σ {:+.3} bin, A ratio {:.3}, \
+         A difference {:+.1} DN; mean μ {:+.3} bin",
+        median(&mut d_mu.clone()),
+        median(&mut d_sigma),
+        median(&mut r_amp),
+        median(&mut d_amp),
+        d_mu.iter().sum::<f64>() / d_mu.len() as f64
+    );
+    // Measured on 2026-11-22: 634/713 matched (88.9 %), 74 extra components in the 482
+    // waveforms with a reference (751 in all 500); medians of ours − reference: μ −0.03 bin,
+    // σ −0.24 bin (our low-pass narrows nothing; the reference's 3-bin running mean widens its
+    // echoes), A ratio 0.996. The thresholds sit a little below/above the measurement so that
+    // small numerical changes (LM path, f32 rounding) pass while a real regression in detection
+    // or fitting (a few percent of the components) fails.
+    assert!(share >= 0.85, "matched share {share}");
+    assert!(
+        extra_in_ref_waveforms <= 100,
+        "{extra_in_ref_waveforms} extra components"
+    );
+    let mean_mu = d_mu.iter().sum::<f64>() / d_mu.len() as f64;
+    assert!(
+        mean_mu.abs() < 0.2,
+        "systematic centre offset {mean_mu} bin"
+    );
+}
