@@ -346,7 +346,10 @@ impl Denoise {
         let bad = |reason: String| Err(DenoiseError::BadSegment { reason });
         let n = volts.len();
         if out.len() != n {
-            return bad(format!("output length {} differs from input length {n}", out.len()));
+            return bad(format!(
+                "output length {} differs from input length {n}",
+                out.len()
+            ));
         }
         if n > self.config.max_samples {
             return bad(format!(
@@ -956,6 +959,10 @@ mod tests {
             max_samples: 4,
             ..Default::default()
         });
-        assert!(small.denoise_segment(&[1.0; 5], 1.0, &mut [0.0; 5]).is_err());
+        assert!(
+            small
+                .denoise_segment(&[1.0; 5], 1.0, &mut [0.0; 5])
+                .is_err()
+        );
     }
 }

@@ -1,7 +1,7 @@
 //! Per-pulse signal processing stages: denoise (and, later, deconvolve and decompose).
 
-pub mod deconvolve;
 pub mod decompose;
+pub mod deconvolve;
 pub mod denoise;
 pub mod kernel;
 
