@@ -630,3 +630,332 @@ pub fn write_table(path: &Path, rows: &[Vec<f32>]) -> Result<(), TableError> {
     }
     file.commit().map_err(sink)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn csv(text: &str) -> Result<Table, TableError> {
+        parse_csv(text.as_bytes(), "t.csv")
+    }
+
+    /// An NPY file with the given header dictionary and data bytes (version 1.0).
+    fn npy(dict: &str, data: &[u8]) -> Vec<u8> {
+        let mut out = NPY_MAGIC.to_vec();
+        out.extend_from_slice(&[1, 0]);
+        let header = format!("{dict}\n");
+        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        out.extend_from_slice(header.as_bytes());
+        out.extend_from_slice(data);
+        out
+    }
+
+    #[test]
+    fn csv_header_blank_lines_whitespace_and_padding() {
+        let t = csv("V1,V2,V3\n\n 1, 2.5 ,3\r\n4,5,,\n  \n6,nan,NaN\n0,0,0\n").unwrap();
+        assert!(t.had_header);
+        assert_eq!(
+            t.rows,
+            vec![vec![1.0, 2.5, 3.0], vec![4.0, 5.0], vec![6.0], vec![0.0; 3]]
+        );
+        assert_eq!(t.lines, vec![3, 4, 6, 7]);
+        assert_eq!(t.row_origin(1), "line 4");
+        let t = csv("1,2\n3\n").unwrap();
+        assert!(!t.had_header);
+        assert_eq!(t.rows.len(), 2);
+        assert!(csv("").unwrap().rows.is_empty());
+        assert!(csv("a,b\n").unwrap().rows.is_empty());
+    }
+
+    #[test]
+    fn csv_errors_name_line_cell_and_text() {
+        let cases = [
+            ("1,2\n3,abc,4\n", 2, 2, "abc"),
+            ("1,2\n3,,4\n", 2, 2, ""),
+            ("1,nan,3\n", 1, 2, "nan"),
+            ("1,2\n\n5,inf\n", 3, 2, "inf"),
+            ("1,1e39\n", 1, 2, "1e39"),
+            ("h\n1,2\n,,\n", 3, 0, ",,"),
+        ];
+        for (text, line, column, bad) in cases {
+            match csv(text) {
+                Err(TableError::Csv {
+                    path,
+                    line: l,
+                    column: c,
+                    text: t,
+                    ..
+                }) => {
+                    assert_eq!(
+                        (path.as_str(), l, c, t.as_str()),
+                        ("t.csv", line, column, bad)
+                    );
+                }
+                other => panic!("{text:?}: {other:?}"),
+            }
+        }
+        let e = csv("1,2\n3,x\n").unwrap_err().to_string();
+        assert!(
+            e.contains("t.csv:2") && e.contains("cell 2") && e.contains("\"x\""),
+            "{e}"
+        );
+        assert!(parse_csv(b"1,2\n\xff\n", "t.csv").is_err());
+    }
+
+    #[test]
+    fn npy_reads_every_supported_dtype_and_both_orders() {
+        let t = parse_npy(
+            &npy(
+                "{'descr': '<i2', 'fortran_order': False, 'shape': (2, 3), }",
+                &[1, 0, 2, 0, 255, 255, 4, 0, 5, 0, 6, 0],
+            ),
+            "a.npy",
+        )
+        .unwrap();
+        assert_eq!(t.rows, vec![vec![1.0, 2.0, -1.0], vec![4.0, 5.0, 6.0]]);
+        assert!(t.lines.is_empty());
+        assert_eq!(t.row_origin(1), "row 1");
+        // Fortran order: column-major storage of [[1, 2, 3], [4, 5, 6]].
+        let t = parse_npy(
+            &npy(
+                "{'descr': '|u1', 'fortran_order': True, 'shape': (2, 3), }",
+                &[1, 4, 2, 5, 3, 6],
+            ),
+            "a.npy",
+        )
+        .unwrap();
+        assert_eq!(t.rows, vec![vec![1.0, 2.0, 3.0], vec![4.0, 5.0, 6.0]]);
+        let one = |descr: &str, bytes: &[u8]| {
+            parse_npy(
+                &npy(
+                    &format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': (1,), }}"),
+                    bytes,
+                ),
+                "a.npy",
+            )
+            .unwrap()
+            .rows[0][0]
+        };
+        assert_eq!(one("<f4", &1.5f32.to_le_bytes()), 1.5);
+        assert_eq!(one("<f8", &(-2.25f64).to_le_bytes()), -2.25);
+        assert_eq!(one("<u2", &60000u16.to_le_bytes()), 60000.0);
+        assert_eq!(one("<i4", &(-70000i32).to_le_bytes()), -70000.0);
+        assert_eq!(one("|i1", &[0xfe]), -2.0);
+        // 1-D is one waveform; trailing NaN is padding.
+        let mut data = Vec::new();
+        for v in [1.0f32, 2.0, f32::NAN] {
+            data.extend_from_slice(&v.to_le_bytes());
+        }
+        let t = parse_npy(
+            &npy(
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (3,), }",
+                &data,
+            ),
+            "a.npy",
+        )
+        .unwrap();
+        assert_eq!(t.rows, vec![vec![1.0, 2.0]]);
+        // Zero rows: an empty table.
+        let t = parse_npy(
+            &npy(
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (0, 5), }",
+                &[],
+            ),
+            "a.npy",
+        )
+        .unwrap();
+        assert!(t.rows.is_empty());
+    }
+
+    #[test]
+    fn npy_malformed_inputs_are_errors() {
+        let good = npy(
+            "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 2), }",
+            &[0u8; 16],
+        );
+        assert!(parse_npy(&good, "a.npy").is_ok());
+        let mut cases: Vec<(Vec<u8>, &str)> = vec![
+            (good[..good.len() - 1].to_vec(), "truncated data"),
+            (good[..20].to_vec(), "truncated header"),
+            (good[..5].to_vec(), "magic"),
+            (b"PK\x03\x04 not numpy at all".to_vec(), "magic"),
+            ([good.clone(), vec![0]].concat(), "unexpected bytes"),
+            (
+                npy(
+                    "{'descr': '<c8', 'fortran_order': False, 'shape': (1,), }",
+                    &[0; 8],
+                ),
+                "not supported",
+            ),
+            (
+                npy(
+                    "{'descr': '>f4', 'fortran_order': False, 'shape': (1,), }",
+                    &[0; 4],
+                ),
+                "big-endian",
+            ),
+            (
+                npy(
+                    "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 1, 1), }",
+                    &[0; 4],
+                ),
+                "dimensions",
+            ),
+            (
+                npy("{'descr': '<f4', 'shape': (1,), }", &[0; 4]),
+                "fortran_order",
+            ),
+            (
+                npy(
+                    "{'descr': '<f4', 'fortran_order': 0, 'shape': (1,), }",
+                    &[0; 4],
+                ),
+                "byte",
+            ),
+            (npy("{'descr': '<f4'", &[0; 4]), "header"),
+            (npy("not a dict", &[0; 4]), "expected '{'"),
+            (
+                npy(
+                    "{'descr': '<f4', 'fortran_order': False, 'shape': (99999999999999999999,), }",
+                    &[],
+                ),
+                "too large",
+            ),
+            (
+                npy(
+                    "{'descr': '<f8', 'fortran_order': False, 'shape': (4294967296, 4294967296), }",
+                    &[],
+                ),
+                "too large",
+            ),
+            (
+                npy(
+                    "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 2), }",
+                    &[0, 0, 0xc0, 0x7f, 0, 0, 0xc0, 0x7f],
+                ),
+                "only NaN",
+            ),
+        ];
+        let mut v9 = good.clone();
+        v9[6] = 9;
+        cases.push((v9, "version 9"));
+        for (bytes, want) in cases {
+            let e = parse_npy(&bytes, "a.npy").unwrap_err().to_string();
+            assert!(e.contains("a.npy") && e.contains(want), "{want}: {e}");
+        }
+    }
+
+    #[test]
+    fn npy_versions_2_and_3_and_our_header_alignment() {
+        let rows = vec![vec![1.0f32, 2.0], vec![3.0]];
+        let bytes = encode_npy(&rows);
+        let header_len = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+        assert_eq!((10 + header_len) % 64, 0);
+        assert_eq!(bytes[10 + header_len - 1], b'\n');
+        for major in [2u8, 3] {
+            let mut v = NPY_MAGIC.to_vec();
+            v.extend_from_slice(&[major, 0]);
+            v.extend_from_slice(&(header_len as u32).to_le_bytes());
+            v.extend_from_slice(&bytes[10..]);
+            assert_eq!(parse_npy(&v, "a.npy").unwrap().rows, rows);
+        }
+    }
+
+    #[test]
+    fn files_round_trip_and_unknown_extensions_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let rows = vec![vec![0.1f32, -3e-8, 7.0], vec![1e30]];
+        for name in ["a.csv", "a.NPY"] {
+            let p = dir.path().join(name);
+            write_table(&p, &rows).unwrap();
+            assert_eq!(read_table(&p).unwrap().rows, rows);
+        }
+        let p = dir.path().join("a.txt");
+        assert!(matches!(
+            write_table(&p, &rows),
+            Err(TableError::UnknownFormat { .. })
+        ));
+        assert!(!p.exists());
+        assert!(matches!(
+            read_table(&dir.path().join("missing.csv")),
+            Err(TableError::Io { .. })
+        ));
+    }
+
+    #[test]
+    fn skip_columns_drops_an_index_column() {
+        let mut t = csv("i,a,b\n1,5,6\n2,7\n").unwrap();
+        t.skip_columns(1, "t.csv").unwrap();
+        assert_eq!(t.rows, vec![vec![5.0, 6.0], vec![7.0]]);
+        assert!(t.skip_columns(1, "t.csv").is_err());
+    }
+
+    fn finite_f32() -> impl Strategy<Value = f32> {
+        prop_oneof![
+            any::<f32>().prop_filter("finite", |v| v.is_finite()),
+            -1e4f32..1e4,
+            Just(0.0f32),
+            Just(-0.0f32),
+        ]
+    }
+
+    fn ragged() -> impl Strategy<Value = Vec<Vec<f32>>> {
+        prop::collection::vec(prop::collection::vec(finite_f32(), 1..40), 0..20)
+    }
+
+    fn bits(rows: &[Vec<f32>]) -> Vec<Vec<u32>> {
+        rows.iter()
+            .map(|r| r.iter().map(|v| v.to_bits()).collect())
+            .collect()
+    }
+
+    proptest! {
+        #[test]
+        fn csv_round_trips_exactly(rows in ragged()) {
+            let mut buf = Vec::new();
+            write_csv(&rows, &mut buf).unwrap();
+            let t = parse_csv(&buf, "p.csv").unwrap();
+            prop_assert_eq!(bits(&t.rows), bits(&rows));
+        }
+
+        #[test]
+        fn npy_round_trips_exactly(rows in ragged()) {
+            let t = parse_npy(&encode_npy(&rows), "p.npy").unwrap();
+            let expect: Vec<Vec<f32>> = if rows.iter().all(|r| r.is_empty()) && !rows.is_empty() {
+                Vec::new()
+            } else {
+                rows.clone()
+            };
+            prop_assert_eq!(bits(&t.rows), bits(&expect));
+        }
+
+        #[test]
+        fn csv_never_panics(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
+            let _ = parse_csv(&bytes, "f.csv");
+        }
+
+        #[test]
+        fn csv_text_never_panics(text in "[0-9a-zA-Z.,eE+\\- \r\n]{0,200}") {
+            if let Ok(t) = parse_csv(text.as_bytes(), "f.csv") {
+                prop_assert!(t.rows.iter().all(|r| !r.is_empty() && r.iter().all(|v| v.is_finite())));
+                prop_assert_eq!(t.rows.len(), t.lines.len());
+            }
+        }
+
+        #[test]
+        fn npy_never_panics(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
+            let _ = parse_npy(&bytes, "f.npy");
+        }
+
+        #[test]
+        fn npy_mutated_never_panics(rows in ragged(), pos in any::<prop::sample::Index>(), byte in any::<u8>(), cut in any::<prop::sample::Index>()) {
+            let mut bytes = encode_npy(&rows);
+            let i = pos.index(bytes.len());
+            bytes[i] = byte;
+            let n = cut.index(bytes.len() + 1);
+            let _ = parse_npy(&bytes[..n], "f.npy");
+            let _ = parse_npy(&bytes, "f.npy");
+        }
+    }
+}
