@@ -149,6 +149,37 @@ fn neon_harvard_forest_waveforms() {
     let header = std::fs::read_to_string(&returns).unwrap();
     assert!(header.starts_with("waveform,position_bins,amplitude,sigma_bins\n"));
 
+    // --zero-padding: only the recorded samples are processed; the padding stays zeros.
+    let o = fwlidar(&[
+        "process",
+        "--input",
+        s(&neon.join("return.csv")),
+        "--kernel",
+        s(&neon.join("imp.csv")),
+        "--method",
+        "none",
+        "--zero-padding",
+        "--out",
+        s(&out),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let padded = read_table(&out).unwrap();
+    let raw = read_table(&neon.join("return.csv")).unwrap();
+    assert_eq!(padded.rows.len(), 500);
+    for (p, r) in padded.rows.iter().zip(&raw.rows) {
+        assert_eq!(p.len(), 208);
+        let valid = r.iter().rposition(|&v| v != 0.0).unwrap() + 1;
+        assert!((68..=196).contains(&valid), "recorded length {valid}");
+        assert!(p[valid..].iter().all(|&v| v == 0.0));
+        // No step down to the padding (about -220 without --zero-padding). A few NEON rows hold
+        // interior runs of zeros (gaps in the recording), which stay steps: skip those.
+        if r[..valid].contains(&0.0) {
+            continue;
+        }
+        let low = p[..valid].iter().copied().fold(f32::MAX, f32::min);
+        assert!(low > -100.0, "minimum {low}");
+    }
+
     // One outgoing pulse per row (outg.csv, 500 x 100, zero-padded) and a deconvolution method.
     let npy_out = dir.path().join("out.npy");
     let o = fwlidar(&[

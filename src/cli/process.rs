@@ -98,6 +98,11 @@ pub struct ProcessArgs {
     /// Skip the denoise step (no baseline removal, no low-pass).
     #[arg(long)]
     pub no_denoise: bool,
+    /// Trailing zeros of a row are padding, not samples (zero-padded exports such as NEON's
+    /// `return.csv` and `outg.csv`): only the samples before them are processed, and the output
+    /// row keeps its length with zeros in their place. Applies to kernel rows too.
+    #[arg(long)]
+    pub zero_padding: bool,
     /// Leading columns of every input row to ignore (an index column, for example).
     #[arg(long, default_value_t = 0)]
     pub skip_columns: usize,
@@ -148,6 +153,11 @@ pub fn noise_from_differences(y: &[f32]) -> f32 {
     let m = median(&d);
     let dev: Vec<f32> = d.iter().map(|v| (v - m).abs()).collect();
     1.4826 * median(&dev) / std::f32::consts::SQRT_2
+}
+
+/// Number of samples of `row` before its trailing zeros.
+pub fn unpadded_len(row: &[f32]) -> usize {
+    row.iter().rposition(|&v| v != 0.0).map_or(0, |i| i + 1)
 }
 
 /// Builds a kernel from one row of the kernel table: the median of its first
@@ -213,6 +223,11 @@ fn load_kernels(args: &ProcessArgs, input_rows: usize) -> Result<Vec<Kernel>, Fa
     };
     rows.iter()
         .map(|(origin, row)| {
+            let row = if args.zero_padding {
+                &row[..unpadded_len(row)]
+            } else {
+                &row[..]
+            };
             let mut k = Kernel::with_capacity(row.len());
             kernel_from_row(row, &mut k)
                 .map_err(|e| Failure::job(format!("kernel {name}: {origin}: {e}")))?;
@@ -382,7 +397,19 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
                 row[j]
             )));
         }
-        let len = row.len();
+        let full = row.len();
+        let len = if args.zero_padding {
+            unpadded_len(row)
+        } else {
+            full
+        };
+        if len == 0 {
+            return Err(Failure::job(format!(
+                "{}: the row holds only zero padding; nothing written",
+                at()
+            )));
+        }
+        let row = &row[..len];
         samples += len;
         let w = &mut work[..len];
         let noise_v = match denoise.as_mut() {
@@ -396,7 +423,8 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
                 noise_from_differences(row)
             }
         };
-        let mut out = vec![0.0f32; len];
+        let mut out = vec![0.0f32; full];
+        let (out_valid, _) = out.split_at_mut(len);
         match deconvolver.as_mut() {
             Some(dec) => {
                 let k = if kernels.len() == 1 {
@@ -404,10 +432,10 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
                 } else {
                     &kernels[i]
                 };
-                dec.run(w, k, noise_v, args.sample_ns, &mut out)
+                dec.run(w, k, noise_v, args.sample_ns, out_valid)
                     .map_err(|e| Failure::job(format!("{}: deconvolution failed: {e}", at())))?;
             }
-            None => out.copy_from_slice(w),
+            None => out_valid.copy_from_slice(w),
         }
         if let Some(j) = out.iter().position(|v| !v.is_finite()) {
             return Err(Failure::job(format!(
@@ -418,7 +446,7 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         }
         if let Some(dec) = decomposer.as_mut() {
             fits.clear();
-            dec.fit(&out, noise_v, &mut fits)
+            dec.fit(&out[..len], noise_v, &mut fits)
                 .map_err(|e| Failure::job(format!("{}: decomposition failed: {e}", at())))?;
             returns.extend(fits.iter().map(|f| (i, *f)));
         }
@@ -503,6 +531,7 @@ mod tests {
             cutoff_ghz: 0.2,
             kernel_per_row: false,
             no_denoise: false,
+            zero_padding: false,
             skip_columns: 0,
             out: "o.csv".into(),
             returns: None,
@@ -552,6 +581,7 @@ mod tests {
             cutoff_ghz: a.cutoff_ghz,
             kernel_per_row: a.kernel_per_row,
             no_denoise: a.no_denoise,
+            zero_padding: a.zero_padding,
             skip_columns: a.skip_columns,
             out: a.out.clone(),
             returns: a.returns.clone(),
