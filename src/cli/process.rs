@@ -508,6 +508,14 @@ mod tests {
     }
 
     #[test]
+    fn unpadded_len_stops_at_trailing_zeros_only() {
+        assert_eq!(unpadded_len(&[1.0, 0.0, 2.0, 0.0, 0.0]), 3);
+        assert_eq!(unpadded_len(&[0.0, 0.0]), 0);
+        assert_eq!(unpadded_len(&[]), 0);
+        assert_eq!(unpadded_len(&[-0.0, 5.0]), 2);
+    }
+
+    #[test]
     fn kernel_from_row_removes_the_baseline_and_centres_on_the_peak() {
         let mut row = vec![200.0f32; 12];
         row.extend([300.0, 600.0, 300.0, 200.0, 200.0]);
