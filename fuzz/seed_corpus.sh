@@ -5,11 +5,14 @@
 #                   records without the preamble behind mode byte 0x01 (odd: the target adds it).
 #   frame_decode:   the payloads of the first frame and nav records of that capture.
 #   config_load:    every file of config/.
+#   waveform_table: a small CSV and NPY written here (mode byte 0x00 CSV, 0x01 NPY), plus the
+#                   first lines of the NEON return.csv and imp.csv when ../shared/fixtures exists.
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(dirname "$here")
 cap="$root/replay/two_layer.fwcap"
-mkdir -p "$here/corpus/capture_reader" "$here/corpus/frame_decode" "$here/corpus/config_load"
+mkdir -p "$here/corpus/capture_reader" "$here/corpus/frame_decode" "$here/corpus/config_load" \
+    "$here/corpus/waveform_table"
 
 # capture_reader
 { printf '\000'; head -c 8192 "$cap"; } > "$here/corpus/capture_reader/two_layer_8k_raw"
@@ -39,4 +42,21 @@ PY
 find "$root/config" -name '*.toml' | while read -r f; do
     cp "$f" "$here/corpus/config_load/$(basename "$(dirname "$f")")_$(basename "$f")"
 done
+# waveform_table
+wt="$here/corpus/waveform_table"
+printf '\000V1,V2,V3\n1.5, -2 ,3e-7,,\n\n4,nan,NaN\r\n0,0,0\n' > "$wt/small_csv"
+python3 - "$wt/small_npy" <<'PY'
+import struct, sys
+header = "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), }"
+header += " " * ((64 - (10 + len(header) + 1) % 64) % 64) + "\n"
+data = struct.pack("<6f", 1.0, 2.0, float("nan"), 4.0, 5.0, 6.0)
+blob = b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header.encode() + data
+open(sys.argv[1], "wb").write(b"\x01" + blob)
+PY
+fx="$root/../shared/fixtures/waveform/neon_harv"
+if [ -d "$fx" ]; then
+    { printf '\000'; head -n 4 "$fx/return.csv"; } > "$wt/neon_return_head"
+    { printf '\000'; cat "$fx/imp.csv"; } > "$wt/neon_imp"
+fi
+
 ls -l "$here"/corpus/*

@@ -5,6 +5,7 @@
 use clap::{Parser, Subcommand, ValueEnum};
 
 pub mod inspect;
+pub mod process;
 pub mod replay;
 pub mod simulate;
 pub mod validate;
@@ -44,6 +45,8 @@ pub enum Command {
     Validate(validate::ValidateArgs),
     /// Describe a capture: header, record counts, damage; optionally every pulse as JSON.
     Inspect(inspect::InspectArgs),
+    /// Denoise, deconvolve (and optionally decompose) a table of waveforms (CSV or .npy).
+    Process(process::ProcessArgs),
 }
 
 /// A failure to report: the message and the exit code.
@@ -105,6 +108,7 @@ pub fn main() -> i32 {
         Command::Simulate(a) => simulate::run(a),
         Command::Validate(a) => validate::run(a),
         Command::Inspect(a) => inspect::run(a),
+        Command::Process(a) => process::run(a),
     };
     match result {
         Ok(()) => 0,

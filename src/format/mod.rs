@@ -4,6 +4,7 @@
 //! - [`capture`]: the native capture container v1.0 (constants, errors, skip report, flush
 //!   policy); [`capture_reader`] and [`capture_writer`] read and write it.
 //! - [`frame`]: the digitizer frame and nav payloads inside capture records.
+//! - [`table`]: waveform tables (CSV, NumPy `.npy`) for `fwlidar process`.
 //!
 //! Byte layouts are specified in `docs/formats.md`.
 
@@ -12,6 +13,7 @@ pub mod capture_reader;
 pub mod capture_writer;
 pub mod frame;
 pub mod header;
+pub mod table;
 
 pub use capture::{CaptureError, FlushPolicy, FsyncPolicy, RecordKind, SkipReport};
 pub use capture_reader::{CaptureReader, FrameRecord, Record};

@@ -71,6 +71,12 @@ pub enum DenoiseError {
         /// The configured cut-off, GHz.
         cutoff_ghz: f64,
     },
+    /// [`Denoise::denoise_segment`] was given a segment it cannot filter.
+    #[error("cannot denoise segment: {reason}")]
+    BadSegment {
+        /// What is wrong (length, sample interval, non-finite sample, cut-off above Nyquist).
+        reason: String,
+    },
 }
 
 /// Configuration of the denoise stage (`type = "denoise"` in `[[pipeline.stages]]`).
@@ -169,6 +175,9 @@ pub struct Denoise {
     sorted: Vec<u16>,
     /// Absolute deviations for the MAD, `max_samples` values, counts.
     deviations: Vec<f32>,
+    /// Sorted copy of a segment in volts for [`Denoise::denoise_segment`]; empty until its
+    /// first call (the pipeline stage never needs it), then `max_samples` values.
+    sorted_v: Vec<f32>,
 }
 
 impl Denoise {
@@ -185,6 +194,7 @@ impl Denoise {
             scratch: vec![Complex::new(0.0, 0.0); 2 * max],
             sorted: vec![0; max],
             deviations: vec![0.0; max],
+            sorted_v: Vec::new(),
             config,
         }
     }
@@ -236,65 +246,23 @@ impl Denoise {
 
     /// Robust baseline of `counts` (non-empty, at most `max_samples` long), counts.
     fn baseline_counts(&mut self, counts: &[u16]) -> f32 {
-        let p = self.config.pretrigger_samples;
-        if p > 0 && counts.len() >= p.saturating_mul(4) {
-            let s = &mut self.sorted[..p];
-            s.copy_from_slice(&counts[..p]);
-            s.sort_unstable();
-            return median_sorted(s);
-        }
-        let n = counts.len();
-        let s = &mut self.sorted[..n];
-        s.copy_from_slice(counts);
-        s.sort_unstable();
-        // The kept samples are always a prefix of the sorted counts (upper clipping only).
-        let mut kept = n;
-        let mut median = median_sorted(&s[..kept]);
-        for _ in 0..CLIP_ITERATIONS {
-            let dev = &mut self.deviations[..kept];
-            for (d, &c) in dev.iter_mut().zip(&s[..kept]) {
-                *d = (c as f32 - median).abs();
-            }
-            let mid = kept / 2;
-            let (_, &mut mad, _) = dev.select_nth_unstable_by(mid, f32::total_cmp);
-            let limit = median + CLIP_SIGMAS * MAD_TO_SIGMA * mad;
-            let new_kept = s[..kept].partition_point(|&c| c as f32 <= limit).max(1);
-            if new_kept == kept {
-                break;
-            }
-            kept = new_kept;
-            median = median_sorted(&s[..kept]);
-        }
-        median
+        robust_baseline(
+            counts,
+            &mut self.sorted,
+            &mut self.deviations,
+            self.config.pretrigger_samples,
+            <[u16]>::sort_unstable,
+        )
     }
 
-    /// Filters one non-empty segment of at most `max_samples` counts into `out` (same length,
-    /// volts above the baseline). `gain` in V/DN, `offset` in V, `sample_ns` in ns.
-    fn filter_segment(
-        &mut self,
-        counts: &[u16],
-        out: &mut [f32],
-        gain: f32,
-        offset: f32,
-        sample_ns: f64,
-    ) -> SegmentResult {
-        let n = counts.len();
-        let baseline_dn = self.baseline_counts(counts);
-        let baseline_v = offset + gain * baseline_dn;
-        let shift = if self.config.level_shift {
-            baseline_v
-        } else {
-            0.0
-        };
+    /// Low-passes `self.time[..n]` in place (`self.time[n..2n]` must be zero): real FFT of the
+    /// zero-padded `2n` samples, bins above the cut-off zeroed, inverse FFT and `1/(2n)`
+    /// normalisation. `sample_ns` in ns.
+    fn lowpass_time(&mut self, n: usize, sample_ns: f64) {
         let m = 2 * n;
         let plan_i = self.plan_index(m);
         let plan = &self.plans[plan_i];
-
         let time = &mut self.time[..m];
-        for (t, &c) in time[..n].iter_mut().zip(counts) {
-            *t = offset + gain * c as f32 - shift;
-        }
-        time[n..].fill(0.0);
         let bins = m / 2 + 1;
         let spectrum = &mut self.spectrum[..bins];
         let scratch = &mut self.scratch[..plan.scratch_len];
@@ -317,12 +285,41 @@ impl Denoise {
         plan.inverse
             .process_with_scratch(spectrum, time, scratch)
             .expect("buffer lengths match the plan");
-
         let scale = 1.0 / m as f32;
+        for t in &mut time[..n] {
+            *t *= scale;
+        }
+    }
+
+    /// Filters one non-empty segment of at most `max_samples` counts into `out` (same length,
+    /// volts above the baseline). `gain` in V/DN, `offset` in V, `sample_ns` in ns.
+    fn filter_segment(
+        &mut self,
+        counts: &[u16],
+        out: &mut [f32],
+        gain: f32,
+        offset: f32,
+        sample_ns: f64,
+    ) -> SegmentResult {
+        let n = counts.len();
+        let baseline_dn = self.baseline_counts(counts);
+        let baseline_v = offset + gain * baseline_dn;
+        let shift = if self.config.level_shift {
+            baseline_v
+        } else {
+            0.0
+        };
+        let time = &mut self.time[..2 * n];
+        for (t, &c) in time[..n].iter_mut().zip(counts) {
+            *t = offset + gain * c as f32 - shift;
+        }
+        time[n..].fill(0.0);
+        self.lowpass_time(n, sample_ns);
+
         let post_shift = baseline_v - shift;
         let mut abs_sum = 0.0f64;
-        for ((o, &t), &c) in out.iter_mut().zip(&time[..n]).zip(counts) {
-            let smoothed = t * scale - post_shift;
+        for ((o, &t), &c) in out.iter_mut().zip(&self.time[..n]).zip(counts) {
+            let smoothed = t - post_shift;
             let raw = offset + gain * c as f32 - baseline_v;
             abs_sum += (raw - smoothed).abs() as f64;
             *o = smoothed;
@@ -332,15 +329,137 @@ impl Denoise {
             abs_residual_sum_v: abs_sum,
         }
     }
+
+    /// Denoises one segment already in volts (or any signal unit: the output is in the unit of
+    /// the input), outside the pipeline (`fwlidar process`): the same baseline estimate, level
+    /// shift and low-pass as a pulse's segment, with `sample_ns` the sample interval in ns.
+    /// Writes the smoothed samples above the baseline into `out` (same length as `volts`) and
+    /// returns the segment's baseline and noise level (mean `|raw − baseline − smoothed|`), in
+    /// the input's unit. An empty segment gives an empty output and a zero estimate.
+    pub fn denoise_segment(
+        &mut self,
+        volts: &[f32],
+        sample_ns: f64,
+        out: &mut [f32],
+    ) -> Result<crate::pulse::NoiseEstimate, DenoiseError> {
+        self.config.validate()?;
+        let bad = |reason: String| Err(DenoiseError::BadSegment { reason });
+        let n = volts.len();
+        if out.len() != n {
+            return bad(format!(
+                "output length {} differs from input length {n}",
+                out.len()
+            ));
+        }
+        if n > self.config.max_samples {
+            return bad(format!(
+                "{n} samples exceed the maximum of {}",
+                self.config.max_samples
+            ));
+        }
+        if !(sample_ns.is_finite() && sample_ns > 0.0) {
+            return bad(format!(
+                "sample interval {sample_ns} ns is not a positive number"
+            ));
+        }
+        if self.config.cutoff_ghz * sample_ns >= 0.5 {
+            return bad(format!(
+                "cut-off {} GHz is not below the Nyquist frequency {} GHz",
+                self.config.cutoff_ghz,
+                0.5 / sample_ns
+            ));
+        }
+        if let Some(i) = volts.iter().position(|v| !v.is_finite()) {
+            return bad(format!("sample {i} is {}", volts[i]));
+        }
+        if n == 0 {
+            return Ok(crate::pulse::NoiseEstimate::default());
+        }
+        if self.sorted_v.len() < self.config.max_samples {
+            self.sorted_v.resize(self.config.max_samples, 0.0);
+        }
+        let baseline_v = robust_baseline(
+            volts,
+            &mut self.sorted_v,
+            &mut self.deviations,
+            self.config.pretrigger_samples,
+            |s: &mut [f32]| s.sort_unstable_by(f32::total_cmp),
+        );
+        let shift = if self.config.level_shift {
+            baseline_v
+        } else {
+            0.0
+        };
+        let time = &mut self.time[..2 * n];
+        for (t, &v) in time[..n].iter_mut().zip(volts) {
+            *t = v - shift;
+        }
+        time[n..].fill(0.0);
+        self.lowpass_time(n, sample_ns);
+        let post_shift = baseline_v - shift;
+        let mut abs_sum = 0.0f64;
+        for ((o, &t), &v) in out.iter_mut().zip(&self.time[..n]).zip(volts) {
+            let smoothed = t - post_shift;
+            abs_sum += (v - baseline_v - smoothed).abs() as f64;
+            *o = smoothed;
+        }
+        Ok(crate::pulse::NoiseEstimate {
+            baseline_v,
+            noise_v: (abs_sum / n as f64) as f32,
+        })
+    }
 }
 
-/// Median of sorted counts (mean of the two middle values for an even count).
-fn median_sorted(s: &[u16]) -> f32 {
+/// Robust baseline of `values` (non-empty, at most `sorted.len()` long) in their own unit: the
+/// median of the first `pretrigger` samples when there are at least four times that many,
+/// otherwise the upper-clipped median described in the module documentation. `sort` sorts
+/// ascending; `sorted` and `deviations` are work buffers.
+fn robust_baseline<T: Copy + Into<f32>>(
+    values: &[T],
+    sorted: &mut [T],
+    deviations: &mut [f32],
+    pretrigger: usize,
+    sort: impl Fn(&mut [T]),
+) -> f32 {
+    let p = pretrigger;
+    if p > 0 && values.len() >= p.saturating_mul(4) {
+        let s = &mut sorted[..p];
+        s.copy_from_slice(&values[..p]);
+        sort(s);
+        return median_sorted(s);
+    }
+    let n = values.len();
+    let s = &mut sorted[..n];
+    s.copy_from_slice(values);
+    sort(s);
+    // The kept samples are always a prefix of the sorted values (upper clipping only).
+    let mut kept = n;
+    let mut median = median_sorted(&s[..kept]);
+    for _ in 0..CLIP_ITERATIONS {
+        let dev = &mut deviations[..kept];
+        for (d, &c) in dev.iter_mut().zip(&s[..kept]) {
+            *d = (c.into() - median).abs();
+        }
+        let mid = kept / 2;
+        let (_, &mut mad, _) = dev.select_nth_unstable_by(mid, f32::total_cmp);
+        let limit = median + CLIP_SIGMAS * MAD_TO_SIGMA * mad;
+        let new_kept = s[..kept].partition_point(|&c| c.into() <= limit).max(1);
+        if new_kept == kept {
+            break;
+        }
+        kept = new_kept;
+        median = median_sorted(&s[..kept]);
+    }
+    median
+}
+
+/// Median of sorted values (mean of the two middle values for an even count).
+fn median_sorted<T: Copy + Into<f32>>(s: &[T]) -> f32 {
     let n = s.len();
     if n % 2 == 1 {
-        s[n / 2] as f32
+        s[n / 2].into()
     } else {
-        0.5 * (s[n / 2 - 1] as f32 + s[n / 2] as f32)
+        0.5 * (s[n / 2 - 1].into() + s[n / 2].into())
     }
 }
 
@@ -794,5 +913,56 @@ mod tests {
         let out = denoise_one(DenoiseConfig::default(), p);
         assert_eq!(out.signal.len(), out.raw.len());
         assert_eq!(out.signal.capacity(), 1000);
+    }
+
+    #[test]
+    fn denoise_segment_matches_the_pulse_path_and_checks_its_input() {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let counts: Vec<u16> = gaussian_on_pedestal(&mut rng, 200, 40.0, 4.0, 90.0, 3.0)
+            .into_iter()
+            .map(|v| v.round() as u16)
+            .collect();
+        let mut p = Pulse::default();
+        p.push_segment(SegmentKind::Return, 0, 0.0, counts.iter().copied());
+        let via_pulse = denoise_one(DenoiseConfig::default(), p);
+        let volts: Vec<f32> = counts.iter().map(|&c| c as f32).collect();
+        let mut stage = Denoise::new(DenoiseConfig::default());
+        let mut out = vec![0.0; volts.len()];
+        let noise = stage.denoise_segment(&volts, 1.0, &mut out).unwrap();
+        assert_eq!(noise, via_pulse.noise);
+        assert_eq!(out, via_pulse.signal);
+        // Short segment (robust baseline path) and an empty one.
+        let mut short = vec![0.0; 10];
+        let est = stage
+            .denoise_segment(&volts[..10], 1.0, &mut short)
+            .unwrap();
+        assert!(est.baseline_v > 30.0 && est.baseline_v < 50.0);
+        assert_eq!(
+            stage.denoise_segment(&[], 1.0, &mut []).unwrap(),
+            crate::pulse::NoiseEstimate::default()
+        );
+        // Bad input is a typed error, never a panic.
+        let mut o3 = [0.0; 3];
+        for (v, ns) in [
+            ([1.0, f32::NAN, 1.0], 1.0),
+            ([1.0, 2.0, 3.0], 0.0),
+            ([1.0, 2.0, 3.0], f64::NAN),
+            ([1.0, 2.0, 3.0], 4.0),
+        ] {
+            assert!(matches!(
+                stage.denoise_segment(&v, ns, &mut o3),
+                Err(DenoiseError::BadSegment { .. })
+            ));
+        }
+        assert!(stage.denoise_segment(&[1.0; 4], 1.0, &mut o3).is_err());
+        let mut small = Denoise::new(DenoiseConfig {
+            max_samples: 4,
+            ..Default::default()
+        });
+        assert!(
+            small
+                .denoise_segment(&[1.0; 5], 1.0, &mut [0.0; 5])
+                .is_err()
+        );
     }
 }

@@ -1,0 +1,599 @@
+//! `fwlidar process`: the offline tool for waveform tables (CSV or `.npy`, one waveform per
+//! row). Each row is denoised (unless `--no-denoise`), deconvolved with a kernel (unless
+//! `--method none`) and written, same length, to the output table; `--returns` adds the
+//! Gaussian decomposition of every processed row.
+//!
+//! Values are taken in the file's unit (volts, or digitizer counts: no gain is known, so the
+//! outputs are in the same "signal units"). The job either writes every output complete or
+//! nothing: any bad row fails the whole job (exit 1) naming the file and line (CSV) or row
+//! (NPY), and outputs are only moved into place after every row was processed.
+
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::cli::Failure;
+use crate::format::table::{Table, TableFormat, read_table, write_table};
+use crate::pulse::FittedReturn;
+use crate::signal::decompose::{DecomposeConfig, Decomposer};
+use crate::signal::deconvolve::MethodConfig;
+use crate::signal::denoise::{Denoise, DenoiseConfig};
+use crate::signal::kernel::Kernel;
+use crate::sink::atomic_file::AtomicFile;
+
+/// Number of leading kernel samples whose median is taken as the kernel's baseline.
+pub const KERNEL_BASELINE_SAMPLES: usize = 8;
+
+/// Rows from which a progress bar is drawn (on a terminal).
+const PROGRESS_MIN_ROWS: usize = 1000;
+
+/// Deconvolution methods of `fwlidar process`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ProcessMethod {
+    /// Richardson-Lucy.
+    Rl,
+    /// Wiener filter.
+    Wiener,
+    /// Non-negative least squares.
+    Nnls,
+    /// Gold.
+    Gold,
+    /// No deconvolution (denoise only, or a plain copy with `--no-denoise`).
+    None,
+}
+
+impl ProcessMethod {
+    /// The method's name on the command line.
+    pub fn cli_name(self) -> &'static str {
+        match self {
+            ProcessMethod::Rl => "rl",
+            ProcessMethod::Wiener => "wiener",
+            ProcessMethod::Nnls => "nnls",
+            ProcessMethod::Gold => "gold",
+            ProcessMethod::None => "none",
+        }
+    }
+
+    /// The method's name in configuration (`method = "..."`), `None` for `none`.
+    pub fn config_name(self) -> Option<&'static str> {
+        match self {
+            ProcessMethod::Rl => Some("richardson_lucy"),
+            ProcessMethod::Wiener => Some("wiener"),
+            ProcessMethod::Nnls => Some("nnls"),
+            ProcessMethod::Gold => Some("gold"),
+            ProcessMethod::None => None,
+        }
+    }
+}
+
+/// Arguments of `fwlidar process`.
+#[derive(Debug, clap::Args)]
+pub struct ProcessArgs {
+    /// Waveform table to process (`.csv` or `.npy`), one waveform per row.
+    #[arg(long)]
+    pub input: PathBuf,
+    /// System response (`.csv` or `.npy`): one row, or one column (one value per line, as in
+    /// NEON's `imp.csv`); with `--kernel-per-row`, one outgoing pulse per input row. Its
+    /// baseline (median of the first 8 samples) is removed, negative samples clipped, the
+    /// rest normalised to unit sum and centred on its peak. Required unless `--method none`.
+    #[arg(long)]
+    pub kernel: Option<PathBuf>,
+    /// Deconvolution method.
+    #[arg(long, value_enum)]
+    pub method: ProcessMethod,
+    /// Iteration budget of iterative methods (the method's default when absent).
+    #[arg(long)]
+    pub iterations: Option<u32>,
+    /// Sample interval, ns.
+    #[arg(long, default_value_t = 1.0)]
+    pub sample_ns: f64,
+    /// Low-pass cut-off of the denoise step, GHz (must lie below 1 / (2 × sample interval)).
+    #[arg(long, default_value_t = 0.2)]
+    pub cutoff_ghz: f64,
+    /// The kernel table holds one outgoing pulse per input row (row counts must match).
+    #[arg(long)]
+    pub kernel_per_row: bool,
+    /// Skip the denoise step (no baseline removal, no low-pass).
+    #[arg(long)]
+    pub no_denoise: bool,
+    /// Trailing zeros of a row are padding, not samples (zero-padded exports such as NEON's
+    /// `return.csv` and `outg.csv`): only the samples before them are processed, and the output
+    /// row keeps its length with zeros in their place. Applies to kernel rows too.
+    #[arg(long)]
+    pub zero_padding: bool,
+    /// Leading columns of every input row to ignore (an index column, for example).
+    #[arg(long, default_value_t = 0)]
+    pub skip_columns: usize,
+    /// Output table (`.csv` or `.npy`), one processed waveform per input row, same lengths.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also decompose every processed row into Gaussians and write them here (CSV:
+    /// `waveform,position_bins,amplitude,sigma_bins`, waveform the 0-based row index).
+    #[arg(long)]
+    pub returns: Option<PathBuf>,
+    /// Do not draw a progress bar.
+    #[arg(long)]
+    pub no_progress: bool,
+}
+
+/// What a run did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ProcessReport {
+    /// Waveforms processed.
+    pub waveforms: usize,
+    /// Samples processed.
+    pub samples: usize,
+    /// Returns found (with `--returns`).
+    pub returns: usize,
+    /// Wall time, seconds.
+    pub wall_s: f64,
+}
+
+/// Median of a non-empty slice (sorted copy).
+fn median(values: &[f32]) -> f32 {
+    let mut s = values.to_vec();
+    s.sort_unstable_by(f32::total_cmp);
+    let n = s.len();
+    if n % 2 == 1 {
+        s[n / 2]
+    } else {
+        0.5 * (s[n / 2 - 1] + s[n / 2])
+    }
+}
+
+/// Noise level of a segment that was not denoised, signal units: the robust standard deviation
+/// of its first differences divided by √2 (1.4826 × MAD / √2); 0 for fewer than 3 samples.
+pub fn noise_from_differences(y: &[f32]) -> f32 {
+    if y.len() < 3 {
+        return 0.0;
+    }
+    let d: Vec<f32> = y.windows(2).map(|w| w[1] - w[0]).collect();
+    let m = median(&d);
+    let dev: Vec<f32> = d.iter().map(|v| (v - m).abs()).collect();
+    1.4826 * median(&dev) / std::f32::consts::SQRT_2
+}
+
+/// Number of samples of `row` before its trailing zeros.
+pub fn unpadded_len(row: &[f32]) -> usize {
+    row.iter().rposition(|&v| v != 0.0).map_or(0, |i| i + 1)
+}
+
+/// Builds a kernel from one row of the kernel table: the median of its first
+/// [`KERNEL_BASELINE_SAMPLES`] samples removed, then [`Kernel::set_from_outgoing`].
+pub fn kernel_from_row(row: &[f32], kernel: &mut Kernel) -> Result<(), String> {
+    if row.is_empty() {
+        return Err("no samples".into());
+    }
+    if let Some(j) = row.iter().position(|v| !v.is_finite()) {
+        return Err(format!("sample {j} is {} (not a finite number)", row[j]));
+    }
+    let base = median(&row[..row.len().min(KERNEL_BASELINE_SAMPLES)]);
+    let shifted: Vec<f32> = row.iter().map(|v| v - base).collect();
+    kernel
+        .set_from_outgoing(&shifted, row.len())
+        .map_err(|e| e.to_string())
+}
+
+fn read(path: &Path, what: &str) -> Result<Table, Failure> {
+    if !path.exists() {
+        return Err(Failure::job(format!(
+            "{what} {} does not exist",
+            path.display()
+        )));
+    }
+    read_table(path).map_err(Failure::job)
+}
+
+/// The kernels to use: one, or one per input row.
+fn load_kernels(args: &ProcessArgs, input_rows: usize) -> Result<Vec<Kernel>, Failure> {
+    let Some(path) = &args.kernel else {
+        return Ok(Vec::new());
+    };
+    let name = path.display().to_string();
+    let table = read(path, "kernel")?;
+    if table.rows.is_empty() {
+        return Err(Failure::job(format!("kernel {name} holds no values")));
+    }
+    let rows: Vec<(String, Vec<f32>)> = if args.kernel_per_row {
+        if table.rows.len() != input_rows {
+            return Err(Failure::job(format!(
+                "kernel {name} has {} rows but --kernel-per-row needs one per input row ({input_rows})",
+                table.rows.len()
+            )));
+        }
+        (0..table.rows.len())
+            .map(|i| (table.row_origin(i), table.rows[i].clone()))
+            .collect()
+    } else if table.rows.len() == 1 {
+        vec![(table.row_origin(0), table.rows[0].clone())]
+    } else if table.rows.iter().all(|r| r.len() == 1) {
+        // One value per line: the kernel is the column.
+        vec![(
+            "its column".to_string(),
+            table.rows.iter().map(|r| r[0]).collect(),
+        )]
+    } else {
+        return Err(Failure::usage(format!(
+            "kernel {name} has {} rows of several values; give one row (or one column) as the \
+             system response, or --kernel-per-row for one outgoing pulse per waveform",
+            table.rows.len()
+        )));
+    };
+    rows.iter()
+        .map(|(origin, row)| {
+            let row = if args.zero_padding {
+                &row[..unpadded_len(row)]
+            } else {
+                &row[..]
+            };
+            let mut k = Kernel::with_capacity(row.len());
+            kernel_from_row(row, &mut k)
+                .map_err(|e| Failure::job(format!("kernel {name}: {origin}: {e}")))?;
+            Ok(k)
+        })
+        .collect()
+}
+
+fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
+    TableFormat::from_path(&args.input).map_err(Failure::usage)?;
+    TableFormat::from_path(&args.out).map_err(Failure::usage)?;
+    if let Some(k) = &args.kernel {
+        TableFormat::from_path(k).map_err(Failure::usage)?;
+    }
+    if !(args.sample_ns.is_finite() && args.sample_ns > 0.0) {
+        return Err(Failure::usage(format!(
+            "--sample-ns must be a positive number of ns, got {}",
+            args.sample_ns
+        )));
+    }
+    if !args.no_denoise {
+        if !(args.cutoff_ghz.is_finite() && args.cutoff_ghz > 0.0) {
+            return Err(Failure::usage(format!(
+                "--cutoff-ghz must be a positive frequency in GHz, got {}",
+                args.cutoff_ghz
+            )));
+        }
+        if args.cutoff_ghz * args.sample_ns >= 0.5 {
+            return Err(Failure::usage(format!(
+                "--cutoff-ghz {} is not below the Nyquist frequency {} GHz of --sample-ns {}",
+                args.cutoff_ghz,
+                0.5 / args.sample_ns,
+                args.sample_ns
+            )));
+        }
+    }
+    if args.method != ProcessMethod::None && args.kernel.is_none() {
+        return Err(Failure::usage(format!(
+            "--method {} needs --kernel",
+            args.method.cli_name()
+        )));
+    }
+    if args.method == ProcessMethod::None && args.iterations.is_some() {
+        return Err(Failure::usage(
+            "--iterations has no meaning with --method none",
+        ));
+    }
+    if args.kernel_per_row && args.kernel.is_none() {
+        return Err(Failure::usage("--kernel-per-row needs --kernel"));
+    }
+    Ok(())
+}
+
+/// The method configuration: built from a serde value so that the methods' own fields and
+/// defaults apply; `iterations` is only set when given.
+fn method_config(args: &ProcessArgs) -> Result<Option<MethodConfig>, Failure> {
+    let Some(name) = args.method.config_name() else {
+        return Ok(None);
+    };
+    let mut value = serde_json::json!({ "method": name });
+    if let Some(n) = args.iterations {
+        value["iterations"] = serde_json::json!(n);
+    }
+    serde_json::from_value::<MethodConfig>(value)
+        .map(Some)
+        .map_err(|e| {
+            if args.iterations.is_some() {
+                Failure::usage(format!(
+                    "--iterations is not accepted by method {name} in this build: {e}"
+                ))
+            } else {
+                Failure::usage(format!("method {name}: {e}"))
+            }
+        })
+}
+
+/// Runs `fwlidar process`.
+pub fn run(args: ProcessArgs) -> Result<(), Failure> {
+    let report = process(&args)?;
+    let per = if report.waveforms > 0 {
+        report.wall_s * 1e6 / report.waveforms as f64
+    } else {
+        0.0
+    };
+    println!(
+        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}; {:.3} s, {:.1} µs per waveform",
+        args.input.display(),
+        args.out.display(),
+        report.waveforms,
+        report.samples,
+        args.method.cli_name(),
+        if args.no_denoise { "" } else { ", denoised" },
+        match &args.returns {
+            Some(p) => format!(", {} returns in {}", report.returns, p.display()),
+            None => String::new(),
+        },
+        report.wall_s,
+        per
+    );
+    Ok(())
+}
+
+/// Does the work of `fwlidar process` and returns what it did (no summary line).
+pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
+    let started = Instant::now();
+    check_args(args)?;
+    let method = method_config(args)?;
+    let input_name = args.input.display().to_string();
+    let mut table = read(&args.input, "input")?;
+    table
+        .skip_columns(args.skip_columns, &input_name)
+        .map_err(Failure::job)?;
+    if table.rows.is_empty() {
+        return Err(Failure::job(format!(
+            "input {input_name} holds no waveforms"
+        )));
+    }
+    let kernels = load_kernels(args, table.rows.len())?;
+    let max_samples = table.rows.iter().map(Vec::len).max().unwrap_or(0);
+    let max_taps = kernels.iter().map(Kernel::len).max().unwrap_or(0);
+    let mut denoise = (!args.no_denoise).then(|| {
+        Denoise::new(DenoiseConfig {
+            cutoff_ghz: args.cutoff_ghz,
+            max_samples,
+            ..Default::default()
+        })
+    });
+    let mut deconvolver = method.map(|m| m.build(max_samples, max_taps));
+    let mut decomposer = args
+        .returns
+        .as_ref()
+        .map(|_| Decomposer::new(DecomposeConfig::default(), max_samples));
+    tracing::info!(
+        input = %input_name,
+        rows = table.rows.len(),
+        max_samples,
+        method = args.method.cli_name(),
+        "process started"
+    );
+
+    let n = table.rows.len();
+    let bar = if !args.no_progress && n >= PROGRESS_MIN_ROWS && std::io::stderr().is_terminal() {
+        let bar = ProgressBar::new(n as u64);
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} waveforms",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar
+    } else {
+        ProgressBar::hidden()
+    };
+
+    let mut outputs: Vec<Vec<f32>> = Vec::with_capacity(n);
+    let mut returns: Vec<(usize, FittedReturn)> = Vec::new();
+    let mut fits = Vec::new();
+    let mut work = vec![0.0f32; max_samples];
+    let mut samples = 0usize;
+    for (i, row) in table.rows.iter().enumerate() {
+        let at = || format!("{input_name}: {}", table.row_origin(i));
+        if let Some(j) = row.iter().position(|v| !v.is_finite()) {
+            return Err(Failure::job(format!(
+                "{}: sample {} is {} (not a finite number); nothing written",
+                at(),
+                j + 1,
+                row[j]
+            )));
+        }
+        let full = row.len();
+        let len = if args.zero_padding {
+            unpadded_len(row)
+        } else {
+            full
+        };
+        if len == 0 {
+            return Err(Failure::job(format!(
+                "{}: the row holds only zero padding; nothing written",
+                at()
+            )));
+        }
+        let row = &row[..len];
+        samples += len;
+        let w = &mut work[..len];
+        let noise_v = match denoise.as_mut() {
+            Some(d) => {
+                d.denoise_segment(row, args.sample_ns, w)
+                    .map_err(|e| Failure::job(format!("{}: {e}", at())))?
+                    .noise_v
+            }
+            None => {
+                w.copy_from_slice(row);
+                noise_from_differences(row)
+            }
+        };
+        let mut out = vec![0.0f32; full];
+        let (out_valid, _) = out.split_at_mut(len);
+        match deconvolver.as_mut() {
+            Some(dec) => {
+                let k = if kernels.len() == 1 {
+                    &kernels[0]
+                } else {
+                    &kernels[i]
+                };
+                dec.run(w, k, noise_v, args.sample_ns, out_valid)
+                    .map_err(|e| Failure::job(format!("{}: deconvolution failed: {e}", at())))?;
+            }
+            None => out_valid.copy_from_slice(w),
+        }
+        if let Some(j) = out.iter().position(|v| !v.is_finite()) {
+            return Err(Failure::job(format!(
+                "{}: processing produced a non-finite value at sample {}; nothing written",
+                at(),
+                j + 1
+            )));
+        }
+        if let Some(dec) = decomposer.as_mut() {
+            fits.clear();
+            dec.fit(&out[..len], noise_v, &mut fits)
+                .map_err(|e| Failure::job(format!("{}: decomposition failed: {e}", at())))?;
+            returns.extend(fits.iter().map(|f| (i, *f)));
+        }
+        outputs.push(out);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+
+    // Every row succeeded: now write, each file complete or not at all.
+    if let Some(path) = &args.returns {
+        write_returns(path, &returns)?;
+    }
+    write_table(&args.out, &outputs).map_err(Failure::job)?;
+    Ok(ProcessReport {
+        waveforms: n,
+        samples,
+        returns: returns.len(),
+        wall_s: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// Writes the returns CSV atomically.
+fn write_returns(path: &Path, returns: &[(usize, FittedReturn)]) -> Result<(), Failure> {
+    let fail = |e: &dyn std::fmt::Display| Failure::job(format!("{}: {e}", path.display()));
+    let mut file = AtomicFile::create(path).map_err(|e| fail(&e))?;
+    let w = file.writer().map_err(|e| fail(&e))?;
+    let mut body = || -> std::io::Result<()> {
+        writeln!(w, "waveform,position_bins,amplitude,sigma_bins")?;
+        for (i, r) in returns {
+            writeln!(
+                w,
+                "{i},{},{},{}",
+                r.position_bins, r.amplitude, r.sigma_bins
+            )?;
+        }
+        Ok(())
+    };
+    body().map_err(|e| fail(&e))?;
+    file.commit().map_err(|e| fail(&e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn noise_from_differences_of_a_ramp_is_zero_and_of_steps_positive() {
+        let ramp: Vec<f32> = (0..50).map(|i| i as f32).collect();
+        assert_eq!(noise_from_differences(&ramp), 0.0);
+        // Uniform noise of standard deviation 5/sqrt(3) = 2.9 on a ramp.
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let noisy: Vec<f32> = (0..2000)
+            .map(|i| i as f32 + rng.random_range(-5.0f32..=5.0))
+            .collect();
+        let n = noise_from_differences(&noisy);
+        assert!(n > 2.0 && n < 4.0, "{n}");
+        assert_eq!(noise_from_differences(&[1.0, 2.0]), 0.0);
+    }
+
+    #[test]
+    fn unpadded_len_stops_at_trailing_zeros_only() {
+        assert_eq!(unpadded_len(&[1.0, 0.0, 2.0, 0.0, 0.0]), 3);
+        assert_eq!(unpadded_len(&[0.0, 0.0]), 0);
+        assert_eq!(unpadded_len(&[]), 0);
+        assert_eq!(unpadded_len(&[-0.0, 5.0]), 2);
+    }
+
+    #[test]
+    fn kernel_from_row_removes_the_baseline_and_centres_on_the_peak() {
+        let mut row = vec![200.0f32; 12];
+        row.extend([300.0, 600.0, 300.0, 200.0, 200.0]);
+        let mut k = Kernel::default();
+        kernel_from_row(&row, &mut k).unwrap();
+        assert_eq!(k.center, 13);
+        assert!((k.taps.iter().sum::<f32>() - 1.0).abs() < 1e-6);
+        assert_eq!(k.taps[0], 0.0);
+        assert!(kernel_from_row(&[1.0, f32::NAN], &mut k).is_err());
+        assert!(kernel_from_row(&[5.0; 10], &mut k).is_err());
+    }
+
+    #[test]
+    fn method_config_from_names() {
+        let base = ProcessArgs {
+            input: "a.csv".into(),
+            kernel: Some("k.csv".into()),
+            method: ProcessMethod::Rl,
+            iterations: None,
+            sample_ns: 1.0,
+            cutoff_ghz: 0.2,
+            kernel_per_row: false,
+            no_denoise: false,
+            zero_padding: false,
+            skip_columns: 0,
+            out: "o.csv".into(),
+            returns: None,
+            no_progress: true,
+        };
+        for m in [
+            ProcessMethod::Rl,
+            ProcessMethod::Wiener,
+            ProcessMethod::Nnls,
+            ProcessMethod::Gold,
+        ] {
+            let args = ProcessArgs {
+                method: m,
+                ..base_clone(&base)
+            };
+            assert!(method_config(&args).unwrap().is_some(), "{m:?}");
+        }
+        let none = ProcessArgs {
+            method: ProcessMethod::None,
+            ..base_clone(&base)
+        };
+        assert!(method_config(&none).unwrap().is_none());
+        assert!(
+            check_args(&ProcessArgs {
+                cutoff_ghz: 0.6,
+                ..base_clone(&base)
+            })
+            .is_err()
+        );
+        assert!(
+            check_args(&ProcessArgs {
+                kernel: None,
+                ..base_clone(&base)
+            })
+            .is_err()
+        );
+        assert!(check_args(&base).is_ok());
+    }
+
+    fn base_clone(a: &ProcessArgs) -> ProcessArgs {
+        ProcessArgs {
+            input: a.input.clone(),
+            kernel: a.kernel.clone(),
+            method: a.method,
+            iterations: a.iterations,
+            sample_ns: a.sample_ns,
+            cutoff_ghz: a.cutoff_ghz,
+            kernel_per_row: a.kernel_per_row,
+            no_denoise: a.no_denoise,
+            zero_padding: a.zero_padding,
+            skip_columns: a.skip_columns,
+            out: a.out.clone(),
+            returns: a.returns.clone(),
+            no_progress: a.no_progress,
+        }
+    }
+}
