@@ -138,8 +138,14 @@ impl Validate for DeconvolveConfig {
                 );
                 v.positive(c.regularisation as f64, field(&method, "regularisation"));
             }
-            // NNLS settings are checked with the method (written separately).
-            MethodConfig::Nnls(_) => {}
+            MethodConfig::Nnls(c) => {
+                check_iterations(c.max_iterations, field(&method, "max_iterations"), v);
+                v.require(
+                    c.tolerance.is_finite() && c.tolerance >= 0.0 && c.tolerance < 1.0,
+                    field(&method, "tolerance"),
+                    format!("must be a relative tolerance in 0..1, got {}", c.tolerance),
+                );
+            }
         }
         if let KernelSource::Taps { taps, center } = &self.kernel {
             let kernel = field(path, "kernel");

@@ -55,7 +55,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::signal::deconvolve::{DeconvError, Deconvolver, MethodStats};
+use crate::signal::deconvolve::{DeconvError, Deconvolver, MethodStats, check_inputs};
 use crate::signal::kernel::Kernel;
 
 /// Relative pivot below which a new column counts as dependent on the passive set.
@@ -334,27 +334,7 @@ impl Deconvolver for Nnls {
         out: &mut [f32],
     ) -> Result<MethodStats, DeconvError> {
         let n = y.len();
-        if n > self.max_samples {
-            return Err(DeconvError::TooLong {
-                len: n,
-                max: self.max_samples,
-            });
-        }
-        if k.taps.len() > self.max_taps {
-            return Err(DeconvError::KernelTooLong {
-                len: k.taps.len(),
-                max: self.max_taps,
-            });
-        }
-        if out.len() != n {
-            return Err(DeconvError::LengthMismatch {
-                input: n,
-                out: out.len(),
-            });
-        }
-        if y.iter().any(|v| !v.is_finite()) || k.taps.iter().any(|v| !v.is_finite()) {
-            return Err(DeconvError::NonFiniteInput);
-        }
+        check_inputs(y, k, out, self.max_samples, self.max_taps)?;
         out.fill(0.0);
         let peak = y.iter().fold(0.0f64, |a, &v| a.max((v as f64).abs()));
         if n == 0 || k.taps.is_empty() || peak == 0.0 || self.max_k == 0 {
@@ -1011,10 +991,10 @@ mod tests {
             d.run(&[1.0; 32], &k, 0.0, 1.0, &mut short),
             Err(DeconvError::LengthMismatch { .. })
         ));
-        // An empty kernel and an empty segment are fine.
-        assert!(
-            d.run(&[1.0; 32], &Kernel::default(), 0.0, 1.0, &mut out)
-                .is_ok()
+        // An empty kernel is refused like every method refuses it; an empty segment is fine.
+        assert_eq!(
+            d.run(&[1.0; 32], &Kernel::default(), 0.0, 1.0, &mut out),
+            Err(DeconvError::BadKernel)
         );
         assert!(d.run(&[], &k, 0.0, 1.0, &mut []).is_ok());
     }

@@ -1,5 +1,5 @@
-//! Hard cases, accuracy and property tests of Richardson-Lucy, Gold and Wiener (one `#[test]`
-//! per case; each loops over the three methods).
+//! Hard cases, accuracy and property tests of Richardson-Lucy, Gold, Wiener and NNLS (one
+//! `#[test]` per case; each loops over the four methods).
 
 use proptest::prelude::*;
 use rand::{RngExt, SeedableRng};
@@ -11,18 +11,19 @@ use crate::signal::kernel::convolve_same;
 const MAX_N: usize = 4096;
 const MAX_M: usize = 256;
 
-/// The three methods written here (NNLS is tested with its own module).
+/// The four methods at their defaults (NNLS's solver internals are also tested in its module).
 fn methods() -> Vec<Box<dyn Deconvolver>> {
     vec![
         MethodConfig::RichardsonLucy(RlConfig::default()).build(MAX_N, MAX_M),
         MethodConfig::Gold(GoldConfig::default()).build(MAX_N, MAX_M),
         MethodConfig::Wiener(WienerConfig::default()).build(MAX_N, MAX_M),
+        MethodConfig::Nnls(NnlsConfig::default()).build(MAX_N, MAX_M),
     ]
 }
 
 /// True for the methods that promise a non-negative output.
 fn non_negative(name: &str) -> bool {
-    name == "richardson_lucy" || name == "gold"
+    matches!(name, "richardson_lucy" | "gold" | "nnls")
 }
 
 /// Unit-sum Gaussian kernel of full width at half maximum `fwhm` samples, taps to ±3σ, centred.
@@ -64,7 +65,9 @@ fn run_checked(y: &[f32], k: &Kernel, noise_v: f32) -> Vec<(&'static str, Vec<f3
         let stats = m
             .run(y, k, noise_v, 1.0, &mut out)
             .unwrap_or_else(|e| panic!("{}: {e}", m.name()));
-        assert!(stats.iterations <= 20, "{}", m.name());
+        // The configured budgets: 20 for RL, Gold and Wiener's single pass, 50 for NNLS.
+        let budget = if m.name() == "nnls" { 50 } else { 20 };
+        assert!(stats.iterations <= budget, "{}", m.name());
         assert!(
             out.iter().all(|v| v.is_finite()),
             "{}: non-finite output",
@@ -87,13 +90,16 @@ fn sum(x: &[f32]) -> f64 {
 }
 
 /// RL conserves Σσ exactly (up to rounding) on non-negative data; Gold within 10 % after its
-/// default 20 iterations on clean blurred inputs (it is not energy conserving by construction).
+/// default 20 iterations on clean blurred inputs (it is not energy conserving by construction);
+/// NNLS within 5 % (a least-squares fit with a unit-sum kernel reproduces ΣP when the fit is
+/// close; the 50-sample cap on a wide saturated plateau leaves 4 %).
 fn assert_energy(results: &[(&'static str, Vec<f32>)], y: &[f32]) {
     let e = sum(y);
     for (name, out) in results {
         let tol = match *name {
             "richardson_lucy" => 1e-3,
             "gold" => 0.10,
+            "nnls" => 0.05,
             _ => continue,
         };
         let rel = (sum(out) / e - 1.0).abs();
