@@ -13,6 +13,7 @@ use crate::pipeline::runner::{LiveCounters, PipelineSpec};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
 use crate::sink::atomic_file::write_atomic;
 use crate::sink::nav_tally::NavTally;
+use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::waveform_csv::WaveformCsvSink;
 use crate::sink::{FanOut, PulseSink};
 use crate::source::capture::CaptureSource;
@@ -74,6 +75,12 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     if config.output.waveforms {
         sinks.push(Box::new(
             WaveformCsvSink::create(&out_dir).map_err(Failure::job)?,
+        ));
+    }
+    let decomposes = spec.stage_names.iter().any(|s| *s == "decompose");
+    if config.output.returns && decomposes {
+        sinks.push(Box::new(
+            ReturnsCsvSink::create(&out_dir).map_err(Failure::job)?,
         ));
     }
     let control = RunControl::default();

@@ -89,6 +89,10 @@ pub struct OutputConfig {
     /// Write the processed waveforms (`waveforms.csv` + `pulses.csv`). Default true.
     #[serde(default = "yes")]
     pub waveforms: bool,
+    /// Write the discrete returns of a `decompose` stage (`returns.csv`). Default true; the
+    /// file is only written when the pipeline has a `decompose` stage.
+    #[serde(default = "yes")]
+    pub returns: bool,
 }
 
 fn default_out_dir() -> String {
@@ -103,6 +107,7 @@ impl Default for OutputConfig {
         OutputConfig {
             dir: default_out_dir(),
             waveforms: true,
+            returns: true,
         }
     }
 }

@@ -1,8 +1,9 @@
-//! Sinks: where processed pulses go, in arrival order (processed waveforms now; voxel tiles and
-//! LAS returns as later issues land).
+//! Sinks: where processed pulses go, in arrival order (processed waveforms and fitted returns
+//! now; voxel tiles and LAS returns as later issues land).
 
 pub mod atomic_file;
 pub mod nav_tally;
+pub mod returns_csv;
 pub mod waveform_csv;
 
 use crate::pulse::Pulse;

@@ -1,0 +1,144 @@
+//! Discrete returns found by the decomposition stage, as `returns.csv`: one row per fitted
+//! Gaussian, `pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v`.
+//!
+//! - `segment`: index of the segment within its pulse (the `segment` column of `pulses.csv`);
+//! - `position_bins`: centre in bins from the segment's first sample (fractional);
+//! - `time_ns`: centre as time after the pulse's reference time, ns;
+//! - `amplitude_v`: peak amplitude of the Gaussian, volts (of the signal the fit saw);
+//! - `sigma_bins`: standard deviation, bins;
+//! - `residual_v`: RMS residual of the whole segment's fit, volts.
+//!
+//! Pulses without returns write nothing. The file appears atomically at the end of the run
+//! (see [`AtomicFile`]); the georeferenced LAS returns of later issues replace it for mapping.
+
+use std::io::Write;
+use std::path::Path;
+
+use crate::pulse::Pulse;
+use crate::sink::atomic_file::AtomicFile;
+use crate::sink::{PulseSink, SinkError};
+
+/// Header line of `returns.csv`.
+pub const RETURNS_HEADER: &str =
+    "pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v";
+
+/// Writes `returns.csv` into a folder.
+pub struct ReturnsCsvSink {
+    file: AtomicFile,
+    rows: u64,
+    line: String,
+}
+
+impl ReturnsCsvSink {
+    /// Starts writing `returns.csv` into `dir` (which must exist).
+    pub fn create(dir: &Path) -> Result<Self, SinkError> {
+        let mut file = AtomicFile::create(dir.join("returns.csv"))?;
+        let path = file.path().display().to_string();
+        writeln!(file.writer()?, "{RETURNS_HEADER}")
+            .map_err(|source| SinkError::Io { path, source })?;
+        Ok(ReturnsCsvSink {
+            file,
+            rows: 0,
+            line: String::with_capacity(1 << 12),
+        })
+    }
+
+    /// Return rows written so far.
+    pub fn rows(&self) -> u64 {
+        self.rows
+    }
+}
+
+impl PulseSink for ReturnsCsvSink {
+    fn name(&self) -> &'static str {
+        "returns_csv"
+    }
+
+    fn write(&mut self, p: &Pulse) -> Result<(), SinkError> {
+        use std::fmt::Write as _;
+        if p.returns.is_empty() {
+            return Ok(());
+        }
+        self.line.clear();
+        for r in &p.returns {
+            let _ = writeln!(
+                self.line,
+                "{},{:.9},{},{},{},{},{},{}",
+                p.pulse_id,
+                p.gps_time,
+                r.segment,
+                r.position_bins,
+                r.time_ns,
+                r.amplitude,
+                r.sigma_bins,
+                r.residual
+            );
+        }
+        let path = self.file.path().display().to_string();
+        self.file
+            .writer()?
+            .write_all(self.line.as_bytes())
+            .map_err(|source| SinkError::Io { path, source })?;
+        self.rows += p.returns.len() as u64;
+        Ok(())
+    }
+
+    fn flush(&mut self) -> Result<(), SinkError> {
+        self.file.flush()
+    }
+
+    fn finish(&mut self) -> Result<(), SinkError> {
+        self.file.commit()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pulse::FittedReturn;
+
+    #[test]
+    fn one_row_per_return_and_nothing_for_pulses_without() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut sink = ReturnsCsvSink::create(dir.path()).unwrap();
+        let mut p = Pulse {
+            pulse_id: 7,
+            gps_time: 12.5,
+            ..Default::default()
+        };
+        sink.write(&p).unwrap();
+        p.returns.push(FittedReturn {
+            segment: 1,
+            position_bins: 10.25,
+            time_ns: 110.25,
+            amplitude: 0.5,
+            sigma_bins: 3.0,
+            residual: 0.01,
+        });
+        p.returns.push(FittedReturn {
+            segment: 1,
+            position_bins: 40.0,
+            time_ns: 140.0,
+            amplitude: 0.125,
+            sigma_bins: 2.5,
+            residual: 0.01,
+        });
+        sink.write(&p).unwrap();
+        assert_eq!(sink.rows(), 2);
+        assert!(
+            !dir.path().join("returns.csv").exists(),
+            "appears at finish"
+        );
+        sink.finish().unwrap();
+        let text = std::fs::read_to_string(dir.path().join("returns.csv")).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(
+            lines,
+            [
+                RETURNS_HEADER,
+                "7,12.500000000,1,10.25,110.25,0.5,3,0.01",
+                "7,12.500000000,1,40,140,0.125,2.5,0.01"
+            ]
+        );
+    }
+}
