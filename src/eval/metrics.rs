@@ -104,12 +104,11 @@ pub fn local_peaks(x: &[f32], floor_fraction: f32, out: &mut Vec<usize>) {
         let d = x[i] - x[i - 1];
         if d > 0.0 {
             rise_at = Some(i);
-        } else if d < 0.0 {
-            if let Some(p) = rise_at.take()
-                && x[p] > floor
-            {
-                out.push(p);
-            }
+        } else if d < 0.0
+            && let Some(p) = rise_at.take()
+            && x[p] > floor
+        {
+            out.push(p);
         }
         // d == 0 (or NaN): the flat run continues; `rise_at` keeps its first bin.
     }

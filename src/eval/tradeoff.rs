@@ -609,8 +609,13 @@ mod tests {
             let i = settings.iter().position(|s| s.label() == label).unwrap();
             cases[i].rmse.rmse()
         };
-        assert!(rmse("rl iterations=200") < rmse("raw"));
-        assert!(rmse("denoise") < rmse("raw"));
+        assert!(rmse("rl iterations=200") < 0.8 * rmse("raw"));
+        // The low-pass removes the noise's wiggles: far fewer false peaks.
+        let false_peaks = |label: &str| {
+            let i = settings.iter().position(|s| s.label() == label).unwrap();
+            cases[i].peaks.false_detections
+        };
+        assert!(false_peaks("denoise") * 2 < false_peaks("raw"));
         for c in &cases {
             assert_eq!(c.times_ns.len(), 12);
             assert!(c.sam_deg >= 0.0 && c.sam_deg <= 180.0);
