@@ -17,6 +17,7 @@
 
 pub mod cli;
 pub mod config;
+pub mod eval;
 pub mod format;
 pub mod pipeline;
 pub mod pulse;

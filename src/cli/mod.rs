@@ -8,6 +8,7 @@ pub mod inspect;
 pub mod process;
 pub mod replay;
 pub mod simulate;
+pub mod tradeoff;
 pub mod validate;
 
 /// fwlidar — streaming processing of airborne full-waveform LiDAR.
@@ -47,6 +48,9 @@ pub enum Command {
     Inspect(inspect::InspectArgs),
     /// Denoise, deconvolve (and optionally decompose) a table of waveforms (CSV or .npy).
     Process(process::ProcessArgs),
+    /// Measure what accuracy costs in time: every method and setting on simulated pulses with
+    /// known truth; writes a CSV, a markdown report and an SVG plot.
+    Tradeoff(tradeoff::TradeoffArgs),
 }
 
 /// A failure to report: the message and the exit code.
@@ -109,6 +113,7 @@ pub fn main() -> i32 {
         Command::Validate(a) => validate::run(a),
         Command::Inspect(a) => inspect::run(a),
         Command::Process(a) => process::run(a),
+        Command::Tradeoff(a) => tradeoff::run(a),
     };
     match result {
         Ok(()) => 0,

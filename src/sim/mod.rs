@@ -4,13 +4,16 @@
 //! - [`scene`]: the `[scene]` configuration (TOML) and its validation;
 //! - [`analytic`]: the first scene generator, analytic nadir waveforms of flat ground under one
 //!   partially covering plane;
-//! - [`nmea`]: NMEA 0183 GGA/PASHR sentences for a straight flight line.
+//! - [`nmea`]: NMEA 0183 GGA/PASHR sentences for a straight flight line;
+//! - [`truth`]: seeded truth cross-sections (sparse surfaces, canopy layers) with their 2 ns
+//!   truth waveforms and noisy received waveforms, for scoring the signal chain.
 //!
 //! [`SimItems`] interleaves the two streams in time order, as a capture would hold them.
 
 pub mod analytic;
 pub mod nmea;
 pub mod scene;
+pub mod truth;
 
 pub use analytic::{AnalyticSim, PulseTruth, SurfaceKind, SurfaceTruth};
 pub use scene::{FlightConfig, NoiseConfig, Scene, SceneError, SceneFile};

@@ -1,0 +1,12 @@
+//! Scoring the signal chain against a known truth, and what the score costs in time.
+//!
+//! - [`metrics`]: the seed's accuracy metrics (RMSE eq. 14, true/false peak detections eq. 15,
+//!   spectral angle);
+//! - [`tradeoff`]: the sweep of methods and settings over simulated pulses, timed per pulse;
+//! - [`report`]: its CSV and markdown;
+//! - [`plot`]: its SVG figure (error against time per pulse, Pareto front).
+
+pub mod metrics;
+pub mod plot;
+pub mod report;
+pub mod tradeoff;

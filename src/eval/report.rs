@@ -1,0 +1,263 @@
+//! The written results of `fwlidar tradeoff`: one CSV row per (setting, pulse width, family)
+//! case, and a markdown report (setup, a summary per setting with the pulse rates it sustains,
+//! and per-case tables).
+
+use std::fmt::Write as _;
+
+use crate::eval::tradeoff::{CaseResult, Setting, SettingSummary, SweepConfig};
+
+/// Pulse rates the report checks every setting against, pulses per second.
+pub const RATES_HZ: [f64; 4] = [100e3, 500e3, 1e6, 2e6];
+
+/// Columns of the CSV, in order.
+pub const CSV_COLUMNS: [&str; 15] = [
+    "method",
+    "parameter",
+    "family",
+    "width_ns",
+    "pulses",
+    "rmse",
+    "true_detections",
+    "false_detections",
+    "truth_peaks",
+    "detection_rate",
+    "false_per_pulse",
+    "sam_deg",
+    "time_median_us",
+    "time_p99_us",
+    "max_rate_hz",
+];
+
+/// The machine the sweep ran on, as the report states it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Machine {
+    /// Logical cores available to the process.
+    pub cores: usize,
+    /// Pipeline workers on it (`cores − 1`, at least 1): what the rates are computed for.
+    pub workers: usize,
+    /// CPU model, when known.
+    pub cpu: Option<String>,
+}
+
+impl Machine {
+    /// This machine: cores from the OS, the CPU model from `/proc/cpuinfo` when readable.
+    pub fn detect() -> Self {
+        let cores = std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(1);
+        let cpu = std::fs::read_to_string("/proc/cpuinfo").ok().and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|m| m.trim().to_string())
+        });
+        Machine {
+            cores,
+            workers: cores.saturating_sub(1).max(1),
+            cpu,
+        }
+    }
+}
+
+/// The CSV: a header of [`CSV_COLUMNS`], then one row per case. Times in µs; rates in pulses/s
+/// for `workers` threads at the case's median time.
+pub fn csv(settings: &[Setting], cases: &[CaseResult], workers: usize) -> String {
+    let mut s = CSV_COLUMNS.join(",");
+    s.push('\n');
+    for c in cases {
+        let set = &settings[c.setting];
+        let med = c.median_ns();
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{:.6},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.0}",
+            set.method,
+            set.parameter,
+            c.family.name(),
+            c.width_ns,
+            c.pulses,
+            c.rmse.rmse(),
+            c.peaks.true_detections,
+            c.peaks.false_detections,
+            c.truth_peaks,
+            c.detection_rate(),
+            c.false_per_pulse(),
+            c.sam_deg,
+            med / 1e3,
+            c.p99_ns() / 1e3,
+            workers as f64 / (med * 1e-9),
+        );
+    }
+    s
+}
+
+/// A time in µs with sensible digits.
+fn us(ns: f64) -> String {
+    let u = ns / 1e3;
+    if u < 1.0 {
+        format!("{u:.3}")
+    } else if u < 100.0 {
+        format!("{u:.1}")
+    } else {
+        format!("{u:.0}")
+    }
+}
+
+/// A rate in pulses/s as kHz or MHz.
+pub fn rate(hz: f64) -> String {
+    if !hz.is_finite() {
+        "—".into()
+    } else if hz >= 1e6 {
+        format!("{:.1} MHz", hz / 1e6)
+    } else {
+        format!("{:.0} kHz", hz / 1e3)
+    }
+}
+
+/// The markdown report. `plot_file` is the SVG's file name, linked from the report.
+pub fn markdown(
+    config: &SweepConfig,
+    settings: &[Setting],
+    cases: &[CaseResult],
+    summary: &[SettingSummary],
+    machine: &Machine,
+    plot_file: &str,
+) -> String {
+    let mut s = String::new();
+    let w = machine.workers;
+    let widths: Vec<String> = config.widths_ns.iter().map(|w| format!("{w}")).collect();
+    let families: Vec<&str> = config.families.iter().map(|f| f.name()).collect();
+    let truth_peaks: u64 = cases
+        .iter()
+        .filter(|c| c.setting == 0)
+        .map(|c| c.truth_peaks)
+        .sum();
+    let pulses_per_setting = config.pulses * config.widths_ns.len() * config.families.len();
+    let _ = writeln!(s, "### Setup\n");
+    let _ = writeln!(
+        s,
+        "- {} pulses per case; cases: outgoing pulse FWHM {} ns × truth families {} \
+         ({} pulses per setting, {:.2} truth peaks per pulse); {} bins at {} ns; seed {}.",
+        config.pulses,
+        widths.join(", "),
+        families.join(", "),
+        pulses_per_setting,
+        truth_peaks as f64 / pulses_per_setting.max(1) as f64,
+        config.bins,
+        config.sample_ns,
+        config.seed,
+    );
+    let _ = writeln!(
+        s,
+        "- Noise: uniform in ±{} × the noise-free received peak. Truth: the cross-section \
+         convolved with a 2 ns FWHM pulse. Peaks: floor {} × the waveform's maximum, agreement \
+         within ±{} bin(s).",
+        config.noise_fraction, config.peak_floor, config.peak_tolerance_bins
+    );
+    let _ = writeln!(
+        s,
+        "- Machine: {} logical core(s){}; times are single-thread wall clock per pulse (one \
+         core), medians over pulses; pulse rates assume {} worker thread(s) (cores − 1, as the \
+         runtime uses) at the slowest case's median: rate = workers / time.\n",
+        machine.cores,
+        machine
+            .cpu
+            .as_deref()
+            .map(|c| format!(" ({c})"))
+            .unwrap_or_default(),
+        w,
+    );
+    let _ = writeln!(s, "![error against time per pulse]({plot_file})\n");
+
+    let _ = writeln!(
+        s,
+        "### Summary per setting (pooled over pulse widths and families)\n"
+    );
+    let rate_heads: Vec<String> = RATES_HZ.iter().map(|&r| rate(r)).collect();
+    let _ = writeln!(
+        s,
+        "| setting | median µs/pulse | slowest case µs | max rate ({w} worker{}) | {} | RMSE | true det. | false/pulse | SAM ° | Pareto |",
+        if w == 1 { "" } else { "s" },
+        rate_heads.join(" | ")
+    );
+    let _ = writeln!(
+        s,
+        "|---|---:|---:|---:|{}---:|---:|---:|---:|:-:|",
+        ":-:|".repeat(RATES_HZ.len())
+    );
+    for sm in summary {
+        let set = &settings[sm.setting];
+        let max = sm.max_rate_hz(w);
+        let keeps: Vec<&str> = RATES_HZ
+            .iter()
+            .map(|&r| if max >= r { "yes" } else { "no" })
+            .collect();
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {} | {} | {:.4} | {:.1} % | {:.2} | {:.1} | {} |",
+            set.label(),
+            us(sm.median_ns),
+            us(sm.slowest_case_median_ns),
+            rate(max),
+            keeps.join(" | "),
+            sm.rmse,
+            100.0 * sm.detection_rate,
+            sm.false_per_pulse,
+            sm.sam_deg,
+            if sm.pareto { "●" } else { "" }
+        );
+    }
+    let _ = writeln!(s);
+
+    // Per-case tables: rows = settings, columns = family × width.
+    let mut cols: Vec<(usize, usize)> = Vec::new();
+    for fi in 0..config.families.len() {
+        for wi in 0..config.widths_ns.len() {
+            cols.push((fi, wi));
+        }
+    }
+    let head: Vec<String> = cols
+        .iter()
+        .map(|&(fi, wi)| format!("{} {} ns", families[fi], widths[wi]))
+        .collect();
+    let find = |si: usize, fi: usize, wi: usize| {
+        cases.iter().find(|c| {
+            c.setting == si && c.family == config.families[fi] && c.width_ns == config.widths_ns[wi]
+        })
+    };
+    type Cell = fn(&CaseResult) -> String;
+    let tables: [(&str, Cell); 4] = [
+        ("RMSE (eq. 14, fraction of the truth's peak)", |c| {
+            format!("{:.4}", c.rmse.rmse())
+        }),
+        (
+            "True detections (% of truth peaks) / false detections per pulse",
+            |c| {
+                format!(
+                    "{:.0} % / {:.2}",
+                    100.0 * c.detection_rate(),
+                    c.false_per_pulse()
+                )
+            },
+        ),
+        ("Spectral angle (degrees, mean over pulses)", |c| {
+            format!("{:.1}", c.sam_deg)
+        }),
+        ("Time per pulse (µs, median, one core)", |c| {
+            us(c.median_ns())
+        }),
+    ];
+    for (title, cell) in tables {
+        let _ = writeln!(s, "### {title}\n");
+        let _ = writeln!(s, "| setting | {} |", head.join(" | "));
+        let _ = writeln!(s, "|---|{}", "---:|".repeat(cols.len()));
+        for (si, set) in settings.iter().enumerate() {
+            let cells: Vec<String> = cols
+                .iter()
+                .map(|&(fi, wi)| find(si, fi, wi).map(cell).unwrap_or_default())
+                .collect();
+            let _ = writeln!(s, "| {} | {} |", set.label(), cells.join(" | "));
+        }
+        let _ = writeln!(s);
+    }
+    s
+}

@@ -1,0 +1,621 @@
+//! The accuracy/time sweep behind `fwlidar tradeoff`: every processing setting (raw, denoise
+//! only, then each deconvolution method at several settings after denoise) run on the same
+//! simulated pulses with known truth ([`crate::sim::truth`]), scored with the seed's metrics
+//! ([`crate::eval::metrics`]) and timed per pulse.
+//!
+//! **Timing**: one thread, one core. For each (setting, pulse width, family) the processing
+//! objects are built once, warmed up on the first pulses (FFT plans, buffers), then every pulse
+//! is processed in a loop with `Instant::now()` read just before and just after its processing
+//! (denoise and deconvolution; for `raw`, a copy of the samples). Inputs are already in memory,
+//! the output goes to one buffer sized before the loop and reused from pulse to pulse (as the
+//! pipeline reuses a pulse's buffers), and the pulse is scored after the second clock read, so
+//! only processing is timed and nothing is allocated per pulse. The figure reported is the
+//! median over pulses (the 99th percentile is kept too).
+
+use std::time::Instant;
+
+use crate::eval::metrics::{
+    PeakMatch, RmseAccumulator, local_peaks, match_peaks, spectral_angle_deg,
+};
+use crate::signal::deconvolve::{
+    DeconvError, Deconvolver, GoldConfig, MethodConfig, NnlsConfig, RlConfig, WienerConfig,
+};
+use crate::signal::denoise::{Denoise, DenoiseConfig, DenoiseError};
+use crate::signal::kernel::Kernel;
+use crate::sim::truth::{TruthError, TruthFamily, TruthGenerator, TruthPulse, gaussian_pulse};
+
+/// Pulses processed untimed before the timed loop of every case.
+const WARMUP_PULSES: usize = 8;
+
+/// Why the sweep failed.
+#[derive(Debug, thiserror::Error)]
+pub enum TradeoffError {
+    /// A sweep parameter is out of range.
+    #[error("{0}")]
+    InvalidParameter(String),
+    /// The truth simulation could not be set up.
+    #[error(transparent)]
+    Truth(#[from] TruthError),
+    /// The denoise step refused a simulated segment.
+    #[error("denoise: {0}")]
+    Denoise(#[from] DenoiseError),
+    /// A deconvolution refused a simulated segment.
+    #[error("{method}: {source}")]
+    Deconvolve {
+        /// Method name.
+        method: &'static str,
+        /// Why.
+        source: DeconvError,
+    },
+}
+
+/// What a setting does to a received waveform.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Processing {
+    /// Nothing: the received samples as they are.
+    Raw,
+    /// The denoise step only (baseline, level shift, 0.2 GHz low-pass).
+    Denoise,
+    /// Denoise, then this deconvolution.
+    Deconvolve(MethodConfig),
+}
+
+/// One point of the sweep: a method and its setting.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Setting {
+    /// Method family for colour and grouping: `raw`, `denoise`, `rl`, `gold`, `wiener`, `nnls`.
+    pub method: &'static str,
+    /// The varied parameter as `name=value` (empty for `raw` and `denoise`).
+    pub parameter: String,
+    /// What to run.
+    pub processing: Processing,
+}
+
+impl Setting {
+    /// `method` or `method parameter`, for tables and progress.
+    pub fn label(&self) -> String {
+        if self.parameter.is_empty() {
+            self.method.to_string()
+        } else {
+            format!("{} {}", self.method, self.parameter)
+        }
+    }
+}
+
+/// RL and Gold iteration counts of the sweep.
+pub const ITERATIONS: [u32; 6] = [5, 10, 20, 50, 100, 200];
+/// Wiener noise scales of the sweep (multiplier of the noise power; 1 = as estimated).
+pub const WIENER_NOISE_SCALES: [f32; 5] = [0.1, 1.0, 10.0, 100.0, 1000.0];
+/// NNLS outer-iteration caps of the sweep.
+pub const NNLS_CAPS: [u32; 4] = [10, 25, 50, 100];
+
+/// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], Wiener at
+/// [`WIENER_NOISE_SCALES`] (cut-off 0.2 GHz, regularisation 1e-3), NNLS at [`NNLS_CAPS`]
+/// (tolerance 1e-4). Other parameters at their defaults.
+pub fn default_settings() -> Vec<Setting> {
+    let mut s = vec![
+        Setting {
+            method: "raw",
+            parameter: String::new(),
+            processing: Processing::Raw,
+        },
+        Setting {
+            method: "denoise",
+            parameter: String::new(),
+            processing: Processing::Denoise,
+        },
+    ];
+    for it in ITERATIONS {
+        s.push(Setting {
+            method: "rl",
+            parameter: format!("iterations={it}"),
+            processing: Processing::Deconvolve(MethodConfig::RichardsonLucy(RlConfig {
+                iterations: it,
+                early_stop: None,
+            })),
+        });
+    }
+    for it in ITERATIONS {
+        s.push(Setting {
+            method: "gold",
+            parameter: format!("iterations={it}"),
+            processing: Processing::Deconvolve(MethodConfig::Gold(GoldConfig {
+                iterations: it,
+                ..GoldConfig::default()
+            })),
+        });
+    }
+    for ns in WIENER_NOISE_SCALES {
+        s.push(Setting {
+            method: "wiener",
+            parameter: format!("noise_scale={ns}"),
+            processing: Processing::Deconvolve(MethodConfig::Wiener(WienerConfig {
+                noise_scale: ns,
+                ..WienerConfig::default()
+            })),
+        });
+    }
+    for cap in NNLS_CAPS {
+        s.push(Setting {
+            method: "nnls",
+            parameter: format!("max_iterations={cap}"),
+            processing: Processing::Deconvolve(MethodConfig::Nnls(NnlsConfig {
+                max_iterations: cap,
+                ..NnlsConfig::default()
+            })),
+        });
+    }
+    s
+}
+
+/// What to sweep over.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SweepConfig {
+    /// Pulses per (pulse width, family) case (≥ 1).
+    pub pulses: usize,
+    /// Outgoing pulse widths, FWHM, ns.
+    pub widths_ns: Vec<f64>,
+    /// Truth families.
+    pub families: Vec<TruthFamily>,
+    /// Uniform noise half-range as a fraction of the noise-free received peak (≥ 0).
+    pub noise_fraction: f32,
+    /// Peaks not above this fraction of their waveform's maximum are not counted (0..1).
+    pub peak_floor: f32,
+    /// A detection agrees with a truth peak within this many bins.
+    pub peak_tolerance_bins: usize,
+    /// Seed of the truth generator.
+    pub seed: u64,
+    /// Bins per waveform.
+    pub bins: usize,
+    /// Sample interval, ns.
+    pub sample_ns: f64,
+}
+
+impl Default for SweepConfig {
+    fn default() -> Self {
+        SweepConfig {
+            pulses: 1000,
+            widths_ns: vec![4.0, 8.0, 16.0],
+            families: TruthFamily::ALL.to_vec(),
+            noise_fraction: 0.03,
+            peak_floor: 0.05,
+            peak_tolerance_bins: 1,
+            seed: 2012,
+            bins: crate::sim::truth::DEFAULT_BINS,
+            sample_ns: 1.0,
+        }
+    }
+}
+
+impl SweepConfig {
+    /// Checks every parameter; the message names the offending one.
+    pub fn validate(&self) -> Result<(), TradeoffError> {
+        let bad = |m: String| Err(TradeoffError::InvalidParameter(m));
+        if self.pulses == 0 {
+            return bad("--pulses must be at least 1".into());
+        }
+        if self.widths_ns.is_empty() {
+            return bad("at least one pulse width is needed".into());
+        }
+        if let Some(w) = self
+            .widths_ns
+            .iter()
+            .find(|w| !(w.is_finite() && **w > 0.0 && **w <= 100.0))
+        {
+            return bad(format!(
+                "pulse width {w} ns is not in (0, 100] ns (FWHM, ns)"
+            ));
+        }
+        if self.families.is_empty() {
+            return bad("at least one truth family is needed".into());
+        }
+        if !(self.noise_fraction.is_finite() && (0.0..=1.0).contains(&self.noise_fraction)) {
+            return bad(format!(
+                "--noise {} is not a fraction in [0, 1]",
+                self.noise_fraction
+            ));
+        }
+        if !(self.peak_floor.is_finite() && (0.0..1.0).contains(&self.peak_floor)) {
+            return bad(format!(
+                "--peak-floor {} is not a fraction in [0, 1)",
+                self.peak_floor
+            ));
+        }
+        if !(self.sample_ns.is_finite() && self.sample_ns > 0.0) {
+            return bad(format!("sample interval {} ns", self.sample_ns));
+        }
+        Ok(())
+    }
+}
+
+/// The scores and timing of one setting on one (pulse width, family) case.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CaseResult {
+    /// Index into the settings list.
+    pub setting: usize,
+    /// Outgoing pulse FWHM, ns.
+    pub width_ns: f64,
+    /// Truth family.
+    pub family: TruthFamily,
+    /// Pulses scored.
+    pub pulses: usize,
+    /// Pooled eq. 14 RMSE accumulator.
+    pub rmse: RmseAccumulator,
+    /// Summed detections.
+    pub peaks: PeakMatch,
+    /// Peaks of the truth waveforms, summed.
+    pub truth_peaks: u64,
+    /// Mean spectral angle, degrees.
+    pub sam_deg: f64,
+    /// Wall-clock processing time of every pulse, ns, in pulse order.
+    pub times_ns: Vec<f64>,
+}
+
+impl CaseResult {
+    /// Fraction of truth peaks detected (true detections / truth peaks).
+    pub fn detection_rate(&self) -> f64 {
+        if self.truth_peaks == 0 {
+            f64::NAN
+        } else {
+            self.peaks.true_detections as f64 / self.truth_peaks as f64
+        }
+    }
+    /// False detections per pulse.
+    pub fn false_per_pulse(&self) -> f64 {
+        self.peaks.false_detections as f64 / self.pulses.max(1) as f64
+    }
+    /// Median time per pulse, ns.
+    pub fn median_ns(&self) -> f64 {
+        percentile(&self.times_ns, 0.5)
+    }
+    /// 99th-percentile time per pulse, ns.
+    pub fn p99_ns(&self) -> f64 {
+        percentile(&self.times_ns, 0.99)
+    }
+}
+
+/// The `q` quantile (nearest rank) of `v`; NaN when empty.
+pub fn percentile(v: &[f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mut s = v.to_vec();
+    s.sort_unstable_by(f64::total_cmp);
+    let rank = ((q * s.len() as f64).ceil() as usize).clamp(1, s.len());
+    s[rank - 1]
+}
+
+/// Where the sweep is, for progress reports.
+#[derive(Clone, Copy, Debug)]
+pub struct Progress<'a> {
+    /// Cases done (including this one).
+    pub done: usize,
+    /// Cases in all.
+    pub total: usize,
+    /// The case just finished.
+    pub case: &'a CaseResult,
+    /// Its setting.
+    pub setting: &'a Setting,
+}
+
+/// The processing objects of one setting, built for one kernel size.
+struct Runner {
+    denoise: Option<Denoise>,
+    deconv: Option<Box<dyn Deconvolver>>,
+    denoised: Vec<f32>,
+}
+
+impl Runner {
+    fn new(setting: &Setting, bins: usize, taps: usize) -> Self {
+        let denoise = match setting.processing {
+            Processing::Raw => None,
+            _ => Some(Denoise::new(DenoiseConfig {
+                max_samples: bins,
+                ..DenoiseConfig::default()
+            })),
+        };
+        let deconv = match &setting.processing {
+            Processing::Deconvolve(m) => Some(m.build(bins, taps)),
+            _ => None,
+        };
+        Runner {
+            denoise,
+            deconv,
+            denoised: vec![0.0; bins],
+        }
+    }
+
+    /// Processes one received waveform into `out` (same length).
+    #[inline]
+    fn run(
+        &mut self,
+        received: &[f32],
+        kernel: &Kernel,
+        sample_ns: f64,
+        out: &mut [f32],
+    ) -> Result<(), TradeoffError> {
+        let Some(denoise) = self.denoise.as_mut() else {
+            out.copy_from_slice(received);
+            return Ok(());
+        };
+        match self.deconv.as_mut() {
+            None => {
+                denoise.denoise_segment(received, sample_ns, out)?;
+            }
+            Some(d) => {
+                let n = received.len();
+                let den = &mut self.denoised[..n];
+                let noise = denoise.denoise_segment(received, sample_ns, den)?;
+                d.run(den, kernel, noise.noise_v, sample_ns, out)
+                    .map_err(|source| TradeoffError::Deconvolve {
+                        method: d.name(),
+                        source,
+                    })?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Runs every setting on every (pulse width, family) case; calls `progress` after each case.
+/// Results are in the order width → family → setting.
+pub fn run_sweep(
+    config: &SweepConfig,
+    settings: &[Setting],
+    mut progress: impl FnMut(Progress<'_>),
+) -> Result<Vec<CaseResult>, TradeoffError> {
+    config.validate()?;
+    let generator = TruthGenerator::new(config.bins, config.sample_ns, config.seed)?;
+    let bins = config.bins;
+    let total = config.widths_ns.len() * config.families.len() * settings.len();
+    let mut results = Vec::with_capacity(total);
+    let mut pulses: Vec<TruthPulse> = vec![TruthPulse::default(); config.pulses];
+    let mut truth_peaks: Vec<Vec<usize>> = vec![Vec::with_capacity(bins / 2 + 1); config.pulses];
+    let mut output: Vec<f32> = vec![0.0; bins];
+    let mut detected: Vec<usize> = Vec::with_capacity(bins / 2 + 1);
+
+    for &width in &config.widths_ns {
+        let kernel = gaussian_pulse(width, config.sample_ns)?;
+        for &family in &config.families {
+            for (i, (p, tp)) in pulses.iter_mut().zip(truth_peaks.iter_mut()).enumerate() {
+                generator.pulse(family, i as u64, &kernel, config.noise_fraction, p);
+                local_peaks(&p.truth, config.peak_floor, tp);
+            }
+            for (si, setting) in settings.iter().enumerate() {
+                let mut runner = Runner::new(setting, bins, kernel.taps.len());
+                for p in pulses.iter().take(WARMUP_PULSES) {
+                    runner.run(&p.received, &kernel, config.sample_ns, &mut output)?;
+                }
+                let mut case = CaseResult {
+                    setting: si,
+                    width_ns: width,
+                    family,
+                    pulses: config.pulses,
+                    rmse: RmseAccumulator::default(),
+                    peaks: PeakMatch::default(),
+                    truth_peaks: 0,
+                    sam_deg: 0.0,
+                    times_ns: Vec::with_capacity(config.pulses),
+                };
+                for (p, tp) in pulses.iter().zip(&truth_peaks) {
+                    // Timed: this pulse's processing only, into the reused output buffer (as
+                    // the pipeline reuses a pulse's buffers); the push cannot reallocate.
+                    let t0 = Instant::now();
+                    runner.run(&p.received, &kernel, config.sample_ns, &mut output)?;
+                    let dt = t0.elapsed();
+                    case.times_ns.push(dt.as_secs_f64() * 1e9);
+                    // Scoring, after the clock stopped.
+                    case.rmse.add(&p.truth, &output);
+                    case.sam_deg += spectral_angle_deg(&p.truth, &output);
+                    local_peaks(&output, config.peak_floor, &mut detected);
+                    let m = match_peaks(tp, &detected, config.peak_tolerance_bins);
+                    case.peaks.true_detections += m.true_detections;
+                    case.peaks.false_detections += m.false_detections;
+                    case.truth_peaks += tp.len() as u64;
+                }
+                case.sam_deg /= config.pulses as f64;
+                results.push(case);
+                progress(Progress {
+                    done: results.len(),
+                    total,
+                    case: results.last().expect("just pushed"),
+                    setting,
+                });
+            }
+        }
+    }
+    Ok(results)
+}
+
+/// One setting's scores pooled over every (pulse width, family) case.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SettingSummary {
+    /// Index into the settings list.
+    pub setting: usize,
+    /// Pooled RMSE (fraction of the truth's peak).
+    pub rmse: f64,
+    /// True detections / truth peaks.
+    pub detection_rate: f64,
+    /// False detections per pulse.
+    pub false_per_pulse: f64,
+    /// Mean spectral angle, degrees.
+    pub sam_deg: f64,
+    /// Median time per pulse over every pulse of every case, ns.
+    pub median_ns: f64,
+    /// The largest per-case median (the slowest pulse width and family), ns.
+    pub slowest_case_median_ns: f64,
+    /// On the Pareto front of (median time, RMSE): no other setting is at least as fast and at
+    /// least as accurate while strictly better in one.
+    pub pareto: bool,
+}
+
+impl SettingSummary {
+    /// Pulses per second `workers` threads sustain at the slowest case's median time.
+    pub fn max_rate_hz(&self, workers: usize) -> f64 {
+        workers as f64 / (self.slowest_case_median_ns * 1e-9)
+    }
+}
+
+/// Pools the cases of each setting and marks the Pareto front (time vs RMSE).
+pub fn summarise(settings: &[Setting], cases: &[CaseResult]) -> Vec<SettingSummary> {
+    let mut out: Vec<SettingSummary> = (0..settings.len())
+        .map(|si| {
+            let mine: Vec<&CaseResult> = cases.iter().filter(|c| c.setting == si).collect();
+            let mut rmse = RmseAccumulator::default();
+            let (mut tp, mut fp, mut truth, mut pulses, mut sam) = (0u64, 0u64, 0u64, 0usize, 0.0);
+            let mut times = Vec::new();
+            let mut slowest = 0.0f64;
+            for c in &mine {
+                rmse.merge(&c.rmse);
+                tp += c.peaks.true_detections as u64;
+                fp += c.peaks.false_detections as u64;
+                truth += c.truth_peaks;
+                pulses += c.pulses;
+                sam += c.sam_deg * c.pulses as f64;
+                times.extend_from_slice(&c.times_ns);
+                slowest = slowest.max(c.median_ns());
+            }
+            SettingSummary {
+                setting: si,
+                rmse: rmse.rmse(),
+                detection_rate: if truth == 0 {
+                    f64::NAN
+                } else {
+                    tp as f64 / truth as f64
+                },
+                false_per_pulse: fp as f64 / pulses.max(1) as f64,
+                sam_deg: sam / pulses.max(1) as f64,
+                median_ns: percentile(&times, 0.5),
+                slowest_case_median_ns: slowest,
+                pareto: false,
+            }
+        })
+        .collect();
+    let front = pareto_front(
+        &out.iter()
+            .map(|s| (s.median_ns, s.rmse))
+            .collect::<Vec<_>>(),
+    );
+    for i in front {
+        out[i].pareto = true;
+    }
+    out
+}
+
+/// Indices of the points not dominated in `(x, y)`, both to be minimised, sorted by `x`: a
+/// point is dominated when another has `x' ≤ x` and `y' ≤ y` with one strictly smaller. Points
+/// with a non-finite coordinate are never on the front.
+pub fn pareto_front(points: &[(f64, f64)]) -> Vec<usize> {
+    let mut idx: Vec<usize> = (0..points.len())
+        .filter(|&i| points[i].0.is_finite() && points[i].1.is_finite())
+        .collect();
+    idx.sort_by(|&a, &b| {
+        points[a]
+            .0
+            .total_cmp(&points[b].0)
+            .then(points[a].1.total_cmp(&points[b].1))
+    });
+    let mut front = Vec::new();
+    let mut best_y = f64::INFINITY;
+    for i in idx {
+        if points[i].1 < best_y {
+            best_y = points[i].1;
+            front.push(i);
+        }
+    }
+    front
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pareto_front_by_hand() {
+        // (1, 5) front; (2, 6) dominated by (1, 5); (3, 2) front; (3, 3) dominated; (5, 2)
+        // dominated (same y, slower); (6, 1) front; (0.5, NaN) never.
+        let p = [
+            (1.0, 5.0),
+            (2.0, 6.0),
+            (3.0, 2.0),
+            (3.0, 3.0),
+            (5.0, 2.0),
+            (6.0, 1.0),
+            (0.5, f64::NAN),
+        ];
+        assert_eq!(pareto_front(&p), vec![0, 2, 5]);
+    }
+
+    #[test]
+    fn percentile_nearest_rank() {
+        assert_eq!(percentile(&[3.0, 1.0, 2.0], 0.5), 2.0);
+        assert_eq!(percentile(&[4.0, 1.0, 3.0, 2.0], 0.5), 2.0);
+        assert_eq!(percentile(&[4.0, 1.0, 3.0, 2.0], 0.99), 4.0);
+        assert!(percentile(&[], 0.5).is_nan());
+    }
+
+    #[test]
+    fn bad_parameters_are_refused() {
+        let ok = SweepConfig::default();
+        assert!(ok.validate().is_ok());
+        for bad in [
+            SweepConfig {
+                pulses: 0,
+                ..ok.clone()
+            },
+            SweepConfig {
+                widths_ns: vec![8.0, -1.0],
+                ..ok.clone()
+            },
+            SweepConfig {
+                noise_fraction: f32::NAN,
+                ..ok.clone()
+            },
+            SweepConfig {
+                peak_floor: 1.0,
+                ..ok.clone()
+            },
+        ] {
+            assert!(matches!(
+                bad.validate(),
+                Err(TradeoffError::InvalidParameter(_))
+            ));
+        }
+    }
+
+    #[test]
+    fn small_sweep_scores_deconvolution_above_raw_on_sparse_surfaces() {
+        let config = SweepConfig {
+            pulses: 12,
+            widths_ns: vec![8.0],
+            families: vec![TruthFamily::Sparse],
+            ..SweepConfig::default()
+        };
+        let settings = default_settings();
+        let mut seen = 0;
+        let cases = run_sweep(&config, &settings, |p| {
+            seen += 1;
+            assert_eq!(p.total, settings.len());
+        })
+        .unwrap();
+        assert_eq!(seen, settings.len());
+        let rmse = |label: &str| {
+            let i = settings.iter().position(|s| s.label() == label).unwrap();
+            cases[i].rmse.rmse()
+        };
+        assert!(rmse("rl iterations=200") < 0.8 * rmse("raw"));
+        // The low-pass removes the noise's wiggles: far fewer false peaks.
+        let false_peaks = |label: &str| {
+            let i = settings.iter().position(|s| s.label() == label).unwrap();
+            cases[i].peaks.false_detections
+        };
+        assert!(false_peaks("denoise") * 2 < false_peaks("raw"));
+        for c in &cases {
+            assert_eq!(c.times_ns.len(), 12);
+            assert!(c.sam_deg >= 0.0 && c.sam_deg <= 180.0);
+            assert!(c.truth_peaks >= 24, "two or more surfaces per pulse");
+        }
+        let summary = summarise(&settings, &cases);
+        assert!(summary.iter().any(|s| s.pareto));
+    }
+}
