@@ -77,7 +77,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
             WaveformCsvSink::create(&out_dir).map_err(Failure::job)?,
         ));
     }
-    let decomposes = spec.stage_names.iter().any(|s| *s == "decompose");
+    let decomposes = spec.stage_names.contains(&"decompose");
     if config.output.returns && decomposes {
         sinks.push(Box::new(
             ReturnsCsvSink::create(&out_dir).map_err(Failure::job)?,
