@@ -5,6 +5,9 @@
 //! cached) and with a kernel that changes every call (per-shot kernels: spectrum computed per
 //! call).
 
+#[path = "common/waveforms.rs"]
+mod waveforms;
+
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
