@@ -20,8 +20,11 @@
 //!   The output is therefore finite and non-negative.
 //! - **Early stop** (optional): after an iteration whose relative L1 change
 //!   `Σ|σ_{i+1} − σ_i| / Σσ_i` is below [`RlConfig::early_stop`].
-//! - **Convolution**: direct, in the time domain (see the `direct` module: four taps per pass,
-//!   AVX2/FMA when the CPU has them). An FFT would need four transforms per iteration (σ and the
+//! - **Convolution**: direct, in the time domain (see the `direct` module: blocks of outputs
+//!   kept in registers across all taps, AVX-512 or AVX2/FMA when the CPU has them). The ratio
+//!   `y / (k ⊛ σ)` and (without early stop) the update of σ are computed from each block of
+//!   sums while it is still in registers, so an iteration is two passes over the segment, not
+//!   four; the results are the same bits as separate passes. An FFT would need four transforms per iteration (σ and the
 //!   ratio forward, both back); for the kernels of this sensor class (≤ 64 taps) and segments of
 //!   a few hundred samples the direct form is cheaper, so no FFT path is used (cost model:
 //!   direct `4·n·m` flops per iteration against about `4 · 2.5·N·log₂N` for padded length
