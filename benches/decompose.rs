@@ -1,6 +1,9 @@
 //! Benchmark of the Gaussian decomposition: one 256-sample return with three echoes (two of
 //! them 1.5 σ apart, so the residual refinement runs), at default settings.
 
+#[path = "common/waveforms.rs"]
+mod waveforms;
+
 use criterion::{Criterion, criterion_group, criterion_main};
 use fwlidar::signal::DecomposeConfig;
 use fwlidar::signal::decompose::Decomposer;
@@ -28,6 +31,7 @@ fn three_echoes() -> Vec<f32> {
 
 fn decompose(c: &mut Criterion) {
     let y = three_echoes();
+    waveforms::dump_f32("decompose_3_echoes_f32", &y);
     let mut d = Decomposer::new(DecomposeConfig::default(), 4096);
     let mut out = Vec::with_capacity(8);
     c.bench_function("decompose_3_echoes_256", |b| {

@@ -1,7 +1,12 @@
 //! Deconvolution of one 256-sample segment by a 16 ns FWHM Gaussian kernel at 1 ns sampling
-//! (taps to ±3σ: 41 taps): Richardson-Lucy 20 iterations, Gold 20 iterations, Wiener fused with
-//! the low-pass, with the same kernel every call (its spectrum cached) and with a kernel that
-//! changes every call (per-shot kernels: spectrum computed per call).
+//! (taps to ±⌈3σ⌉ = ±21 samples: 43 taps; the group keeps its historical name `..._41_taps`
+//! so results stay comparable with earlier runs): Richardson-Lucy 20 iterations, Gold 20
+//! iterations, Wiener fused with the low-pass, with the same kernel every call (its spectrum
+//! cached) and with a kernel that changes every call (per-shot kernels: spectrum computed per
+//! call).
+
+#[path = "common/waveforms.rs"]
+mod waveforms;
 
 use std::hint::black_box;
 
@@ -42,6 +47,10 @@ fn segment(k: &Kernel) -> Vec<f32> {
 fn bench(c: &mut Criterion) {
     let k = gaussian_kernel(16.0);
     let y = segment(&k);
+    waveforms::dump_f32("deconvolve_segment_f32", &y);
+    waveforms::dump_f32("deconvolve_kernel_f32", &k.taps);
+    let k2 = gaussian_kernel(16.5);
+    waveforms::dump_f32("deconvolve_kernel2_f32", &k2.taps);
     let mut out = vec![0.0f32; 256];
     let mut methods: Vec<(&str, Box<dyn Deconvolver>)> = vec![
         (
@@ -68,7 +77,6 @@ fn bench(c: &mut Criterion) {
         });
     }
     // Per-shot kernels: alternate two kernels so the Wiener kernel-spectrum cache never hits.
-    let k2 = gaussian_kernel(16.5);
     let mut w = Wiener::new(WienerConfig::default(), 4096, 256);
     let mut flip = false;
     group.bench_function("wiener_fused_per_shot_kernel", |b| {

@@ -1,6 +1,9 @@
 //! Benchmark of NNLS deconvolution on a CAO-like 256-sample return at 1 ns sampling with a
 //! 16 ns FWHM Gaussian system response (taps to ±3σ: 41 taps). Target: ≤ 200 µs median.
 
+#[path = "common/waveforms.rs"]
+mod waveforms;
+
 use criterion::{Criterion, criterion_group, criterion_main};
 use fwlidar::signal::deconvolve::{Deconvolver, Nnls, NnlsConfig};
 use fwlidar::signal::kernel::Kernel;
@@ -42,6 +45,9 @@ fn segment(ripple: bool) -> Vec<f32> {
 fn nnls(c: &mut Criterion) {
     let k = kernel();
     assert_eq!(k.len(), 41);
+    waveforms::dump_f32("nnls_kernel_f32", &k.taps);
+    waveforms::dump_f32("nnls_noisy_f32", &segment(true));
+    waveforms::dump_f32("nnls_clean_f32", &segment(false));
     let mut d = Nnls::new(NnlsConfig::default(), 256, 64);
     let mut out = vec![0.0f32; 256];
     for (name, y) in [
@@ -83,6 +89,7 @@ fn nnls(c: &mut Criterion) {
             v + 0.004 * 16.0 * ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) as f32
         })
         .collect();
+    waveforms::dump_f32("nnls_full_budget_f32", &y);
     let stats = full.run(&y, &k, 0.012, 1.0, &mut out).expect("nnls");
     println!("no-early-stop run: {stats:?}");
     c.bench_function("nnls_return256_gauss16ns_noisy_full_budget", |b| {
@@ -131,6 +138,7 @@ fn nnls_cap(c: &mut Criterion) {
         64,
     );
     let mut out = vec![0.0f32; 256];
+    waveforms::dump_f32("nnls_dense_canopy_f32", &y);
     let stats = d.run(&y, &k, 0.01, 1.0, &mut out).expect("nnls");
     println!("dense canopy run: {stats:?}");
     c.bench_function("nnls_return256_gauss16ns_dense_canopy_cap", |b| {

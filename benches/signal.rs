@@ -1,5 +1,8 @@
 //! Benchmarks of the per-pulse signal stages.
 
+#[path = "common/waveforms.rs"]
+mod waveforms;
+
 use criterion::{Criterion, criterion_group, criterion_main};
 use fwlidar::pipeline::{DropCounts, Emitter, Stage};
 use fwlidar::pulse::{Pulse, PulsePool, SegmentKind};
@@ -41,7 +44,15 @@ fn denoise(c: &mut Criterion) {
     let mut out = Vec::with_capacity(1);
     let mut dropped = DropCounts::default();
     let mut errors = 0u64;
-    let mut pulse = Some(Box::new(cao_like_pulse()));
+    let p = cao_like_pulse();
+    for (s, name) in p
+        .segments
+        .iter()
+        .zip(["denoise_outgoing_u16", "denoise_return_u16"])
+    {
+        waveforms::dump_u16(name, &p.raw[s.first as usize..(s.first + s.len) as usize]);
+    }
+    let mut pulse = Some(Box::new(p));
     c.bench_function("denoise_outgoing64_return256_1ns", |b| {
         b.iter(|| {
             let p = pulse.take().expect("the pulse comes back every iteration");

@@ -6,9 +6,12 @@
 //! (`(k ⊛ x)[i] = Σ_j taps[j] · x[i + center − j]`, see [`crate::signal::kernel`]) need no
 //! boundary tests: every tap is one contiguous multiply-add over the outputs, which
 //! the compiler vectorises without reassociating any sum. Outputs are processed in blocks of 64
-//! kept in registers across all taps (one load and one multiply-add per tap and vector). On x86-64 CPUs with AVX2 and FMA the same loop is
-//! compiled a second time for those features and chosen at run time (8-wide fused
-//! multiply-adds instead of 4-wide SSE multiply then add).
+//! kept in registers across all taps (one load and one multiply-add per tap and vector). On
+//! x86-64 CPUs with AVX-512F the same loop is compiled for 16-lane registers (blocks of 128,
+//! then 64 and 16) and chosen at run time; with AVX2 and FMA (and no AVX-512) it is
+//! compiled for 8-lane registers. Every tier performs, per output, the same fused
+//! multiply-adds in the same order, so their results are bit-identical. Without either, the
+//! portable build multiplies then adds (4-wide SSE).
 //!
 //! Cost: `2 · n · m` floating-point operations per convolution or correlation.
 
@@ -22,7 +25,8 @@ pub(crate) fn convolve_padded(
     out: &mut [f32],
 ) {
     // Output i, tap j reads xp[pad + center − j + i].
-    dispatch(xp, taps, out, pad + center, true);
+    let n = out.len();
+    dispatch(xp, taps, n, pad + center, true, Store(out));
 }
 
 /// `out[i] = Σ_j taps[j] · xp[pad + i − center + j]` (correlation, the adjoint of
@@ -34,69 +38,210 @@ pub(crate) fn correlate_padded(
     center: usize,
     out: &mut [f32],
 ) {
-    dispatch(xp, taps, out, pad - center, false);
+    let n = out.len();
+    dispatch(xp, taps, n, pad - center, false, Store(out));
+}
+
+/// What is done with each block of finished sums (`acc[r]` is output `i0 + r`) while it is
+/// still in registers: stored as is, or turned into the next quantity of an iteration (so
+/// that quantity needs no separate pass over memory).
+pub(crate) trait Epilogue {
+    /// Consumes the sums of outputs `i0 .. i0 + acc.len()`.
+    fn store(&mut self, i0: usize, acc: &[f32]);
+}
+
+/// Stores the sums.
+struct Store<'a>(&'a mut [f32]);
+
+impl Epilogue for Store<'_> {
+    #[inline(always)]
+    fn store(&mut self, i0: usize, acc: &[f32]) {
+        self.0[i0..i0 + acc.len()].copy_from_slice(acc);
+    }
+}
+
+/// `k ⊛ xp` (as [`convolve_padded`], `n` outputs) handed block by block to `epilogue`.
+pub(crate) fn convolve_padded_with(
+    xp: &[f32],
+    pad: usize,
+    taps: &[f32],
+    center: usize,
+    n: usize,
+    epilogue: impl Epilogue,
+) {
+    dispatch(xp, taps, n, pad + center, true, epilogue);
+}
+
+/// `k ⋆ xp` (as [`correlate_padded`], `n` outputs) handed block by block to `epilogue`.
+pub(crate) fn correlate_padded_with(
+    xp: &[f32],
+    pad: usize,
+    taps: &[f32],
+    center: usize,
+    n: usize,
+    epilogue: impl Epilogue,
+) {
+    dispatch(xp, taps, n, pad - center, false, epilogue);
 }
 
 /// Tap `j` of output `i` reads `xp[base − j + i]` (`reverse`) or `xp[base + j + i]`.
-fn dispatch(xp: &[f32], taps: &[f32], out: &mut [f32], base: usize, reverse: bool) {
+///
+/// Every tier computes each output as the same sequence of operations (taps in order, one
+/// multiply-add each, fused wherever FMA is available), so the AVX-512 and AVX2 tiers give
+/// bit-identical results; only the number of outputs per instruction differs.
+#[inline(always)]
+fn dispatch<E: Epilogue>(
+    xp: &[f32],
+    taps: &[f32],
+    n: usize,
+    base: usize,
+    reverse: bool,
+    mut epilogue: E,
+) {
+    assert!(
+        xp.len()
+            >= base
+                + n
+                + if reverse {
+                    0
+                } else {
+                    taps.len().saturating_sub(1)
+                }
+    );
+    assert!(!reverse || base + 1 >= taps.len());
     #[cfg(target_arch = "x86_64")]
     {
+        if std::arch::is_x86_feature_detected!("avx512f") && !force_avx2() {
+            // SAFETY: the CPU supports the features the function is compiled for.
+            unsafe { block_sum_avx512(xp, taps, n, base, reverse, &mut epilogue) };
+            return;
+        }
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
         {
             // SAFETY: the CPU supports the features the function is compiled for.
-            unsafe { block_sum_avx2(xp, taps, out, base, reverse) };
+            unsafe { block_sum_avx2(xp, taps, n, base, reverse, &mut epilogue) };
             return;
         }
     }
-    block_sum::<false>(xp, taps, out, base, reverse);
+    let done = blocks::<false, BLOCK, E>(xp, taps, n, base, reverse, 0, &mut epilogue);
+    tail::<false, E>(xp, taps, n, base, reverse, done, &mut epilogue);
+}
+
+/// Test hook: with `FORCE_AVX2` set, the AVX-512 tier is skipped (to check that both tiers
+/// agree bit for bit on a CPU that has both).
+#[cfg(all(test, target_arch = "x86_64"))]
+fn force_avx2() -> bool {
+    FORCE_AVX2.with(|f| f.get())
+}
+
+#[cfg(all(not(test), target_arch = "x86_64"))]
+#[inline(always)]
+fn force_avx2() -> bool {
+    false
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+thread_local! {
+    static FORCE_AVX2: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn block_sum_avx2(xp: &[f32], taps: &[f32], out: &mut [f32], base: usize, reverse: bool) {
-    block_sum::<true>(xp, taps, out, base, reverse)
+fn block_sum_avx2<E: Epilogue>(
+    xp: &[f32],
+    taps: &[f32],
+    n: usize,
+    base: usize,
+    reverse: bool,
+    epilogue: &mut E,
+) {
+    let done = blocks::<true, BLOCK, E>(xp, taps, n, base, reverse, 0, epilogue);
+    tail::<true, E>(xp, taps, n, base, reverse, done, epilogue);
+}
+
+/// AVX-512: 16-lane fused multiply-adds. Blocks of 128 outputs (eight 16-lane accumulators,
+/// enough to hide the latency on two FMA ports), then of 64 and 16, then the scalar tail.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+fn block_sum_avx512<E: Epilogue>(
+    xp: &[f32],
+    taps: &[f32],
+    n: usize,
+    base: usize,
+    reverse: bool,
+    epilogue: &mut E,
+) {
+    let done = blocks::<true, BLOCK_512, E>(xp, taps, n, base, reverse, 0, epilogue);
+    let done = blocks::<true, BLOCK, E>(xp, taps, n, base, reverse, done, epilogue);
+    let done = blocks::<true, 16, E>(xp, taps, n, base, reverse, done, epilogue);
+    tail::<true, E>(xp, taps, n, base, reverse, done, epilogue);
 }
 
 /// Outputs per register block (eight 8-lane vectors: enough independent accumulators to hide
 /// the multiply-add latency on two FMA ports).
 const BLOCK: usize = 64;
 
-/// The sum over taps, `BLOCK` outputs at a time held in registers across all taps (one load
-/// and one multiply-add per tap and vector, no stores until the block is done); `FMA` uses
-/// fused multiply-adds (only where the CPU has them: elsewhere `mul_add` is a slow library
-/// call).
+/// Outputs per register block of the AVX-512 tier (eight 16-lane vectors).
+#[cfg(target_arch = "x86_64")]
+const BLOCK_512: usize = 128;
+
+/// The sum over taps for outputs `start .. n`, `B` outputs at a time held in registers across
+/// all taps (one load and one multiply-add per tap and vector, no stores until the block is
+/// done); `FMA` uses fused multiply-adds (only where the CPU has them: elsewhere `mul_add` is a
+/// slow library call). Returns the end of the last full block.
 #[inline(always)]
-fn block_sum<const FMA: bool>(
+fn blocks<const FMA: bool, const B: usize, E: Epilogue>(
     xp: &[f32],
     taps: &[f32],
-    out: &mut [f32],
+    n: usize,
     base: usize,
     reverse: bool,
-) {
+    start: usize,
+    epilogue: &mut E,
+) -> usize {
     let offset = |j: usize| if reverse { base - j } else { base + j };
-    let n = out.len();
-    let full = n / BLOCK * BLOCK;
-    for (b, chunk) in out[..full].chunks_exact_mut(BLOCK).enumerate() {
-        let i0 = b * BLOCK;
-        let mut acc = [0.0f32; BLOCK];
+    let full = (n - start) / B * B;
+    let mut i0 = start;
+    while i0 < start + full {
+        let mut acc = [0.0f32; B];
         for (j, &t) in taps.iter().enumerate() {
             let o = offset(j) + i0;
-            let s: &[f32; BLOCK] = xp[o..o + BLOCK].try_into().expect("block length");
+            let s: &[f32; B] = xp[o..o + B].try_into().expect("block length");
             for (a, &v) in acc.iter_mut().zip(s) {
                 *a = if FMA { t.mul_add(v, *a) } else { *a + t * v };
             }
         }
-        chunk.copy_from_slice(&acc);
+        epilogue.store(i0, &acc);
+        i0 += B;
     }
-    let tail = &mut out[full..];
-    tail.fill(0.0);
-    let m = tail.len();
+    i0
+}
+
+/// The outputs from `start` to `n` (fewer than [`BLOCK`]), one tap at a time over all of them.
+#[inline(always)]
+fn tail<const FMA: bool, E: Epilogue>(
+    xp: &[f32],
+    taps: &[f32],
+    n: usize,
+    base: usize,
+    reverse: bool,
+    start: usize,
+    epilogue: &mut E,
+) {
+    let offset = |j: usize| if reverse { base - j } else { base + j };
+    let m = n - start;
+    if m == 0 {
+        return;
+    }
+    let mut buf = [0.0f32; BLOCK];
+    let acc = &mut buf[..m];
     for (j, &t) in taps.iter().enumerate() {
-        let o = offset(j) + full;
-        for (a, &v) in tail.iter_mut().zip(&xp[o..o + m]) {
+        let o = offset(j) + start;
+        for (a, &v) in acc.iter_mut().zip(&xp[o..o + m]) {
             *a = if FMA { t.mul_add(v, *a) } else { *a + t * v };
         }
     }
+    epilogue.store(start, acc);
 }
 
 #[cfg(test)]
@@ -124,6 +269,42 @@ mod tests {
             correlate_same(&x, &k, &mut b);
             for (p, q) in a.iter().zip(&b) {
                 assert!((p - q).abs() < 1e-5);
+            }
+        }
+    }
+
+    /// The AVX-512 and AVX2 tiers agree bit for bit (same operations per output), for every
+    /// segment length around the block sizes.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn deconvolve_direct_tiers_agree_bit_for_bit() {
+        let taps: Vec<f32> = (0..41)
+            .map(|j| (-0.5 * ((j as f32 - 20.0) / 6.8).powi(2)).exp() * 0.06)
+            .collect();
+        for n in [
+            1usize, 15, 16, 17, 63, 64, 65, 100, 127, 128, 129, 200, 256, 300, 1000,
+        ] {
+            let pad = taps.len();
+            let mut xp = vec![0.0f32; n + 2 * pad];
+            for (i, v) in xp[pad..pad + n].iter_mut().enumerate() {
+                *v = ((i * 7919 % 101) as f32 / 37.0).sin().abs() + 1e-3;
+            }
+            for conv in [true, false] {
+                let run = |avx2: bool| {
+                    FORCE_AVX2.with(|f| f.set(avx2));
+                    let mut o = vec![0.0f32; n];
+                    if conv {
+                        convolve_padded(&xp, pad, &taps, 17, &mut o);
+                    } else {
+                        correlate_padded(&xp, pad, &taps, 17, &mut o);
+                    }
+                    FORCE_AVX2.with(|f| f.set(false));
+                    o
+                };
+                let (a, b) = (run(false), run(true));
+                for (p, q) in a.iter().zip(&b) {
+                    assert_eq!(p.to_bits(), q.to_bits(), "n = {n}, conv = {conv}");
+                }
             }
         }
     }
