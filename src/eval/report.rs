@@ -10,13 +10,14 @@ use crate::eval::tradeoff::{CaseResult, Setting, SettingSummary, SweepConfig};
 pub const RATES_HZ: [f64; 4] = [100e3, 500e3, 1e6, 2e6];
 
 /// Columns of the CSV, in order.
-pub const CSV_COLUMNS: [&str; 15] = [
+pub const CSV_COLUMNS: [&str; 16] = [
     "method",
     "parameter",
     "family",
     "width_ns",
     "pulses",
     "rmse",
+    "rmse_2ns",
     "true_detections",
     "false_detections",
     "truth_peaks",
@@ -69,13 +70,14 @@ pub fn csv(settings: &[Setting], cases: &[CaseResult], workers: usize) -> String
         let med = c.median_ns();
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{:.6},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.0}",
+            "{},{},{},{},{},{:.6},{:.6},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.0}",
             set.method,
             set.parameter,
             c.family.name(),
             c.width_ns,
             c.pulses,
             c.rmse.rmse(),
+            c.rmse_2ns.rmse(),
             c.peaks.true_detections,
             c.peaks.false_detections,
             c.truth_peaks,
@@ -175,13 +177,13 @@ pub fn markdown(
     let rate_heads: Vec<String> = RATES_HZ.iter().map(|&r| rate(r)).collect();
     let _ = writeln!(
         s,
-        "| setting | median µs/pulse | slowest case µs | max rate ({w} worker{}) | {} | RMSE | true det. | false/pulse | SAM ° | Pareto |",
+        "| setting | median µs/pulse | slowest case µs | max rate ({w} worker{}) | {} | RMSE | RMSE at 2 ns | true det. | false/pulse | SAM ° | Pareto |",
         if w == 1 { "" } else { "s" },
         rate_heads.join(" | ")
     );
     let _ = writeln!(
         s,
-        "|---|---:|---:|---:|{}---:|---:|---:|---:|:-:|",
+        "|---|---:|---:|---:|{}---:|---:|---:|---:|---:|:-:|",
         ":-:|".repeat(RATES_HZ.len())
     );
     for sm in summary {
@@ -193,13 +195,14 @@ pub fn markdown(
             .collect();
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} | {} | {:.4} | {:.1} % | {:.2} | {:.1} | {} |",
+            "| {} | {} | {} | {} | {} | {:.4} | {:.4} | {:.1} % | {:.2} | {:.1} | {} |",
             set.label(),
             us(sm.median_ns),
             us(sm.slowest_case_median_ns),
             rate(max),
             keeps.join(" | "),
             sm.rmse,
+            sm.rmse_2ns,
             100.0 * sm.detection_rate,
             sm.false_per_pulse,
             sm.sam_deg,
@@ -225,10 +228,14 @@ pub fn markdown(
         })
     };
     type Cell = fn(&CaseResult) -> String;
-    let tables: [(&str, Cell); 4] = [
+    let tables: [(&str, Cell); 5] = [
         ("RMSE (eq. 14, fraction of the truth's peak)", |c| {
             format!("{:.4}", c.rmse.rmse())
         }),
+        (
+            "RMSE at the truth's resolution (the output convolved with the 2 ns pulse, fraction of the truth's peak)",
+            |c| format!("{:.4}", c.rmse_2ns.rmse()),
+        ),
         (
             "True detections (% of truth peaks) / false detections per pulse",
             |c| {

@@ -21,7 +21,7 @@ use crate::signal::deconvolve::{
     DeconvError, Deconvolver, GoldConfig, MethodConfig, NnlsConfig, RlConfig, WienerConfig,
 };
 use crate::signal::denoise::{Denoise, DenoiseConfig, DenoiseError};
-use crate::signal::kernel::Kernel;
+use crate::signal::kernel::{Kernel, convolve_same};
 use crate::sim::truth::{TruthError, TruthFamily, TruthGenerator, TruthPulse, gaussian_pulse};
 
 /// Pulses processed untimed before the timed loop of every case.
@@ -241,6 +241,10 @@ pub struct CaseResult {
     pub pulses: usize,
     /// Pooled eq. 14 RMSE accumulator.
     pub rmse: RmseAccumulator,
+    /// Pooled RMSE of the output seen through the truth's 2 ns pulse (the output convolved
+    /// with it) against the truth: the error of the output taken as a cross-section estimate,
+    /// at the truth's resolution (see `docs/accuracy.md`).
+    pub rmse_2ns: RmseAccumulator,
     /// Summed detections.
     pub peaks: PeakMatch,
     /// Peaks of the truth waveforms, summed.
@@ -372,6 +376,7 @@ pub fn run_sweep(
     let mut pulses: Vec<TruthPulse> = vec![TruthPulse::default(); config.pulses];
     let mut truth_peaks: Vec<Vec<usize>> = vec![Vec::with_capacity(bins / 2 + 1); config.pulses];
     let mut output: Vec<f32> = vec![0.0; bins];
+    let mut reblurred: Vec<f32> = vec![0.0; bins];
     let mut detected: Vec<usize> = Vec::with_capacity(bins / 2 + 1);
 
     for &width in &config.widths_ns {
@@ -392,6 +397,7 @@ pub fn run_sweep(
                     family,
                     pulses: config.pulses,
                     rmse: RmseAccumulator::default(),
+                    rmse_2ns: RmseAccumulator::default(),
                     peaks: PeakMatch::default(),
                     truth_peaks: 0,
                     sam_deg: 0.0,
@@ -406,6 +412,8 @@ pub fn run_sweep(
                     case.times_ns.push(dt.as_secs_f64() * 1e9);
                     // Scoring, after the clock stopped.
                     case.rmse.add(&p.truth, &output);
+                    convolve_same(&output, generator.truth_kernel(), &mut reblurred);
+                    case.rmse_2ns.add(&p.truth, &reblurred);
                     case.sam_deg += spectral_angle_deg(&p.truth, &output);
                     local_peaks(&output, config.peak_floor, &mut detected);
                     let m = match_peaks(tp, &detected, config.peak_tolerance_bins);
@@ -434,6 +442,8 @@ pub struct SettingSummary {
     pub setting: usize,
     /// Pooled RMSE (fraction of the truth's peak).
     pub rmse: f64,
+    /// Pooled RMSE of the output through the truth's 2 ns pulse (fraction of the truth's peak).
+    pub rmse_2ns: f64,
     /// True detections / truth peaks.
     pub detection_rate: f64,
     /// False detections per pulse.
@@ -462,11 +472,13 @@ pub fn summarise(settings: &[Setting], cases: &[CaseResult]) -> Vec<SettingSumma
         .map(|si| {
             let mine: Vec<&CaseResult> = cases.iter().filter(|c| c.setting == si).collect();
             let mut rmse = RmseAccumulator::default();
+            let mut rmse_2ns = RmseAccumulator::default();
             let (mut tp, mut fp, mut truth, mut pulses, mut sam) = (0u64, 0u64, 0u64, 0usize, 0.0);
             let mut times = Vec::new();
             let mut slowest = 0.0f64;
             for c in &mine {
                 rmse.merge(&c.rmse);
+                rmse_2ns.merge(&c.rmse_2ns);
                 tp += c.peaks.true_detections as u64;
                 fp += c.peaks.false_detections as u64;
                 truth += c.truth_peaks;
@@ -478,6 +490,7 @@ pub fn summarise(settings: &[Setting], cases: &[CaseResult]) -> Vec<SettingSumma
             SettingSummary {
                 setting: si,
                 rmse: rmse.rmse(),
+                rmse_2ns: rmse_2ns.rmse(),
                 detection_rate: if truth == 0 {
                     f64::NAN
                 } else {
