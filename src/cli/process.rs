@@ -20,11 +20,10 @@ use crate::pulse::FittedReturn;
 use crate::signal::decompose::{DecomposeConfig, Decomposer};
 use crate::signal::deconvolve::MethodConfig;
 use crate::signal::denoise::{Denoise, DenoiseConfig};
-use crate::signal::kernel::Kernel;
+use crate::signal::kernel::{Kernel, remove_baseline};
 use crate::sink::atomic_file::AtomicFile;
 
-/// Number of leading kernel samples whose median is taken as the kernel's baseline.
-pub const KERNEL_BASELINE_SAMPLES: usize = 8;
+pub use crate::signal::kernel::KERNEL_BASELINE_SAMPLES;
 
 /// Rows from which a progress bar is drawn (on a terminal).
 const PROGRESS_MIN_ROWS: usize = 1000;
@@ -169,8 +168,7 @@ pub fn kernel_from_row(row: &[f32], kernel: &mut Kernel) -> Result<(), String> {
     if let Some(j) = row.iter().position(|v| !v.is_finite()) {
         return Err(format!("sample {j} is {} (not a finite number)", row[j]));
     }
-    let base = median(&row[..row.len().min(KERNEL_BASELINE_SAMPLES)]);
-    let shifted: Vec<f32> = row.iter().map(|v| v - base).collect();
+    let shifted = remove_baseline(row);
     kernel
         .set_from_outgoing(&shifted, row.len())
         .map_err(|e| e.to_string())

@@ -4,6 +4,7 @@
 use super::load::{Validate, Validator, field};
 use crate::pipeline::registry::StageConfig;
 use crate::signal::decompose::DecomposeConfig;
+use crate::signal::deconvolve::response::{ResponseError, response_from_flat_target};
 use crate::signal::deconvolve::{DeconvolveConfig, KernelSource, MethodConfig};
 use crate::signal::denoise::DenoiseConfig;
 use crate::signal::gauss_fit::MAX_COMPONENTS;
@@ -170,6 +171,28 @@ impl Validate for DeconvolveConfig {
                 field(&kernel, "center"),
                 format!("must index one of the {} taps, got {center}", taps.len()),
             );
+        }
+        if let KernelSource::FlatTarget {
+            ground_return,
+            outgoing,
+        } = &self.kernel
+        {
+            let at = field(&field(path, "kernel"), "flat_target");
+            // Measured here as the stage will measure it, so an unusable record is reported
+            // before the run.
+            if let Err(e) =
+                response_from_flat_target(ground_return, outgoing, &self.method, self.max_taps)
+            {
+                let (name, reason) = match &e {
+                    ResponseError::Outgoing(k) => ("outgoing", k.to_string()),
+                    ResponseError::GroundReturn(d) => ("ground_return", d.to_string()),
+                    ResponseError::Response(k) => (
+                        "ground_return",
+                        format!("the response measured from it is unusable: {k}"),
+                    ),
+                };
+                v.report(field(&at, name), reason);
+            }
         }
     }
 }

@@ -74,6 +74,25 @@ pub struct NnlsConfig {
     pub tolerance: f32,
 }
 
+impl NnlsConfig {
+    /// Worst-case flops for a segment of `n` samples and a kernel of `m` taps, with
+    /// `K = max_iterations`, `k = min(K, n)`:
+    /// `m² + m + 2·n·m + n + K·(2k(2m − 1) + n + 11k² + 18k)` (see the comments for the terms).
+    pub fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
+        // Per kernel: table m² + m; b = Rᵀy: 2nm. Per outer iteration (K = max_iterations of
+        // them, k ≤ min(K, n) passive samples): dual 2k(2m − 1), argmax n, Cholesky row
+        // k² + 3k (one flop per Gram entry), solve 2k² + 2k. Inner steps (≤ K over the whole
+        // run, each removes a sample): step 5k, Givens downdate 6k² + 6k, solve 2k² + 2k.
+        // Output scaling n.
+        let (n, m) = (n as u64, m as u64);
+        let it = self.max_iterations as u64;
+        let k = it.min(n);
+        let outer = 2 * k * (2 * m).saturating_sub(1) + n + 3 * k * k + 5 * k;
+        let inner = 8 * k * k + 13 * k;
+        (m * m + m + 2 * n * m + n).saturating_add(it.saturating_mul(outer + inner))
+    }
+}
+
 impl Default for NnlsConfig {
     fn default() -> Self {
         NnlsConfig {
@@ -458,17 +477,7 @@ impl Deconvolver for Nnls {
     }
 
     fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
-        // Per kernel: table m² + m; b = Rᵀy: 2nm. Per outer iteration (K = max_iterations of
-        // them, k ≤ min(K, n) passive samples): dual 2k(2m − 1), argmax n, Cholesky row
-        // k² + 3k (one flop per Gram entry), solve 2k² + 2k. Inner steps (≤ K over the whole
-        // run, each removes a sample): step 5k, Givens downdate 6k² + 6k, solve 2k² + 2k.
-        // Output scaling n.
-        let (n, m) = (n as u64, m as u64);
-        let it = self.config.max_iterations as u64;
-        let k = it.min(n);
-        let outer = 2 * k * (2 * m).saturating_sub(1) + n + 3 * k * k + 5 * k;
-        let inner = 8 * k * k + 13 * k;
-        (m * m + m + 2 * n * m + n).saturating_add(it.saturating_mul(outer + inner))
+        self.config.worst_case_flops(n, m)
     }
 }
 
