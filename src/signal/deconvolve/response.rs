@@ -138,7 +138,9 @@ mod tests {
         let k = response_from_flat_target(&g, &out, &method, 64).unwrap();
         // Narrow and centred: most of the energy in the centre tap and its two neighbours.
         let c = k.center;
-        let core: f32 = k.taps[c.saturating_sub(1)..(c + 2).min(k.len())].iter().sum();
+        let core: f32 = k.taps[c.saturating_sub(1)..(c + 2).min(k.len())]
+            .iter()
+            .sum();
         assert!(core > 0.85, "{k:?}");
         assert!((k.taps.iter().sum::<f32>() - 1.0).abs() < 1e-5);
         // The recovered spread is that of h: variance 0.5 bin² (measured 1.0 after 200 Gold

@@ -438,7 +438,10 @@ mod tests {
             .map(|(i, v)| i as f32 * v)
             .sum::<f32>()
             / total;
-        assert!(centroid - 12.0 > 1.5, "centroid {centroid}: the test would not tell");
+        assert!(
+            centroid - 12.0 > 1.5,
+            "centroid {centroid}: the test would not tell"
+        );
         let targets = [(60usize, 0.8f32), (130, 0.5)];
         let mut ret = vec![0.0f32; 200];
         for (t, a) in targets {
@@ -471,7 +474,12 @@ mod tests {
                     .unwrap()
                     .0 as i64
                     - 8;
-                assert_eq!(peak, 0, "{m:?}: target at {t} came back at {}", t as i64 + peak);
+                assert_eq!(
+                    peak,
+                    0,
+                    "{m:?}: target at {t} came back at {}",
+                    t as i64 + peak
+                );
             }
         }
     }
@@ -533,7 +541,11 @@ mod tests {
         let run = run_stage(&mut second, run.emitted.into_iter().map(|p| *p)).unwrap();
         assert_eq!(run.emitted.len(), 1);
         let p = &run.emitted[0];
-        assert_eq!(p.signal_of(0), &out[..], "the outgoing segment is left as recorded");
+        assert_eq!(
+            p.signal_of(0),
+            &out[..],
+            "the outgoing segment is left as recorded"
+        );
         let y = p.signal_of(1);
         assert!(y.iter().all(|v| v.is_finite() && *v >= 0.0));
         let peak = y
@@ -558,7 +570,12 @@ mod tests {
         q.signal.extend(&ret);
         let single = run_stage(&mut only, [q]).unwrap();
         let z = single.emitted[0].signal_of(1);
-        assert!(y[t] > z[t], "two-stage peak {} vs outgoing only {}", y[t], z[t]);
+        assert!(
+            y[t] > z[t],
+            "two-stage peak {} vs outgoing only {}",
+            y[t],
+            z[t]
+        );
     }
 
     #[test]
