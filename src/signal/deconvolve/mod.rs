@@ -22,7 +22,7 @@ use crate::signal::kernel::Kernel;
 pub use gold::{Gold, GoldConfig};
 pub use nnls::{Nnls, NnlsConfig};
 pub use richardson_lucy::{RichardsonLucy, RlConfig};
-pub use stage::{Deconvolve, DeconvolveConfig, KernelSource};
+pub use stage::{Deconvolve, DeconvolveConfig, KernelSource, WorstCase};
 pub use wiener::{Wiener, WienerConfig};
 
 /// Why a segment could not be deconvolved (the stage drops the pulse with this reason).

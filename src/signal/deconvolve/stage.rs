@@ -137,7 +137,38 @@ fn default_max_taps() -> usize {
     256
 }
 
+/// The fixed worst-case cost of a deconvolve stage per return segment, as its configuration
+/// states it (`fwlidar validate` prints it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct WorstCase {
+    /// Longest segment accepted (`max_samples`), samples.
+    pub samples: usize,
+    /// Longest kernel: `max_taps` for `kernel = "outgoing"`, the calibrated kernel's length
+    /// otherwise, taps.
+    pub taps: usize,
+    /// Iteration budget ([`MethodConfig::iteration_budget`]).
+    pub iterations: u64,
+    /// Floating-point operations for one segment of `samples` by a kernel of `taps`.
+    pub flops: u64,
+}
+
 impl DeconvolveConfig {
+    /// The stage's worst case per return segment (a pulse costs the sum over its return
+    /// segments). The kernel of `flat_target` is measured to know its length (`max_taps` when
+    /// that fails).
+    pub fn worst_case(&self) -> WorstCase {
+        let taps = match self.kernel.fixed_kernel(&self.method, self.max_taps) {
+            Some(Ok(k)) => k.len(),
+            _ => self.max_taps,
+        };
+        WorstCase {
+            samples: self.max_samples,
+            taps,
+            iterations: self.method.iteration_budget(),
+            flops: self.method.worst_case_flops(self.max_samples, taps),
+        }
+    }
+
     /// A configuration with the given method and every other field at its default.
     pub fn with_method(method: MethodConfig) -> Self {
         DeconvolveConfig {
