@@ -575,7 +575,7 @@ max_iterations = 25
         d.chars()
             .enumerate()
             .flat_map(|(i, c)| {
-                let sep = i > 0 && (d.len() - i) % 3 == 0;
+                let sep = i > 0 && (d.len() - i).is_multiple_of(3);
                 sep.then_some(' ').into_iter().chain([c])
             })
             .collect::<String>()

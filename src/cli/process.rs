@@ -77,7 +77,8 @@ pub struct ProcessArgs {
     /// System response (`.csv` or `.npy`): one row, or one column (one value per line, as in
     /// NEON's `imp.csv`); with `--kernel-per-row`, one outgoing pulse per input row. Its
     /// baseline (median of the first 8 samples) is removed, negative samples clipped, the
-    /// rest normalised to unit sum and centred on its peak. Required unless `--method none`.
+    /// rest normalised to unit sum and centred on its peak. A method needs `--kernel`,
+    /// `--response`, or both (the response is deconvolved first).
     #[arg(long)]
     pub kernel: Option<PathBuf>,
     /// Calibrated system response `h` (`.csv` or `.npy`, one row or one column), deconvolved

@@ -612,8 +612,8 @@ mod tests {
         // in the signal has ≈ 0.63 σ: a threshold of 3 noise_v sits only ~3 residual σ above
         // the floor. Measured (200 pulses of 256 samples, ±11 DN uniform noise, σ = 6.35 DN,
         // noise_v ≈ 4.0 DN), pulses with a return on pure noise: 50 at min_snr 3, 5 at 4, 2 at
-        // 4.5, 1 at 5, 0 at 6; an echo (16 ns FWHM) of 5 σ = 31.8 DN found (within ±σ of its
-        // bin) in 198/200 at 3, 199 at 5, 199 at 6.
+        // 4.5, 1 at 5, 0 at 6; an echo (16 ns FWHM) of 8 noise_v ≈ 5 σ found (within ±σ of its
+        // bin) in 200/200 at 3, 199 at 5, 199 at 6 (docs/signal.md has the whole table).
         let noise = denoised_noise_pulses(200, 0.0, 11);
         let noise_v = noise.iter().map(|p| p.noise.noise_v).sum::<f32>() / 200.0;
         assert!((noise_v - 4.0).abs() < 0.5, "noise_v {noise_v}");
@@ -622,7 +622,11 @@ mod tests {
                 .unwrap()
                 .emitted
                 .iter()
-                .filter(|p| p.returns.iter().any(|r| (r.position_bins - 128.0).abs() <= 6.8))
+                .filter(|p| {
+                    p.returns
+                        .iter()
+                        .any(|r| (r.position_bins - 128.0).abs() <= 6.8)
+                })
                 .count()
         };
         let any_return = |cfg: DecomposeConfig| {
@@ -640,7 +644,10 @@ mod tests {
         });
         assert!(old >= 20, "min_snr 3: {old} noise pulses with returns");
         let false_pulses = any_return(DecomposeConfig::default());
-        assert!(false_pulses <= 2, "{false_pulses}/200 noise pulses with returns");
+        assert!(
+            false_pulses <= 2,
+            "{false_pulses}/200 noise pulses with returns"
+        );
         let sigma_dn = 11.0 / 3f64.sqrt();
         let echoes = denoised_noise_pulses(200, 5.0 * sigma_dn, 12);
         let found = with_returns(DecomposeConfig::default(), &echoes);
