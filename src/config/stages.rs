@@ -406,6 +406,47 @@ mod tests {
     }
 
     #[test]
+    fn stage_config_flat_target_kernel_is_parsed_and_checked() {
+        let text = "type = \"deconvolve\"\nmethod = { method = \"gold\" }\n\
+                    kernel = { flat_target = { ground_return = [200.0, 200.0, 900.0, 400.0, 200.0], \
+                    outgoing = [200.0, 200.0, 700.0, 300.0, 200.0] } }";
+        let s = stage(text).unwrap();
+        let StageConfig::Deconvolve(c) = &s else {
+            panic!("{s:?}")
+        };
+        assert!(matches!(c.kernel, KernelSource::FlatTarget { .. }));
+        assert_eq!(stage(&toml::to_string(&s).unwrap()).unwrap(), s);
+        let mut v = Validator::new(None);
+        Validate::validate(c, "s", &mut v);
+        assert!(v.issues().is_empty(), "{:?}", v.issues());
+        // A flat outgoing pulse (no energy above its baseline) and a NaN in the return.
+        for (ground, out, path) in [
+            (
+                vec![200.0, 900.0, 200.0],
+                vec![5.0; 4],
+                "s.kernel.flat_target.outgoing",
+            ),
+            (
+                vec![200.0, f32::NAN],
+                vec![0.0, 3.0, 0.0],
+                "s.kernel.flat_target.ground_return",
+            ),
+        ] {
+            let bad = DeconvolveConfig {
+                kernel: KernelSource::FlatTarget {
+                    ground_return: ground,
+                    outgoing: out,
+                },
+                ..c.clone()
+            };
+            let mut v = Validator::new(None);
+            Validate::validate(&bad, "s", &mut v);
+            let paths: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+            assert_eq!(paths, [path], "{:?}", v.issues());
+        }
+    }
+
+    #[test]
     fn denoise_config_checks_ranges_and_nyquist() {
         let ok = DenoiseConfig::default();
         assert!(check(&ok, None).is_empty());
