@@ -518,3 +518,89 @@ fn replay_of_a_damaged_capture_recovers_every_intact_record_and_says_what_it_ski
     );
     assert!(text(&o.stdout).contains("capture damage:"));
 }
+
+#[test]
+fn validate_states_each_stage_worst_case_cost() {
+    // Four deconvolve stages, one per method, and a decompose stage; the printed flops must be
+    // the documented formulas (docs/configuration.md) for n = max_samples and m = the kernel.
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("cost.toml");
+    std::fs::write(
+        &cfg,
+        r#"
+[[pipeline.stages]]
+type = "deconvolve"
+method = { method = "richardson_lucy", iterations = 50 }
+max_samples = 300
+max_taps = 40
+
+[[pipeline.stages]]
+type = "deconvolve"
+method = { method = "gold", iterations = 30, repetitions = 2, boost = 1.8 }
+kernel = { taps = { taps = [1.0, 2.0, 1.0], center = 1 } }
+max_samples = 300
+
+[[pipeline.stages]]
+type = "deconvolve"
+method = { method = "nnls", max_iterations = 60 }
+max_samples = 300
+max_taps = 40
+
+[[pipeline.stages]]
+type = "deconvolve"
+method = { method = "wiener" }
+max_samples = 300
+max_taps = 40
+
+[[pipeline.stages]]
+type = "decompose"
+max_iterations = 25
+"#,
+    )
+    .unwrap();
+    let o = fwlidar(&["validate", cfg.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let out = text(&o.stdout);
+    let (n, m) = (300u64, 40u64);
+    let rl = 50 * (4 * n * m + 8 * n);
+    let m3 = 3u64;
+    let gold = 2 * n * m3 + 2 * (30 * (4 * n * m3 + 6 * n) + 2 * n * m3 + 6 * n);
+    let k = 60u64;
+    let nnls = m * m + m + 2 * n * m + n + 60 * (2 * k * (2 * m - 1) + n + 11 * k * k + 18 * k);
+    // Wiener: L = 360 = 2³·3²·5, the first even 2·3·5-smooth length >= n + m = 340.
+    let l = 360f64;
+    let wiener = (7.5 * l * l.log2() + 20.0 * (l / 2.0 + 1.0)) as u64;
+    let grouped = |v: u64| {
+        let d = v.to_string();
+        d.chars()
+            .enumerate()
+            .flat_map(|(i, c)| {
+                let sep = i > 0 && (d.len() - i).is_multiple_of(3);
+                sep.then_some(' ').into_iter().chain([c])
+            })
+            .collect::<String>()
+    };
+    for (stage, method, flops) in [
+        (0, "richardson_lucy, 50 iterations", rl),
+        (1, "gold, 60 iterations", gold),
+        (2, "nnls, 60 iterations", nnls),
+        (3, "wiener, direct", wiener),
+    ] {
+        let line = out
+            .lines()
+            .find(|l| l.contains(&format!("stage {stage} deconvolve")))
+            .unwrap_or_else(|| panic!("no line for stage {stage}:\n{out}"));
+        assert!(line.contains(method), "{line}");
+        assert!(
+            line.contains(&format!("worst case {} flop", grouped(flops))),
+            "stage {stage}: expected {flops} flop: {line}"
+        );
+        assert!(line.contains("<= 300 samples"), "{line}");
+    }
+    assert!(out.contains("kernel: calibrated, 3 taps"), "{out}");
+    assert!(out.contains("outgoing pulse of <= 40 taps"), "{out}");
+    assert!(
+        out.contains("stage 4 decompose: at most 25 Levenberg-Marquardt steps"),
+        "{out}"
+    );
+}

@@ -118,6 +118,106 @@ fn read_waveforms(text: &str) -> Vec<Pulse> {
         .collect()
 }
 
+/// What one comparison found (ours − reference for the matched components).
+struct Comparison {
+    matched: usize,
+    ours_total: usize,
+    ours_in_ref_waveforms: usize,
+    extra_in_ref_waveforms: usize,
+    d_mu: Vec<f64>,
+    d_sigma: Vec<f64>,
+    r_amp: Vec<f64>,
+}
+
+/// Decomposes the denoised pulses with `config` and matches the result with the reference:
+/// per waveform, greedy one-to-one, each reference component taking the nearest of our unused
+/// components within ±1 ns (1 bin).
+fn compare(denoised: &[Pulse], reference: &[Reference], config: DecomposeConfig) -> Comparison {
+    let run = run_stage(
+        &mut Decompose::new(config),
+        denoised.iter().map(|p| {
+            let mut q = Pulse {
+                sample_ns: p.sample_ns,
+                noise: p.noise,
+                ..Pulse::default()
+            };
+            q.segments.clone_from(&p.segments);
+            q.raw.clone_from(&p.raw);
+            q.signal.clone_from(&p.signal);
+            q
+        }),
+    )
+    .unwrap();
+    assert_eq!(run.emitted.len(), 500, "dropped: {:?}", run.dropped);
+    let mut c = Comparison {
+        matched: 0,
+        ours_total: 0,
+        ours_in_ref_waveforms: 0,
+        extra_in_ref_waveforms: 0,
+        d_mu: Vec::new(),
+        d_sigma: Vec::new(),
+        r_amp: Vec::new(),
+    };
+    for (w, p) in run.emitted.iter().enumerate() {
+        let ours = &p.returns;
+        c.ours_total += ours.len();
+        let refs: Vec<&Reference> = reference.iter().filter(|r| r.waveform == w + 1).collect();
+        if refs.is_empty() {
+            continue;
+        }
+        c.ours_in_ref_waveforms += ours.len();
+        let mut used = vec![false; ours.len()];
+        for r in &refs {
+            let best = ours
+                .iter()
+                .enumerate()
+                .filter(|(i, o)| !used[*i] && (o.time_ns - r.center_bins).abs() <= 1.0)
+                .min_by(|a, b| {
+                    (a.1.time_ns - r.center_bins)
+                        .abs()
+                        .total_cmp(&(b.1.time_ns - r.center_bins).abs())
+                });
+            if let Some((i, o)) = best {
+                used[i] = true;
+                c.matched += 1;
+                c.d_mu.push(o.time_ns - r.center_bins);
+                c.d_sigma.push(o.sigma_bins as f64 - r.sigma_bins);
+                c.r_amp.push(o.amplitude as f64 / r.amplitude);
+            }
+        }
+        c.extra_in_ref_waveforms += used.iter().filter(|u| !**u).count();
+    }
+    c
+}
+
+/// The `q` quantile (0..1, nearest rank) of `v`.
+fn quantile(v: &[f64], q: f64) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    s[((s.len() - 1) as f64 * q).round() as usize]
+}
+
+fn report(name: &str, c: &Comparison, reference: usize) {
+    let abs = |v: &[f64]| v.iter().map(|x| x.abs()).collect::<Vec<_>>();
+    let amp_dev: Vec<f64> = c.r_amp.iter().map(|r| (r - 1.0).abs()).collect();
+    println!(
+        "NEON HARV [{name}]: matched {}/{reference} ({:.1} %); ours {} in 500 waveforms, {} in \
+         the 482 with a reference, {} of those extra; μ diff median {:+.3} bin, |μ| p90 {:.3}; \
+         σ diff median {:+.3} bin, |σ| p90 {:.3}; A ratio median {:.3}, |A ratio − 1| p90 {:.3}",
+        c.matched,
+        100.0 * c.matched as f64 / reference as f64,
+        c.ours_total,
+        c.ours_in_ref_waveforms,
+        c.extra_in_ref_waveforms,
+        quantile(&c.d_mu, 0.5),
+        quantile(&abs(&c.d_mu), 0.9),
+        quantile(&c.d_sigma, 0.5),
+        quantile(&abs(&c.d_sigma), 0.9),
+        quantile(&c.r_amp, 0.5),
+        quantile(&amp_dev, 0.9),
+    );
+}
+
 #[test]
 fn neon_harv_decomposition_matches_the_reference() {
     let dir = match fixtures() {
@@ -140,79 +240,49 @@ fn neon_harv_decomposition_matches_the_reference() {
 
     let denoised = run_stage(&mut Denoise::new(DenoiseConfig::default()), pulses).unwrap();
     assert_eq!(denoised.emitted.len(), 500);
-    let run = run_stage(
-        &mut Decompose::new(DecomposeConfig {
-            // The reference's selection rule (peaks above 22 % of the waveform maximum); with
-            // the default (0: only min_snr × noise) the residual refinement also splits the
-            // asymmetric tails of the NEON system response into extra Gaussians and only
-            // ~42 % of the reference components keep their centre within 1 ns (measured).
+    let denoised: Vec<Pulse> = denoised.emitted.into_iter().map(|p| *p).collect();
+
+    // The defaults (only min_snr × noise) and the ablations that explain their difference
+    // from the reference (docs/accuracy.md), for the record; asserted: the reference's rule.
+    for (name, config) in [
+        ("defaults", DecomposeConfig::default()),
+        (
+            "defaults, no residual refinement",
+            DecomposeConfig {
+                refine_passes: 0,
+                ..DecomposeConfig::default()
+            },
+        ),
+        (
+            "min_relative_amplitude 0.22, no refinement",
+            DecomposeConfig {
+                min_relative_amplitude: 0.22,
+                refine_passes: 0,
+                ..DecomposeConfig::default()
+            },
+        ),
+    ] {
+        report(
+            name,
+            &compare(&denoised, &reference, config),
+            reference.len(),
+        );
+    }
+    // The reference's selection rule (peaks above 22 % of the waveform maximum); with the
+    // defaults the residual refinement also splits the asymmetric tails of the NEON system
+    // response into extra Gaussians (docs/accuracy.md).
+    let c = compare(
+        &denoised,
+        &reference,
+        DecomposeConfig {
             min_relative_amplitude: 0.22,
             ..DecomposeConfig::default()
-        }),
-        denoised.emitted.into_iter().map(|p| *p),
-    )
-    .unwrap();
-    assert_eq!(run.emitted.len(), 500, "dropped: {:?}", run.dropped);
-
-    // Greedy one-to-one matching per waveform: each reference component takes the nearest of
-    // our unused components within ±1 ns (1 bin).
-    let mut matched = 0usize;
-    let mut ours_total = 0usize;
-    let mut ours_in_ref_waveforms = 0usize;
-    let mut extra_in_ref_waveforms = 0usize;
-    let (mut d_mu, mut d_sigma, mut r_amp, mut d_amp) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    for (w, p) in run.emitted.iter().enumerate() {
-        let ours = &p.returns;
-        ours_total += ours.len();
-        let refs: Vec<&Reference> = reference.iter().filter(|r| r.waveform == w + 1).collect();
-        if refs.is_empty() {
-            continue;
-        }
-        ours_in_ref_waveforms += ours.len();
-        let mut used = vec![false; ours.len()];
-        for r in &refs {
-            let best = ours
-                .iter()
-                .enumerate()
-                .filter(|(i, o)| !used[*i] && (o.time_ns - r.center_bins).abs() <= 1.0)
-                .min_by(|a, b| {
-                    (a.1.time_ns - r.center_bins)
-                        .abs()
-                        .total_cmp(&(b.1.time_ns - r.center_bins).abs())
-                });
-            if let Some((i, o)) = best {
-                used[i] = true;
-                matched += 1;
-                d_mu.push(o.time_ns - r.center_bins);
-                d_sigma.push(o.sigma_bins as f64 - r.sigma_bins);
-                r_amp.push(o.amplitude as f64 / r.amplitude);
-                d_amp.push(o.amplitude as f64 - r.amplitude);
-            }
-        }
-        extra_in_ref_waveforms += used.iter().filter(|u| !**u).count();
-    }
-    let median = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
-    let share = matched as f64 / reference.len() as f64;
-    println!(
-        "NEON HARV: matched {matched}/{} reference components within ±1 ns ({:.1} %); \
-         ours {ours_total} in 500 waveforms, {ours_in_ref_waveforms} in the 482 with a \
-         reference, {extra_in_ref_waveforms} of those unmatched (extra)",
-        reference.len(),
-        100.0 * share
+        },
     );
-    println!(
-        "matched offsets (ours − reference), medians: μ {:+.3} bin, σ {:+.3} bin, A ratio {:.3}, \
-         A difference {:+.1} DN; mean μ {:+.3} bin",
-        median(&mut d_mu.clone()),
-        median(&mut d_sigma),
-        median(&mut r_amp),
-        median(&mut d_amp),
-        d_mu.iter().sum::<f64>() / d_mu.len() as f64
-    );
+    report("min_relative_amplitude 0.22", &c, reference.len());
+    let share = c.matched as f64 / reference.len() as f64;
+    let extra_in_ref_waveforms = c.extra_in_ref_waveforms;
+    let d_mu = c.d_mu;
     // Measured on 2026-11-22: 634/713 matched (88.9 %), 74 extra components in the 482
     // waveforms with a reference (751 in all 500); medians of ours − reference: μ −0.03 bin,
     // σ −0.24 bin (our low-pass narrows nothing; the reference's 3-bin running mean widens its

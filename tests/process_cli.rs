@@ -363,3 +363,115 @@ fn bad_input_fails_clearly_and_writes_nothing() {
     assert_eq!(t.rows.len(), 2);
     assert!(t.rows.iter().all(|r| r.len() == 4));
 }
+
+/// Runs `fwlidar process` on the NEON returns with `extra` options; the processed rows.
+fn neon_process(neon: &Path, dir: &Path, name: &str, extra: &[&str]) -> Vec<Vec<f32>> {
+    let out = dir.join(name);
+    let input = neon.join("return.csv");
+    let mut args = vec![
+        "process",
+        "--input",
+        s(&input),
+        "--zero-padding",
+        "--no-progress",
+        "--out",
+        s(&out),
+    ];
+    args.extend_from_slice(extra);
+    let o = fwlidar(&args);
+    assert!(o.status.success(), "{extra:?}: {}", stderr(&o));
+    let rows = read_table(&out).unwrap().rows;
+    assert_eq!(rows.len(), 500);
+    assert!(rows.iter().flatten().all(|v| v.is_finite()), "{extra:?}");
+    rows
+}
+
+fn argmax(x: &[f32]) -> usize {
+    x.iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map_or(0, |(i, _)| i)
+}
+
+#[test]
+fn neon_two_stage_response_then_outgoing() {
+    let Some(fx) = fixtures() else { return };
+    let neon = fx.join("waveform/neon_harv");
+    let dir = tempfile::tempdir().unwrap();
+    let outg = neon.join("outg.csv");
+    let outgoing = ["--method", "gold", "--kernel", s(&outg), "--kernel-per-row"];
+    let one = neon_process(&neon, dir.path(), "one.csv", &outgoing);
+    let mut two_args = outgoing.to_vec();
+    let (imp, imp_out) = (neon.join("imp.csv"), neon.join("imp_out.csv"));
+    two_args.extend_from_slice(&["--response", s(&imp), "--response-outgoing", s(&imp_out)]);
+    let two = neon_process(&neon, dir.path(), "two.csv", &two_args);
+    // Gold keeps everything non-negative; the response stage changes the result but moves no
+    // return: the highest sample of most rows stays within a bin of the one-stage result's.
+    assert!(two.iter().flatten().all(|v| *v >= 0.0));
+    assert_ne!(one, two, "--response changed nothing");
+    let near = one
+        .iter()
+        .zip(&two)
+        .filter(|(a, b)| (argmax(a) as i64 - argmax(b) as i64).abs() <= 1)
+        .count();
+    assert!(
+        near >= 450,
+        "{near}/500 rows peak within a bin of the one-stage result"
+    );
+
+    // The response alone (no --kernel) is accepted; --response-outgoing needs --response.
+    let imp_s = s(&imp);
+    neon_process(
+        &neon,
+        dir.path(),
+        "h.csv",
+        &["--method", "rl", "--response", imp_s],
+    );
+    let o = fwlidar(&[
+        "process",
+        "--input",
+        s(&neon.join("return.csv")),
+        "--method",
+        "rl",
+        "--kernel",
+        imp_s,
+        "--response-outgoing",
+        s(&imp_out),
+        "--out",
+        s(&dir.path().join("x.csv")),
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--response"), "{}", stderr(&o));
+    assert!(!dir.path().join("x.csv").exists());
+}
+
+#[test]
+fn iterations_change_the_result_of_iterative_methods() {
+    let Some(fx) = fixtures() else { return };
+    let neon = fx.join("waveform/neon_harv");
+    let dir = tempfile::tempdir().unwrap();
+    let imp = neon.join("imp.csv");
+    for method in ["rl", "gold"] {
+        let run = |n: &str| {
+            neon_process(
+                &neon,
+                dir.path(),
+                &format!("{method}{n}.csv"),
+                &["--method", method, "--kernel", s(&imp), "--iterations", n],
+            )
+        };
+        let (few, many) = (run("5"), run("50"));
+        let changed = few.iter().zip(&many).filter(|(a, b)| a != b).count();
+        assert!(changed >= 490, "{method}: only {changed}/500 rows changed");
+        // More iterations sharpen: the highest sample grows in most rows.
+        let taller = few
+            .iter()
+            .zip(&many)
+            .filter(|(a, b)| b[argmax(b)] > a[argmax(a)])
+            .count();
+        assert!(
+            taller >= 450,
+            "{method}: {taller}/500 rows sharper at 50 iterations"
+        );
+    }
+}

@@ -19,12 +19,12 @@ use crate::format::table::{Table, TableFormat, read_table, write_table};
 use crate::pulse::FittedReturn;
 use crate::signal::decompose::{DecomposeConfig, Decomposer};
 use crate::signal::deconvolve::MethodConfig;
+use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::denoise::{Denoise, DenoiseConfig};
-use crate::signal::kernel::Kernel;
+use crate::signal::kernel::{Kernel, remove_baseline};
 use crate::sink::atomic_file::AtomicFile;
 
-/// Number of leading kernel samples whose median is taken as the kernel's baseline.
-pub const KERNEL_BASELINE_SAMPLES: usize = 8;
+pub use crate::signal::kernel::KERNEL_BASELINE_SAMPLES;
 
 /// Rows from which a progress bar is drawn (on a terminal).
 const PROGRESS_MIN_ROWS: usize = 1000;
@@ -77,9 +77,21 @@ pub struct ProcessArgs {
     /// System response (`.csv` or `.npy`): one row, or one column (one value per line, as in
     /// NEON's `imp.csv`); with `--kernel-per-row`, one outgoing pulse per input row. Its
     /// baseline (median of the first 8 samples) is removed, negative samples clipped, the
-    /// rest normalised to unit sum and centred on its peak. Required unless `--method none`.
+    /// rest normalised to unit sum and centred on its peak. A method needs `--kernel`,
+    /// `--response`, or both (the response is deconvolved first).
     #[arg(long)]
     pub kernel: Option<PathBuf>,
+    /// Calibrated system response `h` (`.csv` or `.npy`, one row or one column), deconvolved
+    /// from every row *before* `--kernel` (the waveformlidar package's two steps: returns by
+    /// the system response, then by the outgoing pulse). Prepared like `--kernel`; with
+    /// `--response-outgoing` it is a flat-target return instead, and `h` is measured from it.
+    #[arg(long)]
+    pub response: Option<PathBuf>,
+    /// The outgoing pulse recorded with the flat-target return given as `--response` (one row
+    /// or column): `h` is then that return deconvolved by this pulse, with `--method`
+    /// (e.g. NEON's `imp.csv` and `imp_out.csv`).
+    #[arg(long, requires = "response")]
+    pub response_outgoing: Option<PathBuf>,
     /// Deconvolution method.
     #[arg(long, value_enum)]
     pub method: ProcessMethod,
@@ -169,8 +181,7 @@ pub fn kernel_from_row(row: &[f32], kernel: &mut Kernel) -> Result<(), String> {
     if let Some(j) = row.iter().position(|v| !v.is_finite()) {
         return Err(format!("sample {j} is {} (not a finite number)", row[j]));
     }
-    let base = median(&row[..row.len().min(KERNEL_BASELINE_SAMPLES)]);
-    let shifted: Vec<f32> = row.iter().map(|v| v - base).collect();
+    let shifted = remove_baseline(row);
     kernel
         .set_from_outgoing(&shifted, row.len())
         .map_err(|e| e.to_string())
@@ -206,20 +217,8 @@ fn load_kernels(args: &ProcessArgs, input_rows: usize) -> Result<Vec<Kernel>, Fa
         (0..table.rows.len())
             .map(|i| (table.row_origin(i), table.rows[i].clone()))
             .collect()
-    } else if table.rows.len() == 1 {
-        vec![(table.row_origin(0), table.rows[0].clone())]
-    } else if table.rows.iter().all(|r| r.len() == 1) {
-        // One value per line: the kernel is the column.
-        vec![(
-            "its column".to_string(),
-            table.rows.iter().map(|r| r[0]).collect(),
-        )]
     } else {
-        return Err(Failure::usage(format!(
-            "kernel {name} has {} rows of several values; give one row (or one column) as the \
-             system response, or --kernel-per-row for one outgoing pulse per waveform",
-            table.rows.len()
-        )));
+        vec![single_row(&table, "kernel", &name)?]
     };
     rows.iter()
         .map(|(origin, row)| {
@@ -236,10 +235,89 @@ fn load_kernels(args: &ProcessArgs, input_rows: usize) -> Result<Vec<Kernel>, Fa
         .collect()
 }
 
+/// The one row of a table that holds a single pulse: one row, or one column (one value per
+/// line, as NEON's `imp.csv`). `what` and `name` name the option and file in errors.
+fn single_row(table: &Table, what: &str, name: &str) -> Result<(String, Vec<f32>), Failure> {
+    if table.rows.is_empty() {
+        return Err(Failure::job(format!("{what} {name} holds no values")));
+    }
+    if table.rows.len() == 1 {
+        Ok((table.row_origin(0), table.rows[0].clone()))
+    } else if table.rows.iter().all(|r| r.len() == 1) {
+        Ok((
+            "its column".to_string(),
+            table.rows.iter().map(|r| r[0]).collect(),
+        ))
+    } else {
+        Err(Failure::usage(format!(
+            "{what} {name} has {} rows of several values; give one row (or one column) as the \
+             system response{}",
+            table.rows.len(),
+            if what == "kernel" {
+                ", or --kernel-per-row for one outgoing pulse per waveform"
+            } else {
+                ""
+            }
+        )))
+    }
+}
+
+/// One pulse read from `path` (one row or column), its zero padding removed with
+/// `--zero-padding`.
+fn read_single(args: &ProcessArgs, path: &Path, what: &str) -> Result<Vec<f32>, Failure> {
+    let name = path.display().to_string();
+    let table = read(path, what)?;
+    let (origin, row) = single_row(&table, what, &name)?;
+    let row = if args.zero_padding {
+        row[..unpadded_len(&row)].to_vec()
+    } else {
+        row
+    };
+    if let Some(j) = row.iter().position(|v| !v.is_finite()) {
+        return Err(Failure::job(format!(
+            "{what} {name}: {origin}: sample {j} is {} (not a finite number)",
+            row[j]
+        )));
+    }
+    Ok(row)
+}
+
+/// The calibrated system response of `--response` (measured from a flat target with
+/// `--response-outgoing`), `None` without `--response`.
+fn load_response(
+    args: &ProcessArgs,
+    method: Option<&MethodConfig>,
+) -> Result<Option<Kernel>, Failure> {
+    let (Some(path), Some(method)) = (&args.response, method) else {
+        return Ok(None);
+    };
+    let name = path.display().to_string();
+    let row = read_single(args, path, "response")?;
+    let mut k = Kernel::with_capacity(row.len());
+    match &args.response_outgoing {
+        None => kernel_from_row(&row, &mut k)
+            .map_err(|e| Failure::job(format!("response {name}: {e}")))?,
+        Some(out_path) => {
+            let out = read_single(args, out_path, "response outgoing pulse")?;
+            k = response_from_flat_target(&row, &out, method, row.len()).map_err(|e| {
+                Failure::job(format!(
+                    "response {name} with outgoing pulse {}: {e}",
+                    out_path.display()
+                ))
+            })?;
+        }
+    }
+    tracing::info!(taps = k.len(), center = k.center, "system response");
+    Ok(Some(k))
+}
+
 fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
     TableFormat::from_path(&args.input).map_err(Failure::usage)?;
     TableFormat::from_path(&args.out).map_err(Failure::usage)?;
-    if let Some(k) = &args.kernel {
+    for k in [&args.kernel, &args.response, &args.response_outgoing]
+        .into_iter()
+        .flatten()
+    {
         TableFormat::from_path(k).map_err(Failure::usage)?;
     }
     if !(args.sample_ns.is_finite() && args.sample_ns > 0.0) {
@@ -264,11 +342,19 @@ fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
             )));
         }
     }
-    if args.method != ProcessMethod::None && args.kernel.is_none() {
+    if args.method != ProcessMethod::None && args.kernel.is_none() && args.response.is_none() {
         return Err(Failure::usage(format!(
-            "--method {} needs --kernel",
+            "--method {} needs --kernel (outgoing pulse or system response), --response, or both",
             args.method.cli_name()
         )));
+    }
+    if args.method == ProcessMethod::None && args.response.is_some() {
+        return Err(Failure::usage(
+            "--response has no meaning with --method none",
+        ));
+    }
+    if args.response_outgoing.is_some() && args.response.is_none() {
+        return Err(Failure::usage("--response-outgoing needs --response"));
     }
     if args.method == ProcessMethod::None && args.iterations.is_some() {
         return Err(Failure::usage(
@@ -346,8 +432,14 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         )));
     }
     let kernels = load_kernels(args, table.rows.len())?;
+    let response = load_response(args, method.as_ref())?;
     let max_samples = table.rows.iter().map(Vec::len).max().unwrap_or(0);
-    let max_taps = kernels.iter().map(Kernel::len).max().unwrap_or(0);
+    let max_taps = kernels
+        .iter()
+        .chain(response.iter())
+        .map(Kernel::len)
+        .max()
+        .unwrap_or(0);
     let mut denoise = (!args.no_denoise).then(|| {
         Denoise::new(DenoiseConfig {
             cutoff_ghz: args.cutoff_ghz,
@@ -386,6 +478,7 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
     let mut returns: Vec<(usize, FittedReturn)> = Vec::new();
     let mut fits = Vec::new();
     let mut work = vec![0.0f32; max_samples];
+    let mut first = vec![0.0f32; max_samples];
     let mut samples = 0usize;
     for (i, row) in table.rows.iter().enumerate() {
         let at = || format!("{input_name}: {}", table.row_origin(i));
@@ -427,13 +520,30 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         let (out_valid, _) = out.split_at_mut(len);
         match deconvolver.as_mut() {
             Some(dec) => {
-                let k = if kernels.len() == 1 {
-                    &kernels[0]
-                } else {
-                    &kernels[i]
+                let fail = |e| Failure::job(format!("{}: deconvolution failed: {e}", at()));
+                // Stage 1: the system response; stage 2: the outgoing pulse (or kernel).
+                let input: &[f32] = match &response {
+                    Some(h) if kernels.is_empty() => {
+                        dec.run(w, h, noise_v, args.sample_ns, out_valid)
+                            .map_err(fail)?;
+                        &[]
+                    }
+                    Some(h) => {
+                        let f = &mut first[..len];
+                        dec.run(w, h, noise_v, args.sample_ns, f).map_err(fail)?;
+                        f
+                    }
+                    None => w,
                 };
-                dec.run(w, k, noise_v, args.sample_ns, out_valid)
-                    .map_err(|e| Failure::job(format!("{}: deconvolution failed: {e}", at())))?;
+                if !kernels.is_empty() {
+                    let k = if kernels.len() == 1 {
+                        &kernels[0]
+                    } else {
+                        &kernels[i]
+                    };
+                    dec.run(input, k, noise_v, args.sample_ns, out_valid)
+                        .map_err(fail)?;
+                }
             }
             None => out_valid.copy_from_slice(w),
         }
@@ -533,6 +643,8 @@ mod tests {
         let base = ProcessArgs {
             input: "a.csv".into(),
             kernel: Some("k.csv".into()),
+            response: None,
+            response_outgoing: None,
             method: ProcessMethod::Rl,
             iterations: None,
             sample_ns: 1.0,
@@ -583,6 +695,8 @@ mod tests {
         ProcessArgs {
             input: a.input.clone(),
             kernel: a.kernel.clone(),
+            response: a.response.clone(),
+            response_outgoing: a.response_outgoing.clone(),
             method: a.method,
             iterations: a.iterations,
             sample_ns: a.sample_ns,

@@ -4,6 +4,7 @@
 use super::load::{Validate, Validator, field};
 use crate::pipeline::registry::StageConfig;
 use crate::signal::decompose::DecomposeConfig;
+use crate::signal::deconvolve::response::{ResponseError, response_from_flat_target};
 use crate::signal::deconvolve::{DeconvolveConfig, KernelSource, MethodConfig};
 use crate::signal::denoise::DenoiseConfig;
 use crate::signal::gauss_fit::MAX_COMPONENTS;
@@ -170,6 +171,28 @@ impl Validate for DeconvolveConfig {
                 field(&kernel, "center"),
                 format!("must index one of the {} taps, got {center}", taps.len()),
             );
+        }
+        if let KernelSource::FlatTarget {
+            ground_return,
+            outgoing,
+        } = &self.kernel
+        {
+            let at = field(&field(path, "kernel"), "flat_target");
+            // Measured here as the stage will measure it, so an unusable record is reported
+            // before the run.
+            if let Err(e) =
+                response_from_flat_target(ground_return, outgoing, &self.method, self.max_taps)
+            {
+                let (name, reason) = match &e {
+                    ResponseError::Outgoing(k) => ("outgoing", k.to_string()),
+                    ResponseError::GroundReturn(d) => ("ground_return", d.to_string()),
+                    ResponseError::Response(k) => (
+                        "ground_return",
+                        format!("the response measured from it is unusable: {k}"),
+                    ),
+                };
+                v.report(field(&at, name), reason);
+            }
         }
     }
 }
@@ -380,6 +403,47 @@ mod tests {
             &mut v,
         );
         assert!(v.issues().is_empty());
+    }
+
+    #[test]
+    fn stage_config_flat_target_kernel_is_parsed_and_checked() {
+        let text = "type = \"deconvolve\"\nmethod = { method = \"gold\" }\n\
+                    kernel = { flat_target = { ground_return = [200.0, 200.0, 900.0, 400.0, 200.0], \
+                    outgoing = [200.0, 200.0, 700.0, 300.0, 200.0] } }";
+        let s = stage(text).unwrap();
+        let StageConfig::Deconvolve(c) = &s else {
+            panic!("{s:?}")
+        };
+        assert!(matches!(c.kernel, KernelSource::FlatTarget { .. }));
+        assert_eq!(stage(&toml::to_string(&s).unwrap()).unwrap(), s);
+        let mut v = Validator::new(None);
+        Validate::validate(c, "s", &mut v);
+        assert!(v.issues().is_empty(), "{:?}", v.issues());
+        // A flat outgoing pulse (no energy above its baseline) and a NaN in the return.
+        for (ground, out, path) in [
+            (
+                vec![200.0, 900.0, 200.0],
+                vec![5.0; 4],
+                "s.kernel.flat_target.outgoing",
+            ),
+            (
+                vec![200.0, f32::NAN],
+                vec![0.0, 3.0, 0.0],
+                "s.kernel.flat_target.ground_return",
+            ),
+        ] {
+            let bad = DeconvolveConfig {
+                kernel: KernelSource::FlatTarget {
+                    ground_return: ground,
+                    outgoing: out,
+                },
+                ..c.clone()
+            };
+            let mut v = Validator::new(None);
+            Validate::validate(&bad, "s", &mut v);
+            let paths: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+            assert_eq!(paths, [path], "{:?}", v.issues());
+        }
     }
 
     #[test]

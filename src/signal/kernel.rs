@@ -8,7 +8,42 @@
 //!
 //! Per-shot kernels come from the outgoing pulse (baseline removed, negative samples clipped,
 //! normalised to unit sum, centred on the peak sample); a calibrated system impulse response can
-//! come from configuration as plain taps.
+//! come from configuration as plain taps, or be measured on a flat target
+//! ([`crate::signal::deconvolve::response`]).
+//!
+//! **Zero-phase alignment on the peak, not the centroid.** The zero-delay tap of a kernel built
+//! from a recorded pulse is its highest sample. A point target at two-way time `t` then returns
+//! `k ⊛ δ_t`, whose highest sample is at `t`, and deconvolution puts the target back at `t`: the
+//! deconvolved return lies where the raw echo peaked, the convention of discrete-return ranging
+//! and of the NEON geolocation (`geo.csv` references the outgoing pulse at its peak bin). The
+//! centroid was rejected: for the asymmetric pulses of real digitizers (NEON: a 1-2 ns rise, a
+//! long tail) it lies 1.5-2 bins after the peak, so every return would move by that much
+//! relative to the raw peak; it is not a sample, so it needs rounding (±0.5 bin) or a
+//! fractional shift; and it depends on where the recording truncates the tail and on the
+//! baseline estimate (a 1 % baseline error over a 60-sample tail moves it by about a bin),
+//! while the peak depends on neither. See `docs/signal.md`.
+
+/// Number of leading samples whose median is taken as the baseline of a recorded pulse
+/// ([`remove_baseline`]).
+pub const KERNEL_BASELINE_SAMPLES: usize = 8;
+
+/// A recorded pulse (digitizer counts or volts on a pedestal) minus its baseline, the median
+/// of its first [`KERNEL_BASELINE_SAMPLES`] samples (the pre-trigger samples). Empty in, empty
+/// out.
+pub fn remove_baseline(row: &[f32]) -> Vec<f32> {
+    if row.is_empty() {
+        return Vec::new();
+    }
+    let mut head = row[..row.len().min(KERNEL_BASELINE_SAMPLES)].to_vec();
+    head.sort_unstable_by(f32::total_cmp);
+    let n = head.len();
+    let base = if n % 2 == 1 {
+        head[n / 2]
+    } else {
+        0.5 * (head[n / 2 - 1] + head[n / 2])
+    };
+    row.iter().map(|v| v - base).collect()
+}
 
 /// Why a kernel could not be built.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

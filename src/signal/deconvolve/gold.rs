@@ -72,6 +72,18 @@ fn default_boost() -> f32 {
     1.0
 }
 
+impl GoldConfig {
+    /// Worst-case flops for a segment of `n` samples and a kernel of `m` taps:
+    /// `2·n·m + repetitions × (iterations × (4·n·m + 6·n) + 2·n·m + 6·n)`.
+    pub fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
+        let (n, m) = (n as u64, m as u64);
+        let per = 4 * n * m + 6 * n;
+        let reps = self.repetitions.max(1) as u64;
+        let rep = (self.iterations as u64).saturating_mul(per) + 2 * n * m + 6 * n;
+        (2 * n * m).saturating_add(reps.saturating_mul(rep))
+    }
+}
+
 impl Default for GoldConfig {
     fn default() -> Self {
         GoldConfig {
@@ -218,9 +230,6 @@ impl Deconvolver for Gold {
     }
 
     fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
-        let (n, m) = (n as u64, m as u64);
-        let per = 4 * n * m + 6 * n;
-        let reps = self.config.repetitions.max(1) as u64;
-        2 * n * m + reps * (self.config.iterations as u64 * per + 2 * n * m + 6 * n)
+        self.config.worst_case_flops(n, m)
     }
 }

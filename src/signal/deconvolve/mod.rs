@@ -8,6 +8,7 @@
 mod direct;
 pub mod gold;
 pub mod nnls;
+pub mod response;
 pub mod richardson_lucy;
 pub mod stage;
 #[cfg(test)]
@@ -21,7 +22,7 @@ use crate::signal::kernel::Kernel;
 pub use gold::{Gold, GoldConfig};
 pub use nnls::{Nnls, NnlsConfig};
 pub use richardson_lucy::{RichardsonLucy, RlConfig};
-pub use stage::{Deconvolve, DeconvolveConfig, KernelSource};
+pub use stage::{Deconvolve, DeconvolveConfig, KernelSource, WorstCase};
 pub use wiener::{Wiener, WienerConfig};
 
 /// Why a segment could not be deconvolved (the stage drops the pulse with this reason).
@@ -118,6 +119,39 @@ pub enum MethodConfig {
 }
 
 impl MethodConfig {
+    /// Method name as in configuration (`richardson_lucy`, `gold`, `wiener`, `nnls`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            MethodConfig::RichardsonLucy(_) => "richardson_lucy",
+            MethodConfig::Gold(_) => "gold",
+            MethodConfig::Wiener(_) => "wiener",
+            MethodConfig::Nnls(_) => "nnls",
+        }
+    }
+
+    /// The fixed iteration budget per segment: RL `iterations`, Gold `iterations ×
+    /// repetitions`, NNLS `max_iterations` (outer Lawson-Hanson iterations), Wiener 0 (direct).
+    pub fn iteration_budget(&self) -> u64 {
+        match self {
+            MethodConfig::RichardsonLucy(c) => c.iterations as u64,
+            MethodConfig::Gold(c) => c.iterations as u64 * c.repetitions.max(1) as u64,
+            MethodConfig::Wiener(_) => 0,
+            MethodConfig::Nnls(c) => c.max_iterations as u64,
+        }
+    }
+
+    /// Worst-case floating-point operations of one segment of `n` samples deconvolved by a
+    /// kernel of `m` taps with these settings (the same figure as
+    /// [`Deconvolver::worst_case_flops`], computed without building the method's buffers).
+    pub fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
+        match self {
+            MethodConfig::RichardsonLucy(c) => c.worst_case_flops(n, m),
+            MethodConfig::Gold(c) => c.worst_case_flops(n, m),
+            MethodConfig::Wiener(c) => c.worst_case_flops(n, m),
+            MethodConfig::Nnls(c) => c.worst_case_flops(n, m),
+        }
+    }
+
     /// Builds the method with buffers for segments of up to `max_samples` and kernels of up to
     /// `max_taps`.
     pub fn build(&self, max_samples: usize, max_taps: usize) -> Box<dyn Deconvolver> {

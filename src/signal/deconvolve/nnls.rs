@@ -50,8 +50,16 @@
 //! 140 µs when all 50 iterations run (dense canopy, no early stop); the stated worst case
 //! `worst_case_flops(256, 41)` is about 1.9 Mflop at the defaults.
 //!
-//! With the default tolerance (1e-4), two noise-free echoes 0.5 FWHM apart stop before the pair
-//! is split (the fit is already within tolerance); 1e-6 resolves them exactly.
+//! # Default tolerance: 1e-6
+//!
+//! At 1e-4 two noise-free echoes 0.5 FWHM apart stopped before the pair was split (the merged
+//! fit was already within tolerance); 1e-6 resolves them exactly (`two_echoes_half_fwhm_apart`),
+//! and resolving hidden echoes is what deconvolution is for. The stated worst case does not
+//! change (it is fixed by `max_iterations`); the typical cost grows: on the benchmark's
+//! segments the early stop comes after 14 instead of 6 iterations (clean) and 24 instead of 12
+//! (±3 DN ripple), about 11 and 21 µs instead of 6 and 10 µs (release, measured 2026-11-22 on
+//! the project machine), far below the 200 µs target and the ~140 µs of a full 50-iteration
+//! run.
 
 use serde::{Deserialize, Serialize};
 
@@ -69,16 +77,35 @@ pub struct NnlsConfig {
     /// also the maximum number of non-zero output samples (count; default 50). Buffers of
     /// `min(max_iterations, max_samples)²` `f64` are sized at construction.
     pub max_iterations: u32,
-    /// Relative KKT tolerance of the early stop (dimensionless, default 1e-4): the run stops
+    /// Relative KKT tolerance of the early stop (dimensionless, default 1e-6): the run stops
     /// when no zero sample has a dual value `(Rᵀ(P − Rσ))_i` above `tolerance · max|RᵀP|`.
     pub tolerance: f32,
+}
+
+impl NnlsConfig {
+    /// Worst-case flops for a segment of `n` samples and a kernel of `m` taps, with
+    /// `K = max_iterations`, `k = min(K, n)`:
+    /// `m² + m + 2·n·m + n + K·(2k(2m − 1) + n + 11k² + 18k)` (see the comments for the terms).
+    pub fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
+        // Per kernel: table m² + m; b = Rᵀy: 2nm. Per outer iteration (K = max_iterations of
+        // them, k ≤ min(K, n) passive samples): dual 2k(2m − 1), argmax n, Cholesky row
+        // k² + 3k (one flop per Gram entry), solve 2k² + 2k. Inner steps (≤ K over the whole
+        // run, each removes a sample): step 5k, Givens downdate 6k² + 6k, solve 2k² + 2k.
+        // Output scaling n.
+        let (n, m) = (n as u64, m as u64);
+        let it = self.max_iterations as u64;
+        let k = it.min(n);
+        let outer = 2 * k * (2 * m).saturating_sub(1) + n + 3 * k * k + 5 * k;
+        let inner = 8 * k * k + 13 * k;
+        (m * m + m + 2 * n * m + n).saturating_add(it.saturating_mul(outer + inner))
+    }
 }
 
 impl Default for NnlsConfig {
     fn default() -> Self {
         NnlsConfig {
             max_iterations: 50,
-            tolerance: 1e-4,
+            tolerance: 1e-6,
         }
     }
 }
@@ -458,17 +485,7 @@ impl Deconvolver for Nnls {
     }
 
     fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
-        // Per kernel: table m² + m; b = Rᵀy: 2nm. Per outer iteration (K = max_iterations of
-        // them, k ≤ min(K, n) passive samples): dual 2k(2m − 1), argmax n, Cholesky row
-        // k² + 3k (one flop per Gram entry), solve 2k² + 2k. Inner steps (≤ K over the whole
-        // run, each removes a sample): step 5k, Givens downdate 6k² + 6k, solve 2k² + 2k.
-        // Output scaling n.
-        let (n, m) = (n as u64, m as u64);
-        let it = self.config.max_iterations as u64;
-        let k = it.min(n);
-        let outer = 2 * k * (2 * m).saturating_sub(1) + n + 3 * k * k + 5 * k;
-        let inner = 8 * k * k + 13 * k;
-        (m * m + m + 2 * n * m + n).saturating_add(it.saturating_mul(outer + inner))
+        self.config.worst_case_flops(n, m)
     }
 }
 
@@ -954,15 +971,17 @@ mod tests {
     fn two_echoes_half_fwhm_apart() {
         let k = gaussian(16.0);
         let y = two_echoes(256, &k, [(120, 1.0), (128, 0.8)]);
-        let out = assert_sane(&y, &k);
-        // At the default tolerance the stop comes before the pair is split (the fit is already
-        // within 1e-4 of the optimum's KKT scale); a tighter tolerance resolves both exactly.
-        assert!(out[115..135].iter().sum::<f32>() > 1.7);
-        let cfg = NnlsConfig {
+        assert_sane(&y, &k);
+        // At 1e-4 the stop comes before the pair is split (the merged fit is already within
+        // tolerance); the default, 1e-6, resolves both exactly.
+        let loose = NnlsConfig {
             max_iterations: 50,
-            tolerance: 1e-6,
+            tolerance: 1e-4,
         };
-        let out = run(cfg, &y, &k).unwrap();
+        let out = run(loose, &y, &k).unwrap();
+        assert!(out[115..135].iter().sum::<f32>() > 1.7);
+        assert!((out[120] - 1.0).abs() > 1e-2 || (out[128] - 0.8).abs() > 1e-2);
+        let out = run(NnlsConfig::default(), &y, &k).unwrap();
         assert!(
             (out[120] - 1.0).abs() < 1e-3 && (out[128] - 0.8).abs() < 1e-3,
             "{} {}",
@@ -1003,7 +1022,7 @@ mod tests {
     fn config_rejects_unknown_fields_and_has_defaults() {
         let c: NnlsConfig = toml::from_str("max_iterations = 20").unwrap();
         assert_eq!(c.max_iterations, 20);
-        assert_eq!(c.tolerance, 1e-4);
+        assert_eq!(c.tolerance, 1e-6);
         assert!(toml::from_str::<NnlsConfig>("iterations = 20").is_err());
     }
 

@@ -66,6 +66,16 @@ fn default_iterations() -> u32 {
     20
 }
 
+impl RlConfig {
+    /// Worst-case flops for a segment of `n` samples and a kernel of `m` taps:
+    /// `iterations × (4·n·m + 8·n)` (per iteration one convolution and one correlation of
+    /// `2·n·m` flops each, plus the ratio, product and early-stop sums).
+    pub fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
+        let (n, m) = (n as u64, m as u64);
+        (self.iterations as u64).saturating_mul(4 * n * m + 8 * n)
+    }
+}
+
 impl Default for RlConfig {
     fn default() -> Self {
         RlConfig {
@@ -238,7 +248,7 @@ impl Deconvolver for RichardsonLucy {
     }
 
     fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
-        self.config.iterations as u64 * (4 * n as u64 * m as u64 + 8 * n as u64)
+        self.config.worst_case_flops(n, m)
     }
 }
 

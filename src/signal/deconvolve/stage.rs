@@ -10,9 +10,20 @@
 //! method = { method = "richardson_lucy", iterations = 20 }
 //! kernel = "outgoing"                                   # the default
 //! # kernel = { taps = { taps = [0.2, 0.6, 0.2], center = 1 } }   # calibrated response
+//! # kernel = { flat_target = { ground_return = [...], outgoing = [...] } }  # measured one
 //! max_samples = 4096
 //! max_taps = 256
 //! ```
+//!
+//! **System response in two stages** (the waveformlidar R package's order): a first
+//! deconvolve stage with the calibrated response `h` (`taps`, or `flat_target`: measured from a
+//! flat-target return and its outgoing pulse when the stage is built, see
+//! [`response`](crate::signal::deconvolve::response)), then a second with
+//! `kernel = "outgoing"`. Each stage deconvolves the return segments only; the outgoing
+//! segment is left as recorded, because `h` is defined relative to the *recorded* outgoing
+//! pulse (`ground return = outgoing ⊛ h`): deconvolving the outgoing pulse by `h` as well would
+//! take `h` out twice. Every kernel is centred on its peak, so neither stage moves returns in
+//! time (`docs/signal.md`).
 //!
 //! (Flattening the method's keys into the stage table is not used: serde's `flatten` cannot be
 //! combined with `deny_unknown_fields`, and every table here rejects unknown keys.)
@@ -38,6 +49,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::{Pulse, SegmentKind};
+use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::deconvolve::{Deconvolver, MethodConfig};
 use crate::signal::kernel::Kernel;
 
@@ -57,6 +69,46 @@ pub enum KernelSource {
         /// Index of the zero-delay tap.
         center: usize,
     },
+    /// The system response measured on a flat target, computed once when the stage is built:
+    /// `kernel = { flat_target = { ground_return = [...], outgoing = [...] } }` (see
+    /// [`response_from_flat_target`]).
+    FlatTarget {
+        /// The flat (hard, near-nadir) target's return as recorded (counts or volts on a
+        /// baseline, the median of its first 8 samples), at the pulse's sample interval.
+        ground_return: Vec<f32>,
+        /// The outgoing pulse recorded with that return, same units and interval.
+        outgoing: Vec<f32>,
+    },
+}
+
+impl KernelSource {
+    /// The fixed kernel of a calibrated source (`taps` or `flat_target`), built and checked
+    /// with at most `max_taps` taps, the flat-target response measured with `method`; `None`
+    /// for `outgoing` (per shot). The error names the offending field.
+    pub fn fixed_kernel(
+        &self,
+        method: &MethodConfig,
+        max_taps: usize,
+    ) -> Option<Result<Kernel, String>> {
+        match self {
+            KernelSource::Outgoing => None,
+            KernelSource::Taps { taps, center } => {
+                let mut k = Kernel::with_capacity(max_taps);
+                Some(
+                    k.set_from_taps(taps, *center, max_taps)
+                        .map(|_| k)
+                        .map_err(|e| format!("kernel.taps: {e}")),
+                )
+            }
+            KernelSource::FlatTarget {
+                ground_return,
+                outgoing,
+            } => Some(
+                response_from_flat_target(ground_return, outgoing, method, max_taps)
+                    .map_err(|e| format!("kernel.flat_target.{e}")),
+            ),
+        }
+    }
 }
 
 /// Configuration of the deconvolve stage.
@@ -85,7 +137,38 @@ fn default_max_taps() -> usize {
     256
 }
 
+/// The fixed worst-case cost of a deconvolve stage per return segment, as its configuration
+/// states it (`fwlidar validate` prints it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct WorstCase {
+    /// Longest segment accepted (`max_samples`), samples.
+    pub samples: usize,
+    /// Longest kernel: `max_taps` for `kernel = "outgoing"`, the calibrated kernel's length
+    /// otherwise, taps.
+    pub taps: usize,
+    /// Iteration budget ([`MethodConfig::iteration_budget`]).
+    pub iterations: u64,
+    /// Floating-point operations for one segment of `samples` by a kernel of `taps`.
+    pub flops: u64,
+}
+
 impl DeconvolveConfig {
+    /// The stage's worst case per return segment (a pulse costs the sum over its return
+    /// segments). The kernel of `flat_target` is measured to know its length (`max_taps` when
+    /// that fails).
+    pub fn worst_case(&self) -> WorstCase {
+        let taps = match self.kernel.fixed_kernel(&self.method, self.max_taps) {
+            Some(Ok(k)) => k.len(),
+            _ => self.max_taps,
+        };
+        WorstCase {
+            samples: self.max_samples,
+            taps,
+            iterations: self.method.iteration_budget(),
+            flops: self.method.worst_case_flops(self.max_samples, taps),
+        }
+    }
+
     /// A configuration with the given method and every other field at its default.
     pub fn with_method(method: MethodConfig) -> Self {
         DeconvolveConfig {
@@ -116,10 +199,10 @@ impl Deconvolve {
         let method = config.method.build(config.max_samples, config.max_taps);
         let mut kernel = Kernel::with_capacity(config.max_taps);
         let mut kernel_error = None;
-        if let KernelSource::Taps { taps, center } = &config.kernel
-            && let Err(e) = kernel.set_from_taps(taps, *center, config.max_taps)
-        {
-            kernel_error = Some(format!("calibrated kernel: {e}"));
+        match config.kernel.fixed_kernel(&config.method, config.max_taps) {
+            None => {}
+            Some(Ok(k)) => kernel = k,
+            Some(Err(e)) => kernel_error = Some(format!("calibrated kernel: {e}")),
         }
         Deconvolve {
             out: vec![0.0; config.max_samples],
@@ -354,6 +437,176 @@ mod tests {
             run_stage(&mut stage, [denoised_pulse()]),
             Err(StageError::Fatal { .. })
         ));
+    }
+
+    /// A NEON-like asymmetric outgoing pulse (volts above baseline): 2.5-bin Gaussian rise,
+    /// 6-bin exponential tail, peak at bin 12 of 48. Its centroid lies ~2.5 bins after the peak.
+    fn asymmetric_outgoing() -> Vec<f32> {
+        (0..48)
+            .map(|i| {
+                let t = i as f32 - 12.0;
+                if t < 0.0 {
+                    (-0.5 * (t / 2.5).powi(2)).exp()
+                } else {
+                    (-t / 6.0).exp()
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn deconvolve_stage_zero_phase_returns_stay_at_their_time() {
+        // Point targets at bins 60 and 130 of a 200-sample return segment echo the outgoing
+        // pulse: sample i of the echo of a target at t is a · outgoing[i − t + peak], the
+        // outgoing pulse's peak (bin 12) being the emission reference. Through the stage (kernel
+        // from the pulse's own outgoing segment) each target must come back at its own bin; an
+        // alignment on the centroid would put them ~2 bins later.
+        let out = asymmetric_outgoing();
+        let total: f32 = out.iter().sum();
+        let centroid = out
+            .iter()
+            .enumerate()
+            .map(|(i, v)| i as f32 * v)
+            .sum::<f32>()
+            / total;
+        assert!(
+            centroid - 12.0 > 1.5,
+            "centroid {centroid}: the test would not tell"
+        );
+        let targets = [(60usize, 0.8f32), (130, 0.5)];
+        let mut ret = vec![0.0f32; 200];
+        for (t, a) in targets {
+            for (i, r) in ret.iter_mut().enumerate() {
+                let j = i as i64 - t as i64 + 12;
+                if (0..out.len() as i64).contains(&j) {
+                    *r += a * out[j as usize];
+                }
+            }
+        }
+        let mut methods = methods().to_vec();
+        methods.push(MethodConfig::Nnls(Default::default()));
+        for m in methods {
+            let mut p = Pulse::default();
+            p.push_segment(SegmentKind::Outgoing, 0, -12.0, [0u16; 48]);
+            p.push_segment(SegmentKind::Return, 0, 900.0, [0u16; 200]);
+            p.signal = out.clone();
+            p.signal.extend(&ret);
+            p.noise.noise_v = 0.001;
+            let mut stage = Deconvolve::new(DeconvolveConfig::with_method(m.clone()));
+            let run = run_stage(&mut stage, [p]).unwrap();
+            assert_eq!(run.emitted.len(), 1, "{m:?}");
+            let y = run.emitted[0].signal_of(1);
+            for (t, _) in targets {
+                let window = &y[t - 8..t + 9];
+                let peak = window
+                    .iter()
+                    .enumerate()
+                    .max_by(|a, b| a.1.total_cmp(b.1))
+                    .unwrap()
+                    .0 as i64
+                    - 8;
+                assert_eq!(
+                    peak,
+                    0,
+                    "{m:?}: target at {t} came back at {}",
+                    t as i64 + peak
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn deconvolve_stage_two_stage_system_response_keeps_returns_in_place() {
+        // The full response is outgoing ⊛ h, h a 5-tap asymmetric receiver response measured
+        // on a flat target: stage 1 (flat_target) then stage 2 (outgoing) put a point target
+        // back at its bin, while the outgoing segment stays as recorded.
+        let out = asymmetric_outgoing();
+        let mut h = Kernel::default();
+        h.set_from_taps(&[0.1, 0.5, 0.25, 0.1, 0.05], 1, 8).unwrap();
+        let mut full = vec![0.0f32; out.len()];
+        crate::signal::kernel::convolve_same(&out, &h, &mut full);
+        // Flat target: its outgoing pulse on a pedestal (the same shape) and its return,
+        // `full` 20 bins later, padded to 100 samples.
+        let pedestal = 200.0f32;
+        let target_out: Vec<f32> = out.iter().map(|v| pedestal + 500.0 * v).collect();
+        let ground: Vec<f32> = (0..100)
+            .map(|i| {
+                let j = i as i64 - 20;
+                pedestal
+                    + if (0..full.len() as i64).contains(&j) {
+                        500.0 * full[j as usize]
+                    } else {
+                        0.0
+                    }
+            })
+            .collect();
+        let gold = MethodConfig::Gold(GoldConfig {
+            iterations: 200,
+            repetitions: 1,
+            boost: 1.0,
+        });
+        let t = 90usize;
+        let mut p = Pulse::default();
+        p.push_segment(SegmentKind::Outgoing, 0, -12.0, [0u16; 48]);
+        p.push_segment(SegmentKind::Return, 0, 900.0, [0u16; 200]);
+        p.signal = out.clone();
+        let mut ret = vec![0.0f32; 200];
+        for (i, r) in ret.iter_mut().enumerate() {
+            let j = i as i64 - t as i64 + 12;
+            if (0..full.len() as i64).contains(&j) {
+                *r = 0.7 * full[j as usize];
+            }
+        }
+        p.signal.extend(&ret);
+        p.noise.noise_v = 0.001;
+        let mut first = Deconvolve::new(DeconvolveConfig {
+            kernel: KernelSource::FlatTarget {
+                ground_return: ground,
+                outgoing: target_out,
+            },
+            ..DeconvolveConfig::with_method(gold.clone())
+        });
+        let mut second = Deconvolve::new(DeconvolveConfig::with_method(gold));
+        let run = run_stage(&mut first, [p]).unwrap();
+        assert_eq!(run.emitted.len(), 1);
+        let run = run_stage(&mut second, run.emitted.into_iter().map(|p| *p)).unwrap();
+        assert_eq!(run.emitted.len(), 1);
+        let p = &run.emitted[0];
+        assert_eq!(
+            p.signal_of(0),
+            &out[..],
+            "the outgoing segment is left as recorded"
+        );
+        let y = p.signal_of(1);
+        assert!(y.iter().all(|v| v.is_finite() && *v >= 0.0));
+        let peak = y
+            .iter()
+            .enumerate()
+            .max_by(|a, b| a.1.total_cmp(b.1))
+            .unwrap()
+            .0;
+        assert_eq!(peak, t, "two-stage result peaks at {peak}, target at {t}");
+        // Sharper than the outgoing-only deconvolution of the same return: h is removed too.
+        let mut only = Deconvolve::new(DeconvolveConfig::with_method(MethodConfig::Gold(
+            GoldConfig {
+                iterations: 200,
+                repetitions: 1,
+                boost: 1.0,
+            },
+        )));
+        let mut q = Pulse::default();
+        q.push_segment(SegmentKind::Outgoing, 0, -12.0, [0u16; 48]);
+        q.push_segment(SegmentKind::Return, 0, 900.0, [0u16; 200]);
+        q.signal = out.clone();
+        q.signal.extend(&ret);
+        let single = run_stage(&mut only, [q]).unwrap();
+        let z = single.emitted[0].signal_of(1);
+        assert!(
+            y[t] > z[t],
+            "two-stage peak {} vs outgoing only {}",
+            y[t],
+            z[t]
+        );
     }
 
     #[test]
