@@ -91,7 +91,7 @@ pub const NNLS_CAPS: [u32; 4] = [10, 25, 50, 100];
 
 /// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], Wiener at
 /// [`WIENER_NOISE_SCALES`] (cut-off 0.2 GHz, regularisation 1e-3), NNLS at [`NNLS_CAPS`]
-/// (tolerance 1e-4). Other parameters at their defaults.
+/// (tolerance: the default, 1e-6). Other parameters at their defaults.
 pub fn default_settings() -> Vec<Setting> {
     let mut s = vec![
         Setting {
