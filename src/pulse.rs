@@ -72,6 +72,23 @@ pub struct FittedReturn {
     pub residual: f32,
 }
 
+/// Where a pulse's time axis lies in space, when the input file carries it (LAS waveform
+/// packets, PulseWaves): the point at the pulse's reference time t0 and the distance travelled
+/// per nanosecond along the beam, in the file's coordinate reference system.
+///
+/// A sample at time `t` ns after t0 (see [`Segment::start_ns`]) lies at
+/// `anchor + t · direction`. Pulses that carry it skip the navigation path and go straight to
+/// georeferencing.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PulseGeometry {
+    /// Position at the reference time t0 `[x, y, z]`, in the file's CRS units (metres, or degrees
+    /// for geographic x/y with metres in z).
+    pub anchor: [f64; 3],
+    /// Displacement per nanosecond of the time axis `[dx, dy, dz]`, CRS units per ns (for a
+    /// two-way range measurement this is half the speed of light in air along the beam).
+    pub direction: [f64; 3],
+}
+
 /// One laser shot and everything the chain has learnt about it so far.
 #[derive(Debug)]
 pub struct Pulse {
@@ -92,6 +109,9 @@ pub struct Pulse {
     pub offset_v: f32,
     /// Bits per sample as digitized: 8 or 16.
     pub bits: u8,
+    /// Anchor and direction of the time axis, when the input carries them (`None` for digitizer
+    /// frames, which are georeferenced from navigation).
+    pub geometry: Option<PulseGeometry>,
     /// Segments (outgoing and returns) in recording order.
     pub segments: Vec<Segment>,
     /// Raw digitizer counts of every segment, concatenated.
@@ -117,6 +137,7 @@ impl Default for Pulse {
             gain_v_per_dn: 1.0,
             offset_v: 0.0,
             bits: 16,
+            geometry: None,
             segments: Vec::with_capacity(4),
             raw: Vec::new(),
             signal: Vec::new(),
@@ -138,6 +159,7 @@ impl Pulse {
         self.gain_v_per_dn = 1.0;
         self.offset_v = 0.0;
         self.bits = 16;
+        self.geometry = None;
         self.segments.clear();
         self.raw.clear();
         self.signal.clear();

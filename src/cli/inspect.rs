@@ -34,10 +34,10 @@ pub struct PulseJson<'a> {
     pub pulse_id: u64,
     /// GPS time, seconds.
     pub gps_time: f64,
-    /// Anchor (x, y, z) in the file's CRS: unknown for raw captures (georeferencing needs the
-    /// trajectory), so `null`.
+    /// Anchor (x, y, z) in the file's CRS, when the input carries it (LAS, PulseWaves); `null`
+    /// for raw captures (georeferencing needs the trajectory).
     pub anchor: Option<[f64; 3]>,
-    /// Direction (metres per nanosecond): `null` for raw captures.
+    /// Direction (CRS units per nanosecond): `null` for raw captures.
     pub direction: Option<[f64; 3]>,
     /// Scan angles, degrees (secondary `null` when absent).
     pub scan_angle_deg: [Option<f32>; 2],
@@ -192,8 +192,8 @@ fn print_pulse(out: &mut impl Write, p: &Pulse, json: bool) -> std::io::Result<(
         let j = PulseJson {
             pulse_id: p.pulse_id,
             gps_time: p.gps_time,
-            anchor: None,
-            direction: None,
+            anchor: p.geometry.map(|g| g.anchor),
+            direction: p.geometry.map(|g| g.direction),
             scan_angle_deg: [finite(p.scan_angle_deg[0]), finite(p.scan_angle_deg[1])],
             digitizer: [p.gain_v_per_dn, p.offset_v],
             segments,
