@@ -8,7 +8,8 @@ use serde::Serialize;
 
 use crate::cli::Failure;
 use crate::format::{CaptureHeader, CaptureReader, Record};
-use crate::pulse::{Pulse, SegmentKind};
+use crate::pulse::{Pulse, PulsePool, SegmentKind};
+use crate::source::{InputKind, SourceEvent};
 
 /// Arguments of `fwlidar inspect`.
 #[derive(Debug, clap::Args)]
@@ -88,6 +89,106 @@ struct Overview {
 
 /// Runs `fwlidar inspect`.
 pub fn run(args: InspectArgs) -> Result<(), Failure> {
+    match InputKind::of_file(&args.file).map_err(Failure::job)? {
+        InputKind::Capture => inspect_capture(args),
+        _ => inspect_source(args),
+    }
+}
+
+/// Inspects a file read through its [`crate::source::Source`] (LAS, PulseWaves): every pulse, or
+/// an overview with the source's own report.
+fn inspect_source(args: InspectArgs) -> Result<(), Failure> {
+    let mut source = crate::source::open_file(&args.file).map_err(Failure::job)?;
+    let pool = PulsePool::new(4);
+    let stdout = std::io::stdout();
+    let mut out = std::io::BufWriter::new(stdout.lock());
+    let write_err = |e: std::io::Error| Failure::job(format!("cannot write output: {e}"));
+    let mut ov = SourceOverview {
+        file: args.file.display().to_string(),
+        format: source.name(),
+        ..Default::default()
+    };
+    let mut listed = 0u64;
+    loop {
+        match source
+            .next(&pool)
+            .map_err(|e| Failure::job(e.to_string()))?
+        {
+            SourceEvent::End => break,
+            SourceEvent::Nav(chunk) => {
+                ov.nav_records += 1;
+                ov.nav_bytes += chunk.bytes.len() as u64;
+            }
+            SourceEvent::Pulse(pulse) => {
+                ov.pulses += 1;
+                ov.gps_time_first.get_or_insert(pulse.gps_time);
+                ov.gps_time_last = Some(pulse.gps_time);
+                ov.with_geometry += u64::from(pulse.geometry.is_some());
+                let n = pulse.raw.len() as u64;
+                ov.samples_min = Some(ov.samples_min.map_or(n, |m| m.min(n)));
+                ov.samples_max = Some(ov.samples_max.map_or(n, |m| m.max(n)));
+                if !ov.bits.contains(&pulse.bits) {
+                    ov.bits.push(pulse.bits);
+                }
+                if args.pulses && args.limit.is_none_or(|l| listed < l) {
+                    listed += 1;
+                    print_pulse(&mut out, &pulse, args.json).map_err(write_err)?;
+                }
+                pool.give(pulse);
+                if args.pulses && args.limit.is_some_and(|l| listed >= l) {
+                    break;
+                }
+            }
+        }
+    }
+    if args.pulses {
+        return out.flush().map_err(write_err);
+    }
+    ov.report = source.report();
+    if args.json {
+        serde_json::to_writer_pretty(&mut out, &ov)
+            .map_err(|e| Failure::job(format!("cannot write output: {e}")))?;
+        writeln!(out).map_err(write_err)?;
+    } else {
+        writeln!(
+            out,
+            "{}\n  format: {}\n  {} pulses ({} with anchor and direction), {} navigation records ({} bytes)\n  GPS time {} .. {} s; samples per pulse {}..{}; bits {:?}\n  report: {}",
+            ov.file,
+            ov.format,
+            ov.pulses,
+            ov.with_geometry,
+            ov.nav_records,
+            ov.nav_bytes,
+            ov.gps_time_first.unwrap_or(f64::NAN),
+            ov.gps_time_last.unwrap_or(f64::NAN),
+            ov.samples_min.unwrap_or(0),
+            ov.samples_max.unwrap_or(0),
+            ov.bits,
+            ov.report
+        )
+        .map_err(write_err)?;
+    }
+    out.flush().map_err(write_err)
+}
+
+/// The overview of a file read through a source.
+#[derive(Default, Serialize)]
+struct SourceOverview {
+    file: String,
+    format: &'static str,
+    pulses: u64,
+    with_geometry: u64,
+    nav_records: u64,
+    nav_bytes: u64,
+    gps_time_first: Option<f64>,
+    gps_time_last: Option<f64>,
+    samples_min: Option<u64>,
+    samples_max: Option<u64>,
+    bits: Vec<u8>,
+    report: serde_json::Value,
+}
+
+fn inspect_capture(args: InspectArgs) -> Result<(), Failure> {
     let mut reader = CaptureReader::open(&args.file).map_err(Failure::job)?;
     let stdout = std::io::stdout();
     let mut out = std::io::BufWriter::new(stdout.lock());

@@ -16,7 +16,6 @@ use crate::sink::nav_tally::NavTally;
 use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::waveform_csv::WaveformCsvSink;
 use crate::sink::{FanOut, PulseSink};
-use crate::source::capture::CaptureSource;
 
 /// The sample replayed when no input is named.
 pub const DEFAULT_SAMPLE: &str = "replay/two_layer.fwcap";
@@ -61,7 +60,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from(&config.output.dir));
-    let source = CaptureSource::open(&args.input).map_err(Failure::job)?;
+    let source = crate::source::open_file(&args.input).map_err(Failure::job)?;
     prepare_out_dir(&out_dir)?;
 
     let p = &config.pipeline;
@@ -117,7 +116,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     };
     let report = run_pipeline(
         &spec,
-        Box::new(source),
+        source,
         Box::new(FanOut(sinks)),
         Box::new(NavTally::default()),
         &control,

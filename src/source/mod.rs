@@ -3,6 +3,9 @@
 
 pub mod capture;
 
+use std::io::Read;
+use std::path::Path;
+
 use crate::pulse::{Pulse, PulsePool};
 
 /// Raw navigation bytes as they came off a port, kept intact so that replay runs the very same
@@ -52,5 +55,92 @@ pub trait Source: Send {
     /// The source's own report for `summary.json` (e.g. bytes skipped in a damaged capture).
     fn report(&self) -> serde_json::Value {
         serde_json::Value::Null
+    }
+}
+
+/// The file formats an input file can be, told apart by their first bytes ([`InputKind::sniff`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum InputKind {
+    /// fwlidar capture (`docs/formats.md`), magic `\x89FWLCAP\n`.
+    Capture,
+    /// ASPRS LAS (file signature `LASF`); waveforms in point formats 4, 5, 9, 10.
+    Las,
+    /// PulseWaves `.pls` (file signature `PulseWavesPulse\0`).
+    PulseWaves,
+}
+
+impl InputKind {
+    /// Recognises a file from its first bytes (at least 16 for PulseWaves); `None` if unknown.
+    pub fn sniff(head: &[u8]) -> Option<InputKind> {
+        if head.starts_with(&crate::format::capture::MAGIC) {
+            Some(InputKind::Capture)
+        } else if head.starts_with(b"LASF") {
+            Some(InputKind::Las)
+        } else if head.starts_with(b"PulseWavesPulse") {
+            Some(InputKind::PulseWaves)
+        } else {
+            None
+        }
+    }
+
+    /// Reads the first bytes of `path` and recognises its format. The error names the file.
+    pub fn of_file(path: &Path) -> Result<InputKind, String> {
+        let mut head = [0u8; 16];
+        let mut f = std::fs::File::open(path)
+            .map_err(|e| format!("{}: cannot open: {e}", path.display()))?;
+        let mut n = 0;
+        while n < head.len() {
+            match f.read(&mut head[n..]) {
+                Ok(0) => break,
+                Ok(k) => n += k,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(format!("{}: cannot read: {e}", path.display())),
+            }
+        }
+        if n == 0 {
+            return Err(format!("{}: the file is empty (0 bytes)", path.display()));
+        }
+        InputKind::sniff(&head[..n]).ok_or_else(|| {
+            format!(
+                "{}: not an fwlidar capture, a LAS file or a PulseWaves .pls file (its first \
+                 bytes match none of their signatures)",
+                path.display()
+            )
+        })
+    }
+}
+
+/// Opens any supported input file as a [`Source`], by its format ([`InputKind::of_file`]).
+/// Errors name the file.
+pub fn open_file(path: &Path) -> Result<Box<dyn Source>, String> {
+    match InputKind::of_file(path)? {
+        InputKind::Capture => Ok(Box::new(
+            capture::CaptureSource::open(path).map_err(|e| e.to_string())?,
+        )),
+        kind => Err(format!(
+            "{}: {kind:?} input is not supported yet",
+            path.display()
+        )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sniff_tells_the_formats_apart() {
+        assert_eq!(
+            InputKind::sniff(&crate::format::capture::preamble()),
+            Some(InputKind::Capture)
+        );
+        assert_eq!(InputKind::sniff(b"LASF\0\0\0\0"), Some(InputKind::Las));
+        assert_eq!(
+            InputKind::sniff(b"PulseWavesPulse\0"),
+            Some(InputKind::PulseWaves)
+        );
+        assert_eq!(InputKind::sniff(b"LAS"), None);
+        assert_eq!(InputKind::sniff(b""), None);
+        assert_eq!(InputKind::sniff(b"hello world, not"), None);
     }
 }
