@@ -307,11 +307,11 @@ fn replay_of_an_empty_or_newer_capture_fails_clearly() {
     assert_fails(&o, 1, &["empty.fwcap", "empty"]);
 
     let mut newer = std::fs::read(sample()).unwrap();
-    newer[8] = 2; // major version 2
+    newer[8] = 2; // major version 2 (minor stays 1)
     let p = dir.path().join("newer.fwcap");
     std::fs::write(&p, &newer).unwrap();
     let o = fwlidar(&["replay", p.to_str().unwrap(), "--out", "/tmp/never"]);
-    assert_fails(&o, 1, &["newer.fwcap", "2.0"]);
+    assert_fails(&o, 1, &["newer.fwcap", "2.1", "newer than"]);
 
     let junk = dir.path().join("notes.txt");
     std::fs::write(&junk, b"flight notes, not a capture\n").unwrap();

@@ -4,7 +4,7 @@
 //! A capture is one append-only file: a 16-byte preamble, then length-prefixed, CRC-32C
 //! checksummed records (a sensor-description header, digitizer frames, raw navigation bytes).
 //! All integers are little-endian. The byte layout, the resync algorithm and the versioning rules
-//! are specified in `docs/formats.md`, section "Capture format v1.0"; the reader is in
+//! are specified in `docs/formats.md`, section "Capture format v1.1"; the reader is in
 //! [`super::capture_reader`], the writer in [`super::capture_writer`], the frame and nav payloads in
 //! [`super::frame`].
 
@@ -22,7 +22,7 @@ pub const PREAMBLE_LEN: usize = 16;
 /// The major version this crate writes and the newest it reads.
 pub const VERSION_MAJOR: u16 = 1;
 /// The minor version this crate writes.
-pub const VERSION_MINOR: u16 = 0;
+pub const VERSION_MINOR: u16 = 1;
 
 /// The 4 bytes every record starts with: `0xF5 'W' 'L' 'R'`.
 pub const SYNC: [u8; 4] = [0xF5, b'W', b'L', b'R'];
@@ -47,6 +47,9 @@ pub enum RecordKind {
     DigitizerFrame = 2,
     /// Navigation bytes exactly as they came off a port, with their receive time.
     NavBytes = 3,
+    /// A digitizer frame with the pulse's geometry (anchor and direction) in front: pulses
+    /// imported from files that carry it (LAS, PulseWaves). Format 1.1.
+    GeoFrame = 4,
 }
 
 impl RecordKind {
@@ -56,6 +59,7 @@ impl RecordKind {
             1 => Some(RecordKind::Header),
             2 => Some(RecordKind::DigitizerFrame),
             3 => Some(RecordKind::NavBytes),
+            4 => Some(RecordKind::GeoFrame),
             _ => None,
         }
     }
@@ -276,7 +280,11 @@ mod tests {
     fn preamble_round_trips() {
         let p = preamble();
         assert_eq!(p.len(), PREAMBLE_LEN);
-        assert_eq!(check_preamble(&p, Path::new("x")).unwrap(), (1, 0));
+        assert_eq!(check_preamble(&p, Path::new("x")).unwrap(), (1, 1));
+        // Files written by 1.0 writers are read by this 1.1 reader.
+        let mut old = p;
+        old[10] = 0;
+        assert_eq!(check_preamble(&old, Path::new("x")).unwrap(), (1, 0));
     }
 
     #[test]
@@ -325,7 +333,8 @@ mod tests {
         assert_eq!(RecordKind::from_u8(2), Some(RecordKind::DigitizerFrame));
         assert_eq!(RecordKind::from_u8(3), Some(RecordKind::NavBytes));
         assert_eq!(RecordKind::from_u8(0), None);
-        assert_eq!(RecordKind::from_u8(4), None);
+        assert_eq!(RecordKind::from_u8(4), Some(RecordKind::GeoFrame));
+        assert_eq!(RecordKind::from_u8(5), None);
     }
 
     #[test]

@@ -18,7 +18,9 @@ use super::capture::{
     CaptureError, MAX_PAYLOAD_LEN, PREAMBLE_LEN, RECORD_CRC_LEN, RECORD_HEADER_LEN,
     RECORD_OVERHEAD, RecordKind, SYNC, SkipReport, check_preamble,
 };
-use super::frame::{FrameError, check_frame, decode_frame, decode_nav};
+use super::frame::{
+    FrameError, GEOMETRY_LEN, check_frame, decode_frame, decode_nav, split_geo_frame,
+};
 use crate::pulse::Pulse;
 
 /// Size of each read from the input, bytes.
@@ -48,6 +50,9 @@ pub enum Record<'a> {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameRecord<'a> {
     payload: &'a [u8],
+    /// The 48-byte geometry prefix of a GeoFrame record (checked finite), `None` for a plain
+    /// DigitizerFrame.
+    geometry: Option<&'a [u8]>,
 }
 
 impl<'a> FrameRecord<'a> {
@@ -65,10 +70,21 @@ impl<'a> FrameRecord<'a> {
         u64::from_le_bytes(b)
     }
 
-    /// Decodes the frame into `pulse`, reusing its buffers (see [`decode_frame`]); `seq` and
-    /// `arrived` are left for the source to set.
+    /// Whether the record carries the pulse's geometry (a GeoFrame record).
+    pub fn has_geometry(&self) -> bool {
+        self.geometry.is_some()
+    }
+
+    /// Decodes the frame into `pulse`, reusing its buffers (see [`decode_frame`]), and sets its
+    /// geometry (`None` for a plain frame); `seq` and `arrived` are left for the source to set.
     pub fn decode_into(&self, pulse: &mut Pulse) -> Result<(), FrameError> {
-        decode_frame(self.payload, pulse)
+        let geometry = match self.geometry {
+            Some(g) => Some(split_geo_frame(g)?.0),
+            None => None,
+        };
+        decode_frame(self.payload, pulse)?;
+        pulse.geometry = geometry;
+        Ok(())
     }
 }
 
@@ -76,6 +92,7 @@ impl<'a> FrameRecord<'a> {
 enum Found {
     Header,
     Frame,
+    GeoFrame,
     Nav,
 }
 
@@ -288,6 +305,10 @@ impl<R: Read> CaptureReader<R> {
                     std::str::from_utf8(payload).ok().map(|_| Found::Header)
                 }
                 Some(RecordKind::DigitizerFrame) => check_frame(payload).ok().map(|_| Found::Frame),
+                Some(RecordKind::GeoFrame) => split_geo_frame(payload)
+                    .ok()
+                    .and_then(|(_, frame)| check_frame(frame).ok())
+                    .map(|_| Found::GeoFrame),
                 Some(RecordKind::NavBytes) => decode_nav(payload).ok().map(|_| Found::Nav),
                 None => None,
             };
@@ -312,7 +333,14 @@ impl<R: Read> CaptureReader<R> {
         let payload = &self.buf[payload_at..payload_at + payload_len];
         let record = match found {
             Found::Header => Record::Header(std::str::from_utf8(payload).unwrap_or_default()),
-            Found::Frame => Record::Frame(FrameRecord { payload }),
+            Found::Frame => Record::Frame(FrameRecord {
+                payload,
+                geometry: None,
+            }),
+            Found::GeoFrame => Record::Frame(FrameRecord {
+                payload: payload.get(GEOMETRY_LEN..).unwrap_or_default(),
+                geometry: payload.get(..GEOMETRY_LEN),
+            }),
             Found::Nav => match decode_nav(payload) {
                 Ok(n) => Record::Nav {
                     port: n.port,
@@ -580,5 +608,65 @@ mod tests {
             msg.contains("/dev/fire") && msg.contains("disk on fire"),
             "{msg}"
         );
+    }
+
+    #[test]
+    fn geoframes_carry_the_pulse_geometry_and_plain_frames_clear_it() {
+        use crate::pulse::PulseGeometry;
+        let g = PulseGeometry {
+            anchor: [533_000.125, 5_260_000.5, 1_234.75],
+            direction: [0.01, -0.02, -0.1488],
+        };
+        let mut w =
+            CaptureWriter::from_writer(Vec::new(), "mem", "h", FlushPolicy::default()).unwrap();
+        let mut geo = pulse(7);
+        geo.geometry = Some(g);
+        w.write_pulse(&geo).unwrap();
+        w.write_pulse(&pulse(8)).unwrap();
+        // A geometry that is not finite is refused and writes nothing.
+        let mut bad = pulse(9);
+        bad.geometry = Some(PulseGeometry {
+            anchor: [f64::NAN, 0.0, 0.0],
+            direction: [0.0; 3],
+        });
+        assert!(w.write_pulse(&bad).is_err());
+        let bytes = w.finish().unwrap();
+        assert_eq!(&bytes[8..12], &[1, 0, 1, 0], "version 1.1");
+
+        let mut r = CaptureReader::new(Cursor::new(&bytes[..]), "mem").unwrap();
+        let mut p = Pulse::default();
+        let mut seen = Vec::new();
+        while let Some(rec) = r.next_record() {
+            if let Record::Frame(f) = rec.unwrap() {
+                f.decode_into(&mut p).unwrap();
+                assert_eq!(p.raw, pulse(p.pulse_id).raw);
+                assert_eq!(f.pulse_id(), p.pulse_id);
+                seen.push((p.pulse_id, f.has_geometry(), p.geometry));
+            }
+        }
+        // The plain frame decoded into the same pulse after the GeoFrame has no geometry.
+        assert_eq!(seen, vec![(7, true, Some(g)), (8, false, None)]);
+        assert!(r.skipped().is_clean());
+    }
+
+    #[test]
+    fn a_geoframe_with_a_non_finite_geometry_is_a_bad_payload() {
+        use crate::format::capture::record_crc;
+        use crate::format::frame::encode_frame;
+        let mut payload = Vec::new();
+        for v in [1.0f64, f64::INFINITY, 3.0, 0.0, 0.0, -0.15] {
+            payload.extend_from_slice(&v.to_le_bytes());
+        }
+        encode_frame(&pulse(3), &mut payload).unwrap();
+        let mut bytes = preamble().to_vec();
+        let mut head = vec![0xF5, b'W', b'L', b'R', 4, 0, 0, 0];
+        head.extend_from_slice(&(payload.len() as u32).to_le_bytes());
+        let crc = record_crc(&head[4..], &payload);
+        bytes.extend_from_slice(&head);
+        bytes.extend_from_slice(&payload);
+        bytes.extend_from_slice(&crc.to_le_bytes());
+        let (ids, _, _, report) = walk(&bytes);
+        assert!(ids.is_empty());
+        assert_eq!(report.bad_payloads, 1);
     }
 }

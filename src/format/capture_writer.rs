@@ -14,7 +14,7 @@ use super::capture::{
     CaptureError, FlushPolicy, FsyncPolicy, MAX_PAYLOAD_LEN, PREAMBLE_LEN, RECORD_HEADER_LEN,
     RecordKind, SYNC, check_preamble, preamble,
 };
-use super::frame::{encode_frame, encode_nav};
+use super::frame::{encode_frame, encode_geometry, encode_nav};
 use crate::pulse::Pulse;
 
 /// Capacity of the writer's buffer, bytes.
@@ -197,9 +197,22 @@ impl<W: Write> CaptureWriter<W> {
     /// Writes one pulse as a digitizer frame record. A pulse that cannot be encoded
     /// ([`CaptureError::Encode`]) or is too large ([`CaptureError::RecordTooLarge`]) writes
     /// nothing.
+    ///
+    /// A pulse with [`Pulse::geometry`] is written as a GeoFrame record (the geometry, then the
+    /// frame), so that an imported LAS or PulseWaves pulse keeps its anchor and direction.
     pub fn write_pulse(&mut self, pulse: &Pulse) -> Result<(), CaptureError> {
-        self.begin_record(RecordKind::DigitizerFrame);
-        if let Err(source) = encode_frame(pulse, &mut self.scratch) {
+        let encoded = match &pulse.geometry {
+            Some(g) => {
+                self.begin_record(RecordKind::GeoFrame);
+                encode_geometry(g, &mut self.scratch)
+                    .and_then(|()| encode_frame(pulse, &mut self.scratch))
+            }
+            None => {
+                self.begin_record(RecordKind::DigitizerFrame);
+                encode_frame(pulse, &mut self.scratch)
+            }
+        };
+        if let Err(source) = encoded {
             self.scratch.clear();
             return Err(CaptureError::Encode {
                 pulse_id: pulse.pulse_id,

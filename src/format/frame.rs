@@ -1,11 +1,11 @@
 //! Payloads of the capture records that carry data: the digitizer frame (one [`Pulse`]) and raw
-//! navigation bytes. Byte layouts are in `docs/formats.md` ("Capture format v1.0"); all integers
+//! navigation bytes. Byte layouts are in `docs/formats.md` ("Capture format v1.1"); all integers
 //! and floats are little-endian.
 //!
 //! Decoding reuses the pulse's buffers: once a pulse has held a frame of a given size, decoding
 //! another of at most that size does not allocate.
 
-use crate::pulse::{Pulse, Segment, SegmentKind};
+use crate::pulse::{Pulse, PulseGeometry, Segment, SegmentKind};
 
 /// Bytes of the fixed part of a digitizer frame payload: pulse_id u64, gps_time f64,
 /// scan_angle_deg [f32; 2], sample_ns f64, gain_v_per_dn f32, offset_v f32, bits u8,
@@ -14,6 +14,9 @@ pub const FRAME_FIXED_LEN: usize = 44;
 /// Bytes of each segment header in a frame: kind u8, channel u8, reserved u16, start_ns f64,
 /// n_samples u32.
 pub const SEGMENT_HEADER_LEN: usize = 16;
+/// Bytes of the geometry prefix of a GeoFrame payload (format 1.1): anchor `[f64; 3]` then
+/// direction `[f64; 3]` (CRS units, and CRS units per ns), followed by a digitizer frame payload.
+pub const GEOMETRY_LEN: usize = 48;
 /// Bytes of the fixed part of a nav payload: port u8, reserved [u8; 3], receive_time_ns u64.
 pub const NAV_FIXED_LEN: usize = 12;
 
@@ -74,6 +77,9 @@ pub enum FrameError {
         /// The offending count.
         value: u16,
     },
+    /// A GeoFrame payload too short for its geometry, or a geometry with a non-finite value.
+    #[error("geoframe geometry is unusable: {0}")]
+    BadGeometry(&'static str),
     /// The payload is shorter than the nav payload's fixed part.
     #[error("nav payload is {len} bytes, shorter than its {NAV_FIXED_LEN}-byte fixed part")]
     NavTooShort {
@@ -124,6 +130,36 @@ fn le_f32(b: &[u8], at: usize) -> f32 {
 #[inline]
 fn le_f64(b: &[u8], at: usize) -> f64 {
     f64::from_bits(le_u64(b, at))
+}
+
+/// Appends the 48-byte geometry prefix of a GeoFrame payload (anchor, then direction) to `out`.
+/// Non-finite values are refused ([`FrameError::BadGeometry`]); `out` is then left as it was.
+pub fn encode_geometry(g: &PulseGeometry, out: &mut Vec<u8>) -> Result<(), FrameError> {
+    if !g.anchor.iter().chain(&g.direction).all(|v| v.is_finite()) {
+        return Err(FrameError::BadGeometry("non-finite anchor or direction"));
+    }
+    for v in g.anchor.iter().chain(&g.direction) {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    Ok(())
+}
+
+/// Splits a GeoFrame payload into its geometry and the digitizer frame payload that follows it.
+/// Errors when the payload is shorter than [`GEOMETRY_LEN`] or a value is not finite; the frame
+/// part is not checked here (see [`check_frame`]).
+pub fn split_geo_frame(payload: &[u8]) -> Result<(PulseGeometry, &[u8]), FrameError> {
+    if payload.len() < GEOMETRY_LEN {
+        return Err(FrameError::BadGeometry("payload shorter than 48 bytes"));
+    }
+    let v = |i: usize| le_f64(payload, 8 * i);
+    let g = PulseGeometry {
+        anchor: [v(0), v(1), v(2)],
+        direction: [v(3), v(4), v(5)],
+    };
+    if !g.anchor.iter().chain(&g.direction).all(|v| v.is_finite()) {
+        return Err(FrameError::BadGeometry("non-finite anchor or direction"));
+    }
+    Ok((g, &payload[GEOMETRY_LEN..]))
 }
 
 /// Appends the frame payload of `pulse` to `out` (clear `out` first for a standalone payload).

@@ -1,7 +1,7 @@
 //! File formats fwlidar reads and writes: raw, byte-exact layers that validate as little as
 //! possible and never panic on input, below the checked domain types.
 //!
-//! - [`capture`]: the native capture container v1.0 (constants, errors, skip report, flush
+//! - [`capture`]: the native capture container v1.1 (constants, errors, skip report, flush
 //!   policy); [`capture_reader`] and [`capture_writer`] read and write it.
 //! - [`frame`]: the digitizer frame and nav payloads inside capture records.
 //! - [`table`]: waveform tables (CSV, NumPy `.npy`) for `fwlidar process`.
