@@ -657,3 +657,55 @@ max_iterations = 25
         "{out}"
     );
 }
+
+#[test]
+fn import_of_a_capture_keeps_every_pulse_and_never_overwrites() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("copy.fwcap");
+    let o = fwlidar(&[
+        "import",
+        sample().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert!(
+        text(&o.stdout).contains("2000 pulses"),
+        "{}",
+        text(&o.stdout)
+    );
+    let a = fwlidar(&["inspect", sample().to_str().unwrap(), "--pulses", "--json"]);
+    let b = fwlidar(&["inspect", out.to_str().unwrap(), "--pulses", "--json"]);
+    assert!(a.status.success() && b.status.success());
+    assert_eq!(text(&a.stdout).lines().count(), 2000);
+    assert_eq!(a.stdout, b.stdout, "every pulse and sample carried over");
+    let o = fwlidar(&["inspect", out.to_str().unwrap()]);
+    assert!(text(&o.stdout).contains("origin: imported"));
+
+    // A second import to the same name fails and leaves the first intact.
+    let before = std::fs::read(&out).unwrap();
+    let o = fwlidar(&[
+        "import",
+        sample().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert_fails(&o, 1, &["copy.fwcap", "never overwritten"]);
+    assert_eq!(std::fs::read(&out).unwrap(), before);
+
+    // An input that is not a waveform file: a clear error, nothing written.
+    let junk = dir.path().join("notes.txt");
+    std::fs::write(&junk, b"not a waveform file at all\n").unwrap();
+    let out2 = dir.path().join("x.fwcap");
+    let o = fwlidar(&[
+        "import",
+        junk.to_str().unwrap(),
+        "--out",
+        out2.to_str().unwrap(),
+    ]);
+    assert_fails(&o, 1, &["notes.txt", "not an fwlidar capture"]);
+    assert!(!out2.exists());
+    assert!(!dir.path().join("x.fwcap.partial").exists());
+}

@@ -4,6 +4,7 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 
+pub mod import;
 pub mod inspect;
 pub mod process;
 pub mod replay;
@@ -38,14 +39,18 @@ pub enum LogFormat {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
-    /// Replay a recorded capture through the processing chain into an output folder.
+    /// Replay a recorded capture (or a LAS / PulseWaves waveform file) through the processing
+    /// chain into an output folder.
     Replay(replay::ReplayArgs),
     /// Simulate a scene into a capture file.
     Simulate(simulate::SimulateArgs),
     /// Check configuration files (run configs, sensor profiles, scenes); report every error.
     Validate(validate::ValidateArgs),
-    /// Describe a capture: header, record counts, damage; optionally every pulse as JSON.
+    /// Describe a capture, LAS or PulseWaves file: header, record counts, damage; optionally
+    /// every pulse as JSON.
     Inspect(inspect::InspectArgs),
+    /// Convert a LAS or PulseWaves waveform file (or a capture) into a capture.
+    Import(import::ImportArgs),
     /// Denoise, deconvolve (and optionally decompose) a table of waveforms (CSV or .npy).
     Process(process::ProcessArgs),
     /// Measure what accuracy costs in time: every method and setting on simulated pulses with
@@ -112,6 +117,7 @@ pub fn main() -> i32 {
         Command::Simulate(a) => simulate::run(a),
         Command::Validate(a) => validate::run(a),
         Command::Inspect(a) => inspect::run(a),
+        Command::Import(a) => import::run(a),
         Command::Process(a) => process::run(a),
         Command::Tradeoff(a) => tradeoff::run(a),
     };

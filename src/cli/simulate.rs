@@ -54,6 +54,8 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
             created_unix_s: 0,
             time_base: "gps_seconds_of_week".into(),
             origin: "simulated".into(),
+            crs: None,
+            source_file: None,
         },
         sensor: sensor.clone(),
         scene: scene_table,

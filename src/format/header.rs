@@ -31,8 +31,17 @@ pub struct CaptureMeta {
     /// Time base of the frames' `gps_time`: `gps_seconds_of_week` or `gps_adjusted_standard`
     /// (GPS seconds since 1980-01-06 minus 10^9, as LAS uses).
     pub time_base: String,
-    /// `simulated` or `flight`.
+    /// `simulated`, `flight`, or `imported` (converted from another file format by `fwlidar
+    /// import`).
     pub origin: String,
+    /// Coordinate reference system of the pulses' geometry (GeoFrame records), as the source file
+    /// stated it: OGC WKT, or `EPSG:<code>`. Absent when no pulse carries geometry or the file did
+    /// not say.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crs: Option<String>,
+    /// The file an imported capture was converted from (as given on the command line).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source_file: Option<String>,
 }
 
 impl CaptureHeader {

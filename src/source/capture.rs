@@ -121,6 +121,17 @@ impl Source for CaptureSource {
         Some((self.reader.position(), self.total_bytes))
     }
 
+    fn facts(&self) -> super::SourceFacts {
+        match &self.header {
+            Some(h) => super::SourceFacts {
+                sensor: Some(h.sensor.clone()),
+                time_base: Some(h.capture.time_base.clone()),
+                crs: h.capture.crs.clone(),
+            },
+            None => super::SourceFacts::default(),
+        }
+    }
+
     fn report(&self) -> serde_json::Value {
         serde_json::json!({
             "file": self.path.display().to_string(),

@@ -56,6 +56,25 @@ pub trait Source: Send {
     fn report(&self) -> serde_json::Value {
         serde_json::Value::Null
     }
+
+    /// What the input states about its sensor, time base and coordinates, as far as known so far
+    /// (a capture states it in its first record, so ask after the first event). `fwlidar import`
+    /// writes it into the capture header.
+    fn facts(&self) -> SourceFacts {
+        SourceFacts::default()
+    }
+}
+
+/// What an input file states about itself ([`Source::facts`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SourceFacts {
+    /// A complete sensor description, when the file holds one (a capture header; a PulseWaves
+    /// scanner record with wavelength, pulse width, rate and divergence).
+    pub sensor: Option<crate::config::SensorProfile>,
+    /// Time base of the pulses' `gps_time`: `gps_seconds_of_week` or `gps_adjusted_standard`.
+    pub time_base: Option<String>,
+    /// Coordinate reference system of the pulses' geometry: OGC WKT or `EPSG:<code>`.
+    pub crs: Option<String>,
 }
 
 /// The file formats an input file can be, told apart by their first bytes ([`InputKind::sniff`]).
