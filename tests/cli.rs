@@ -169,12 +169,19 @@ fn replay_of_the_sample_writes_consistent_outputs() {
     let mut lines = text_returns.lines();
     assert_eq!(
         lines.next(),
-        Some("pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v")
+        Some(
+            "pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v,x,y,z"
+        )
     );
     let mut per_pulse: std::collections::BTreeMap<u64, Vec<f64>> = Default::default();
     for l in lines {
         let f: Vec<&str> = l.split(',').collect();
-        assert_eq!(f.len(), 8, "{l}");
+        assert_eq!(f.len(), 11, "{l}");
+        assert_eq!(
+            &f[8..],
+            ["", "", ""],
+            "no geometry in a digitizer capture: {l}"
+        );
         let t: f64 = f[4].parse().unwrap();
         let amplitude: f64 = f[5].parse().unwrap();
         let sigma: f64 = f[6].parse().unwrap();

@@ -6,7 +6,10 @@
 //! - `time_ns`: centre as time after the pulse's reference time, ns;
 //! - `amplitude_v`: peak amplitude of the Gaussian, volts (of the signal the fit saw);
 //! - `sigma_bins`: standard deviation, bins;
-//! - `residual_v`: RMS residual of the whole segment's fit, volts.
+//! - `residual_v`: RMS residual of the whole segment's fit, volts;
+//! - `x,y,z`: where the return lies, `anchor + time_ns · direction`, in the input file's CRS,
+//!   when the pulse carries its geometry (LAS, PulseWaves); empty otherwise (digitizer frames
+//!   wait for the georeference stage).
 //!
 //! Pulses without returns write nothing. The file appears atomically at the end of the run
 //! (see [`AtomicFile`]); the georeferenced LAS returns of later issues replace it for mapping.
@@ -20,7 +23,7 @@ use crate::sink::{PulseSink, SinkError};
 
 /// Header line of `returns.csv`.
 pub const RETURNS_HEADER: &str =
-    "pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v";
+    "pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v,x,y,z";
 
 /// Writes `returns.csv` into a folder.
 pub struct ReturnsCsvSink {
@@ -73,6 +76,15 @@ impl PulseSink for ReturnsCsvSink {
                 r.sigma_bins,
                 r.residual
             );
+            // Replace the newline just written with the position columns.
+            self.line.pop();
+            match &p.geometry {
+                Some(g) => {
+                    let at = |k: usize| g.anchor[k] + r.time_ns * g.direction[k];
+                    let _ = writeln!(self.line, ",{:.4},{:.4},{:.4}", at(0), at(1), at(2));
+                }
+                None => self.line.push_str(",,,\n"),
+            }
         }
         let path = self.file.path().display().to_string();
         self.file
@@ -136,9 +148,34 @@ mod tests {
             lines,
             [
                 RETURNS_HEADER,
-                "7,12.500000000,1,10.25,110.25,0.5,3,0.01",
-                "7,12.500000000,1,40,140,0.125,2.5,0.01"
+                "7,12.500000000,1,10.25,110.25,0.5,3,0.01,,,",
+                "7,12.500000000,1,40,140,0.125,2.5,0.01,,,"
             ]
         );
+    }
+
+    #[test]
+    fn a_pulse_with_geometry_gets_the_position_of_each_return() {
+        use crate::pulse::PulseGeometry;
+        let dir = tempfile::tempdir().unwrap();
+        let mut sink = ReturnsCsvSink::create(dir.path()).unwrap();
+        let mut p = Pulse {
+            pulse_id: 3,
+            geometry: Some(PulseGeometry {
+                anchor: [500_000.0, 5_000_000.0, 1_000.0],
+                direction: [0.01, 0.0, -0.15],
+            }),
+            ..Default::default()
+        };
+        p.returns.push(FittedReturn {
+            segment: 0,
+            time_ns: 100.0,
+            ..Default::default()
+        });
+        sink.write(&p).unwrap();
+        sink.finish().unwrap();
+        let text = std::fs::read_to_string(dir.path().join("returns.csv")).unwrap();
+        let row = text.lines().nth(1).unwrap();
+        assert!(row.ends_with(",500001.0000,5000000.0000,985.0000"), "{row}");
     }
 }
