@@ -181,6 +181,11 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
     for (reason, n) in &r.dropped {
         println!("    dropped {n:>10}  {reason}");
     }
+    for st in &r.stages {
+        for (note, n) in &st.notes {
+            println!("    passed  {n:>10}  {}.{note} (passed on unprocessed)", st.name);
+        }
+    }
     if let Some(skipped) = r.source.get("skipped") {
         let bytes = skipped
             .get("bytes_skipped")

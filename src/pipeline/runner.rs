@@ -439,7 +439,8 @@ fn worker(
     if ok {
         for j in 0..stages.len() {
             let t = &mut tel[j];
-            let mut em = Emitter::new(&mut cur, pool, &mut t.dropped, &mut t.errors);
+            let mut em = Emitter::new(&mut cur, pool, &mut t.dropped, &mut t.errors)
+                .with_notes(&mut t.notes);
             let flushed = stages[j].flush(&mut em);
             t.sent += cur.len() as u64;
             let res = flushed
@@ -506,7 +507,8 @@ fn run_chain(
             let arrived = p.arrived;
             let before = next.len();
             let start = Instant::now();
-            let mut em = Emitter::new(next, pool, &mut t.dropped, &mut t.errors);
+            let mut em =
+                Emitter::new(next, pool, &mut t.dropped, &mut t.errors).with_notes(&mut t.notes);
             stages[j].process(p, &mut em)?;
             let end = Instant::now();
             t.sent += (next.len() - before) as u64;

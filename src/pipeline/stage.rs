@@ -68,6 +68,7 @@ pub struct Emitter<'a> {
     pool: &'a PulsePool,
     dropped: &'a mut DropCounts,
     errors: &'a mut u64,
+    notes: Option<&'a mut DropCounts>,
 }
 
 impl<'a> Emitter<'a> {
@@ -83,7 +84,25 @@ impl<'a> Emitter<'a> {
             pool,
             dropped,
             errors,
+            notes: None,
         }
+    }
+
+    /// Also counts the notes of [`Emitter::emit_noted`] into `notes`.
+    pub fn with_notes(mut self, notes: &'a mut DropCounts) -> Self {
+        self.notes = Some(notes);
+        self
+    }
+
+    /// Passes a pulse on that the stage left (partly) unprocessed on purpose, counted under
+    /// `note` (e.g. a deconvolution stage passing a pulse without an outgoing segment through
+    /// when configured to): the pulse is not lost, and the run report says how many were
+    /// passed and why.
+    pub fn emit_noted(&mut self, pulse: Box<Pulse>, note: &'static str) {
+        if let Some(n) = self.notes.as_deref_mut() {
+            n.add(note, 1);
+        }
+        self.out.push(pulse);
     }
 
     /// Passes a pulse on to the next stage.

@@ -88,6 +88,8 @@ pub struct StageTelemetry {
     pub dropped: DropCounts,
     /// Pulses rejected as errors.
     pub errors: u64,
+    /// Pulses passed on partly unprocessed on purpose, by note ([`super::Emitter::emit_noted`]).
+    pub notes: DropCounts,
     /// The stage's own processing time per pulse, ns.
     pub service: LatencyHistogram,
     /// Time from the pulse's arrival to its leaving this stage, ns.
@@ -103,6 +105,7 @@ impl StageTelemetry {
             sent: 0,
             dropped: DropCounts::default(),
             errors: 0,
+            notes: DropCounts::default(),
             service: LatencyHistogram::default(),
             since_arrival: LatencyHistogram::default(),
         }
@@ -114,6 +117,7 @@ impl StageTelemetry {
         self.sent += other.sent;
         self.dropped.merge(&other.dropped);
         self.errors += other.errors;
+        self.notes.merge(&other.notes);
         self.service.merge(&other.service);
         self.since_arrival.merge(&other.since_arrival);
     }
@@ -130,6 +134,7 @@ impl StageTelemetry {
                 .map(|(r, c)| (r.to_string(), c))
                 .collect(),
             errors: self.errors,
+            notes: self.notes.iter().map(|(r, c)| (r.to_string(), c)).collect(),
             service: self.service.summary(),
             since_arrival: self.since_arrival.summary(),
         }
@@ -149,6 +154,8 @@ pub struct StageReport {
     pub dropped: BTreeMap<String, u64>,
     /// Pulses rejected as errors.
     pub errors: u64,
+    /// Pulses passed on partly unprocessed on purpose, by note (included in `sent`).
+    pub notes: BTreeMap<String, u64>,
     /// Its own processing time per pulse.
     pub service: LatencySummary,
     /// Time from arrival to leaving this stage.

@@ -128,6 +128,23 @@ pub struct DeconvolveConfig {
     /// Default 256.
     #[serde(default = "default_max_taps")]
     pub max_taps: usize,
+    /// With `kernel = "outgoing"`, what happens to a pulse that recorded no outgoing segment
+    /// (LAS waveform files never carry one): `"drop"` (counted `no_outgoing`; the default) or
+    /// `"pass"` (passed on un-deconvolved, counted in the stage's `notes` as `no_outgoing`).
+    #[serde(default)]
+    pub missing_outgoing: MissingOutgoing,
+}
+
+/// What a deconvolve stage with `kernel = "outgoing"` does with a pulse without an outgoing
+/// segment.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MissingOutgoing {
+    /// Drop it, counted under `no_outgoing`.
+    #[default]
+    Drop,
+    /// Pass it on as it is (not deconvolved), counted in the stage's notes under `no_outgoing`.
+    Pass,
 }
 
 fn default_max_samples() -> usize {
@@ -176,6 +193,7 @@ impl DeconvolveConfig {
             kernel: KernelSource::default(),
             max_samples: default_max_samples(),
             max_taps: default_max_taps(),
+            missing_outgoing: MissingOutgoing::default(),
         }
     }
 }
@@ -255,7 +273,10 @@ impl Stage for Deconvolve {
         }
         if self.config.kernel == KernelSource::Outgoing {
             let Some(o) = pulse.outgoing() else {
-                out.drop_pulse(pulse, "no_outgoing");
+                match self.config.missing_outgoing {
+                    MissingOutgoing::Drop => out.drop_pulse(pulse, "no_outgoing"),
+                    MissingOutgoing::Pass => out.emit_noted(pulse, "no_outgoing"),
+                }
                 return Ok(());
             };
             let range = pulse.segments[o].range();
@@ -360,6 +381,34 @@ mod tests {
             assert!((peak.0 as i32 - 40).abs() <= 1, "{m:?}: peak at {}", peak.0);
             assert!(*peak.1 > 0.6, "{m:?}: sharpened peak {}", peak.1);
         }
+    }
+
+    #[test]
+    fn a_pulse_without_outgoing_is_passed_unchanged_and_noted_when_configured() {
+        use crate::pipeline::{DropCounts, Emitter};
+        use crate::pulse::PulsePool;
+        let mut stage = Deconvolve::new(DeconvolveConfig {
+            missing_outgoing: MissingOutgoing::Pass,
+            ..DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig::default()))
+        });
+        let mut p = Pulse::default();
+        p.push_segment(SegmentKind::Return, 0, 0.0, [0u16; 10]);
+        p.signal = (0..10).map(|i| i as f32).collect();
+        let before = p.signal.clone();
+        let pool = PulsePool::new(2);
+        let (mut out, mut dropped, mut errors, mut notes) = (
+            Vec::new(),
+            DropCounts::default(),
+            0u64,
+            DropCounts::default(),
+        );
+        let mut em =
+            Emitter::new(&mut out, &pool, &mut dropped, &mut errors).with_notes(&mut notes);
+        stage.process(Box::new(p), &mut em).unwrap();
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].signal, before, "not deconvolved");
+        assert_eq!(dropped.total(), 0);
+        assert_eq!(notes.get("no_outgoing"), 1);
     }
 
     #[test]
