@@ -12,6 +12,7 @@ use crate::config::RunConfig;
 use crate::pipeline::runner::{LiveCounters, PipelineSpec};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
 use crate::sink::atomic_file::write_atomic;
+use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use crate::sink::nav_tally::NavTally;
 use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::waveform_csv::WaveformCsvSink;
@@ -80,6 +81,11 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     if config.output.returns && decomposes {
         sinks.push(Box::new(
             ReturnsCsvSink::create(&out_dir).map_err(Failure::job)?,
+        ));
+    }
+    if config.output.las && decomposes {
+        sinks.push(Box::new(
+            LasWaveSink::create(&out_dir, LasWaveOptions::default()).map_err(Failure::job)?,
         ));
     }
     let control = RunControl::default();
@@ -205,6 +211,18 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
                 v["chunks"], v["bytes"]
             );
         }
+    }
+    if let Some(las) = r.sinks.get("las") {
+        println!(
+            "  returns.las: {} points from {} pulses; {} pulses without geometry skipped, {} \
+             returns unrepresentable; returns.wdp: {} packets, {} bytes",
+            las["points"],
+            las["pulses_written"],
+            las["pulses_without_geometry"],
+            las["returns_unrepresentable"],
+            las["packets"],
+            las["wdp_bytes"]
+        );
     }
     println!(
         "  {:<14} {:>10} {:>10} {:>10} {:>10} {:>10}   (service time, µs)",
