@@ -53,7 +53,11 @@ fn make_pulse(i: u64) -> Pulse {
         offset_v: if i % 2 == 0 { -0.1 } else { 0.0 },
         bits,
         geometry: (i % 10 != 9).then_some(PulseGeometry {
-            anchor: [500_321.123 + i as f64 * 0.37, 6_650_010.5 - i as f64 * 0.11, 1_800.0],
+            anchor: [
+                500_321.123 + i as f64 * 0.37,
+                6_650_010.5 - i as f64 * 0.11,
+                1_800.0,
+            ],
             direction: [0.004 * (i % 5) as f64, -0.003, -0.149_8],
         }),
         ..Default::default()
@@ -140,21 +144,26 @@ fn laspy_reads_returns_las_and_wdp() {
     let stats = sink.stats();
     assert_eq!(stats.points, points.len() as u64);
     assert_eq!(stats.pulses_without_geometry, pulses / 10);
-    let expected = dir.path().join("expected.json");
+    let report = check_with_laspy(dir.path(), Some(UTM33N_WKT), &points);
+    eprintln!("{report}");
+}
+
+/// Runs the checker on `out` with the expected points; returns its report line.
+fn check_with_laspy(out: &Path, wkt: Option<&str>, points: &[serde_json::Value]) -> String {
+    let expected = out.join("expected.json");
     std::fs::write(
         &expected,
-        serde_json::to_vec(&json!({ "wkt": UTM33N_WKT, "points": points })).unwrap(),
+        serde_json::to_vec(&json!({ "wkt": wkt, "points": points })).unwrap(),
     )
     .unwrap();
-
     let py = python();
     let o = Command::new(&py)
         .arg(Path::new(ROOT).join("tests/python/read_las.py"))
-        .arg(dir.path())
+        .arg(out)
         .arg(&expected)
         .output()
         .unwrap_or_else(|e| panic!("cannot run {}: {e}", py.display()));
-    let stdout = String::from_utf8_lossy(&o.stdout);
+    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(
         !stdout.contains("MISSING PYTHON PACKAGE"),
         "{} lacks a package the LAS check needs: {stdout}(run .ci/run or `{} -m pip install \
@@ -167,6 +176,46 @@ fn laspy_reads_returns_las_and_wdp() {
         "laspy check failed:\n{stdout}\n{}",
         String::from_utf8_lossy(&o.stderr)
     );
-    eprintln!("{stdout}");
     assert!(stdout.contains("all as written"), "{stdout}");
+    stdout
+}
+
+/// `fwlidar replay` with `[output] las = true` on the capture sample: capture pulses carry no
+/// geometry, so the LAS is empty (and valid), and the summary counts every skipped pulse.
+#[test]
+fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometry() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
+        .unwrap()
+        .replace("las = false", "las = true");
+    assert!(config.contains("las = true"));
+    let cfg = dir.path().join("run.toml");
+    std::fs::write(&cfg, config).unwrap();
+    let out = dir.path().join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
+        .args([
+            "replay",
+            "replay/two_layer.fwcap",
+            "--no-progress",
+            "--config",
+        ])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .current_dir(ROOT)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(stdout.contains("returns.las: 0 points"), "{stdout}");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let las = &summary["sinks"]["las"];
+    assert_eq!(las["points"], 0);
+    let skipped = las["pulses_without_geometry"].as_u64().unwrap();
+    let without_returns = las["pulses_without_returns"].as_u64().unwrap();
+    assert_eq!(skipped + without_returns, 2000, "{las}");
+    assert!(skipped > 1000, "most sample pulses have returns: {las}");
+    assert!(!out.join("returns.las.partial").exists());
+    check_with_laspy(&out, None, &[]);
 }
