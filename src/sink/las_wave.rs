@@ -27,7 +27,7 @@
 //! field: `docs/formats.md`, "Returns as LAS 1.4 with waveforms (output)".
 
 use std::io::{Seek, SeekFrom, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::format::las_write::{
     self as lw, DESCRIPTOR_SIZE, EVLR_HEADER_SIZE, EXTRA_BYTES_DESCRIPTOR_SIZE, HEADER_SIZE,
@@ -112,6 +112,8 @@ type DescKey = (u8, u32, u32, u32, u32);
 pub struct LasWaveSink {
     las: AtomicFile,
     wdp: AtomicFile,
+    las_path: PathBuf,
+    wdp_path: PathBuf,
     options: LasWaveOptions,
     /// Encoded VLRs known at creation (WKT, Extra Bytes), in file order.
     fixed_vlrs: Vec<u8>,
@@ -205,6 +207,8 @@ impl LasWaveSink {
         Ok(LasWaveSink {
             las,
             wdp,
+            las_path,
+            wdp_path,
             options,
             fixed_vlrs,
             fixed_vlr_count,
@@ -295,11 +299,10 @@ impl LasWaveSink {
             }
         }
         let size = self.samples.len() as u32;
-        let wdp_path = self.wdp.path().to_path_buf();
         self.wdp
             .writer()?
             .write_all(&self.samples)
-            .map_err(|e| io_err(&wdp_path, e))?;
+            .map_err(|e| io_err(&self.wdp_path, e))?;
         let at = self.wdp_pos;
         self.wdp_pos += u64::from(size);
         self.report.packets += 1;
@@ -402,11 +405,10 @@ impl LasWaveSink {
                 self.record[PF9_SIZE..PF9_SIZE + 4].copy_from_slice(&r.amplitude.to_le_bytes());
                 self.record[PF9_SIZE + 4..PF9_SIZE + 8].copy_from_slice(&sigma_ns.to_le_bytes());
             }
-            let las_path = self.las.path().to_path_buf();
             self.las
                 .writer()?
                 .write_all(&self.record)
-                .map_err(|e| io_err(&las_path, e))?;
+                .map_err(|e| io_err(&self.las_path, e))?;
             for k in 0..3 {
                 self.min[k] = self.min[k].min(xyz[k]);
                 self.max[k] = self.max[k].max(xyz[k]);
