@@ -32,8 +32,8 @@ fn pulse(i: u64) -> Pulse {
     let mut p = Pulse {
         pulse_id: i,
         gps_time: i as f64,
-        gain_v_per_dn: if i % 2 == 0 { 0.001 } else { 0.002 },
-        bits: if i % 3 == 0 { 8 } else { 16 },
+        gain_v_per_dn: if i.is_multiple_of(2) { 0.001 } else { 0.002 },
+        bits: if i.is_multiple_of(3) { 8 } else { 16 },
         geometry: Some(PulseGeometry {
             anchor: [500_000.0 + i as f64, 6_000_000.0, 1500.0],
             direction: [0.0, 0.001, -0.1499],

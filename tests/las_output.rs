@@ -43,14 +43,14 @@ fn python() -> PathBuf {
 /// Pulse `i`: two return segments, one to four returns given out of time order, 8- or 16-bit
 /// counts, one of two gains, a slightly off-nadir beam over UTM 33N; every 10th has no geometry.
 fn make_pulse(i: u64) -> Pulse {
-    let bits = if i % 3 == 0 { 8 } else { 16 };
+    let bits = if i.is_multiple_of(3) { 8 } else { 16 };
     let mut p = Pulse {
         pulse_id: 10_000 + i,
         gps_time: 345_600.0 + i as f64 * 1e-4,
         scan_angle_deg: [-10.0 + (i % 40) as f32 * 0.5, f32::NAN],
         sample_ns: 1.0,
         gain_v_per_dn: if bits == 8 { 0.01 } else { 0.000_5 },
-        offset_v: if i % 2 == 0 { -0.1 } else { 0.0 },
+        offset_v: if i.is_multiple_of(2) { -0.1 } else { 0.0 },
         bits,
         geometry: (i % 10 != 9).then_some(PulseGeometry {
             anchor: [

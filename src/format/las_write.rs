@@ -306,7 +306,8 @@ pub fn year_and_day(unix_s: u64) -> (u16, u16) {
     let mut days = unix_s / 86_400;
     let mut year = 1970u64;
     loop {
-        let leap = (year % 4 == 0 && year % 100 != 0) || year % 400 == 0;
+        let leap =
+            (year.is_multiple_of(4) && !year.is_multiple_of(100)) || year.is_multiple_of(400);
         let len = if leap { 366 } else { 365 };
         if days < len {
             return (year.min(u64::from(u16::MAX)) as u16, days as u16 + 1);

@@ -409,9 +409,9 @@ impl LasWaveSink {
                 .writer()?
                 .write_all(&self.record)
                 .map_err(|e| io_err(&self.las_path, e))?;
-            for k in 0..3 {
-                self.min[k] = self.min[k].min(xyz[k]);
-                self.max[k] = self.max[k].max(xyz[k]);
+            for (k, v) in xyz.into_iter().enumerate() {
+                self.min[k] = self.min[k].min(v);
+                self.max[k] = self.max[k].max(v);
             }
             self.by_return[return_number as usize - 1] += 1;
             written += 1;
