@@ -132,6 +132,8 @@ fn laspy_reads_returns_las_and_wdp() {
                 "sigma_ns": f64::from(r.sigma_bins) * p.sample_ns,
                 "location_ps": (r.time_ns - seg.start_ns) * 1000.0,
                 "xyz_t": g.direction.map(|d| -d / 1000.0),
+                "first_sample": g.direction.map(|d| d * seg.start_ns)
+                    .iter().zip(g.anchor).map(|(a, b)| a + b).collect::<Vec<f64>>(),
                 "bits": p.bits,
                 "spacing_ps": 1000,
                 "gain": f64::from(p.gain_v_per_dn),

@@ -3,7 +3,7 @@ against what the writer was given.
 
 Usage: python read_las.py OUT_DIR EXPECTED.json
 EXPECTED.json: {"wkt": str, "points": [{x, y, z, gps_time, return_number, number_of_returns,
-intensity, amplitude_v, sigma_ns, location_ps, xyz_t: [3], bits, spacing_ps, gain, offset,
+intensity, amplitude_v, sigma_ns, location_ps, xyz_t: [3], first_sample: [3], bits, spacing_ps, gain, offset,
 counts: [...]}, ...]} in file order. Exits non-zero with a message on the first inconsistency.
 """
 import json
@@ -71,6 +71,11 @@ def main(out: Path, expected_path: Path) -> None:
     assert np.allclose(loc, col("location_ps"), rtol=1e-6, atol=1e-3), "return point location"
     xyz_t = np.stack([np.asarray(las.x_t), np.asarray(las.y_t), np.asarray(las.z_t)], axis=1)
     assert np.allclose(xyz_t, np.array([p["xyz_t"] for p in pts]), rtol=1e-6), "x_t, y_t, z_t"
+    # The convention: the packet's first sample lies at P + L * (x_t, y_t, z_t).
+    xyz = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1)
+    first = xyz + loc[:, None] * xyz_t.astype(np.float64)
+    err = np.abs(first - np.array([p["first_sample"] for p in pts])).max()
+    assert err <= 0.001, f"first sample off by {err} m"
 
     descriptors = {
         v.record_id - 99: v.parsed_record
