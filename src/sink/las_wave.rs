@@ -414,6 +414,7 @@ impl LasWaveSink {
                 self.max[k] = self.max[k].max(v);
             }
             self.by_return[return_number as usize - 1] += 1;
+            self.report.points += 1;
             written += 1;
         }
         Ok(written)
@@ -515,8 +516,9 @@ impl PulseSink for LasWaveSink {
             self.report.pulses_without_geometry += 1;
             return Ok(());
         };
+        // Counts are kept per point, so the header matches the file even when a later return
+        // of the pulse fails (e.g. a 256th descriptor) and the run ends there.
         let n = self.write_points(p, &g)?;
-        self.report.points += n;
         self.report.pulses_written += u64::from(n > 0);
         Ok(())
     }
@@ -832,8 +834,10 @@ mod tests {
             sink.write(&pulse(i as u64, 0.5 + i as f32, true, &[(1, 110.0, 1.0)]))
                 .unwrap();
         }
+        // A pulse whose first return reuses descriptor 1 (gain 0.5, segment 1) and whose second
+        // needs a new one (segment 2's length): the first point stays in the file, counted.
         let e = sink
-            .write(&pulse(999, 1e6, true, &[(1, 110.0, 1.0)]))
+            .write(&pulse(999, 0.5, true, &[(1, 110.0, 1.0), (2, 305.0, 1.0)]))
             .unwrap_err();
         let msg = e.to_string();
         assert!(msg.contains("returns.las") && msg.contains("255"), "{msg}");
@@ -845,6 +849,13 @@ mod tests {
             "255 descriptors + extra bytes, no padding"
         );
         assert_eq!(vlrs(&b).last().unwrap().1, 99 + 255);
+        assert_eq!(
+            u64_at(&b, 247),
+            256,
+            "255 pulses + the first return of the failing one"
+        );
+        assert_eq!(b.len(), u32_at(&b, 96) as usize + 256 * 67);
+        assert_eq!(sink.stats().points, 256);
     }
 
     #[test]
