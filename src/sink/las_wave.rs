@@ -877,6 +877,26 @@ mod tests {
     }
 
     #[test]
+    fn a_missing_folder_is_an_error_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("nope");
+        let Err(e) = LasWaveSink::create(&missing, LasWaveOptions::default()) else {
+            panic!("created in a missing folder");
+        };
+        assert!(e.to_string().contains("nope/returns.las"), "{e}");
+        let Err(e) = LasWaveSink::create(
+            dir.path(),
+            LasWaveOptions {
+                crs_wkt: Some("bad\0wkt".into()),
+                ..Default::default()
+            },
+        ) else {
+            panic!("accepted a NUL in the WKT");
+        };
+        assert!(e.to_string().contains("returns.las") && e.to_string().contains("NUL"));
+    }
+
+    #[test]
     fn empty_run_gives_a_valid_empty_file() {
         let dir = tempfile::tempdir().unwrap();
         let mut sink = LasWaveSink::create(dir.path(), LasWaveOptions::default()).unwrap();
