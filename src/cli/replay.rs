@@ -12,6 +12,7 @@ use crate::config::RunConfig;
 use crate::pipeline::runner::{LiveCounters, PipelineSpec};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
 use crate::sink::atomic_file::write_atomic;
+use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use crate::sink::nav_tally::NavTally;
 use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::waveform_csv::WaveformCsvSink;
@@ -82,6 +83,11 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
             ReturnsCsvSink::create(&out_dir).map_err(Failure::job)?,
         ));
     }
+    if config.output.las && decomposes {
+        sinks.push(Box::new(
+            LasWaveSink::create(&out_dir, las_options(&source.facts())).map_err(Failure::job)?,
+        ));
+    }
     let control = RunControl::default();
     install_signal_handlers(&control)?;
     tracing::info!(
@@ -143,6 +149,18 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     Ok(())
 }
 
+/// The LAS output's CRS and time base from what the input states: its WKT when it gave one (an
+/// `EPSG:<code>` alone cannot be turned into the WKT LAS 1.4 requires without a CRS database, so
+/// the file then has no CRS record and the summary of the input says which EPSG it was), and
+/// adjusted standard GPS time when the input's times are in it.
+fn las_options(facts: &crate::source::SourceFacts) -> LasWaveOptions {
+    LasWaveOptions {
+        crs_wkt: facts.crs.clone().filter(|c| !c.starts_with("EPSG:")),
+        adjusted_standard_gps_time: facts.time_base.as_deref() == Some("gps_adjusted_standard"),
+        ..LasWaveOptions::default()
+    }
+}
+
 fn prepare_out_dir(dir: &Path) -> Result<(), Failure> {
     if dir.exists() && !dir.is_dir() {
         return Err(Failure::job(format!(
@@ -183,7 +201,10 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
     }
     for st in &r.stages {
         for (note, n) in &st.notes {
-            println!("    passed  {n:>10}  {}.{note} (passed on unprocessed)", st.name);
+            println!(
+                "    passed  {n:>10}  {}.{note} (passed on unprocessed)",
+                st.name
+            );
         }
     }
     if let Some(skipped) = r.source.get("skipped") {
@@ -210,6 +231,18 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
                 v["chunks"], v["bytes"]
             );
         }
+    }
+    if let Some(las) = r.sinks.get("las") {
+        println!(
+            "  returns.las: {} points from {} pulses; {} pulses without geometry skipped, {} \
+             returns unrepresentable; returns.wdp: {} packets, {} bytes",
+            las["points"],
+            las["pulses_written"],
+            las["pulses_without_geometry"],
+            las["returns_unrepresentable"],
+            las["packets"],
+            las["wdp_bytes"]
+        );
     }
     println!(
         "  {:<14} {:>10} {:>10} {:>10} {:>10} {:>10}   (service time, µs)",

@@ -93,6 +93,12 @@ pub struct OutputConfig {
     /// file is only written when the pipeline has a `decompose` stage.
     #[serde(default = "yes")]
     pub returns: bool,
+    /// Write the discrete returns of a `decompose` stage as LAS 1.4 point format 9 with their
+    /// raw waveforms (`returns.las` + `returns.wdp`), for the pulses whose input carries
+    /// geometry (LAS, PulseWaves). Default false; written only when the pipeline has a
+    /// `decompose` stage.
+    #[serde(default)]
+    pub las: bool,
 }
 
 fn default_out_dir() -> String {
@@ -108,6 +114,7 @@ impl Default for OutputConfig {
             dir: default_out_dir(),
             waveforms: true,
             returns: true,
+            las: false,
         }
     }
 }

@@ -5,6 +5,7 @@
 //!   policy); [`capture_reader`] and [`capture_writer`] read and write it.
 //! - [`frame`]: the digitizer frame and nav payloads inside capture records.
 //! - [`table`]: waveform tables (CSV, NumPy `.npy`) for `fwlidar process`.
+//! - [`las_write`]: LAS 1.4 header, VLR/EVLR and point format 9 encoding (returns output).
 //!
 //! Byte layouts are specified in `docs/formats.md`.
 
@@ -13,6 +14,7 @@ pub mod capture_reader;
 pub mod capture_writer;
 pub mod frame;
 pub mod header;
+pub mod las_write;
 pub mod table;
 
 pub use capture::{CaptureError, FlushPolicy, FsyncPolicy, RecordKind, SkipReport};

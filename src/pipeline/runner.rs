@@ -141,6 +141,8 @@ pub struct RunReport {
     pub source: serde_json::Value,
     /// The navigation consumer's report.
     pub nav: serde_json::Value,
+    /// The sinks' reports (e.g. `las`: points written, pulses without geometry), by sink name.
+    pub sinks: serde_json::Value,
     /// Pulses the pool ever allocated: the bound on pulse memory.
     pub pool_allocations: u64,
     /// True when the run was stopped before the source's end (signal).
@@ -284,7 +286,7 @@ pub fn run(
                     if let Err(e) = sink.finish() {
                         set_fatal(format!("sink `{}`: {e}", sink.name()));
                     }
-                    e2e
+                    (e2e, sink.report())
                 })
                 .expect("spawn sink thread")
         };
@@ -353,7 +355,7 @@ pub fn run(
         on_tick(&control.live);
 
         let (stopped_early, source_report) = source_thread.join().expect("source thread");
-        let e2e = sink_thread.join().expect("sink thread");
+        let (e2e, sink_report) = sink_thread.join().expect("sink thread");
         let nav_report = nav_thread.join().expect("nav thread");
         let mut stages: Vec<StageTelemetry> = spec
             .stage_names
@@ -397,6 +399,7 @@ pub fn run(
             end_to_end: e2e.summary(),
             source: source_report,
             nav: nav_report,
+            sinks: sink_report,
             pool_allocations: pool.allocated(),
             stopped_early,
             fatal: fatal.lock().unwrap_or_else(|e| e.into_inner()).clone(),

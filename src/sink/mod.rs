@@ -1,7 +1,8 @@
-//! Sinks: where processed pulses go, in arrival order (processed waveforms and fitted returns
-//! now; voxel tiles and LAS returns as later issues land).
+//! Sinks: where processed pulses go, in arrival order (processed waveforms, fitted returns as CSV
+//! and as LAS 1.4 with waveforms; voxel tiles as a later issue lands).
 
 pub mod atomic_file;
+pub mod las_wave;
 pub mod nav_tally;
 pub mod returns_csv;
 pub mod waveform_csv;
@@ -18,6 +19,14 @@ pub enum SinkError {
         path: String,
         /// The I/O error.
         source: std::io::Error,
+    },
+    /// The data cannot be represented in the LAS file being written.
+    #[error("cannot write {path}: {source}")]
+    Las {
+        /// The file being written.
+        path: String,
+        /// What cannot be represented.
+        source: crate::format::las_write::LasWriteError,
     },
 }
 
@@ -37,6 +46,12 @@ pub trait PulseSink: Send {
     /// files written under a temporary name, moves them into place. Default: `flush`.
     fn finish(&mut self) -> Result<(), SinkError> {
         self.flush()
+    }
+
+    /// What the sink wrote and skipped, for `summary.json` (`sinks.NAME`); `null` when it has
+    /// nothing to say. Default `null`.
+    fn report(&self) -> serde_json::Value {
+        serde_json::Value::Null
     }
 }
 
@@ -71,5 +86,16 @@ impl PulseSink for FanOut {
     }
     fn finish(&mut self) -> Result<(), SinkError> {
         self.0.iter_mut().try_for_each(|s| s.finish())
+    }
+    /// The reports of the sinks that have one, by name.
+    fn report(&self) -> serde_json::Value {
+        let mut m = serde_json::Map::new();
+        for s in &self.0 {
+            let r = s.report();
+            if !r.is_null() {
+                m.insert(s.name().to_string(), r);
+            }
+        }
+        serde_json::Value::Object(m)
     }
 }

@@ -1,0 +1,79 @@
+//! The LAS sink does not allocate per pulse after warm-up: descriptors, scratch buffers and
+//! writers are sized by the first pulses; writing thousands more costs no heap allocation.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use fwlidar::pulse::{FittedReturn, Pulse, PulseGeometry, SegmentKind};
+use fwlidar::sink::PulseSink;
+use fwlidar::sink::las_wave::{LasWaveOptions, LasWaveSink};
+
+struct Counting;
+static ALLOCS: AtomicU64 = AtomicU64::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn pulse(i: u64) -> Pulse {
+    let mut p = Pulse {
+        pulse_id: i,
+        gps_time: i as f64,
+        gain_v_per_dn: if i.is_multiple_of(2) { 0.001 } else { 0.002 },
+        bits: if i.is_multiple_of(3) { 8 } else { 16 },
+        geometry: Some(PulseGeometry {
+            anchor: [500_000.0 + i as f64, 6_000_000.0, 1500.0],
+            direction: [0.0, 0.001, -0.1499],
+        }),
+        ..Default::default()
+    };
+    p.push_segment(SegmentKind::Outgoing, 0, -5.0, 0..16);
+    p.push_segment(SegmentKind::Return, 0, 9_000.0, 0..200);
+    p.push_segment(SegmentKind::Return, 1, 9_300.0, 0..100);
+    for (segment, t) in [(2u16, 9_350.0), (1, 9_020.0), (1, 9_100.0)]
+        .into_iter()
+        .take(1 + (i % 3) as usize)
+    {
+        p.returns.push(FittedReturn {
+            segment,
+            time_ns: t,
+            amplitude: 0.5,
+            sigma_bins: 2.0,
+            ..Default::default()
+        });
+    }
+    p
+}
+
+#[test]
+fn writing_pulses_does_not_allocate_after_warm_up() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut sink = LasWaveSink::create(dir.path(), LasWaveOptions::default()).unwrap();
+    let pulses: Vec<Pulse> = (0..12).map(pulse).collect();
+    for p in &pulses {
+        sink.write(p).unwrap();
+    }
+    let before = ALLOCS.load(Ordering::SeqCst);
+    for _ in 0..500 {
+        for p in &pulses {
+            sink.write(p).unwrap();
+        }
+    }
+    let during = ALLOCS.load(Ordering::SeqCst) - before;
+    sink.finish().unwrap();
+    assert_eq!(sink.stats().points, 501 * 24);
+    assert_eq!(during, 0, "{during} allocations while writing 6000 pulses");
+}

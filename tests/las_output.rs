@@ -1,0 +1,223 @@
+//! `returns.las` + `returns.wdp` read by a real reader: laspy (`tests/python/read_las.py`)
+//! checks the header, every point (position within 1 mm, time, return numbering, intensity,
+//! extra bytes, wave packet fields, the parametric line) and that the waveform bytes at each
+//! point's (offset, size) in the `.wdp` are the raw counts the pulse carried.
+//!
+//! The interpreter is `$FWLIDAR_PYTHON`, else `.venv/bin/python` (made by `.ci/run` with numpy
+//! and laspy). A missing interpreter or package fails the test, naming what is missing.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use fwlidar::pulse::{FittedReturn, Pulse, PulseGeometry, SegmentKind};
+use fwlidar::sink::PulseSink;
+use fwlidar::sink::las_wave::{LasWaveOptions, LasWaveSink};
+use serde_json::json;
+
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+/// WGS 84 / UTM zone 33N, written out here (no network, no CRS database).
+const UTM33N_WKT: &str = concat!(
+    r#"PROJCS["WGS 84 / UTM zone 33N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84","#,
+    r#"6378137,298.257223563]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],"#,
+    r#"PROJECTION["Transverse_Mercator"],PARAMETER["latitude_of_origin",0],"#,
+    r#"PARAMETER["central_meridian",15],PARAMETER["scale_factor",0.9996],"#,
+    r#"PARAMETER["false_easting",500000],PARAMETER["false_northing",0],UNIT["metre",1],"#,
+    r#"AUTHORITY["EPSG","32633"]]"#
+);
+
+fn python() -> PathBuf {
+    if let Ok(p) = std::env::var("FWLIDAR_PYTHON") {
+        return PathBuf::from(p);
+    }
+    let venv = Path::new(ROOT).join(".venv/bin/python");
+    assert!(
+        venv.exists(),
+        "the LAS reader check needs Python with numpy and laspy: set FWLIDAR_PYTHON or run \
+         .ci/run (it creates .venv with them); {} is missing",
+        venv.display()
+    );
+    venv
+}
+
+/// Pulse `i`: two return segments, one to four returns given out of time order, 8- or 16-bit
+/// counts, one of two gains, a slightly off-nadir beam over UTM 33N; every 10th has no geometry.
+fn make_pulse(i: u64) -> Pulse {
+    let bits = if i.is_multiple_of(3) { 8 } else { 16 };
+    let mut p = Pulse {
+        pulse_id: 10_000 + i,
+        gps_time: 345_600.0 + i as f64 * 1e-4,
+        scan_angle_deg: [-10.0 + (i % 40) as f32 * 0.5, f32::NAN],
+        sample_ns: 1.0,
+        gain_v_per_dn: if bits == 8 { 0.01 } else { 0.000_5 },
+        offset_v: if i.is_multiple_of(2) { -0.1 } else { 0.0 },
+        bits,
+        geometry: (i % 10 != 9).then_some(PulseGeometry {
+            anchor: [
+                500_321.123 + i as f64 * 0.37,
+                6_650_010.5 - i as f64 * 0.11,
+                1_800.0,
+            ],
+            direction: [0.004 * (i % 5) as f64, -0.003, -0.149_8],
+        }),
+        ..Default::default()
+    };
+    let max = if bits == 8 { 255 } else { 4095 };
+    p.push_segment(SegmentKind::Outgoing, 0, -8.0, (0..16u16).map(|k| k * 9));
+    p.push_segment(
+        SegmentKind::Return,
+        0,
+        11_900.0,
+        (0..64u16).map(|k| ((u64::from(k) * 37 + i * 11) % max) as u16),
+    );
+    p.push_segment(
+        SegmentKind::Return,
+        1,
+        12_000.0 + (i % 7) as f64,
+        (0..32u16).map(|k| ((u64::from(k) * 53 + i * 5) % max) as u16),
+    );
+    let n = 1 + (i % 4) as usize;
+    // Out of time order on purpose: a late return of segment 2 first.
+    let candidates = [(2u16, 20.5f32), (1, 10.25), (1, 40.0), (2, 3.0)];
+    for &(segment, bins) in candidates.iter().take(n) {
+        let start = p.segments[segment as usize].start_ns;
+        p.returns.push(FittedReturn {
+            segment,
+            position_bins: bins,
+            time_ns: start + f64::from(bins) * p.sample_ns,
+            amplitude: 0.05 + (i % 13) as f32 * 0.1,
+            sigma_bins: 1.5 + (i % 3) as f32 * 0.25,
+            residual: 0.01,
+        });
+    }
+    p
+}
+
+#[test]
+fn laspy_reads_returns_las_and_wdp() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut sink = LasWaveSink::create(
+        dir.path(),
+        LasWaveOptions {
+            crs_wkt: Some(UTM33N_WKT.to_string()),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let mut points = Vec::new();
+    let pulses = 500;
+    for i in 0..pulses {
+        let p = make_pulse(i);
+        sink.write(&p).unwrap();
+        let Some(g) = p.geometry else { continue };
+        let mut order: Vec<usize> = (0..p.returns.len()).collect();
+        order.sort_by(|&a, &b| p.returns[a].time_ns.total_cmp(&p.returns[b].time_ns));
+        for (rank, &k) in order.iter().enumerate() {
+            let r = p.returns[k];
+            let seg = p.segments[r.segment as usize];
+            let pos: Vec<f64> = (0..3)
+                .map(|a| g.anchor[a] + r.time_ns * g.direction[a])
+                .collect();
+            let intensity = (f64::from(r.amplitude) / f64::from(p.gain_v_per_dn)
+                * f64::from(1u32 << (16 - p.bits)))
+            .round()
+            .min(65535.0);
+            points.push(json!({
+                "x": pos[0], "y": pos[1], "z": pos[2],
+                "gps_time": p.gps_time,
+                "return_number": rank + 1,
+                "number_of_returns": order.len(),
+                "intensity": intensity,
+                "amplitude_v": r.amplitude,
+                "sigma_ns": f64::from(r.sigma_bins) * p.sample_ns,
+                "location_ps": (r.time_ns - seg.start_ns) * 1000.0,
+                "xyz_t": g.direction.map(|d| -d / 1000.0),
+                "first_sample": g.direction.map(|d| d * seg.start_ns)
+                    .iter().zip(g.anchor).map(|(a, b)| a + b).collect::<Vec<f64>>(),
+                "bits": p.bits,
+                "spacing_ps": 1000,
+                "gain": f64::from(p.gain_v_per_dn),
+                "offset": f64::from(p.offset_v),
+                "counts": p.raw_of(r.segment as usize),
+            }));
+        }
+    }
+    sink.finish().unwrap();
+    let stats = sink.stats();
+    assert_eq!(stats.points, points.len() as u64);
+    assert_eq!(stats.pulses_without_geometry, pulses / 10);
+    let report = check_with_laspy(dir.path(), Some(UTM33N_WKT), &points);
+    eprintln!("{report}");
+}
+
+/// Runs the checker on `out` with the expected points; returns its report line.
+fn check_with_laspy(out: &Path, wkt: Option<&str>, points: &[serde_json::Value]) -> String {
+    let expected = out.join("expected.json");
+    std::fs::write(
+        &expected,
+        serde_json::to_vec(&json!({ "wkt": wkt, "points": points })).unwrap(),
+    )
+    .unwrap();
+    let py = python();
+    let o = Command::new(&py)
+        .arg(Path::new(ROOT).join("tests/python/read_las.py"))
+        .arg(out)
+        .arg(&expected)
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run {}: {e}", py.display()));
+    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        !stdout.contains("MISSING PYTHON PACKAGE"),
+        "{} lacks a package the LAS check needs: {stdout}(run .ci/run or `{} -m pip install \
+         numpy laspy`)",
+        py.display(),
+        py.display()
+    );
+    assert!(
+        o.status.success(),
+        "laspy check failed:\n{stdout}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(stdout.contains("all as written"), "{stdout}");
+    stdout
+}
+
+/// `fwlidar replay` with `[output] las = true` on the capture sample: capture pulses carry no
+/// geometry, so the LAS is empty (and valid), and the summary counts every skipped pulse.
+#[test]
+fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometry() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
+        .unwrap()
+        .replace("las = false", "las = true");
+    assert!(config.contains("las = true"));
+    let cfg = dir.path().join("run.toml");
+    std::fs::write(&cfg, config).unwrap();
+    let out = dir.path().join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
+        .args([
+            "replay",
+            "replay/two_layer.fwcap",
+            "--no-progress",
+            "--config",
+        ])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .current_dir(ROOT)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(stdout.contains("returns.las: 0 points"), "{stdout}");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let las = &summary["sinks"]["las"];
+    assert_eq!(las["points"], 0);
+    let skipped = las["pulses_without_geometry"].as_u64().unwrap();
+    let without_returns = las["pulses_without_returns"].as_u64().unwrap();
+    assert_eq!(skipped + without_returns, 2000, "{las}");
+    assert!(skipped > 1000, "most sample pulses have returns: {las}");
+    assert!(!out.join("returns.las.partial").exists());
+    check_with_laspy(&out, None, &[]);
+}
