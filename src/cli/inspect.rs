@@ -1,4 +1,4 @@
-//! `fwlidar inspect`: what a capture holds — header, record counts, time span, damage — and,
+//! `fwlidar inspect`: what a capture holds (navigation files: `inspect_nav.rs`) — header, record counts, time span, damage — and,
 //! with `--pulses --json`, every pulse as one JSON object per line.
 
 use std::io::Write;
@@ -26,6 +26,13 @@ pub struct InspectArgs {
     /// With `--pulses`: stop after this many pulses.
     #[arg(long)]
     pub limit: Option<u64>,
+    /// Decode FILE as a navigation stream or trajectory (`nmea`, `novatel` or `sbet`): every
+    /// sample, then a summary of what was rejected and why.
+    #[arg(long, value_name = "FORMAT")]
+    pub nav: Option<crate::nav::NavFormat>,
+    /// With `--nav`: GPS − UTC leap seconds used to turn NMEA UTC times into GPS time.
+    #[arg(long, default_value_t = crate::nav::decoder::LEAP_SECONDS_NOW)]
+    pub leap_seconds: f64,
 }
 
 /// One pulse as `inspect --pulses --json` prints it.
@@ -89,6 +96,9 @@ struct Overview {
 
 /// Runs `fwlidar inspect`.
 pub fn run(args: InspectArgs) -> Result<(), Failure> {
+    if let Some(format) = args.nav {
+        return crate::cli::inspect_nav::run(&args.file, format, args.leap_seconds, args.json);
+    }
     match InputKind::of_file(&args.file).map_err(Failure::job)? {
         InputKind::Capture => inspect_capture(args),
         _ => inspect_source(args),

@@ -6,6 +6,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 
 pub mod import;
 pub mod inspect;
+pub mod inspect_nav;
 pub mod process;
 pub mod replay;
 pub mod simulate;

@@ -1,0 +1,412 @@
+//! Real full-waveform files from other people's instruments and software, through our readers
+//! and the command line: the RIEGL LMS-Q680i flight line stored both as LAS 1.4 + .wdp and as
+//! PulseWaves pins the LAS parametric-line sign convention (every LAS point lies on its
+//! PulseWaves pulse's ray), and `replay` / `import` accept both formats directly.
+//!
+//! Needs `../shared/fixtures/waveform/` (see its MANIFEST.md); fails naming what is missing.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use fwlidar::pulse::{Pulse, PulsePool, SegmentKind};
+use fwlidar::source::{SourceEvent, open_file};
+
+const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+/// The fixtures folder: `FWLIDAR_FIXTURES`, else `<manifest>/../shared/fixtures`.
+fn fixture(rel: &str) -> PathBuf {
+    let base = std::env::var_os("FWLIDAR_FIXTURES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(ROOT).join("../shared/fixtures"));
+    let p = base.join(rel);
+    assert!(
+        p.is_file(),
+        "missing real-data fixture {} (set FWLIDAR_FIXTURES to the shared fixtures folder; see \
+         its MANIFEST.md)",
+        p.display()
+    );
+    p
+}
+
+const RIEGL: &str = "waveform/riegl_q680i/100429_152240_2535pt_UTM";
+
+fn fwlidar(args: &[&str]) -> Output {
+    Command::new(BIN)
+        .args(args)
+        .current_dir(ROOT)
+        .output()
+        .expect("run fwlidar")
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+/// A pulse as plain data, copied out of the pool's recycled pulse.
+#[derive(Clone, Debug)]
+struct Shot {
+    gps_time: f64,
+    anchor: [f64; 3],
+    direction: [f64; 3],
+    sample_ns: f64,
+    /// (kind, channel, start_ns, samples)
+    segments: Vec<(SegmentKind, u8, f64, Vec<u16>)>,
+}
+
+fn shot_of(p: &Pulse) -> Shot {
+    let g = p
+        .geometry
+        .expect("a pulse of a LAS or PulseWaves file carries its geometry");
+    Shot {
+        gps_time: p.gps_time,
+        anchor: g.anchor,
+        direction: g.direction,
+        sample_ns: p.sample_ns,
+        segments: (0..p.segments.len())
+            .map(|i| {
+                let s = p.segments[i];
+                (s.kind, s.channel, s.start_ns, p.raw_of(i).to_vec())
+            })
+            .collect(),
+    }
+}
+
+/// Every pulse of a file through [`open_file`], the path `replay` and `import` take.
+fn read_all(path: &Path) -> Vec<Shot> {
+    let mut src = open_file(path).unwrap_or_else(|e| panic!("{e}"));
+    let pool = PulsePool::new(4);
+    let mut out = Vec::new();
+    loop {
+        match src.next(&pool).unwrap_or_else(|e| panic!("{e}")) {
+            SourceEvent::Pulse(p) => {
+                out.push(shot_of(&p));
+                pool.give(p);
+            }
+            SourceEvent::Nav(_) => {}
+            SourceEvent::End => break,
+        }
+    }
+    out
+}
+
+fn add(a: [f64; 3], s: f64, d: [f64; 3]) -> [f64; 3] {
+    [a[0] + s * d[0], a[1] + s * d[1], a[2] + s * d[2]]
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
+}
+
+/// Distance of `p` from the line through `a` along `d`.
+fn distance_to_ray(p: [f64; 3], a: [f64; 3], d: [f64; 3]) -> f64 {
+    let ap = sub(p, a);
+    let t = dot(ap, d) / dot(d, d);
+    norm(sub(ap, [t * d[0], t * d[1], t * d[2]]))
+}
+
+/// One point of the LAS file as the bytes say, read here independently of the reader under
+/// test (LAS 1.4 R15 §2.6, point data record format 9: format 6's 30 bytes, then the wave
+/// packet fields).
+struct RawLasPoint {
+    xyz: [f64; 3],
+    gps_time: f64,
+    byte_offset: u64,
+    packet_bytes: u32,
+    location_ps: f32,
+    xyz_t: [f32; 3],
+}
+
+fn raw_las_points(las: &[u8]) -> Vec<RawLasPoint> {
+    let u16_at = |o: usize| u16::from_le_bytes(las[o..o + 2].try_into().unwrap());
+    let u32_at = |o: usize| u32::from_le_bytes(las[o..o + 4].try_into().unwrap());
+    let u64_at = |o: usize| u64::from_le_bytes(las[o..o + 8].try_into().unwrap());
+    let f64_at = |o: usize| f64::from_le_bytes(las[o..o + 8].try_into().unwrap());
+    let f32_at = |o: usize| f32::from_le_bytes(las[o..o + 4].try_into().unwrap());
+    let i32_at = |o: usize| i32::from_le_bytes(las[o..o + 4].try_into().unwrap());
+    assert_eq!(&las[..4], b"LASF");
+    assert_eq!(las[104], 9, "the fixture is point format 9");
+    let first = u32_at(96) as usize;
+    let len = u16_at(105) as usize;
+    let n = u64_at(247) as usize;
+    let scale = [f64_at(131), f64_at(139), f64_at(147)];
+    let offset = [f64_at(155), f64_at(163), f64_at(171)];
+    (0..n)
+        .map(|i| {
+            let p = first + i * len;
+            RawLasPoint {
+                xyz: [0, 1, 2].map(|k| i32_at(p + 4 * k) as f64 * scale[k] + offset[k]),
+                gps_time: f64_at(p + 22),
+                byte_offset: u64_at(p + 31),
+                packet_bytes: u32_at(p + 39),
+                location_ps: f32_at(p + 43),
+                xyz_t: [f32_at(p + 47), f32_at(p + 51), f32_at(p + 55)],
+            }
+        })
+        .collect()
+}
+
+/// The golden cross-format test. For every LAS point: its PulseWaves pulse (nearest GPS time,
+/// within 0.5 µs); the point lies on that pulse's ray within 3 mm; the LAS direction
+/// −(x_t, y_t, z_t) is parallel to the pulse's direction; the point's .wdp samples equal one
+/// return segment of the pulse, always on the same channel (RIEGL's low-power channel), and the
+/// point lies `return_point_waveform_location` after that segment's first sample. Then the LAS
+/// reader's own pulses: each starts where that segment starts (3 mm) with the same samples.
+#[test]
+fn riegl_las_points_lie_on_their_pulsewaves_rays() {
+    let las_path = fixture(&format!("{RIEGL}.las"));
+    let wdp = std::fs::read(fixture(&format!("{RIEGL}.wdp"))).unwrap();
+    let pls_path = fixture(&format!("{RIEGL}.pls"));
+    fixture(&format!("{RIEGL}.wvs"));
+    let las = std::fs::read(&las_path).unwrap();
+    let points = raw_las_points(&las);
+    assert_eq!(points.len(), 2535);
+
+    let mut pls = read_all(&pls_path);
+    assert_eq!(pls.len(), 2368, "pulses of the PulseWaves file");
+    pls.sort_by(|a, b| a.gps_time.total_cmp(&b.gps_time));
+
+    let mut worst_ray = 0.0f64;
+    let mut worst_along = 0.0f64;
+    let mut worst_angle = 0.0f64;
+    let mut channels = std::collections::BTreeSet::new();
+    // (gps_time, first-sample position, samples) of each point's packet, for the reader check.
+    let mut expected: Vec<(f64, [f64; 3], Vec<u16>)> = Vec::new();
+    for (i, pt) in points.iter().enumerate() {
+        let k = pls.partition_point(|s| s.gps_time < pt.gps_time);
+        let best = [k.saturating_sub(1), k.min(pls.len() - 1)]
+            .into_iter()
+            .min_by(|&a, &b| {
+                (pls[a].gps_time - pt.gps_time)
+                    .abs()
+                    .total_cmp(&(pls[b].gps_time - pt.gps_time).abs())
+            })
+            .unwrap();
+        let pulse = &pls[best];
+        let dt = (pulse.gps_time - pt.gps_time).abs();
+        assert!(
+            dt <= 0.5e-6,
+            "point {i}: no PulseWaves pulse within 0.5 us ({dt} s)"
+        );
+
+        let d = distance_to_ray(pt.xyz, pulse.anchor, pulse.direction);
+        worst_ray = worst_ray.max(d);
+        assert!(d <= 0.003, "point {i}: {d} m from its pulse's ray");
+
+        let las_dir = pt.xyz_t.map(|v| -(v as f64));
+        let cos = dot(las_dir, pulse.direction) / (norm(las_dir) * norm(pulse.direction));
+        worst_angle = worst_angle.max(cos.clamp(-1.0, 1.0).acos());
+        assert!(
+            cos > 0.999_999,
+            "point {i}: LAS direction not along the pulse (cos {cos})"
+        );
+
+        let at = pt.byte_offset as usize;
+        let bytes = &wdp[at..at + pt.packet_bytes as usize];
+        let samples: Vec<u16> = bytes
+            .chunks_exact(2)
+            .map(|c| u16::from_le_bytes([c[0], c[1]]))
+            .collect();
+        let seg = pulse
+            .segments
+            .iter()
+            .find(|s| s.0 == SegmentKind::Return && s.3 == samples)
+            .unwrap_or_else(|| {
+                panic!(
+                    "point {i}: no return segment of its pulse has the .wdp samples ({} samples; \
+                     segments {:?})",
+                    samples.len(),
+                    pulse
+                        .segments
+                        .iter()
+                        .map(|s| (s.1, s.2, s.3.len()))
+                        .collect::<Vec<_>>()
+                )
+            });
+        channels.insert(seg.1);
+        let start = add(pulse.anchor, seg.2, pulse.direction);
+        let at_point = add(start, pt.location_ps as f64 / 1000.0, pulse.direction);
+        let along = norm(sub(at_point, pt.xyz));
+        worst_along = worst_along.max(along);
+        assert!(
+            along <= 0.003,
+            "point {i}: {along} m from `return_point_waveform_location` after its segment start"
+        );
+        expected.push((pt.gps_time, start, samples));
+    }
+    assert_eq!(
+        channels.len(),
+        1,
+        "every LAS packet is one channel's segment: {channels:?}"
+    );
+    eprintln!(
+        "golden: 2535 points; worst distance from the ray {:.2} mm, along the waveform {:.2} mm, \
+         angle {:.2e} rad; channel {:?}",
+        worst_ray * 1e3,
+        worst_along * 1e3,
+        worst_angle,
+        channels
+    );
+
+    // The LAS reader: one pulse per waveform packet, starting where the PulseWaves segment
+    // starts, with the same samples.
+    let las_pulses = read_all(&las_path);
+    expected.sort_by(|a, b| a.0.total_cmp(&b.0));
+    expected.dedup_by(|a, b| a.0 == b.0 && a.2 == b.2);
+    assert_eq!(las_pulses.len(), expected.len(), "one pulse per packet");
+    for (n, p) in las_pulses.iter().enumerate() {
+        let e = expected
+            .iter()
+            .find(|e| e.0 == p.gps_time && norm(sub(e.1, p.anchor)) <= 0.003)
+            .unwrap_or_else(|| panic!("LAS pulse {n}: no packet starts at {:?}", p.anchor));
+        assert_eq!(p.segments.len(), 1);
+        assert_eq!(p.segments[0].0, SegmentKind::Return);
+        assert_eq!(p.segments[0].2, 0.0, "the anchor is the first sample");
+        assert_eq!(p.segments[0].3, e.2, "LAS pulse {n}: samples");
+        assert!((p.sample_ns - 1.0).abs() < 1e-12);
+        assert!(
+            (norm(p.direction) - 0.1499).abs() < 0.0005,
+            "half the speed of light in air per ns: {:?}",
+            p.direction
+        );
+        assert!(p.direction[2] < 0.0, "downward");
+    }
+}
+
+/// `import` of each real format keeps every pulse: the capture inspects exactly as the file.
+#[test]
+fn import_of_las_and_pulsewaves_keeps_every_pulse() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = [
+        (
+            fixture(&format!("{RIEGL}.las")),
+            Some("config/sensors/riegl_lms_q680i.toml"),
+        ),
+        (fixture(&format!("{RIEGL}.pls")), None),
+        (fixture("waveform/pulsewaves/lvis_example1.pls"), None),
+        (fixture("waveform/pulsewaves/test.pls"), None),
+    ];
+    for (i, (input, sensor)) in cases.iter().enumerate() {
+        let out = dir.path().join(format!("imported{i}.fwcap"));
+        let mut args = vec![
+            "import",
+            input.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--no-progress",
+        ];
+        if let Some(s) = sensor {
+            args.extend(["--sensor", s]);
+        }
+        let o = fwlidar(&args);
+        assert!(
+            o.status.success(),
+            "{}: {}",
+            input.display(),
+            text(&o.stderr)
+        );
+        let a = fwlidar(&["inspect", input.to_str().unwrap(), "--pulses", "--json"]);
+        let b = fwlidar(&["inspect", out.to_str().unwrap(), "--pulses", "--json"]);
+        assert!(a.status.success(), "{}", text(&a.stderr));
+        assert!(b.status.success(), "{}", text(&b.stderr));
+        assert!(text(&a.stdout).lines().count() > 0);
+        assert!(
+            a.stdout == b.stdout,
+            "{}: the imported capture differs from the file",
+            input.display()
+        );
+        let o = fwlidar(&["inspect", out.to_str().unwrap()]);
+        let info = text(&o.stdout);
+        assert!(info.contains("origin: imported"), "{info}");
+    }
+}
+
+/// A LAS file states no sensor: import asks for one rather than inventing it.
+#[test]
+fn import_of_las_without_a_sensor_says_what_is_missing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("x.fwcap");
+    let las = fixture(&format!("{RIEGL}.las"));
+    let o = fwlidar(&[
+        "import",
+        las.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
+    assert!(text(&o.stderr).contains("--sensor"), "{}", text(&o.stderr));
+    assert!(!out.exists());
+}
+
+/// `replay` takes LAS and PulseWaves files directly; pulses carry their geometry, so the
+/// returns have coordinates, and they lie near the LAS file's own points.
+#[test]
+fn replay_of_las_and_pulsewaves_writes_located_returns() {
+    let dir = tempfile::tempdir().unwrap();
+    let las_path = fixture(&format!("{RIEGL}.las"));
+    let points = raw_las_points(&std::fs::read(&las_path).unwrap());
+    let (zmin, zmax) = points.iter().fold((f64::MAX, f64::MIN), |(a, b), p| {
+        (a.min(p.xyz[2]), b.max(p.xyz[2]))
+    });
+    for (name, input) in [
+        ("las", las_path.clone()),
+        ("pls", fixture(&format!("{RIEGL}.pls"))),
+    ] {
+        let out = dir.path().join(name);
+        let o = fwlidar(&[
+            "replay",
+            input.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--no-progress",
+        ]);
+        assert!(o.status.success(), "{name}: {}", text(&o.stderr));
+        let csv = std::fs::read_to_string(out.join("returns.csv")).unwrap();
+        let mut lines = csv.lines();
+        let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+        let zi = head.iter().position(|h| *h == "z").expect("a z column");
+        let zs: Vec<f64> = lines
+            .map(|l| l.split(',').nth(zi).unwrap().parse::<f64>().unwrap())
+            .collect();
+        assert!(zs.len() > 1000, "{name}: {} returns", zs.len());
+        // The returns are where the terrain and vegetation are (the LAS points' height range,
+        // with a few metres for the pulse tails), not at the aircraft.
+        let inside = zs
+            .iter()
+            .filter(|z| **z > zmin - 5.0 && **z < zmax + 5.0)
+            .count();
+        assert!(
+            inside as f64 >= 0.95 * zs.len() as f64,
+            "{name}: {inside} of {} returns within the points' heights {zmin:.1}..{zmax:.1} m",
+            zs.len()
+        );
+    }
+}
+
+/// A waveform file whose sample file is missing: a clear error naming both files, non-zero exit.
+#[test]
+fn missing_wdp_or_wvs_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    for ext in ["las", "pls"] {
+        let lone = dir.path().join(format!("lone.{ext}"));
+        std::fs::copy(fixture(&format!("{RIEGL}.{ext}")), &lone).unwrap();
+        let o = fwlidar(&["inspect", lone.to_str().unwrap(), "--pulses", "--json"]);
+        assert_eq!(o.status.code(), Some(1), "{ext}: {}", text(&o.stderr));
+        let err = text(&o.stderr);
+        let side = if ext == "las" { "lone.wdp" } else { "lone.wvs" };
+        assert!(
+            err.contains(&format!("lone.{ext}")) || err.contains(side),
+            "{ext}: {err}"
+        );
+        assert!(err.contains(side), "{ext}: {err}");
+    }
+}
