@@ -16,6 +16,7 @@ pub mod framer;
 pub mod nmea;
 pub mod novatel;
 pub mod sbet;
+pub mod trajectory;
 
 use serde::Serialize;
 
