@@ -3,8 +3,8 @@
 //! WKT). Damaged or ambiguous keys never fail the read: they leave the CRS unknown, or take the
 //! best reading, and say so in a warning.
 
-use super::vlr::Vlr;
 use super::le;
+use super::vlr::Vlr;
 
 /// What the projection records say.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -52,10 +52,12 @@ pub fn from_records(records: &[Vlr]) -> CrsInfo {
             info.crs = Some(text);
             return info;
         }
-        info.warnings.push(format!("{}: the OGC WKT record (2112) is empty", wkt.place));
+        info.warnings
+            .push(format!("{}: the OGC WKT record (2112) is empty", wkt.place));
     }
     let Some(dir) = find(34735) else {
-        info.warnings.push("no GeoKey directory (34735) and no OGC WKT (2112): CRS unknown".into());
+        info.warnings
+            .push("no GeoKey directory (34735) and no OGC WKT (2112): CRS unknown".into());
         return info;
     };
     let ascii = find(34737).map(|r| r.payload.as_slice()).unwrap_or(&[]);
@@ -81,7 +83,13 @@ pub fn from_records(records: &[Vlr]) -> CrsInfo {
         keys.iter().find(|k| k.0 == id && k.1 == 34737).map(|k| {
             let start = usize::from(k.3);
             let end = start.saturating_add(usize::from(k.2));
-            le::text(ascii.get(start.min(ascii.len())..end.min(ascii.len())).unwrap_or(&[]), 0, usize::MAX)
+            le::text(
+                ascii
+                    .get(start.min(ascii.len())..end.min(ascii.len()))
+                    .unwrap_or(&[]),
+                0,
+                usize::MAX,
+            )
         })
     };
     let model = direct(1024);
@@ -91,7 +99,9 @@ pub fn from_records(records: &[Vlr]) -> CrsInfo {
             return info;
         }
         Some(32767) => {
-            let cite = citation(3073).or_else(|| citation(1026)).unwrap_or_default();
+            let cite = citation(3073)
+                .or_else(|| citation(1026))
+                .unwrap_or_default();
             let all = String::from_utf8_lossy(ascii).to_string();
             match utm_from_citation(&cite, &all) {
                 Some(code) => {
@@ -117,7 +127,10 @@ pub fn from_records(records: &[Vlr]) -> CrsInfo {
         return info;
     }
     // No usable code: look for a projected CRS code stored under the wrong key.
-    if let Some(k) = keys.iter().find(|k| k.1 == 0 && k.0 != 3072 && is_wgs84_utm(k.3)) {
+    if let Some(k) = keys
+        .iter()
+        .find(|k| k.1 == 0 && k.0 != 3072 && is_wgs84_utm(k.3))
+    {
         info.warnings.push(format!(
             "malformed GeoKeys: {} ({}) holds {}, which is not a value of that key but looks \
              like EPSG:{} stored under the wrong key; CRS left unknown",
@@ -140,7 +153,9 @@ pub fn from_records(records: &[Vlr]) -> CrsInfo {
 fn utm_from_citation(cite: &str, all_ascii: &str) -> Option<u16> {
     let c = cite.to_ascii_lowercase();
     let all = all_ascii.to_ascii_lowercase();
-    if !c.contains("utm") || !(all.contains("wgs84") || all.contains("wgs 84") || all.contains("wgs_84")) {
+    if !c.contains("utm")
+        || !(all.contains("wgs84") || all.contains("wgs 84") || all.contains("wgs_84"))
+    {
         return None;
     }
     let after = &c[c.find("zone")? + 4..];
@@ -150,7 +165,10 @@ fn utm_from_citation(cite: &str, all_ascii: &str) -> Option<u16> {
         .take_while(|ch| ch.is_ascii_digit())
         .collect();
     let zone: u16 = digits.parse().ok().filter(|z| (1..=60).contains(z))?;
-    let rest = after.trim_start_matches([' ', '_']).get(digits.len()..).unwrap_or("");
+    let rest = after
+        .trim_start_matches([' ', '_'])
+        .get(digits.len()..)
+        .unwrap_or("");
     let south = c.contains("south") || rest.starts_with('s');
     let north = c.contains("north") || rest.starts_with('n');
     match (north, south) {
@@ -166,8 +184,14 @@ mod tests {
 
     #[test]
     fn utm_citations() {
-        assert_eq!(utm_from_citation("UTM_North zone 33", "UTM_North zone 33|WGS84|"), Some(32633));
-        assert_eq!(utm_from_citation("WGS84_UTM_zone_13N WGS84", "x"), Some(32613));
+        assert_eq!(
+            utm_from_citation("UTM_North zone 33", "UTM_North zone 33|WGS84|"),
+            Some(32633)
+        );
+        assert_eq!(
+            utm_from_citation("WGS84_UTM_zone_13N WGS84", "x"),
+            Some(32613)
+        );
         assert_eq!(utm_from_citation("UTM zone 33", "WGS84"), None);
         assert_eq!(utm_from_citation("Lambert", "WGS84"), None);
         assert_eq!(utm_from_citation("utm zone", "WGS84"), None);

@@ -119,8 +119,17 @@ impl PulseDescriptor {
     }
 
     /// Decodes and checks the payload of record `200000 + index` of `file`.
-    pub fn parse(payload: &[u8], index: u8, file: &str) -> Result<PulseDescriptor, PulseWavesError> {
-        let at = |f: &str| format!("descriptor {index} (record {}): {f}", 200_000 + index as u32);
+    pub fn parse(
+        payload: &[u8],
+        index: u8,
+        file: &str,
+    ) -> Result<PulseDescriptor, PulseWavesError> {
+        let at = |f: &str| {
+            format!(
+                "descriptor {index} (record {}): {f}",
+                200_000 + index as u32
+            )
+        };
         let bad = |f: &str, r: String| PulseWavesError::invalid(file, at(f), r);
         let size = le::u32(payload, 0);
         if size < COMPOSITION_LEN || size as usize > payload.len() {
@@ -157,14 +166,23 @@ impl PulseDescriptor {
             ));
         }
         if composition.number_of_samplings == 0 {
-            return Err(bad("number_of_samplings", "0; a descriptor needs at least one sampling".into()));
+            return Err(bad(
+                "number_of_samplings",
+                "0; a descriptor needs at least one sampling".into(),
+            ));
         }
-        let mut samplings = Vec::with_capacity(usize::from(composition.number_of_samplings).min(payload.len() / SAMPLING_LEN as usize + 1));
+        let mut samplings = Vec::with_capacity(
+            usize::from(composition.number_of_samplings)
+                .min(payload.len() / SAMPLING_LEN as usize + 1),
+        );
         let mut pos = size as usize;
         for k in 0..composition.number_of_samplings {
             let rest = payload.get(pos..).unwrap_or(&[]);
             let s_size = le::u32(rest, 0);
-            if rest.len() < SAMPLING_LEN as usize || s_size < SAMPLING_LEN || s_size as usize > rest.len() {
+            if rest.len() < SAMPLING_LEN as usize
+                || s_size < SAMPLING_LEN
+                || s_size as usize > rest.len()
+            {
                 return Err(bad(
                     &format!("sampling {k} size"),
                     format!(
@@ -175,7 +193,9 @@ impl PulseDescriptor {
                     ),
                 ));
             }
-            samplings.push(parse_sampling(rest, s_size as usize, file, &|f| at(&format!("sampling {k}: {f}")))?);
+            samplings.push(parse_sampling(rest, s_size as usize, file, &|f| {
+                at(&format!("sampling {k}: {f}"))
+            })?);
             pos += s_size as usize;
         }
         if let Some(first) = samplings.first() {
@@ -210,7 +230,12 @@ fn parse_sampling(
     let kind = match le::u8(b, 8) {
         1 => SamplingType::Outgoing,
         2 => SamplingType::Returning,
-        t => return Err(bad("type", format!("{t}; must be 1 (outgoing) or 2 (returning)"))),
+        t => {
+            return Err(bad(
+                "type",
+                format!("{t}; must be 1 (outgoing) or 2 (returning)"),
+            ));
+        }
     };
     let s = Sampling {
         kind,
@@ -228,7 +253,10 @@ fn parse_sampling(
         description: le::text(b, size.saturating_sub(64), 64),
     };
     for (name, bits) in [
-        ("bits_for_duration_from_anchor", s.bits_for_duration_from_anchor),
+        (
+            "bits_for_duration_from_anchor",
+            s.bits_for_duration_from_anchor,
+        ),
         ("bits_for_number_of_segments", s.bits_for_number_of_segments),
         ("bits_for_number_of_samples", s.bits_for_number_of_samples),
     ] {
@@ -236,7 +264,9 @@ fn parse_sampling(
             return Err(bad(name, format!("{bits}; must be 0, 8, 16 or 32")));
         }
     }
-    if !(s.scale_for_duration_from_anchor.is_finite() && s.offset_for_duration_from_anchor.is_finite()) {
+    if !(s.scale_for_duration_from_anchor.is_finite()
+        && s.offset_for_duration_from_anchor.is_finite())
+    {
         return Err(bad(
             "scale/offset_for_duration_from_anchor",
             format!(
@@ -249,11 +279,17 @@ fn parse_sampling(
         return Err(PulseWavesError::unsupported(
             file,
             at("bits_per_sample"),
-            format!("{} bits per sample (only 8 and 16 are read)", s.bits_per_sample),
+            format!(
+                "{} bits per sample (only 8 and 16 are read)",
+                s.bits_per_sample
+            ),
         ));
     }
     if !(s.sample_units_ns.is_finite() && s.sample_units_ns > 0.0) {
-        return Err(bad("sample_units", format!("{} ns; must be finite and positive", s.sample_units_ns)));
+        return Err(bad(
+            "sample_units",
+            format!("{} ns; must be finite and positive", s.sample_units_ns),
+        ));
     }
     let compression = le::u32(b, 36);
     if compression != 0 {

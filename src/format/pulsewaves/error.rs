@@ -14,7 +14,9 @@ pub enum PulseWavesError {
         source: std::io::Error,
     },
     /// The first 16 bytes are not the expected signature.
-    #[error("{file}: not a PulseWaves {what} file: the signature is {found:?}, expected {expected:?}")]
+    #[error(
+        "{file}: not a PulseWaves {what} file: the signature is {found:?}, expected {expected:?}"
+    )]
     Signature {
         /// The file.
         file: String,

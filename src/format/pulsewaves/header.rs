@@ -126,7 +126,10 @@ impl PlsHeader {
         if (self.header_size as usize) < PLS_HEADER_LEN {
             return Err(bad(
                 "header_size",
-                format!("{} bytes, less than the {PLS_HEADER_LEN} of version 0.3", self.header_size),
+                format!(
+                    "{} bytes, less than the {PLS_HEADER_LEN} of version 0.3",
+                    self.header_size
+                ),
             ));
         }
         if self.offset_to_pulse_data < self.header_size as i64 {
@@ -164,7 +167,10 @@ impl PlsHeader {
             return Err(PulseWavesError::unsupported(
                 file,
                 "pulse_compression",
-                format!("compressed pulse records (compression {})", self.pulse_compression),
+                format!(
+                    "compressed pulse records (compression {})",
+                    self.pulse_compression
+                ),
             ));
         }
         let min_size = 48 + attribute_bytes(self.pulse_attributes);
@@ -180,7 +186,10 @@ impl PlsHeader {
         if !(self.t_scale.is_finite() && self.t_scale != 0.0 && self.t_offset.is_finite()) {
             return Err(bad(
                 "t_scale_factor/t_offset",
-                format!("{} / {} must be finite, the scale non-zero", self.t_scale, self.t_offset),
+                format!(
+                    "{} / {} must be finite, the scale non-zero",
+                    self.t_scale, self.t_offset
+                ),
             ));
         }
         for (i, axis) in ["x", "y", "z"].iter().enumerate() {

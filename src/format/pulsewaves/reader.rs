@@ -220,7 +220,9 @@ impl<P: Read + Seek, W: Read + Seek> PulseWavesReader<P, W> {
 
     /// The descriptor of `index`, if the file defines it.
     pub fn descriptor(&self, index: u8) -> Option<&PulseDescriptor> {
-        self.descriptors.get(usize::from(index)).and_then(|d| d.as_ref())
+        self.descriptors
+            .get(usize::from(index))
+            .and_then(|d| d.as_ref())
     }
 
     /// The scanner records, by index.

@@ -53,7 +53,10 @@ impl Scanner {
         if size < SCANNER_LEN || size as usize > payload.len() {
             return Err(PulseWavesError::invalid(
                 file,
-                format!("scanner {index} (record {}): size", 100_000 + u32::from(index)),
+                format!(
+                    "scanner {index} (record {}): size",
+                    100_000 + u32::from(index)
+                ),
                 format!(
                     "{size} bytes; must be at least {SCANNER_LEN} and fit the record's {} bytes",
                     payload.len()

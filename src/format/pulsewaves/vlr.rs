@@ -46,7 +46,9 @@ pub struct VlrScan {
 /// Whether the reader interprets records of this user and ID.
 pub fn is_interpreted(user_id: &str, record_id: u32) -> bool {
     match user_id {
-        SPEC_USER => (100_001..=100_255).contains(&record_id) || (200_001..=200_255).contains(&record_id),
+        SPEC_USER => {
+            (100_001..=100_255).contains(&record_id) || (200_001..=200_255).contains(&record_id)
+        }
         PROJ_USER | "LASF_Projection" => matches!(record_id, 34735..=34737 | 2112),
         _ => false,
     }
@@ -113,7 +115,10 @@ pub fn scan<R: Read + Seek>(
             _ => {
                 return Err(PulseWavesError::invalid(
                     file,
-                    format!("{place} (record {}): record_length_after_header", h.record_id),
+                    format!(
+                        "{place} (record {}): record_length_after_header",
+                        h.record_id
+                    ),
                     format!(
                         "{} bytes from byte {end} run past offset_to_pulse_data {limit}",
                         h.record_length
@@ -203,7 +208,10 @@ fn scan_appended<R: Read + Seek>(
         let Some(payload_start) = payload_start else {
             return Err(PulseWavesError::invalid(
                 file,
-                format!("{place} (record {}): record_length_before_footer", h.record_id),
+                format!(
+                    "{place} (record {}): record_length_before_footer",
+                    h.record_id
+                ),
                 format!(
                     "{} bytes before byte {start} reach into the pulse records (ending at byte \
                      {floor})",

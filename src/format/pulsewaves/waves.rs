@@ -111,7 +111,11 @@ impl<W: Read + Seek> WavesReader<W> {
         }
     }
 
-    fn read_small(&mut self, bits: u8, what: impl FnOnce() -> String) -> Result<[u8; 4], PulseWavesError> {
+    fn read_small(
+        &mut self,
+        bits: u8,
+        what: impl FnOnce() -> String,
+    ) -> Result<[u8; 4], PulseWavesError> {
         let n = usize::from(bits / 8).min(4);
         self.need(n as u64, what)?;
         let mut b = [0u8; 4];
@@ -122,12 +126,20 @@ impl<W: Read + Seek> WavesReader<W> {
         Ok(b)
     }
 
-    fn read_unsigned(&mut self, bits: u8, what: impl FnOnce() -> String) -> Result<u32, PulseWavesError> {
+    fn read_unsigned(
+        &mut self,
+        bits: u8,
+        what: impl FnOnce() -> String,
+    ) -> Result<u32, PulseWavesError> {
         let b = self.read_small(bits, what)?;
         Ok(u32::from_le_bytes(b))
     }
 
-    fn read_signed(&mut self, bits: u8, what: impl FnOnce() -> String) -> Result<i64, PulseWavesError> {
+    fn read_signed(
+        &mut self,
+        bits: u8,
+        what: impl FnOnce() -> String,
+    ) -> Result<i64, PulseWavesError> {
         let b = self.read_small(bits, what)?;
         Ok(match bits {
             8 => i64::from(b[0] as i8),
@@ -208,7 +220,9 @@ impl<W: Read + Seek> WavesReader<W> {
                     s.number_of_samples
                 };
                 let bytes = u64::from(n) * s.bytes_per_sample();
-                self.need(bytes, || format!("{at}: {n} samples of {} bits", s.bits_per_sample))?;
+                self.need(bytes, || {
+                    format!("{at}: {n} samples of {} bits", s.bits_per_sample)
+                })?;
                 // Bounded by the file's length (checked just above).
                 self.scratch.resize(bytes as usize, 0);
                 self.r
@@ -226,7 +240,12 @@ impl<W: Read + Seek> WavesReader<W> {
                             .map(|c| u16::from_le_bytes([c[0], c[1]])),
                     );
                 } else {
-                    pulse.push_segment(kind, s.channel, start_ns, self.scratch.iter().map(|&b| u16::from(b)));
+                    pulse.push_segment(
+                        kind,
+                        s.channel,
+                        start_ns,
+                        self.scratch.iter().map(|&b| u16::from(b)),
+                    );
                 }
             }
         }
