@@ -100,6 +100,7 @@ pub struct PulseDescriptor {
 
 impl PulseDescriptor {
     /// Sample interval of every sampling of this descriptor, ns (checked equal).
+    #[inline]
     pub fn sample_ns(&self) -> f64 {
         self.samplings
             .first()
@@ -109,6 +110,7 @@ impl PulseDescriptor {
     }
 
     /// Largest bits per sample of the samplings (8 or 16).
+    #[inline]
     pub fn bits(&self) -> u8 {
         self.samplings
             .iter()

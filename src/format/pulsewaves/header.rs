@@ -225,6 +225,7 @@ impl PlsHeader {
     }
 
     /// Number of pulse records (checked non-negative by [`PlsHeader::parse`]).
+    #[inline]
     pub fn pulses(&self) -> u64 {
         self.number_of_pulses.max(0) as u64
     }

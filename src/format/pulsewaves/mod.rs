@@ -35,6 +35,7 @@ pub use scanner::Scanner;
 /// Little-endian field access on a byte slice that never panics: a field that does not fit is
 /// read as zero. Callers check lengths first; this is the last line of defence.
 pub(crate) mod le {
+    #[inline]
     fn arr<const N: usize>(b: &[u8], at: usize) -> [u8; N] {
         let mut out = [0u8; N];
         if let Some(end) = at.checked_add(N)
@@ -44,27 +45,35 @@ pub(crate) mod le {
         }
         out
     }
+    #[inline]
     pub fn u8(b: &[u8], at: usize) -> u8 {
         b.get(at).copied().unwrap_or(0)
     }
+    #[inline]
     pub fn u16(b: &[u8], at: usize) -> u16 {
         u16::from_le_bytes(arr(b, at))
     }
+    #[inline]
     pub fn i16(b: &[u8], at: usize) -> i16 {
         i16::from_le_bytes(arr(b, at))
     }
+    #[inline]
     pub fn u32(b: &[u8], at: usize) -> u32 {
         u32::from_le_bytes(arr(b, at))
     }
+    #[inline]
     pub fn i32(b: &[u8], at: usize) -> i32 {
         i32::from_le_bytes(arr(b, at))
     }
+    #[inline]
     pub fn i64(b: &[u8], at: usize) -> i64 {
         i64::from_le_bytes(arr(b, at))
     }
+    #[inline]
     pub fn f32(b: &[u8], at: usize) -> f32 {
         f32::from_le_bytes(arr(b, at))
     }
+    #[inline]
     pub fn f64(b: &[u8], at: usize) -> f64 {
         f64::from_le_bytes(arr(b, at))
     }

@@ -37,6 +37,7 @@ pub struct PulseRecord {
 impl PulseRecord {
     /// Decodes a record from its first [`PULSE_RECORD_LEN`] bytes (missing bytes read as zero;
     /// the reader passes whole records).
+    #[inline]
     pub fn parse(b: &[u8]) -> PulseRecord {
         // Bits 0-7 descriptor index, 8-11 reserved, 12 edge of scan line, 13 scan direction,
         // 14-15 mirror facet.

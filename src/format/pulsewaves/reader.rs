@@ -2,7 +2,7 @@
 //! a `Cursor` for the fuzzer), read pulse by pulse into pooled [`Pulse`]s.
 
 use std::fs::File;
-use std::io::{BufReader, Read, Seek, SeekFrom};
+use std::io::{BufRead, BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
 use super::crs::{self, CrsInfo};
@@ -63,6 +63,7 @@ pub struct PulseWavesReader<P, W> {
     lookup_tables: u64,
     skipped_records: u64,
     next: u64,
+    failed: bool,
     record: Vec<u8>,
     wave_bytes: u64,
 }
@@ -203,6 +204,7 @@ impl<P: Read + Seek, W: Read + Seek> PulseWavesReader<P, W> {
             lookup_tables: scan.lookup_tables,
             skipped_records: scan.skipped,
             next: 0,
+            failed: false,
             record,
             wave_bytes: 0,
         })
@@ -284,22 +286,52 @@ impl<P: Read + Seek, W: Read + Seek> PulseWavesReader<P, W> {
     /// segment with `start_ns` = duration from anchor × sample units; `sample_ns` = the
     /// samplings' sample units; raw counts with gain 1 V/DN and offset 0 V.
     pub fn read_pulse(&mut self, pulse: &mut Pulse) -> Result<bool, PulseWavesError> {
-        if self.next >= self.header.pulses() {
+        if self.failed || self.next >= self.header.pulses() {
             return Ok(false);
         }
-        let index = self.next;
-        self.pls.read_exact(&mut self.record).map_err(|e| {
-            if e.kind() == std::io::ErrorKind::UnexpectedEof {
-                PulseWavesError::invalid(
-                    &self.pls_name,
-                    format!("pulse {index}"),
-                    "the file ended early (it shrank while being read)",
-                )
-            } else {
-                PulseWavesError::io(&self.pls_name, e)
+        let res = self.read_next(pulse);
+        match res {
+            Ok(()) => {
+                self.next += 1;
+                Ok(true)
             }
-        })?;
-        let rec = PulseRecord::parse(&self.record);
+            Err(e) => {
+                // An error is final: the position in either file is no longer trustworthy.
+                self.failed = true;
+                Err(e)
+            }
+        }
+    }
+
+    fn read_next(&mut self, pulse: &mut Pulse) -> Result<(), PulseWavesError> {
+        let index = self.next;
+        let size = self.record.len();
+        let rec = {
+            // Straight from the buffer when the whole record is in it.
+            if self.pls.buffer().len() < size && self.pls.buffer().is_empty() {
+                self.pls
+                    .fill_buf()
+                    .map_err(|e| PulseWavesError::io(&self.pls_name, e))?;
+            }
+            if let Some(b) = self.pls.buffer().get(..size) {
+                let rec = PulseRecord::parse(b);
+                self.pls.consume(size);
+                rec
+            } else {
+                self.pls.read_exact(&mut self.record).map_err(|e| {
+                    if e.kind() == std::io::ErrorKind::UnexpectedEof {
+                        PulseWavesError::invalid(
+                            &self.pls_name,
+                            format!("pulse {index}"),
+                            "the file ended early (it shrank while being read)",
+                        )
+                    } else {
+                        PulseWavesError::io(&self.pls_name, e)
+                    }
+                })?;
+                PulseRecord::parse(&self.record)
+            }
+        };
         let Some(d) = self
             .descriptors
             .get(usize::from(rec.descriptor_index))
@@ -334,21 +366,20 @@ impl<P: Read + Seek, W: Read + Seek> PulseWavesReader<P, W> {
         pulse.gain_v_per_dn = 1.0;
         pulse.offset_v = 0.0;
         pulse.bits = d.bits();
-        let span_ns = 1000.0 * f64::from(d.composition.sample_units_ns);
+        let per_ns = 1.0 / (1000.0 * f64::from(d.composition.sample_units_ns));
         let mut anchor = [0.0; 3];
         let mut direction = [0.0; 3];
         for i in 0..3 {
             anchor[i] = f64::from(rec.anchor[i]) * h.scale[i] + h.offset[i];
             direction[i] =
-                (f64::from(rec.target[i]) - f64::from(rec.anchor[i])) * h.scale[i] / span_ns;
+                (f64::from(rec.target[i]) - f64::from(rec.anchor[i])) * h.scale[i] * per_ns;
         }
         pulse.geometry = Some(PulseGeometry { anchor, direction });
         let n = self
             .waves
             .read_pulse(index, rec.offset_to_waves, d, pulse)?;
         self.wave_bytes += n;
-        self.next += 1;
-        Ok(true)
+        Ok(())
     }
 }
 

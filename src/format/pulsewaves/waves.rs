@@ -6,7 +6,7 @@
 //! `bits_for_number_of_samples > 0`, else the fixed number) and the samples (8 or 16-bit
 //! unsigned, little-endian). Lookup tables are not applied: samples stay raw counts.
 
-use std::io::{BufReader, Read, Seek};
+use std::io::{BufRead, BufReader, Read, Seek};
 
 use super::descriptor::{PulseDescriptor, Sampling, SamplingType};
 use super::error::PulseWavesError;
@@ -19,6 +19,28 @@ pub struct WavesReader<W> {
     len: u64,
     pos: u64,
     scratch: Vec<u8>,
+}
+
+/// Hands the next `n` bytes to `f`, straight from the buffer when they are in it (no copy,
+/// and no store-to-load stall on a small stack copy), else through `spill`. The caller has
+/// checked that the bytes are in the file.
+fn take<W: Read, T>(
+    r: &mut BufReader<W>,
+    spill: &mut Vec<u8>,
+    n: usize,
+    f: impl FnOnce(&[u8]) -> T,
+) -> std::io::Result<T> {
+    if r.buffer().len() < n && r.buffer().is_empty() {
+        r.fill_buf()?;
+    }
+    if let Some(s) = r.buffer().get(..n) {
+        let v = f(s);
+        r.consume(n);
+        return Ok(v);
+    }
+    spill.resize(n, 0);
+    r.read_exact(spill)?;
+    Ok(f(spill))
 }
 
 /// Where a read is, for messages.
@@ -97,6 +119,12 @@ impl<W: Read + Seek> WavesReader<W> {
         Ok(())
     }
 
+    /// An I/O error: the position is no longer known, the next read seeks.
+    fn io_err(&mut self, e: std::io::Error) -> PulseWavesError {
+        self.pos = u64::MAX;
+        PulseWavesError::io(&self.name, e)
+    }
+
     /// Checks that `n` bytes from the current position are in the file.
     fn need(&self, n: u64, what: impl FnOnce() -> String) -> Result<(), PulseWavesError> {
         match self.pos.checked_add(n) {
@@ -111,28 +139,22 @@ impl<W: Read + Seek> WavesReader<W> {
         }
     }
 
-    fn read_small(
-        &mut self,
-        bits: u8,
-        what: impl FnOnce() -> String,
-    ) -> Result<[u8; 4], PulseWavesError> {
-        let n = usize::from(bits / 8).min(4);
-        self.need(n as u64, what)?;
-        let mut b = [0u8; 4];
-        self.r
-            .read_exact(&mut b[..n])
-            .map_err(|e| PulseWavesError::io(&self.name, e))?;
-        self.pos += n as u64;
-        Ok(b)
-    }
-
     fn read_unsigned(
         &mut self,
         bits: u8,
         what: impl FnOnce() -> String,
     ) -> Result<u32, PulseWavesError> {
-        let b = self.read_small(bits, what)?;
-        Ok(u32::from_le_bytes(b))
+        let n = usize::from(bits / 8).min(4);
+        self.need(n as u64, what)?;
+        let v = take(&mut self.r, &mut self.scratch, n, |b| match *b {
+            [a] => u32::from(a),
+            [a, b] => u32::from(u16::from_le_bytes([a, b])),
+            [a, b, c, d] => u32::from_le_bytes([a, b, c, d]),
+            _ => 0,
+        })
+        .map_err(|e| self.io_err(e))?;
+        self.pos += n as u64;
+        Ok(v)
     }
 
     fn read_signed(
@@ -140,13 +162,17 @@ impl<W: Read + Seek> WavesReader<W> {
         bits: u8,
         what: impl FnOnce() -> String,
     ) -> Result<i64, PulseWavesError> {
-        let b = self.read_small(bits, what)?;
-        Ok(match bits {
-            8 => i64::from(b[0] as i8),
-            16 => i64::from(i16::from_le_bytes([b[0], b[1]])),
-            32 => i64::from(i32::from_le_bytes(b)),
+        let n = usize::from(bits / 8).min(4);
+        self.need(n as u64, what)?;
+        let v = take(&mut self.r, &mut self.scratch, n, |b| match *b {
+            [a] => i64::from(a as i8),
+            [a, b] => i64::from(i16::from_le_bytes([a, b])),
+            [a, b, c, d] => i64::from(i32::from_le_bytes([a, b, c, d])),
             _ => 0,
         })
+        .map_err(|e| self.io_err(e))?;
+        self.pos += n as u64;
+        Ok(v)
     }
 
     /// Reads the waves of pulse `pulse_index` at `offset` as described by `d`, appending a
@@ -223,30 +249,28 @@ impl<W: Read + Seek> WavesReader<W> {
                 self.need(bytes, || {
                     format!("{at}: {n} samples of {} bits", s.bits_per_sample)
                 })?;
-                // Bounded by the file's length (checked just above).
-                self.scratch.resize(bytes as usize, 0);
-                self.r
-                    .read_exact(&mut self.scratch)
-                    .map_err(|e| PulseWavesError::io(&self.name, e))?;
-                self.pos += bytes;
                 let start_ns = duration * su;
-                if s.bits_per_sample == 16 {
-                    pulse.push_segment(
-                        kind,
-                        s.channel,
-                        start_ns,
-                        self.scratch
-                            .chunks_exact(2)
-                            .map(|c| u16::from_le_bytes([c[0], c[1]])),
-                    );
-                } else {
-                    pulse.push_segment(
-                        kind,
-                        s.channel,
-                        start_ns,
-                        self.scratch.iter().map(|&b| u16::from(b)),
-                    );
-                }
+                let wide = s.bits_per_sample == 16;
+                // `bytes` is bounded by the file's length (checked just above).
+                take(&mut self.r, &mut self.scratch, bytes as usize, |b| {
+                    if wide {
+                        pulse.push_segment(
+                            kind,
+                            s.channel,
+                            start_ns,
+                            b.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]])),
+                        )
+                    } else {
+                        pulse.push_segment(
+                            kind,
+                            s.channel,
+                            start_ns,
+                            b.iter().map(|&v| u16::from(v)),
+                        )
+                    }
+                })
+                .map_err(|e| self.io_err(e))?;
+                self.pos += bytes;
             }
         }
         Ok(self.pos - start)
