@@ -152,7 +152,7 @@ pub fn from_records(records: &[Vlr]) -> CrsInfo {
 /// `UTM_North zone 33|WGS84|`).
 fn utm_from_citation(cite: &str, all_ascii: &str) -> Option<u16> {
     let c = cite.to_ascii_lowercase();
-    let all = all_ascii.to_ascii_lowercase();
+    let all = format!("{c} {}", all_ascii.to_ascii_lowercase());
     if !c.contains("utm")
         || !(all.contains("wgs84") || all.contains("wgs 84") || all.contains("wgs_84"))
     {

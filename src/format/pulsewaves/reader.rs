@@ -400,3 +400,198 @@ fn time_base_of(h: &PlsHeader) -> (TimeBase, f64) {
         (TimeBase::Unknown, h.t_offset)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pulse::SegmentKind;
+    use std::io::Cursor;
+
+    fn put<const N: usize>(b: &mut [u8], at: usize, v: [u8; N]) {
+        b[at..at + N].copy_from_slice(&v);
+    }
+
+    fn vlr_header(user: &str, id: u32, len: i64) -> Vec<u8> {
+        let mut h = vec![0u8; 96];
+        h[..user.len()].copy_from_slice(user.as_bytes());
+        put(&mut h, 16, id.to_le_bytes());
+        put(&mut h, 24, len.to_le_bytes());
+        h
+    }
+
+    /// A descriptor with what no real file has: extra wave bytes, a constant optical-centre
+    /// offset, 0.5 ns units, signed 8-bit durations, variable segment and sample counts and
+    /// 16-bit samples.
+    fn descriptor() -> Vec<u8> {
+        let mut d = vec![0u8; 92 + 2 * 104];
+        put(&mut d, 0, 92u32.to_le_bytes());
+        put(&mut d, 8, 3i32.to_le_bytes()); // optical centre to anchor, sampling units
+        put(&mut d, 12, 2u16.to_le_bytes()); // extra wave bytes
+        put(&mut d, 14, 2u16.to_le_bytes()); // samplings
+        put(&mut d, 16, 0.5f32.to_le_bytes());
+        for (k, (kind, channel, bseg, nseg, bsmp, nsmp)) in
+            [(1u8, 0u8, 0u8, 1u16, 0u8, 3u32), (2, 2, 8, 0, 8, 0)]
+                .into_iter()
+                .enumerate()
+        {
+            let s = &mut d[92 + 104 * k..92 + 104 * (k + 1)];
+            put(s, 0, 104u32.to_le_bytes());
+            s[8] = kind;
+            s[9] = channel;
+            s[11] = 8; // bits for duration
+            put(s, 12, 1.0f32.to_le_bytes());
+            put(s, 16, 100.0f32.to_le_bytes());
+            s[20] = bseg;
+            s[21] = bsmp;
+            put(s, 22, nseg.to_le_bytes());
+            put(s, 24, nsmp.to_le_bytes());
+            put(s, 28, 16u16.to_le_bytes());
+            put(s, 32, 0.5f32.to_le_bytes());
+        }
+        d
+    }
+
+    /// Two pulses; the descriptor is an AVLR (walked from the end of the file).
+    fn synthetic() -> (Vec<u8>, Vec<u8>) {
+        let mut pls = vec![0u8; 352];
+        pls[..16].copy_from_slice(b"PulseWavesPulse\0");
+        pls[172] = 0;
+        pls[173] = 3;
+        put(&mut pls, 174, 352u16.to_le_bytes());
+        put(&mut pls, 176, 352i64.to_le_bytes());
+        put(&mut pls, 184, 2i64.to_le_bytes());
+        put(&mut pls, 200, 48u32.to_le_bytes());
+        put(&mut pls, 220, (-1i32).to_le_bytes());
+        put(&mut pls, 224, 1e-6f64.to_le_bytes());
+        put(&mut pls, 240, 1_000_000i64.to_le_bytes());
+        put(&mut pls, 248, 2_000_000i64.to_le_bytes());
+        for k in 0..3 {
+            put(&mut pls, 256 + 8 * k, 0.01f64.to_le_bytes());
+        }
+        let mut wvs = b"PulseWavesWaves\0".to_vec();
+        wvs.resize(60, 0);
+        let mut offsets = Vec::new();
+        // Pulse 0: extra bytes, outgoing at -5 with 3 samples, 2 return segments.
+        offsets.push(wvs.len() as i64);
+        wvs.extend([0xEE, 0xEE, (-5i8) as u8]);
+        for v in [1u16, 2, 65535] {
+            wvs.extend(v.to_le_bytes());
+        }
+        wvs.extend([2u8, 40, 2]);
+        wvs.extend([7u16, 8].iter().flat_map(|v| v.to_le_bytes()));
+        wvs.extend([(-128i8) as u8, 1, 0x34, 0x12]);
+        // Pulse 1: no return segment.
+        offsets.push(wvs.len() as i64);
+        wvs.extend([0, 0, 0]);
+        wvs.extend([0u8; 6]);
+        wvs.push(0);
+        for (i, off) in offsets.iter().enumerate() {
+            let mut r = [0u8; 48];
+            put(&mut r, 0, (1_000_000i64 * (i as i64 + 1)).to_le_bytes());
+            put(&mut r, 8, off.to_le_bytes());
+            put(&mut r, 16, 100i32.to_le_bytes()); // anchor x
+            put(&mut r, 36, (-50_000i32).to_le_bytes()); // target z: 500 m below
+            r[44] = 1;
+            pls.extend(r);
+        }
+        pls.extend(vlr_header("PulseWaves_Spec", 0xFFFF_FFFF, 0));
+        let d = descriptor();
+        pls.extend(&d);
+        pls.extend(vlr_header("PulseWaves_Spec", 200_001, d.len() as i64));
+        (pls, wvs)
+    }
+
+    fn open(
+        pls: Vec<u8>,
+        wvs: Vec<u8>,
+    ) -> Result<PulseWavesReader<Cursor<Vec<u8>>, Cursor<Vec<u8>>>, PulseWavesError> {
+        PulseWavesReader::new(Cursor::new(pls), "s.pls", Cursor::new(wvs), "s.wvs")
+    }
+
+    #[test]
+    fn appended_descriptor_extra_bytes_signed_durations_and_16_bit_samples() {
+        let (pls, wvs) = synthetic();
+        let mut r = open(pls, wvs).unwrap();
+        assert_eq!(r.descriptors().count(), 1);
+        assert_eq!(r.time_base(), TimeBase::GpsSecondsOfWeek);
+        let mut p = Pulse::default();
+        assert!(r.read_pulse(&mut p).unwrap());
+        assert_eq!(p.sample_ns, 0.5);
+        assert_eq!(p.bits, 16);
+        assert_eq!(p.gps_time, 1.0);
+        let g = p.geometry.unwrap();
+        assert_eq!(g.anchor, [1.0, 0.0, 0.0]);
+        // 500 m over 1000 units of 0.5 ns.
+        assert!((g.direction[2] + 1.0).abs() < 1e-12, "{:?}", g.direction);
+        let segs: Vec<_> = p
+            .segments
+            .iter()
+            .map(|s| (s.kind, s.channel, s.start_ns, s.len))
+            .collect();
+        assert_eq!(
+            segs,
+            vec![
+                // (-5 + 100 - 3 optical centre) units × 0.5 ns
+                (SegmentKind::Outgoing, 0, 46.0, 3),
+                (SegmentKind::Return, 2, 70.0, 2),
+                (SegmentKind::Return, 2, -14.0, 1),
+            ]
+        );
+        assert_eq!(p.raw, vec![1, 2, 65535, 7, 8, 0x1234]);
+        assert!(r.read_pulse(&mut p).unwrap());
+        assert_eq!(p.segments.len(), 1);
+        assert!(!r.read_pulse(&mut p).unwrap());
+        assert_eq!(r.wave_bytes_read(), r.waves_len() - 60);
+    }
+
+    #[test]
+    fn damaged_synthetic_files_name_the_field() {
+        let (pls, wvs) = synthetic();
+        // AVLR length reaching into the pulse records.
+        let mut bad = pls.clone();
+        let n = bad.len();
+        put(&mut bad, n - 96 + 24, 100_000i64.to_le_bytes());
+        let e = open(bad, wvs.clone()).err().unwrap().to_string();
+        assert!(
+            e.contains("s.pls: AVLR 0 (record 200001): record_length_before_footer"),
+            "{e}"
+        );
+        // 12 bits per sample.
+        let mut bad = pls.clone();
+        let at = n - 96 - 300 + 92 + 28;
+        put(&mut bad, at, 12u16.to_le_bytes());
+        let e = open(bad, wvs.clone()).err().unwrap().to_string();
+        assert!(
+            e.contains("descriptor 1 (record 200001): sampling 0: bits_per_sample"),
+            "{e}"
+        );
+        assert!(e.contains("not supported"), "{e}");
+        // Different sample units between samplings.
+        let mut bad = pls.clone();
+        put(&mut bad, n - 96 - 104 + 32, 1.0f32.to_le_bytes());
+        let e = open(bad, wvs.clone()).err().unwrap().to_string();
+        assert!(e.contains("sampling 1: sample_units"), "{e}");
+        // A sample count running past the end of the waves.
+        let mut bad = wvs.clone();
+        bad[71] = 200;
+        let mut r = open(pls.clone(), bad).unwrap();
+        let e = r
+            .read_pulse(&mut Pulse::default())
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("s.wvs: truncated: pulse 0: sampling 1 (returning, channel 2): segment 0: 200 samples"), "{e}");
+        // Errors are final.
+        assert!(!r.read_pulse(&mut Pulse::default()).unwrap());
+        // Offset to waves outside the file.
+        let mut bad = pls.clone();
+        put(&mut bad, 352 + 8, 1_000_000i64.to_le_bytes());
+        let mut r = open(bad, wvs).unwrap();
+        let e = r
+            .read_pulse(&mut Pulse::default())
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("s.wvs: pulse 0: offset_to_waves"), "{e}");
+    }
+}
