@@ -501,10 +501,9 @@ mod tests {
         (pls, wvs)
     }
 
-    fn open(
-        pls: Vec<u8>,
-        wvs: Vec<u8>,
-    ) -> Result<PulseWavesReader<Cursor<Vec<u8>>, Cursor<Vec<u8>>>, PulseWavesError> {
+    type Memory = PulseWavesReader<Cursor<Vec<u8>>, Cursor<Vec<u8>>>;
+
+    fn open(pls: Vec<u8>, wvs: Vec<u8>) -> Result<Memory, PulseWavesError> {
         PulseWavesReader::new(Cursor::new(pls), "s.pls", Cursor::new(wvs), "s.wvs")
     }
 
