@@ -245,6 +245,13 @@ impl<W: Read + Seek> WavesReader<W> {
                 } else {
                     s.number_of_samples
                 };
+                if pulse.raw.len() as u64 + u64::from(n) > u64::from(u32::MAX) {
+                    return Err(PulseWavesError::invalid(
+                        &self.name,
+                        format!("{at}: number of samples"),
+                        format!("{n} more samples would exceed 2^32 samples in one pulse"),
+                    ));
+                }
                 let bytes = u64::from(n) * s.bytes_per_sample();
                 self.need(bytes, || {
                     format!("{at}: {n} samples of {} bits", s.bits_per_sample)
