@@ -358,6 +358,80 @@ fn riegl_q680i_channels_geometry_and_sensor() {
     assert_eq!(facts.crs.as_deref(), Some("EPSG:32633"));
 }
 
+/// The same RIEGL line as LAS 1.4 point format 9 with its `.wdp`, decoded here from the bytes:
+/// every LAS point whose GPS time matches a pulse (|dt| <= 0.5 us) has its waveform packet
+/// equal, sample for sample, to one low-power (channel 1) segment of that pulse, and lies at
+/// `anchor + (start_ns + return_point_wave_location) x direction` within a few millimetres.
+#[test]
+fn riegl_las_points_lie_on_their_pulses_and_their_packets_equal_the_segments() {
+    let pls = fixture(RIEGL);
+    let (_, pulses) = read_all(&pls);
+    let las = std::fs::read(pls.with_extension("las")).unwrap();
+    let wdp = std::fs::read(pls.with_extension("wdp")).unwrap();
+    let u16_at = |b: &[u8], at: usize| u16::from_le_bytes([b[at], b[at + 1]]);
+    let u32_at = |b: &[u8], at: usize| u32::from_le_bytes(b[at..at + 4].try_into().unwrap());
+    let f32_at = |b: &[u8], at: usize| f32::from_le_bytes(b[at..at + 4].try_into().unwrap());
+    let point_start = u32_at(&las, 96) as usize;
+    assert_eq!(las[104], 9, "point format 9");
+    let rec_len = u16_at(&las, 105) as usize;
+    let points = i64_at(&las, 247) as usize;
+    // Waveform packet descriptors (LASF_Spec 100..354): samples per packet by index.
+    let mut samples_of = BTreeMap::new();
+    let mut at = u16_at(&las, 94) as usize;
+    for _ in 0..u32_at(&las, 100) {
+        let (id, len) = (u16_at(&las, at + 18), u16_at(&las, at + 20) as usize);
+        if (100..355).contains(&id) {
+            assert_eq!(las[at + 54], 16, "16-bit packets");
+            samples_of.insert((id - 99) as u8, u32_at(&las, at + 56) as usize);
+        }
+        at += 54 + len;
+    }
+    let mut by_time: Vec<(f64, usize)> = pulses
+        .iter()
+        .enumerate()
+        .map(|(i, p)| (p.gps_time, i))
+        .collect();
+    by_time.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (mut matched, mut worst) = (0, 0.0f64);
+    for k in 0..points {
+        let r = &las[point_start + k * rec_len..point_start + (k + 1) * rec_len];
+        let t = f64_at(r, 22);
+        let j = by_time.partition_point(|e| e.0 < t - 0.5e-6);
+        let Some(&(pt, pi)) = by_time.get(j) else {
+            continue;
+        };
+        if (pt - t).abs() > 0.5e-6 {
+            continue;
+        }
+        let p = &pulses[pi];
+        let n = samples_of[&r[30]];
+        let offset = i64_at(r, 31) as usize;
+        let packet: Vec<u16> = (0..n).map(|s| u16_at(&wdp, offset + 2 * s)).collect();
+        let seg = (0..p.segments.len())
+            .find(|&s| p.segments[s].channel == 1 && p.raw_of(s) == packet.as_slice())
+            .unwrap_or_else(|| {
+                panic!("LAS point {k}: no low-power segment of pulse {pi} equals its packet")
+            });
+        let loc_ns = f32_at(r, 43) as f64 / 1000.0;
+        let g = p.geometry.unwrap();
+        let at_ns = p.segments[seg].start_ns + loc_ns;
+        for a in 0..3 {
+            let xyz =
+                i32_at(r, 4 * a) as f64 * f64_at(&las, 131 + 8 * a) + f64_at(&las, 155 + 8 * a);
+            worst = worst.max((g.anchor[a] + at_ns * g.direction[a] - xyz).abs());
+        }
+        matched += 1;
+    }
+    assert!(
+        matched >= 2500,
+        "{matched} of {points} LAS points matched a pulse"
+    );
+    assert!(
+        worst < 0.005,
+        "a LAS point lies {worst} m off its pulse's ray"
+    );
+}
+
 #[test]
 fn source_streams_every_pulse_and_reports() {
     let pool = fwlidar::pulse::PulsePool::new(4);
