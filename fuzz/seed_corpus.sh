@@ -7,12 +7,15 @@
 #   config_load:    every file of config/.
 #   waveform_table: a small CSV and NPY written here (mode byte 0x00 CSV, 0x01 NPY), plus the
 #                   first lines of the NEON return.csv and imp.csv when ../shared/fixtures exists.
+#   pulsewaves_reader: the PulseWaves pairs of ../shared/fixtures/waveform (when it exists), each
+#                   cut to its header, records and first pulses (number_of_pulses patched to
+#                   match), as u16 .pls length + .pls + .wvs.
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(dirname "$here")
 cap="$root/replay/two_layer.fwcap"
 mkdir -p "$here/corpus/capture_reader" "$here/corpus/frame_decode" "$here/corpus/config_load" \
-    "$here/corpus/waveform_table"
+    "$here/corpus/waveform_table" "$here/corpus/pulsewaves_reader"
 
 # capture_reader
 { printf '\000'; head -c 8192 "$cap"; } > "$here/corpus/capture_reader/two_layer_8k_raw"
@@ -57,6 +60,32 @@ fx="$root/../shared/fixtures/waveform/neon_harv"
 if [ -d "$fx" ]; then
     { printf '\000'; head -n 4 "$fx/return.csv"; } > "$wt/neon_return_head"
     { printf '\000'; cat "$fx/imp.csv"; } > "$wt/neon_imp"
+fi
+
+# pulsewaves_reader
+wf="$root/../shared/fixtures/waveform"
+if [ -d "$wf" ]; then
+    python3 - "$here/corpus/pulsewaves_reader" "$wf/pulsewaves/test" "$wf/pulsewaves/lvis_example1" \
+        "$wf/pulsewaves/las13fwf_example1" "$wf/riegl_q680i/100429_152240_2535pt_UTM" <<'PY'
+import os, struct, sys
+out = sys.argv[1]
+for stem in sys.argv[2:]:
+    pls = bytearray(open(stem + ".pls", "rb").read())
+    wvs = open(stem + ".wvs", "rb").read()
+    (start, count) = struct.unpack_from("<qq", pls, 176)
+    (size,) = struct.unpack_from("<I", pls, 200)
+    keep = min(count, 12)
+    struct.pack_into("<q", pls, 184, keep)
+    pls = pls[:start + keep * size]
+    if keep < count:
+        wend = struct.unpack_from("<q", open(stem + ".pls", "rb").read(), start + keep * size + 8)[0]
+    else:
+        wend = len(wvs)
+    if len(pls) > 0xFFFF:
+        continue
+    name = os.path.basename(stem)
+    open(f"{out}/{name}", "wb").write(struct.pack("<H", len(pls)) + bytes(pls) + wvs[:wend])
+PY
 fi
 
 ls -l "$here"/corpus/*

@@ -6,6 +6,7 @@
 //! - [`frame`]: the digitizer frame and nav payloads inside capture records.
 //! - [`table`]: waveform tables (CSV, NumPy `.npy`) for `fwlidar process`.
 //! - [`las_write`]: LAS 1.4 header, VLR/EVLR and point format 9 encoding (returns output).
+//! - [`pulsewaves`]: PulseWaves 0.3 `.pls` + `.wvs` reader (input).
 //!
 //! Byte layouts are specified in `docs/formats.md`.
 
@@ -15,6 +16,7 @@ pub mod capture_writer;
 pub mod frame;
 pub mod header;
 pub mod las_write;
+pub mod pulsewaves;
 pub mod table;
 
 pub use capture::{CaptureError, FlushPolicy, FsyncPolicy, RecordKind, SkipReport};

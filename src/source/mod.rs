@@ -2,6 +2,7 @@
 //! serial ports, LAS and PulseWaves files as later issues land).
 
 pub mod capture;
+pub mod pulsewaves;
 
 use std::io::Read;
 use std::path::Path;
@@ -135,6 +136,9 @@ pub fn open_file(path: &Path) -> Result<Box<dyn Source>, String> {
     match InputKind::of_file(path)? {
         InputKind::Capture => Ok(Box::new(
             capture::CaptureSource::open(path).map_err(|e| e.to_string())?,
+        )),
+        InputKind::PulseWaves => Ok(Box::new(
+            pulsewaves::PulseWavesSource::open(path).map_err(|e| e.to_string())?,
         )),
         kind => Err(format!(
             "{}: {kind:?} input is not supported yet",
