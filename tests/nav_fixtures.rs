@@ -4,7 +4,6 @@
 //! Applanix SBET files. Counts are exact; fails naming any missing fixture.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use fwlidar::nav::NavSample;
@@ -12,20 +11,8 @@ use fwlidar::nav::dating::GpsTime;
 use fwlidar::nav::decoder::{DecodeSummary, NavDecoder};
 use fwlidar::nav::sbet::SbetReader;
 
-const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
-
-fn fixture(rel: &str) -> PathBuf {
-    let base = std::env::var_os("FWLIDAR_FIXTURES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"));
-    let p = base.join(rel);
-    assert!(
-        p.is_file(),
-        "missing real-data fixture {} (set FWLIDAR_FIXTURES to the shared fixtures folder)",
-        p.display()
-    );
-    p
-}
+mod common;
+use common::{BIN, fixture};
 
 /// Decodes `bytes` fed in pieces of `chunk` bytes.
 fn decode(bytes: &[u8], chunk: usize) -> (Vec<(NavSample, Option<GpsTime>)>, DecodeSummary) {

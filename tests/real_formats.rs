@@ -5,43 +5,15 @@
 //!
 //! Needs `../shared/fixtures/waveform/` (see its MANIFEST.md); fails naming what is missing.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::path::Path;
 
 use fwlidar::pulse::{Pulse, PulsePool, SegmentKind};
 use fwlidar::source::{SourceEvent, open_file};
 
-const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
-const ROOT: &str = env!("CARGO_MANIFEST_DIR");
-
-/// The fixtures folder: `FWLIDAR_FIXTURES`, else `<manifest>/../shared/fixtures`.
-fn fixture(rel: &str) -> PathBuf {
-    let base = std::env::var_os("FWLIDAR_FIXTURES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(ROOT).join("../shared/fixtures"));
-    let p = base.join(rel);
-    assert!(
-        p.is_file(),
-        "missing real-data fixture {} (set FWLIDAR_FIXTURES to the shared fixtures folder; see \
-         its MANIFEST.md)",
-        p.display()
-    );
-    p
-}
+mod common;
+use common::{fixture, fwlidar, text};
 
 const RIEGL: &str = "waveform/riegl_q680i/100429_152240_2535pt_UTM";
-
-fn fwlidar(args: &[&str]) -> Output {
-    Command::new(BIN)
-        .args(args)
-        .current_dir(ROOT)
-        .output()
-        .expect("run fwlidar")
-}
-
-fn text(b: &[u8]) -> String {
-    String::from_utf8_lossy(b).into_owned()
-}
 
 /// A pulse as plain data, copied out of the pool's recycled pulse.
 #[derive(Clone, Debug)]

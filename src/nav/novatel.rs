@@ -95,6 +95,19 @@ fn lat_lon(b: &Body<'_>, at: usize) -> Result<(f64, f64), &'static str> {
     Ok((lat, lon))
 }
 
+/// Latitude, longitude, height above MSL (f64 each from `at`) and undulation (f32 after them),
+/// as INSPVAX and BESTPOS lay them out.
+fn position_msl(s: &mut NavSample, b: &Body<'_>, at: usize) -> Result<(), &'static str> {
+    let (lat, lon) = lat_lon(b, at)?;
+    s.lat = Some(lat);
+    s.lon = Some(lon);
+    let msl = finite(b.f64(at + 16)?, "bad_height")?;
+    let und = finite(b.f32(at + 24)?, "bad_height")?;
+    s.height_msl = Some(msl);
+    s.height = Some(msl + und);
+    Ok(())
+}
+
 /// Own week and seconds fields (INSPVA, CORRIMUDATA) as a time; week 0 means unknown.
 fn own_time(b: &Body<'_>) -> Result<NavTime, &'static str> {
     let week = b.u32(0)?;
@@ -150,13 +163,7 @@ pub fn decode(header: &[u8], body: &[u8], short: bool) -> Result<Option<NavSampl
             let mut s = NavSample::new(NavKind::Inspvax, header_time);
             s.ins_status = Some(b.u32(0)?);
             s.fix = Some(b.u32(4)?);
-            let (lat, lon) = lat_lon(&b, 8)?;
-            s.lat = Some(lat);
-            s.lon = Some(lon);
-            let msl = finite(b.f64(24)?, "bad_height")?;
-            let und = finite(b.f32(32)?, "bad_height")?;
-            s.height_msl = Some(msl);
-            s.height = Some(msl + und);
+            position_msl(&mut s, &b, 8)?;
             velocity(&mut s, &b, 36)?;
             attitude(&mut s, &b, 60)?;
             s.position_sigma = Some([b.f32(84)?, b.f32(88)?, b.f32(92)?]);
@@ -171,13 +178,7 @@ pub fn decode(header: &[u8], body: &[u8], short: bool) -> Result<Option<NavSampl
                 return Err("no_fix");
             }
             s.fix = Some(b.u32(4)?);
-            let (lat, lon) = lat_lon(&b, 8)?;
-            s.lat = Some(lat);
-            s.lon = Some(lon);
-            let msl = finite(b.f64(24)?, "bad_height")?;
-            let und = finite(b.f32(32)?, "bad_height")?;
-            s.height_msl = Some(msl);
-            s.height = Some(msl + und);
+            position_msl(&mut s, &b, 8)?;
             s.position_sigma = Some([b.f32(40)?, b.f32(44)?, b.f32(48)?]);
             s.satellites = Some(b.u8(65)? as u32);
             s

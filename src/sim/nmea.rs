@@ -7,15 +7,8 @@
 
 use crate::sim::scene::FlightConfig;
 
-/// WGS84 semi-major axis, metres.
-const WGS84_A: f64 = 6_378_137.0;
-/// WGS84 first eccentricity squared.
-const WGS84_E2: f64 = 6.694_379_990_14e-3;
-
-/// XOR checksum of a sentence body (the bytes between `$` and `*`).
-pub fn checksum(body: &[u8]) -> u8 {
-    body.iter().fold(0, |acc, b| acc ^ b)
-}
+use crate::nav::crc::nmea_xor as checksum;
+use crate::nav::trajectory::radii;
 
 /// A complete sentence `$<body>*hh\r\n` for `body`.
 pub fn sentence(body: &str) -> String {
@@ -128,13 +121,13 @@ impl FlightLine {
     /// `altitude_m` above mean sea level.
     pub fn new(config: &FlightConfig, start_gps_s: f64, altitude_m: f64) -> Self {
         let phi = config.start_lat_deg.to_radians();
-        let w = (1.0 - WGS84_E2 * phi.sin().powi(2)).sqrt();
+        let (m, n) = radii(phi);
         FlightLine {
             config: config.clone(),
             start_gps_s,
             altitude_m,
-            meridian_radius_m: WGS84_A * (1.0 - WGS84_E2) / (w * w * w),
-            parallel_radius_m: WGS84_A / w * phi.cos(),
+            meridian_radius_m: m,
+            parallel_radius_m: n * phi.cos(),
         }
     }
 
