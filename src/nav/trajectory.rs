@@ -380,7 +380,7 @@ mod tests {
         let t = tr.time_of(gt(100.05)).unwrap();
         let [r, p, h] = attitude_angles(&tr.attitude_at(t).unwrap());
         assert!(r.abs() < 1e-9 && p.abs() < 1e-9);
-        assert!(h < 1e-6 || h > 360.0 - 1e-6, "{h}");
+        assert!(!(1e-6..=360.0 - 1e-6).contains(&h), "{h}");
         let t = tr.time_of(gt(100.075)).unwrap();
         let h = attitude_angles(&tr.attitude_at(t).unwrap())[2];
         assert!((h - 0.5).abs() < 1e-6, "{h}");

@@ -3,6 +3,7 @@
 
 pub mod capture;
 pub mod pulsewaves;
+pub mod serial;
 
 use std::io::Read;
 use std::path::Path;
