@@ -19,6 +19,7 @@ pub mod cli;
 pub mod config;
 pub mod eval;
 pub mod format;
+pub mod geo;
 pub mod nav;
 pub mod pipeline;
 pub mod pulse;
