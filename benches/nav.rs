@@ -2,12 +2,19 @@
 //! `../shared/fixtures/nav/` repeated into ~4 MiB streams — the OxTS NMEA log (PASHR 25 Hz, GGA
 //! 10 Hz; gpsd's `#` comment lines removed) and the NovAtel SPAN binary capture — fed to a
 //! `NavDecoder` in 4 KiB reads, as a serial port would deliver them. Throughput in input bytes.
+//! Also: trajectory lookup + interpolation at a pulse time, and one pulse's georeferencing
+//! (geometry from the pose, then 256 bins stepped along it).
 
 use std::hint::black_box;
 use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use fwlidar::geo::OutputCrs;
+use fwlidar::geo::georef::{Mounting, georeference};
+use fwlidar::nav::dating::GpsTime;
 use fwlidar::nav::decoder::NavDecoder;
+use fwlidar::nav::trajectory::{Trajectory, TrajectoryConfig};
+use fwlidar::nav::{NavKind, NavSample, NavTime};
 
 const TARGET: usize = 4 << 20;
 
@@ -59,6 +66,93 @@ fn bench(c: &mut Criterion) {
             })
         });
     }
+    g.finish();
+
+    // Trajectory lookup + interpolation at a pulse's time, 200 Hz INS with velocities.
+    let mut tr = Trajectory::new(TrajectoryConfig::default());
+    for k in 0..2000 {
+        let t = GpsTime {
+            week: 2000,
+            sow: 1000.0 + k as f64 * 0.005,
+        };
+        let mut s = NavSample::new(NavKind::Inspva, NavTime::None);
+        s.lat = Some(47.8 + k as f64 * 1e-6);
+        s.lon = Some(13.4);
+        s.height = Some(1000.0);
+        s.vel_north = Some(60.0);
+        s.vel_east = Some(0.0);
+        s.vel_up = Some(0.0);
+        s.roll = Some(1.0);
+        s.pitch = Some(2.0);
+        // A turn at 2 degrees per second through north (0.01 degrees per INS sample).
+        s.heading = Some((359.0 + k as f64 * 0.01).rem_euclid(360.0));
+        tr.push(t, &s);
+    }
+    let t0 = tr
+        .time_of(GpsTime {
+            week: 2000,
+            sow: 1000.0,
+        })
+        .unwrap();
+    let mut g = c.benchmark_group("georeference");
+    let mut k = 0u64;
+    g.bench_function("trajectory_lookup_and_interpolation", |b| {
+        b.iter(|| {
+            k = (k + 7919) % 1_990_000;
+            let t = t0 + k as f64 * 5e-6;
+            black_box((tr.position_at(black_box(t)), tr.attitude_at(black_box(t))))
+        })
+    });
+    let crs = OutputCrs::from_epsg(32633).unwrap();
+    let mount = Mounting {
+        lever_arm_m: [0.1, 0.2, -0.3],
+        boresight_deg: [0.01, -0.02, 0.03],
+        refractive_index: 1.00027,
+    };
+    let pos = tr.position_at(t0 + 1.0).unwrap();
+    let att = tr.attitude_at(t0 + 1.0).unwrap();
+    g.bench_function("pulse_geometry_only", |b| {
+        b.iter(|| {
+            black_box(
+                georeference(
+                    &crs,
+                    pos,
+                    &att,
+                    [black_box(12.5), f32::NAN],
+                    &mount,
+                    (4000.0, 4256.0),
+                )
+                .unwrap(),
+            )
+        })
+    });
+    // Every bin's position in f64: `anchor + t · direction` for t = 4000, 4001, ... ns.
+    let mut bins = vec![[0.0f64; 3]; 256];
+    g.bench_function("pulse_geometry_and_256_bins", |b| {
+        b.iter(|| {
+            let geo = georeference(
+                &crs,
+                pos,
+                &att,
+                [black_box(12.5), f32::NAN],
+                &mount,
+                (4000.0, 4256.0),
+            )
+            .unwrap()
+            .geometry;
+            let d = geo.direction;
+            let mut t = 4000.0f64;
+            for p in bins.iter_mut() {
+                *p = [
+                    geo.anchor[0] + t * d[0],
+                    geo.anchor[1] + t * d[1],
+                    geo.anchor[2] + t * d[2],
+                ];
+                t += 1.0;
+            }
+            black_box(&bins);
+        })
+    });
     g.finish();
 }
 

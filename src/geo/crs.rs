@@ -4,6 +4,8 @@
 use proj4rs::proj::Proj;
 use proj4rs::transform::transform;
 
+use crate::nav::trajectory::{WGS84_A, WGS84_E2};
+
 /// Errors of coordinate conversion.
 #[derive(Debug, thiserror::Error)]
 pub enum GeoError {
@@ -39,15 +41,22 @@ pub enum GeoError {
     },
 }
 
-/// WGS84 geographic, PROJ's pivot.
-fn wgs84() -> Proj {
-    Proj::from_proj_string("+proj=longlat +datum=WGS84 +no_defs")
-        .expect("the WGS84 definition parses")
+/// WGS84 geographic, PROJ's pivot (parsed once).
+fn wgs84() -> &'static Proj {
+    static P: std::sync::OnceLock<Proj> = std::sync::OnceLock::new();
+    P.get_or_init(|| {
+        Proj::from_proj_string("+proj=longlat +datum=WGS84 +no_defs")
+            .expect("the WGS84 definition parses")
+    })
 }
 
-fn geocentric() -> Proj {
-    Proj::from_proj_string("+proj=geocent +datum=WGS84 +units=m +no_defs")
-        .expect("the WGS84 geocentric definition parses")
+/// WGS84 geocentric (ECEF), parsed once.
+fn geocentric() -> &'static Proj {
+    static P: std::sync::OnceLock<Proj> = std::sync::OnceLock::new();
+    P.get_or_init(|| {
+        Proj::from_proj_string("+proj=geocent +datum=WGS84 +units=m +no_defs")
+            .expect("the WGS84 geocentric definition parses")
+    })
 }
 
 /// The EPSG code of the WGS84 UTM zone containing (`lat`, `lon`) degrees: 326zz north, 327zz
@@ -78,7 +87,6 @@ pub fn utm_epsg(lat: f64, lon: f64) -> u32 {
 pub struct OutputCrs {
     code: u32,
     proj: Proj,
-    wgs84: Proj,
 }
 
 impl std::fmt::Debug for OutputCrs {
@@ -104,11 +112,7 @@ impl OutputCrs {
                 proj4: proj.projname().to_string(),
             });
         }
-        Ok(OutputCrs {
-            code,
-            proj,
-            wgs84: wgs84(),
-        })
+        Ok(OutputCrs { code, proj })
     }
 
     /// The WGS84 UTM zone of a position (the first fix of a flight).
@@ -125,7 +129,7 @@ impl OutputCrs {
     /// the height stays ellipsoidal.
     pub fn project(&self, lat: f64, lon: f64, h: f64) -> Result<[f64; 3], GeoError> {
         let mut p = (lon.to_radians(), lat.to_radians(), h);
-        transform(&self.wgs84, &self.proj, &mut p).map_err(|e| GeoError::Convert {
+        transform(wgs84(), &self.proj, &mut p).map_err(|e| GeoError::Convert {
             lat,
             lon,
             h,
@@ -136,30 +140,105 @@ impl OutputCrs {
     }
 }
 
-/// ECEF (metres) of a WGS84 position (degrees, ellipsoidal metres).
-pub fn ecef_of(lat: f64, lon: f64, h: f64) -> Result<[f64; 3], GeoError> {
-    let mut p = (lon.to_radians(), lat.to_radians(), h);
-    transform(&wgs84(), &geocentric(), &mut p).map_err(|e| GeoError::Convert {
-        lat,
-        lon,
-        h,
-        to: "ECEF".into(),
-        why: e.to_string(),
-    })?;
-    Ok([p.0, p.1, p.2])
+impl OutputCrs {
+    /// Projects two WGS84 positions at once (one call into the projection: what a pulse's
+    /// chord needs). Same units and result as [`OutputCrs::project`].
+    pub fn project_pair(&self, a: [f64; 3], b: [f64; 3]) -> Result<[[f64; 3]; 2], GeoError> {
+        let mut pts = [
+            (a[1].to_radians(), a[0].to_radians(), a[2]),
+            (b[1].to_radians(), b[0].to_radians(), b[2]),
+        ];
+        transform(wgs84(), &self.proj, &mut pts[..]).map_err(|e| GeoError::Convert {
+            lat: a[0],
+            lon: a[1],
+            h: a[2],
+            to: format!("EPSG:{}", self.code),
+            why: e.to_string(),
+        })?;
+        Ok([[pts[0].0, pts[0].1, a[2]], [pts[1].0, pts[1].1, b[2]]])
+    }
 }
 
-/// WGS84 position (degrees, ellipsoidal metres) of an ECEF point (metres).
+/// ECEF (metres) of a WGS84 position (degrees, ellipsoidal metres). The closed form
+/// `((N + h) cos φ cos λ, (N + h) cos φ sin λ, (N (1 − e²) + h) sin φ)` — a formula, not a
+/// projection, and exact; checked against PROJ's geocentric conversion in
+/// `tests/geodesy_proj.rs`. Non-finite input is an error.
+pub fn ecef_of(lat: f64, lon: f64, h: f64) -> Result<[f64; 3], GeoError> {
+    if !(lat.is_finite() && lon.is_finite() && h.is_finite()) || lat.abs() > 90.0 {
+        return Err(GeoError::Convert {
+            lat,
+            lon,
+            h,
+            to: "ECEF".into(),
+            why: "not a geodetic position".into(),
+        });
+    }
+    let (sp, cp) = lat.to_radians().sin_cos();
+    let (sl, cl) = lon.to_radians().sin_cos();
+    let n = WGS84_A / (1.0 - WGS84_E2 * sp * sp).sqrt();
+    Ok([
+        (n + h) * cp * cl,
+        (n + h) * cp * sl,
+        (n * (1.0 - WGS84_E2) + h) * sp,
+    ])
+}
+
+/// WGS84 position (degrees, ellipsoidal metres) of an ECEF point (metres), by Heikkinen's
+/// exact closed form (no iteration); agrees with PROJ's geocentric inverse to a micrometre
+/// (tested). Points near the Earth's centre (within 50 km), where the form degenerates, and
+/// non-finite input are errors.
 pub fn geodetic_of_ecef(x: [f64; 3]) -> Result<[f64; 3], GeoError> {
-    let mut p = (x[0], x[1], x[2]);
-    transform(&geocentric(), &wgs84(), &mut p).map_err(|e| GeoError::Convert {
+    let fail = |why: &str| GeoError::Convert {
         lat: f64::NAN,
         lon: f64::NAN,
         h: f64::NAN,
-        to: "WGS84".into(),
-        why: e.to_string(),
-    })?;
-    Ok([p.1.to_degrees(), p.0.to_degrees(), p.2])
+        to: "WGS84 from ECEF".into(),
+        why: why.into(),
+    };
+    let [x, y, z] = x;
+    if !(x.is_finite() && y.is_finite() && z.is_finite()) {
+        return Err(fail("not a finite point"));
+    }
+    let a = WGS84_A;
+    let e2 = WGS84_E2;
+    let b2 = a * a * (1.0 - e2);
+    let b = b2.sqrt();
+    let ep2 = (a * a - b2) / b2;
+    let p2 = x * x + y * y;
+    let p = p2.sqrt();
+    if (p2 + z * z).sqrt() < 50_000.0 {
+        return Err(fail("too close to the Earth's centre"));
+    }
+    let f = 54.0 * b2 * z * z;
+    let g = p2 + (1.0 - e2) * z * z - e2 * (a * a - b2);
+    let c = e2 * e2 * f * p2 / (g * g * g);
+    let s = (1.0 + c + (c * c + 2.0 * c).sqrt()).cbrt();
+    let k = s + 1.0 / s + 1.0;
+    let pp = f / (3.0 * k * k * g * g);
+    let q = (1.0 + 2.0 * e2 * e2 * pp).sqrt();
+    let r0 = -(pp * e2 * p) / (1.0 + q)
+        + (0.5 * a * a * (1.0 + 1.0 / q)
+            - pp * (1.0 - e2) * z * z / (q * (1.0 + q))
+            - 0.5 * pp * p2)
+            .max(0.0)
+            .sqrt();
+    let t = p - e2 * r0;
+    let u = (t * t + z * z).sqrt();
+    let v = (t * t + (1.0 - e2) * z * z).sqrt();
+    let z0 = b2 * z / (a * v);
+    let h = u * (1.0 - b2 / (a * v));
+    let lat = (z + ep2 * z0).atan2(p);
+    let lon = y.atan2(x);
+    let _ = b;
+    Ok([lat.to_degrees(), lon.to_degrees(), h])
+}
+
+/// PROJ's geocentric inverse through proj4rs: the reference the closed form is tested against.
+#[cfg(test)]
+fn geodetic_of_ecef_proj(x: [f64; 3]) -> [f64; 3] {
+    let mut p = (x[0], x[1], x[2]);
+    transform(geocentric(), wgs84(), &mut p).unwrap();
+    [p.1.to_degrees(), p.0.to_degrees(), p.2]
 }
 
 #[cfg(test)]
@@ -186,6 +265,40 @@ mod tests {
             "{e}"
         );
         assert!(OutputCrs::from_epsg(99_999).is_err());
+    }
+
+    #[test]
+    fn closed_form_inverse_agrees_with_proj() {
+        for (lat, lon, h) in [
+            (47.8, 13.4, 450.0),
+            (-33.86, 151.21, 50.0),
+            (89.9, 10.0, 3000.0),
+            (-89.99, -120.0, 100.0),
+            (0.0, 0.0, 0.0),
+            (0.0, 179.9, 12_000.0),
+            (60.0, -150.0, -50.0),
+            (30.0, 90.0, 100_000.0),
+        ] {
+            let x = ecef_of(lat, lon, h).unwrap();
+            let ours = geodetic_of_ecef(x).unwrap();
+            let proj = geodetic_of_ecef_proj(x);
+            // A micrometre: 1e-11 degrees of latitude is 1.1 µm.
+            assert!(
+                (ours[0] - proj[0]).abs() < 1e-11,
+                "{lat} {lon} {h}: {ours:?} {proj:?}"
+            );
+            assert!(
+                (ours[1] - proj[1]).abs() < 1e-11,
+                "{lat} {lon} {h}: {ours:?} {proj:?}"
+            );
+            assert!(
+                (ours[2] - proj[2]).abs() < 1e-6,
+                "{lat} {lon} {h}: {ours:?} {proj:?}"
+            );
+            assert!((ours[0] - lat).abs() < 1e-11 && (ours[2] - h).abs() < 1e-6);
+        }
+        assert!(geodetic_of_ecef([0.0, 0.0, 0.0]).is_err());
+        assert!(geodetic_of_ecef([f64::NAN, 0.0, 0.0]).is_err());
     }
 
     #[test]
