@@ -50,7 +50,8 @@ fn wgs84() -> &'static Proj {
     })
 }
 
-/// WGS84 geocentric (ECEF), parsed once.
+/// WGS84 geocentric (ECEF), parsed once: the reference for the closed forms in tests.
+#[cfg(test)]
 fn geocentric() -> &'static Proj {
     static P: std::sync::OnceLock<Proj> = std::sync::OnceLock::new();
     P.get_or_init(|| {
