@@ -6,6 +6,7 @@
 //! coordinates in metres (the CRS's units).
 
 pub mod crs;
+pub mod dem;
 pub mod georef;
 
 pub use crs::{GeoError, OutputCrs, ecef_of, geodetic_of_ecef, utm_epsg};

@@ -38,3 +38,19 @@ pub fn fixture(rel: &str) -> PathBuf {
     );
     p
 }
+
+/// The Python with the real readers of our outputs (numpy, laspy, lazrs): `$FWLIDAR_PYTHON`,
+/// else `.venv/bin/python` (made by `.ci/run`). Panics saying how to get it.
+pub fn python() -> PathBuf {
+    if let Ok(p) = std::env::var("FWLIDAR_PYTHON") {
+        return PathBuf::from(p);
+    }
+    let venv = Path::new(ROOT).join(".venv/bin/python");
+    assert!(
+        venv.exists(),
+        "this check needs Python with numpy, laspy and lazrs: set FWLIDAR_PYTHON or run .ci/run \
+         (it creates .venv with them); {} is missing",
+        venv.display()
+    );
+    venv
+}
