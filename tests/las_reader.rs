@@ -295,10 +295,13 @@ fn real_file_as_a_source_states_its_crs_and_time_base() {
     assert_eq!(rep["waveform_data"], "external");
 }
 
+/// A change made to a file's bytes.
+type Edit = dyn Fn(&mut Vec<u8>);
+
 /// A copy of the real pair in a temporary folder, `edit`ed; returns the folder and the .las path.
 fn patched(
     edit_las: impl FnOnce(&mut Vec<u8>),
-    edit_wdp: Option<&dyn Fn(&mut Vec<u8>)>,
+    edit_wdp: Option<&Edit>,
 ) -> (tempfile::TempDir, PathBuf) {
     let dir = tempfile::tempdir().unwrap();
     let mut las = std::fs::read(real_las()).unwrap();
@@ -421,7 +424,7 @@ fn compressed_descriptor_is_a_clear_error() {
 fn other_damage_is_named() {
     // Not LAS, an old version, a format without waveforms, a wrong packet size, a 12-bit
     // descriptor with the same size, an offset inside the record header.
-    let cases: [(&dyn Fn(&mut Vec<u8>), &str); 6] = [
+    let cases: [(&Edit, &str); 6] = [
         (&|b| b[0] = b'X', "x.las: not a LAS file"),
         (&|b| b[25] = 2, "x.las: header: version: LAS 1.2"),
         (
