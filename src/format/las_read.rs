@@ -341,9 +341,42 @@ fn invalid(file: &str, field: impl Into<String>, reason: impl Into<String>) -> L
     }
 }
 
+/// A buffered reader that remembers its position, so that reading at the position it is at,
+/// or a little ahead, costs no seek (a plain `BufReader::seek` drops its buffer).
+struct Positioned<R> {
+    r: BufReader<R>,
+    /// Position of `r`; `u64::MAX` after a failed read (the next read seeks).
+    pos: u64,
+}
+
+impl<R: Read + Seek> Positioned<R> {
+    fn new(r: R, capacity: usize) -> Self {
+        Positioned {
+            r: BufReader::with_capacity(capacity, r),
+            pos: u64::MAX,
+        }
+    }
+
+    /// Reads `buf.len()` bytes at `at`.
+    fn read_exact_at(&mut self, at: u64, buf: &mut [u8]) -> std::io::Result<()> {
+        if at != self.pos {
+            match i64::try_from(i128::from(at) - i128::from(self.pos)) {
+                Ok(d) if self.pos != u64::MAX => self.r.seek_relative(d)?,
+                _ => {
+                    self.r.seek(SeekFrom::Start(at))?;
+                }
+            }
+        }
+        self.pos = u64::MAX;
+        self.r.read_exact(buf)?;
+        self.pos = at + buf.len() as u64;
+        Ok(())
+    }
+}
+
 /// Reads `buf.len()` bytes at `at`, after checking they lie in the file.
 fn read_at<R: Read + Seek>(
-    r: &mut R,
+    r: &mut Positioned<R>,
     file: &str,
     file_len: u64,
     at: u64,
@@ -360,9 +393,7 @@ fn read_at<R: Read + Seek>(
             len: file_len,
         });
     }
-    r.seek(SeekFrom::Start(at))
-        .and_then(|_| r.read_exact(buf))
-        .map_err(io_err(file, what))
+    r.read_exact_at(at, buf).map_err(io_err(file, what))
 }
 
 /// Length of a seekable input, bytes.
@@ -419,7 +450,7 @@ fn defined_list(d: &[Option<DescriptorRecord>]) -> String {
 
 /// What a (E)VLR holds that the reader keeps.
 fn take_record<R: Read + Seek>(
-    r: &mut R,
+    r: &mut Positioned<R>,
     info: &mut LasInfo,
     user: &str,
     record_id: u16,
@@ -470,6 +501,9 @@ impl LasInfo {
     /// Checks that the point records the header announces fit in the file.
     pub fn read<R: Read + Seek>(file: &str, r: &mut R) -> Result<LasInfo, LasReadError> {
         let file_len = stream_len(r, file)?;
+        // Header and VLRs are read through one buffer: a file with hundreds of descriptor VLRs
+        // costs a few reads, not two system calls per record.
+        let r = &mut Positioned::new(r, 1 << 13);
         let mut h = [0u8; HEADER_SIZE];
         let n = file_len.min(HEADER_SIZE as u64) as usize;
         read_at(r, file, file_len, 0, &mut h[..n], "the public header block")?;
@@ -789,42 +823,21 @@ pub struct LasReadStats {
 /// The waveform data: a `.wdp` file, or the LAS file again, read through a buffer.
 struct WaveData<W> {
     file: String,
-    r: BufReader<W>,
+    r: Positioned<W>,
     len: u64,
     /// Where packet offsets count from in `r`.
     base: u64,
-    /// Position of `r`, to skip seeks between consecutive packets.
-    pos: u64,
 }
 
 impl<W: Read + Seek> WaveData<W> {
     fn new(file: String, mut w: W, base: u64) -> Result<Self, LasReadError> {
         let len = stream_len(&mut w, &file)?;
-        w.seek(SeekFrom::Start(0))
-            .map_err(io_err(&file, "the waveform data"))?;
         Ok(WaveData {
             file,
-            r: BufReader::with_capacity(1 << 16, w),
+            r: Positioned::new(w, 1 << 16),
             len,
             base,
-            pos: 0,
         })
-    }
-
-    /// Reads `buf.len()` bytes at `at` (checked by the caller to lie in the file).
-    fn read(&mut self, at: u64, buf: &mut [u8]) -> std::io::Result<()> {
-        if at != self.pos {
-            match i64::try_from(i128::from(at) - i128::from(self.pos)) {
-                Ok(d) => self.r.seek_relative(d)?,
-                Err(_) => {
-                    self.r.seek(SeekFrom::Start(at))?;
-                }
-            }
-        }
-        self.pos = u64::MAX;
-        self.r.read_exact(buf)?;
-        self.pos = at + buf.len() as u64;
-        Ok(())
     }
 }
 
@@ -981,7 +994,8 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
         Ok(None)
     }
 
-    /// Fills `pulse` (cleared first) with the next pulse; `false` after the last. Points without
+    /// Fills `pulse` (its segments, samples and fields; `seq` and `arrived` are left to the
+    /// caller) with the next pulse; `false` after the last. Points without
     /// a waveform are skipped (counted). The pulse's `pulse_id` is the number of its first point
     /// (from 0).
     pub fn next_pulse(&mut self, pulse: &mut Pulse) -> Result<bool, LasReadError> {
@@ -1133,7 +1147,8 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
         }
         // The packet lies in the file, so its size is bounded by the file's length.
         self.packet.resize(p.wave_size as usize, 0);
-        wave.read(start, &mut self.packet)
+        wave.r
+            .read_exact_at(start, &mut self.packet)
             .map_err(io_err(&wave.file, format!("point {n}'s waveform packet")))?;
         if start < self.furthest_end {
             self.stats.packets_revisited += 1;
@@ -1141,7 +1156,12 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
         self.furthest_end = self.furthest_end.max(end);
         self.stats.waveform_bytes += u64::from(p.wave_size);
 
-        pulse.reset();
+        // As `Pulse::reset` without reading the clock: `seq` and `arrived` are the runner's.
+        pulse.segments.clear();
+        pulse.raw.clear();
+        pulse.signal.clear();
+        pulse.returns.clear();
+        pulse.noise = Default::default();
         pulse.pulse_id = n;
         pulse.gps_time = p.gps_time;
         pulse.scan_angle_deg = [f32::from(p.scan_angle) * 0.006, f32::NAN];
