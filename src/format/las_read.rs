@@ -327,10 +327,14 @@ impl PointRecord9 {
     }
 }
 
-fn io_err(file: &str, what: impl Into<String>) -> impl FnOnce(std::io::Error) -> LasReadError {
-    let file = file.to_string();
-    let what = what.into();
-    move |source| LasReadError::Io { file, what, source }
+/// The error for a failed read; call it inside `map_err(|e| ...)` so that nothing is formatted
+/// or allocated unless reading fails.
+fn io_err(file: &str, what: impl Into<String>, source: std::io::Error) -> LasReadError {
+    LasReadError::Io {
+        file: file.to_string(),
+        what: what.into(),
+        source,
+    }
 }
 
 fn invalid(file: &str, field: impl Into<String>, reason: impl Into<String>) -> LasReadError {
@@ -393,12 +397,13 @@ fn read_at<R: Read + Seek>(
             len: file_len,
         });
     }
-    r.read_exact_at(at, buf).map_err(io_err(file, what))
+    r.read_exact_at(at, buf).map_err(|e| io_err(file, what, e))
 }
 
 /// Length of a seekable input, bytes.
 fn stream_len<R: Seek>(r: &mut R, file: &str) -> Result<u64, LasReadError> {
-    r.seek(SeekFrom::End(0)).map_err(io_err(file, "its length"))
+    r.seek(SeekFrom::End(0))
+        .map_err(|e| io_err(file, "its length", e))
 }
 
 /// EPSG code of a GeoKey directory payload, when it names a plain projected (3072) or
@@ -861,7 +866,7 @@ impl LasReader<File, File> {
     /// again when internal).
     pub fn open(path: &Path) -> Result<Self, LasReadError> {
         let name = path.display().to_string();
-        let mut las = File::open(path).map_err(io_err(&name, "the file"))?;
+        let mut las = File::open(path).map_err(|e| io_err(&name, "the file", e))?;
         let info = LasInfo::read(&name, &mut las)?;
         let wave = match info.waveform {
             WaveformLocation::External => {
@@ -878,11 +883,11 @@ impl LasReader<File, File> {
                     });
                 };
                 let wname = chosen.display().to_string();
-                let f = File::open(&chosen).map_err(io_err(&wname, "the waveform data"))?;
+                let f = File::open(&chosen).map_err(|e| io_err(&wname, "the waveform data", e))?;
                 Some(WaveData::new(wname, f, 0)?)
             }
             WaveformLocation::Internal { record_start } => {
-                let f = File::open(path).map_err(io_err(&name, "the waveform data"))?;
+                let f = File::open(path).map_err(|e| io_err(&name, "the waveform data", e))?;
                 Some(WaveData::new(name.clone(), f, record_start)?)
             }
             WaveformLocation::Absent => None,
@@ -931,7 +936,7 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
             ));
         };
         las.seek(SeekFrom::Start(u64::from(info.header.offset_to_point_data)))
-            .map_err(io_err(&info.file, "the point records"))?;
+            .map_err(|e| io_err(&info.file, "the point records", e))?;
         let record = vec![0u8; usize::from(info.header.point_record_length)];
         Ok(LasReader {
             layout,
@@ -977,7 +982,7 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
         let n = self.next_point;
         self.points
             .read_exact(&mut self.record)
-            .map_err(io_err(&self.info.file, format!("point {n}")))?;
+            .map_err(|e| io_err(&self.info.file, format!("point {n}"), e))?;
         self.next_point += 1;
         self.stats.points += 1;
         Ok(Some((n, PointRecord9::decode(&self.record, self.layout))))
@@ -1149,7 +1154,7 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
         self.packet.resize(p.wave_size as usize, 0);
         wave.r
             .read_exact_at(start, &mut self.packet)
-            .map_err(io_err(&wave.file, format!("point {n}'s waveform packet")))?;
+            .map_err(|e| io_err(&wave.file, format!("point {n}'s waveform packet"), e))?;
         if start < self.furthest_end {
             self.stats.packets_revisited += 1;
         }
