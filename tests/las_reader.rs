@@ -805,3 +805,47 @@ fn replay_of_the_real_las_writes_returns_that_read_back_as_the_same_pulses() {
         }
     }
 }
+
+/// `fwlidar import` of the real LAS (with the Q680i sensor profile, which LAS cannot state)
+/// gives a capture whose pulses list exactly as the LAS file's.
+#[test]
+fn import_of_the_real_las_keeps_every_pulse() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("riegl.fwcap");
+    let run = |args: &[&std::ffi::OsStr]| {
+        let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
+            .args(args)
+            .current_dir(root)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        o.stdout
+    };
+    let las = real_las();
+    run(&[
+        "import".as_ref(),
+        las.as_os_str(),
+        "--sensor".as_ref(),
+        "config/sensors/riegl_lms_q680i.toml".as_ref(),
+        "--out".as_ref(),
+        cap.as_os_str(),
+    ]);
+    let a = run(&[
+        "inspect".as_ref(),
+        las.as_os_str(),
+        "--pulses".as_ref(),
+        "--json".as_ref(),
+    ]);
+    let b = run(&[
+        "inspect".as_ref(),
+        cap.as_os_str(),
+        "--pulses".as_ref(),
+        "--json".as_ref(),
+    ]);
+    assert_eq!(a.iter().filter(|&&c| c == b'\n').count(), 2376);
+    assert!(
+        a == b,
+        "the capture lists its pulses differently from the LAS file"
+    );
+}
