@@ -43,20 +43,9 @@ fn real_wdp() -> PathBuf {
     fixtures().join(format!("{STEM}.wdp"))
 }
 
-fn u16_at(b: &[u8], o: usize) -> u16 {
-    u16::from_le_bytes(b[o..o + 2].try_into().unwrap())
-}
-fn u32_at(b: &[u8], o: usize) -> u32 {
-    u32::from_le_bytes(b[o..o + 4].try_into().unwrap())
-}
-fn u64_at(b: &[u8], o: usize) -> u64 {
-    u64::from_le_bytes(b[o..o + 8].try_into().unwrap())
-}
-fn f32_at(b: &[u8], o: usize) -> f32 {
-    f32::from_le_bytes(b[o..o + 4].try_into().unwrap())
-}
-fn f64_at(b: &[u8], o: usize) -> f64 {
-    f64::from_le_bytes(b[o..o + 8].try_into().unwrap())
+/// `N` little-endian bytes of `b` at `o`.
+fn le<const N: usize>(b: &[u8], o: usize) -> [u8; N] {
+    b[o..o + N].try_into().unwrap()
 }
 
 /// A point of format 9 parsed straight from the bytes.
@@ -74,24 +63,32 @@ struct RawPoint {
 /// Every point of a format-9 LAS 1.4 file, parsed here without the reader.
 fn raw_points(las: &[u8]) -> Vec<RawPoint> {
     assert_eq!(las[104], 9);
-    let start = u32_at(las, 96) as usize;
-    let len = u16_at(las, 105) as usize;
-    let n = u64_at(las, 247) as usize;
-    let scale = [f64_at(las, 131), f64_at(las, 139), f64_at(las, 147)];
-    let offset = [f64_at(las, 155), f64_at(las, 163), f64_at(las, 171)];
+    let start = u32::from_le_bytes(le(las, 96)) as usize;
+    let len = u16::from_le_bytes(le(las, 105)) as usize;
+    let n = u64::from_le_bytes(le(las, 247)) as usize;
+    let scale = [
+        f64::from_le_bytes(le(las, 131)),
+        f64::from_le_bytes(le(las, 139)),
+        f64::from_le_bytes(le(las, 147)),
+    ];
+    let offset = [
+        f64::from_le_bytes(le(las, 155)),
+        f64::from_le_bytes(le(las, 163)),
+        f64::from_le_bytes(le(las, 171)),
+    ];
     (0..n)
         .map(|i| {
             let r = &las[start + i * len..start + (i + 1) * len];
             RawPoint {
                 xyz: std::array::from_fn(|k| {
-                    f64::from(u32_at(r, 4 * k) as i32) * scale[k] + offset[k]
+                    f64::from(u32::from_le_bytes(le(r, 4 * k)) as i32) * scale[k] + offset[k]
                 }),
-                gps_time: f64_at(r, 22),
+                gps_time: f64::from_le_bytes(le(r, 22)),
                 index: r[30],
-                offset: u64_at(r, 31),
-                size: u32_at(r, 39),
-                location_ps: f64::from(f32_at(r, 43)),
-                xyz_t: std::array::from_fn(|k| f64::from(f32_at(r, 47 + 4 * k))),
+                offset: u64::from_le_bytes(le(r, 31)),
+                size: u32::from_le_bytes(le(r, 39)),
+                location_ps: f64::from(f32::from_le_bytes(le(r, 43))),
+                xyz_t: std::array::from_fn(|k| f64::from(f32::from_le_bytes(le(r, 47 + 4 * k)))),
             }
         })
         .collect()
@@ -204,7 +201,7 @@ fn real_file_pulses_match_the_raw_bytes_and_every_point_lies_on_its_waveform() {
         b"LASF_Spec",
         "the .wdp starts with the record header"
     );
-    assert_eq!(u16_at(&wdp, 18), 65535);
+    assert_eq!(u16::from_le_bytes(le(&wdp, 18)), 65535);
 
     let mut k = 0; // pulse index
     let mut first = 0; // first point of the current pulse
@@ -390,9 +387,9 @@ fn descriptor_index_pointing_nowhere_is_an_error_naming_the_point() {
 /// Byte position of descriptor `index`'s payload in the real file (walking the VLRs).
 fn descriptor_payload(las: &[u8], index: u16) -> usize {
     let mut at = 375;
-    for _ in 0..u32_at(las, 100) {
-        let id = u16_at(las, at + 18);
-        let len = u16_at(las, at + 20) as usize;
+    for _ in 0..u32::from_le_bytes(le(las, 100)) {
+        let id = u16::from_le_bytes(le(las, at + 18));
+        let len = u16::from_le_bytes(le(las, at + 20)) as usize;
         if &las[at + 2..at + 11] == b"LASF_Spec" && id == 99 + index {
             return at + 54;
         }
@@ -599,9 +596,9 @@ fn internal_waveform_data_in_las_13_and_14() {
     b14[243..247].copy_from_slice(&1u32.to_le_bytes());
     b14.extend_from_slice(&wdp);
     // LAS 1.3, point format 4: header 235 bytes, legacy count, 57-byte records.
-    let n = u64_at(&las, 247) as usize;
-    let opd = u32_at(&las, 96) as usize;
-    let rl = u16_at(&las, 105) as usize;
+    let n = u64::from_le_bytes(le(&las, 247)) as usize;
+    let opd = u32::from_le_bytes(le(&las, 96)) as usize;
+    let rl = u16::from_le_bytes(le(&las, 105)) as usize;
     let mut b13 = las[..235].to_vec();
     b13[25] = 3;
     b13[6..8].copy_from_slice(&(1u16 << 1).to_le_bytes());
