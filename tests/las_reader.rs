@@ -10,7 +10,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use fwlidar::format::las_read::{LasReadError, LasReader, WaveformLocation};
+use fwlidar::format::las_read::{LasInfo, LasReadError, LasReader, WaveformLocation};
 use fwlidar::pulse::{FittedReturn, Pulse, PulseGeometry, SegmentKind};
 use fwlidar::sink::PulseSink;
 use fwlidar::sink::las_wave::{LasWaveOptions, LasWaveSink};
@@ -845,4 +845,24 @@ fn import_of_the_real_las_keeps_every_pulse() {
         a == b,
         "the capture lists its pulses differently from the LAS file"
     );
+}
+
+/// The CRS the source states: `EPSG:<code>` from plain GeoKeys unless global encoding bit 4
+/// says the WKT rules. The real file's ProjectedCSTypeGeoKey (3072, key 15 of 25 in the
+/// directory at byte 429) is "user-defined"; patched to 32633 it gives `EPSG:32633`.
+#[test]
+fn crs_prefers_wkt_when_bit_4_is_set_else_a_plain_epsg_code() {
+    let mut b = real_bytes().0.clone();
+    let key = 429 + 8 + 8 * 14;
+    assert_eq!(u16::from_le_bytes(le(&b, key)), 3072);
+    assert_eq!(u16::from_le_bytes(le(&b, key + 6)), 32767);
+    b[key + 6..key + 8].copy_from_slice(&32633u16.to_le_bytes());
+    let info = LasInfo::read("x.las", &mut std::io::Cursor::new(&b)).unwrap();
+    assert_eq!(info.epsg, Some(32633));
+    assert_eq!(info.crs().as_deref(), Some("EPSG:32633"));
+    b[6] |= 1 << 4;
+    b[6] |= 1;
+    let info = LasInfo::read("x.las", &mut std::io::Cursor::new(&b)).unwrap();
+    assert!(info.crs().unwrap().starts_with("PROJCS["));
+    assert_eq!(info.time_base(), "gps_adjusted_standard");
 }
