@@ -3,25 +3,37 @@
 //! RIEGL file's 2376 pulses costs at most those few growths.
 
 use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
 
 use fwlidar::format::las_read::LasReader;
 use fwlidar::pulse::Pulse;
 
 struct Counting;
-static ALLOCS: AtomicU64 = AtomicU64::new(0);
+
+thread_local! {
+    /// Allocations made by this thread (the test harness's own threads do not count).
+    static ALLOCS: Cell<u64> = const { Cell::new(0) };
+}
+
+fn count() {
+    let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
+}
+
+fn allocs() -> u64 {
+    ALLOCS.with(Cell::get)
+}
 
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        count();
         unsafe { System.alloc(layout) }
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
         unsafe { System.dealloc(ptr, layout) }
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        count();
         unsafe { System.realloc(ptr, layout, new_size) }
     }
 }
@@ -40,12 +52,12 @@ fn reading_pulses_does_not_allocate_per_pulse() {
     let mut r = LasReader::open(&las).unwrap();
     let mut p = Pulse::default();
     assert!(r.next_pulse(&mut p).unwrap());
-    let before = ALLOCS.load(Ordering::SeqCst);
+    let before = allocs();
     let mut n = 1;
     while r.next_pulse(&mut p).unwrap() {
         n += 1;
     }
-    let during = ALLOCS.load(Ordering::SeqCst) - before;
+    let during = allocs() - before;
     assert_eq!(n, 2376);
     // The first pulse has 60 samples; the first 120-sample packet grows the packet buffer and
     // the pulse's sample buffer once each.
