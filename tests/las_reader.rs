@@ -253,7 +253,7 @@ fn real_file_pulses_match_the_raw_bytes_and_every_point_lies_on_its_waveform() {
     );
     // Exact for the point the anchor was made from. The other returns of a pulse were placed
     // by RIEGL's own range computation and stored rounded to 1 mm per axis, so they sit within
-    // 2 mm of the line (159 points are second returns; 40 of them are more than 1 mm off in
+    // 2 mm of the line (159 points are not the first of their pulse; 40 of them are more than 1 mm off in
     // 3-D, the worst 1.97 mm), as the fixtures' MANIFEST notes (1-3 mm).
     assert!(worst_first < 1e-6, "{worst_first}");
     assert!(worst_axis <= 0.002, "{worst_axis}");
