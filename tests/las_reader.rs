@@ -866,3 +866,35 @@ fn crs_prefers_wkt_when_bit_4_is_set_else_a_plain_epsg_code() {
     assert!(info.crs().unwrap().starts_with("PROJCS["));
     assert_eq!(info.time_base(), "gps_adjusted_standard");
 }
+
+/// Points without a waveform (index 0) are skipped and counted, inside a pulse too; a zero
+/// parametric line gives a pulse without geometry.
+#[test]
+fn points_without_waveform_or_line_are_counted() {
+    let (las, wdp) = real_bytes();
+    let mut b = las.clone();
+    let at = |i: usize| 10071 + i * 63;
+    b[at(0) + 30] = 0; // pulse 0 (one point) disappears
+    // The second point of the first pulse with two: the pulse stays, one point fewer.
+    let pts = raw_points(las);
+    let second = (1..pts.len())
+        .find(|&i| (pts[i].index, pts[i].offset) == (pts[i - 1].index, pts[i - 1].offset))
+        .unwrap();
+    b[at(second) + 30] = 0;
+    b[at(5) + 47..at(5) + 59].fill(0); // point 5's x(t), y(t), z(t) = 0
+    let mut r = LasReader::from_bytes(&b, Some(wdp)).unwrap();
+    let pulses = read_all(&mut r).unwrap();
+    let s = r.stats();
+    assert_eq!(s.points, 2535);
+    assert_eq!(s.points_without_waveform, 2);
+    assert_eq!(pulses.len(), 2375, "pulse 0 gone, the other pulse kept");
+    assert_eq!(s.pulses_without_geometry, 1);
+    assert!(
+        pulses
+            .iter()
+            .find(|p| p.pulse_id == 5)
+            .unwrap()
+            .geometry
+            .is_none()
+    );
+}
