@@ -10,12 +10,15 @@
 #   pulsewaves_reader: the PulseWaves pairs of ../shared/fixtures/waveform (when it exists), each
 #                   cut to its header, records and first pulses (number_of_pulses patched to
 #                   match), as u16 .pls length + .pls + .wvs.
+#   las_reader:     when ../shared/fixtures exists, the real RIEGL LAS 1.4 file cut to its first
+#                   20 points with the .wdp bytes they use (u32 LE .las length, .las, .wdp), and
+#                   the same with the packets internal (global encoding bit 1, appended EVLR).
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(dirname "$here")
 cap="$root/replay/two_layer.fwcap"
 mkdir -p "$here/corpus/capture_reader" "$here/corpus/frame_decode" "$here/corpus/config_load" \
-    "$here/corpus/waveform_table" "$here/corpus/pulsewaves_reader"
+    "$here/corpus/waveform_table" "$here/corpus/pulsewaves_reader" "$here/corpus/las_reader"
 
 # capture_reader
 { printf '\000'; head -c 8192 "$cap"; } > "$here/corpus/capture_reader/two_layer_8k_raw"
@@ -85,6 +88,32 @@ for stem in sys.argv[2:]:
         continue
     name = os.path.basename(stem)
     open(f"{out}/{name}", "wb").write(struct.pack("<H", len(pls)) + bytes(pls) + wvs[:wend])
+PY
+fi
+
+# las_reader
+fl="$root/../shared/fixtures/waveform/riegl_q680i/100429_152240_2535pt_UTM"
+if [ -f "$fl.las" ]; then
+    python3 - "$fl" "$here/corpus/las_reader" <<'PY'
+import struct, sys
+stem, out = sys.argv[1], sys.argv[2]
+las = open(stem + ".las", "rb").read()
+wdp = open(stem + ".wdp", "rb").read()
+opd, = struct.unpack_from("<I", las, 96)
+rl, = struct.unpack_from("<H", las, 105)
+n = 20
+head = bytearray(las[:opd + n * rl])
+struct.pack_into("<Q", head, 247, n)
+end = max(struct.unpack_from("<Q", las, opd + i * rl + 31)[0]
+          + struct.unpack_from("<I", las, opd + i * rl + 39)[0] for i in range(n))
+wave = bytearray(wdp[:end])
+struct.pack_into("<Q", wave, 20, len(wave) - 60)  # the cut record's length after its header
+open(out + "/riegl_20_points_external", "wb").write(struct.pack("<I", len(head)) + head + wave)
+inner = bytearray(head)
+struct.pack_into("<H", inner, 6, 1 << 1)
+struct.pack_into("<QQI", inner, 227, len(inner), len(inner), 1)
+inner += wave
+open(out + "/riegl_20_points_internal", "wb").write(struct.pack("<I", len(inner)) + inner)
 PY
 fi
 

@@ -159,8 +159,10 @@ fn riegl_las_points_lie_on_their_pulsewaves_rays() {
     let mut along_mm = Vec::new();
     let mut worst_angle = 0.0f64;
     let mut channels = std::collections::BTreeSet::new();
-    // (gps_time, first-sample position, samples) of each point's packet, for the reader check.
-    let mut expected: Vec<(f64, [f64; 3], Vec<u16>)> = Vec::new();
+    // Per point, for the reader check: (gps_time, first-sample position on the PulseWaves ray,
+    // samples, byte offset of its packet, how far the position may be off by rounding).
+    type Expected = (f64, [f64; 3], Vec<u16>, u64, f64);
+    let mut expected: Vec<Expected> = Vec::new();
     for (i, pt) in points.iter().enumerate() {
         let k = pls.partition_point(|s| s.gps_time < pt.gps_time);
         let best = [k.saturating_sub(1), k.min(pls.len() - 1)]
@@ -227,7 +229,13 @@ fn riegl_las_points_lie_on_their_pulsewaves_rays() {
             "point {i}: {along} m from `return_point_waveform_location` after its segment start"
         );
         along_mm.push(along * 1e3);
-        expected.push((pt.gps_time, start, samples));
+        expected.push((
+            pt.gps_time,
+            start,
+            samples,
+            pt.byte_offset,
+            bound(t) + half_mm,
+        ));
     }
     assert_eq!(
         channels.len(),
@@ -258,17 +266,24 @@ fn riegl_las_points_lie_on_their_pulsewaves_rays() {
     );
     assert!(r50 < 3.0 && a50 < 3.0, "median within 3 mm");
 
-    // The LAS reader: one pulse per waveform packet, starting where the PulseWaves segment
+    // The LAS reader: one pulse per run of consecutive points naming the same packet (its
+    // documented grouping: the RIEGL file names one packet again after others, so 2375
+    // distinct packets give 2376 pulses), in file order, starting where the PulseWaves segment
     // starts, with the same samples.
     let las_pulses = read_all(&las_path);
-    expected.sort_by(|a, b| a.0.total_cmp(&b.0));
-    expected.dedup_by(|a, b| a.0 == b.0 && a.2 == b.2);
-    assert_eq!(las_pulses.len(), expected.len(), "one pulse per packet");
-    for (n, p) in las_pulses.iter().enumerate() {
-        let e = expected
-            .iter()
-            .find(|e| e.0 == p.gps_time && norm(sub(e.1, p.anchor)) <= 0.003)
-            .unwrap_or_else(|| panic!("LAS pulse {n}: no packet starts at {:?}", p.anchor));
+    expected.dedup_by(|a, b| a.3 == b.3);
+    assert_eq!(
+        las_pulses.len(),
+        expected.len(),
+        "one pulse per run of a packet"
+    );
+    for (n, (p, e)) in las_pulses.iter().zip(&expected).enumerate() {
+        assert_eq!(p.gps_time, e.0, "LAS pulse {n}: time of its first point");
+        let off = norm(sub(e.1, p.anchor));
+        assert!(
+            off <= e.4,
+            "LAS pulse {n}: first sample {off} m from the PulseWaves segment start"
+        );
         assert_eq!(p.segments.len(), 1);
         assert_eq!(p.segments[0].0, SegmentKind::Return);
         assert_eq!(p.segments[0].2, 0.0, "the anchor is the first sample");

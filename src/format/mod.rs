@@ -5,6 +5,8 @@
 //!   policy); [`capture_reader`] and [`capture_writer`] read and write it.
 //! - [`frame`]: the digitizer frame and nav payloads inside capture records.
 //! - [`table`]: waveform tables (CSV, NumPy `.npy`) for `fwlidar process`.
+//! - [`las_read`]: LAS 1.3/1.4 waveform packets (point formats 4, 5, 9, 10, `.wdp` or
+//!   internal) read as pulses.
 //! - [`las_write`]: LAS 1.4 header, VLR/EVLR and point format 9 encoding (returns output).
 //! - [`pulsewaves`]: PulseWaves 0.3 `.pls` + `.wvs` reader (input).
 //!
@@ -15,6 +17,7 @@ pub mod capture_reader;
 pub mod capture_writer;
 pub mod frame;
 pub mod header;
+pub mod las_read;
 pub mod las_write;
 pub mod pulsewaves;
 pub mod table;

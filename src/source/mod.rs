@@ -1,7 +1,8 @@
-//! Sources: where pulses and navigation bytes come from (a recorded capture now; the network,
-//! serial ports, LAS and PulseWaves files as later issues land).
+//! Sources: where pulses and navigation bytes come from (a recorded capture, LAS files with
+//! waveforms; the network, serial ports and PulseWaves files as later issues land).
 
 pub mod capture;
+pub mod las;
 pub mod pulsewaves;
 pub mod serial;
 
@@ -141,9 +142,8 @@ pub fn open_file(path: &Path) -> Result<Box<dyn Source>, String> {
         InputKind::PulseWaves => Ok(Box::new(
             pulsewaves::PulseWavesSource::open(path).map_err(|e| e.to_string())?,
         )),
-        kind => Err(format!(
-            "{}: {kind:?} input is not supported yet",
-            path.display()
+        InputKind::Las => Ok(Box::new(
+            las::LasSource::open(path).map_err(|e| e.to_string())?,
         )),
     }
 }

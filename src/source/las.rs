@@ -1,0 +1,101 @@
+//! LAS 1.3 / 1.4 files with waveform packets as a [`Source`]: one pulse per waveform packet
+//! (the consecutive points that name it are its returns), read by
+//! [`crate::format::las_read::LasReader`]. Pulses carry their geometry (anchor at the first
+//! sample, direction per ns), so they need no navigation.
+
+use std::fs::File;
+use std::path::Path;
+
+use crate::format::las_read::{LasReadError, LasReader, WaveformLocation};
+use crate::pulse::PulsePool;
+use crate::source::{Source, SourceError, SourceEvent, SourceFacts};
+
+/// Reads a LAS file (and its `.wdp`) as a [`Source`].
+pub struct LasSource {
+    reader: LasReader<File, File>,
+}
+
+impl LasSource {
+    /// Opens `path` and its waveform data. Errors name the file and the field at fault; a
+    /// missing `.wdp` names the paths looked for.
+    pub fn open(path: &Path) -> Result<Self, LasReadError> {
+        let reader = LasReader::open(path)?;
+        let info = reader.info();
+        tracing::info!(
+            file = %info.file,
+            version = %format!("{}.{}", info.version.0, info.version.1),
+            point_format = info.header.point_format,
+            points = info.header.number_of_points,
+            descriptors = info.descriptors_defined(),
+            "LAS input"
+        );
+        Ok(LasSource { reader })
+    }
+
+    /// The reader (header, descriptors, counts).
+    pub fn reader(&self) -> &LasReader<File, File> {
+        &self.reader
+    }
+}
+
+impl Source for LasSource {
+    fn name(&self) -> &'static str {
+        "las"
+    }
+
+    fn next(&mut self, pool: &PulsePool) -> Result<SourceEvent, SourceError> {
+        let mut pulse = pool.take();
+        match self.reader.next_pulse(&mut pulse) {
+            Ok(true) => Ok(SourceEvent::Pulse(pulse)),
+            Ok(false) => {
+                pool.give(pulse);
+                Ok(SourceEvent::End)
+            }
+            Err(e) => {
+                pool.give(pulse);
+                Err(SourceError::Fatal(e.to_string()))
+            }
+        }
+    }
+
+    /// Bytes of the LAS file (header, VLRs, point records) covered.
+    fn progress(&self) -> Option<(u64, u64)> {
+        Some(self.reader.progress())
+    }
+
+    fn report(&self) -> serde_json::Value {
+        let info = self.reader.info();
+        let mut v = serde_json::to_value(self.reader.stats()).unwrap_or_default();
+        if let Some(o) = v.as_object_mut() {
+            o.insert(
+                "version".into(),
+                format!("{}.{}", info.version.0, info.version.1).into(),
+            );
+            o.insert("point_format".into(), info.header.point_format.into());
+            o.insert(
+                "points_in_header".into(),
+                info.header.number_of_points.into(),
+            );
+            o.insert(
+                "descriptors".into(),
+                (info.descriptors_defined() as u64).into(),
+            );
+            let location = match info.waveform {
+                WaveformLocation::External => "external",
+                WaveformLocation::Internal { .. } => "internal",
+                WaveformLocation::Absent => "absent",
+            };
+            o.insert("waveform_data".into(), location.into());
+        }
+        v
+    }
+
+    fn facts(&self) -> SourceFacts {
+        let info = self.reader.info();
+        SourceFacts {
+            sensor: None,
+            time_base: Some(info.time_base().to_string()),
+            crs: info.crs(),
+        }
+    }
+}
