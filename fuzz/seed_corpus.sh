@@ -10,6 +10,8 @@
 #   pulsewaves_reader: the PulseWaves pairs of ../shared/fixtures/waveform (when it exists), each
 #                   cut to its header, records and first pulses (number_of_pulses patched to
 #                   match), as u16 .pls length + .pls + .wvs.
+#   nav_decoder:    the real receiver logs of ../shared/fixtures/nav (gpsd NMEA logs, the NovAtel
+#                   SPAN capture, the SBET files), each behind a mode byte 0x07, when it exists.
 #   las_reader:     when ../shared/fixtures exists, the real RIEGL LAS 1.4 file cut to its first
 #                   20 points with the .wdp bytes they use (u32 LE .las length, .las, .wdp), and
 #                   the same with the packets internal (global encoding bit 1, appended EVLR).
@@ -18,7 +20,8 @@ here=$(cd "$(dirname "$0")" && pwd)
 root=$(dirname "$here")
 cap="$root/replay/two_layer.fwcap"
 mkdir -p "$here/corpus/capture_reader" "$here/corpus/frame_decode" "$here/corpus/config_load" \
-    "$here/corpus/waveform_table" "$here/corpus/pulsewaves_reader" "$here/corpus/las_reader"
+    "$here/corpus/waveform_table" "$here/corpus/pulsewaves_reader" "$here/corpus/las_reader" \
+    "$here/corpus/nav_decoder"
 
 # capture_reader
 { printf '\000'; head -c 8192 "$cap"; } > "$here/corpus/capture_reader/two_layer_8k_raw"
@@ -115,6 +118,14 @@ struct.pack_into("<QQI", inner, 227, len(inner), len(inner), 1)
 inner += wave
 open(out + "/riegl_20_points_internal", "wb").write(struct.pack("<I", len(inner)) + inner)
 PY
+fi
+
+# nav_decoder
+nv="$root/../shared/fixtures/nav"
+if [ -d "$nv" ]; then
+    for f in "$nv"/gpsd/*.log "$nv"/novatel/*.bin "$nv"/sbet/*.sbet; do
+        { printf '\007'; cat "$f"; } > "$here/corpus/nav_decoder/$(basename "$f")"
+    done
 fi
 
 ls -l "$here"/corpus/*
