@@ -156,6 +156,7 @@ fn riegl_las_points_lie_on_their_pulsewaves_rays() {
     let half_mm = 0.5e-3 * 3f64.sqrt();
     let bound = |t: f64| half_mm * ((1.0 - t / 1000.0).abs() + t / 1000.0 + 1.0);
     let mut ray_mm = Vec::new();
+    let mut las_ray_mm = Vec::new();
     let mut along_mm = Vec::new();
     let mut worst_angle = 0.0f64;
     let mut channels = std::collections::BTreeSet::new();
@@ -189,6 +190,15 @@ fn riegl_las_points_lie_on_their_pulsewaves_rays() {
             bound(t)
         );
         ray_mm.push(d * 1e3);
+        // The same with the LAS file's own direction (f32, ~1e-7 relative) through the
+        // PulseWaves anchor: the PulseWaves direction's rounding drops out and only the files'
+        // millimetre positions (and RIEGL's own placing of the points) are left: within 3 mm.
+        let las_ray = distance_to_ray(pt.xyz, pulse.anchor, pt.xyz_t.map(|v| v as f64));
+        las_ray_mm.push(las_ray * 1e3);
+        assert!(
+            las_ray <= 0.003,
+            "point {i}: {las_ray} m from the line through its pulse's anchor along x(t), y(t), z(t)"
+        );
 
         let las_dir = pt.xyz_t.map(|v| -(v as f64));
         let cos = dot(las_dir, pulse.direction) / (norm(las_dir) * norm(pulse.direction));
@@ -251,6 +261,7 @@ fn riegl_las_points_lie_on_their_pulsewaves_rays() {
         pct(&mut ray_mm, 0.95),
         pct(&mut ray_mm, 1.0),
     );
+    let (l50, l100) = (pct(&mut las_ray_mm, 0.5), pct(&mut las_ray_mm, 1.0));
     let (a50, a95, a100) = (
         pct(&mut along_mm, 0.5),
         pct(&mut along_mm, 0.95),
@@ -259,7 +270,9 @@ fn riegl_las_points_lie_on_their_pulsewaves_rays() {
     eprintln!(
         "golden: {} of {} points matched; distance from the ray median {r50:.2} / p95 \
          {r95:.2} / max {r100:.2} mm; from the point L ps after the segment start median \
-         {a50:.2} / p95 {a95:.2} / max {a100:.2} mm; worst angle {worst_angle:.2e} rad; \
+         {a50:.2} / p95 {a95:.2} / max {a100:.2} mm; from the line along the LAS direction \
+         through the PulseWaves anchor median {l50:.2} / max {l100:.2} mm; worst angle \
+         {worst_angle:.2e} rad; \
          channel {channels:?}",
         points.len(),
         points.len()
