@@ -44,18 +44,7 @@ impl Source for LasSource {
     }
 
     fn next(&mut self, pool: &PulsePool) -> Result<SourceEvent, SourceError> {
-        let mut pulse = pool.take();
-        match self.reader.next_pulse(&mut pulse) {
-            Ok(true) => Ok(SourceEvent::Pulse(pulse)),
-            Ok(false) => {
-                pool.give(pulse);
-                Ok(SourceEvent::End)
-            }
-            Err(e) => {
-                pool.give(pulse);
-                Err(SourceError::Fatal(e.to_string()))
-            }
-        }
+        crate::source::next_pooled(pool, |p| self.reader.next_pulse(p)).map_err(SourceError::Fatal)
     }
 
     /// Bytes of the LAS file (header, VLRs, point records) covered.

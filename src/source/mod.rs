@@ -68,6 +68,27 @@ pub trait Source: Send {
     }
 }
 
+/// One pulse from a file reader into a pooled pulse: `Ok(true)` from `read` is a pulse, `Ok(false)`
+/// the end; the pool gets its pulse back unless one is handed out. The error is the reader's
+/// message (it names the file).
+pub(crate) fn next_pooled<E: std::fmt::Display>(
+    pool: &PulsePool,
+    read: impl FnOnce(&mut Pulse) -> Result<bool, E>,
+) -> Result<SourceEvent, String> {
+    let mut pulse = pool.take();
+    match read(&mut pulse) {
+        Ok(true) => Ok(SourceEvent::Pulse(pulse)),
+        Ok(false) => {
+            pool.give(pulse);
+            Ok(SourceEvent::End)
+        }
+        Err(e) => {
+            pool.give(pulse);
+            Err(e.to_string())
+        }
+    }
+}
+
 /// What an input file states about itself ([`Source::facts`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct SourceFacts {

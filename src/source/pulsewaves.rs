@@ -91,20 +91,10 @@ impl Source for PulseWavesSource {
     }
 
     fn next(&mut self, pool: &PulsePool) -> Result<SourceEvent, SourceError> {
-        let mut pulse = pool.take();
-        match self.reader.read_pulse(&mut pulse) {
-            Ok(true) => Ok(SourceEvent::Pulse(pulse)),
-            Ok(false) => {
-                pool.give(pulse);
-                Ok(SourceEvent::End)
-            }
-            Err(e) => {
-                pool.give(pulse);
-                let msg = e.to_string();
-                self.failed = Some(msg.clone());
-                Err(SourceError::Fatal(msg))
-            }
-        }
+        crate::source::next_pooled(pool, |p| self.reader.read_pulse(p)).map_err(|msg| {
+            self.failed = Some(msg.clone());
+            SourceError::Fatal(msg)
+        })
     }
 
     /// Pulses read of the pulses in the file.
