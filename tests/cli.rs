@@ -93,7 +93,13 @@ fn replay_of_the_sample_writes_consistent_outputs() {
     assert!(svc["p99_ns"].as_u64().unwrap() >= svc["p50_ns"].as_u64().unwrap());
     assert!(svc["max_ns"].as_u64().unwrap() >= svc["p999_ns"].as_u64().unwrap());
     assert!(summary["pulses_per_s"].as_f64().unwrap() > 0.0);
-    assert!(summary["nav"]["ports"]["0"]["bytes"].as_u64().unwrap() > 0);
+    let nav = &summary["nav"]["ports"]["0"];
+    assert!(nav["bytes"].as_u64().unwrap() > 0);
+    // The simulated NMEA decodes completely and is dated by its ZDA: GGA, PASHR, ZDA.
+    assert_eq!(nav["rejected"], 0, "{nav}");
+    assert!(nav["by_kind"]["GGA"].as_u64().unwrap() >= 2, "{nav}");
+    assert!(nav["by_kind"]["ZDA"].as_u64().unwrap() >= 1, "{nav}");
+    assert_eq!(nav["first_gps_time"]["week"], 1690, "{nav}");
 
     // pulses.csv and waveforms.csv line up row for row, with the declared lengths.
     let pulses = std::fs::read_to_string(out.join("pulses.csv")).unwrap();

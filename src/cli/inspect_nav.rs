@@ -8,7 +8,7 @@ use std::path::Path;
 use serde::Serialize;
 
 use crate::cli::Failure;
-use crate::nav::dating::{GPS_EPOCH_DAYS, GpsTime};
+use crate::nav::dating::{GPS_EPOCH_DAYS, GpsTime, civil_of_days};
 use crate::nav::decoder::{DecodeSummary, NavDecoder};
 use crate::nav::sbet::SbetReader;
 use crate::nav::{NavFormat, NavSample, NavTime};
@@ -31,22 +31,8 @@ struct SampleJson<'a> {
     sample: &'a NavSample,
 }
 
-/// Civil date of days since 1970-01-01.
-fn civil(days: i64) -> (i64, u32, u32) {
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
-    let y = yoe + era * 400 + i64::from(m <= 2);
-    (y, m, d)
-}
-
 fn iso(days: i64, seconds: f64) -> String {
-    let (y, m, d) = civil(days);
+    let (y, m, d) = civil_of_days(days);
     let ms = (seconds * 1000.0).round() as i64;
     let (h, rem) = (ms / 3_600_000, ms % 3_600_000);
     let (mi, rem) = (rem / 60_000, rem % 60_000);
@@ -219,7 +205,7 @@ mod tests {
     #[test]
     fn civil_is_the_inverse_of_days_from_civil() {
         for days in [-1000i64, 0, 3657, 10_000, 18_000, 20_000, 60_000] {
-            let (y, m, d) = civil(days);
+            let (y, m, d) = civil_of_days(days);
             assert_eq!(days_from_civil(y, m, d), days);
         }
         assert_eq!(

@@ -13,7 +13,7 @@ use crate::pipeline::runner::{LiveCounters, PipelineSpec};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
 use crate::sink::atomic_file::write_atomic;
 use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
-use crate::sink::nav_tally::NavTally;
+use crate::sink::nav_decode::NavDecode;
 use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::waveform_csv::WaveformCsvSink;
 use crate::sink::{FanOut, PulseSink};
@@ -124,7 +124,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         &spec,
         source,
         Box::new(FanOut(sinks)),
-        Box::new(NavTally::default()),
+        Box::new(NavDecode::default()),
         &control,
         tick,
     );
@@ -226,9 +226,29 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
     }
     if let Some(ports) = r.nav.get("ports").and_then(|p| p.as_object()) {
         for (port, v) in ports {
+            let kinds: Vec<String> = v["by_kind"]
+                .as_object()
+                .map(|m| m.iter().map(|(k, n)| format!("{n} {k}")).collect())
+                .unwrap_or_default();
+            let span = match (
+                v["first_gps_time"].get("sow"),
+                v["last_gps_time"].get("sow"),
+            ) {
+                (Some(a), Some(b)) => format!(
+                    ", GPS week {} {:.1}..{:.1} s",
+                    v["first_gps_time"]["week"],
+                    a.as_f64().unwrap_or(f64::NAN),
+                    b.as_f64().unwrap_or(f64::NAN)
+                ),
+                _ => String::new(),
+            };
             println!(
-                "  navigation port {port}: {} chunks, {} bytes",
-                v["chunks"], v["bytes"]
+                "  navigation port {port}: {} bytes, {} samples ({}){span}, {} rejected {}",
+                v["bytes"],
+                v["records"],
+                kinds.join(", "),
+                v["rejected"],
+                v["rejected_by_reason"]
             );
         }
     }

@@ -42,6 +42,8 @@ pub type StageFactory = Arc<dyn Fn() -> Vec<Box<dyn Stage>> + Send + Sync>;
 pub trait NavConsumer: Send {
     /// Takes one chunk of navigation bytes.
     fn consume(&mut self, chunk: NavChunk);
+    /// Called once when no more chunks will come (the end of the input), before `report`.
+    fn finish(&mut self) {}
     /// Its report for `summary.json`.
     fn report(&self) -> serde_json::Value;
 }
@@ -219,6 +221,7 @@ pub fn run(
                 for chunk in nav_rx.iter() {
                     nav.consume(chunk);
                 }
+                nav.finish();
                 nav.report()
             })
             .expect("spawn nav thread");

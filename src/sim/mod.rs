@@ -27,7 +27,8 @@ use nmea::FlightLine;
 pub enum SimItem {
     /// A digitized pulse (its `gps_time` is its emission time).
     Pulse(Pulse),
-    /// Bytes from the navigation receiver (serial port 0): one GGA and one PASHR sentence.
+    /// Bytes from the navigation receiver (serial port 0): one GGA and one PASHR sentence, and a
+    /// ZDA on whole UTC seconds.
     Nav {
         /// When the bytes arrived: the epoch's GPS time in nanoseconds (same time base as the
         /// pulses' `gps_time`, seconds × 1e9, rounded).
@@ -161,8 +162,10 @@ mod tests {
                 } => {
                     let text = std::str::from_utf8(bytes).unwrap();
                     let lines: Vec<&str> = text.split_inclusive("\r\n").collect();
-                    assert_eq!(lines.len(), 2);
+                    // GGA, PASHR, and a ZDA on whole UTC seconds.
+                    assert!(lines.len() == 2 || lines.len() == 3, "{lines:?}");
                     assert!(lines[0].starts_with("$GPGGA") && lines[1].starts_with("$PASHR"));
+                    assert!(lines.get(2).is_none_or(|l| l.starts_with("$GPZDA")));
                     assert!(lines.iter().all(|l| nmea::checksum_ok(l)));
                     nav_times.push(*receive_time_ns);
                     *receive_time_ns

@@ -1,6 +1,6 @@
-//! A minimal NMEA 0183 writer for the simulator: `$GPGGA` position fixes and `$PASHR`
-//! attitude sentences with their `*hh` checksums, for a straight flight line at constant speed
-//! and heading ([`FlightLine`]).
+//! A minimal NMEA 0183 writer for the simulator: `$GPGGA` position fixes, `$PASHR` attitude
+//! sentences and a `$GPZDA` date on whole UTC seconds, with their `*hh` checksums, for a
+//! straight flight line at constant speed and heading ([`FlightLine`]).
 //!
 //! Sentences end in CR LF. The checksum is the XOR of every byte between `$` and `*`, written
 //! as two upper-case hexadecimal digits.
@@ -100,6 +100,20 @@ pub fn pashr(fix: &NavFix) -> String {
     ))
 }
 
+/// A `$GPZDA` sentence (UTC time, day, month, year, zone 00:00) for GPS time `sow` seconds of
+/// GPS week `week`, with `leap_s` = GPS − UTC.
+pub fn zda(week: u32, sow: f64, leap_s: f64) -> String {
+    let utc = week as f64 * crate::nav::dating::WEEK_S + sow - leap_s;
+    let days = (utc / 86_400.0).floor();
+    let tod = utc - days * 86_400.0;
+    let (y, m, d) =
+        crate::nav::dating::civil_of_days(crate::nav::dating::GPS_EPOCH_DAYS + days as i64);
+    sentence(&format!(
+        "GPZDA,{},{d:02},{m:02},{y:04},00,00",
+        hhmmss(tod, 2)
+    ))
+}
+
 /// A straight, level flight line at constant ground speed and heading.
 ///
 /// Positions are computed in the local tangent plane of the start point and converted with the
@@ -150,12 +164,21 @@ impl FlightLine {
         }
     }
 
-    /// The bytes a receiver port would deliver for the epoch at GPS time `gps_s`: one GGA and
-    /// one PASHR sentence.
+    /// The bytes a receiver port would deliver for the epoch at GPS time `gps_s` (seconds of
+    /// the flight's GPS week): one GGA and one PASHR sentence, and a ZDA when the epoch falls
+    /// on a whole UTC second (once per second, as receivers date their output).
     pub fn epoch_bytes(&self, gps_s: f64) -> Vec<u8> {
         let fix = self.fix_at(gps_s);
         let mut s = gga(&fix);
         s.push_str(&pashr(&fix));
+        let centis = (fix.utc_time_of_day_s * 100.0).round() as i64;
+        if centis % 100 == 0 {
+            s.push_str(&zda(
+                self.config.gps_week,
+                gps_s,
+                self.config.gps_utc_offset_s,
+            ));
+        }
         s.into_bytes()
     }
 }
@@ -196,6 +219,40 @@ mod tests {
             n += 1;
         }
         assert!(n > 100, "only {n} sentences checked");
+    }
+
+    #[test]
+    fn the_stream_decodes_to_the_simulated_gps_times() {
+        // GGA/PASHR carry UTC time of day, ZDA the date: decoded and dated by our own
+        // navigation parsers, every sample lands at the GPS time it was simulated for.
+        let config = FlightConfig::default();
+        let line = FlightLine::new(&config, 345_598.0, 1000.0);
+        let mut dec = crate::nav::decoder::NavDecoder::new(18.0, 64, None);
+        let mut got = Vec::new();
+        for k in 0..40 {
+            let t = 345_598.0 + k as f64 * 0.1;
+            dec.push(&line.epoch_bytes(t), &mut |s, g| got.push((t, s.kind, g)));
+        }
+        dec.finish(&mut |_, _| {});
+        assert_eq!(dec.summary().rejected, 0, "{:?}", dec.summary());
+        assert_eq!(dec.summary().by_kind["ZDA"], 4, "one per whole second");
+        assert_eq!(got.len(), 40 * 2 + 4);
+        for (_, kind, g) in &got {
+            let g = g.expect("dated");
+            assert_eq!(g.week, 1690, "{kind:?}");
+        }
+        // Samples are released in order; each GGA's time equals one of the epochs.
+        let ggas: Vec<f64> = got
+            .iter()
+            .filter(|(_, k, _)| *k == crate::nav::NavKind::Gga)
+            .map(|(_, _, g)| g.unwrap().sow)
+            .collect();
+        for (k, sow) in ggas.iter().enumerate() {
+            assert!(
+                (sow - (345_598.0 + k as f64 * 0.1)).abs() < 1e-6,
+                "{k}: {sow}"
+            );
+        }
     }
 
     #[test]

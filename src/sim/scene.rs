@@ -95,13 +95,18 @@ pub struct FlightConfig {
     /// True heading (course over ground), degrees clockwise from north. Default 0.
     #[serde(default)]
     pub heading_deg: f64,
-    /// Rate of navigation messages (one GGA and one PASHR per epoch), hertz. Default 10.
+    /// Rate of navigation messages (one GGA and one PASHR per epoch, a ZDA on whole UTC seconds), hertz. Default 10.
     #[serde(default = "default_nav_rate")]
     pub nav_rate_hz: f64,
     /// GPS − UTC offset (leap seconds) used for the UTC time of day in the sentences, seconds.
     /// Default 18.
     #[serde(default = "default_leap")]
     pub gps_utc_offset_s: f64,
+    /// GPS week of the flight; with the scene's `gps_time_start_s` as seconds of that week it
+    /// dates the navigation stream (a `$GPZDA` once per second, as receivers send it).
+    /// Default 1690 (the week of 31 May 2012).
+    #[serde(default = "default_gps_week")]
+    pub gps_week: u32,
 }
 
 impl Default for FlightConfig {
@@ -113,6 +118,7 @@ impl Default for FlightConfig {
             heading_deg: 0.0,
             nav_rate_hz: default_nav_rate(),
             gps_utc_offset_s: default_leap(),
+            gps_week: default_gps_week(),
         }
     }
 }
@@ -200,6 +206,9 @@ fn default_nav_rate() -> f64 {
 }
 fn default_leap() -> f64 {
     18.0
+}
+fn default_gps_week() -> u32 {
+    1690
 }
 fn default_pulses() -> u64 {
     1000

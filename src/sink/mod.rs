@@ -3,6 +3,7 @@
 
 pub mod atomic_file;
 pub mod las_wave;
+pub mod nav_decode;
 pub mod nav_tally;
 pub mod returns_csv;
 pub mod waveform_csv;
