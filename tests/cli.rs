@@ -180,15 +180,29 @@ fn replay_of_the_sample_writes_consistent_outputs() {
         )
     );
     let mut per_pulse: std::collections::BTreeMap<u64, Vec<f64>> = Default::default();
+    // The embedded configuration georeferences the pulses from the capture's NMEA: every
+    // return has x, y, z in UTM 36S (the first fix at 24.99 S, 31.59 E). The simulator's
+    // scene is in vacuum and the default air refractive index n = 1.00027 shortens each range
+    // to R / n, so a surface at height h lies at h + (H − h)(1 − 1/n) (H = 1000 m up).
+    let n = 1.00027;
+    let truth_z = [15.0 + 985.0 * (1.0 - 1.0 / n), 1000.0 * (1.0 - 1.0 / n)];
+    let mut z_offsets = [Vec::new(), Vec::new()];
     for l in lines {
         let f: Vec<&str> = l.split(',').collect();
         assert_eq!(f.len(), 11, "{l}");
-        assert_eq!(
-            &f[8..],
-            ["", "", ""],
-            "no geometry in a digitizer capture: {l}"
+        let xyz: Vec<f64> = f[8..]
+            .iter()
+            .map(|v| v.parse().unwrap_or_else(|_| panic!("georeferenced: {l}")))
+            .collect();
+        // Easting and northing of the flight line's start (UTM 36S), 60 m/s east for 0.03 s.
+        assert!(
+            (xyz[0] - 357_696.0).abs() < 5.0 && (xyz[1] - 7_235_420.0).abs() < 5.0,
+            "{l}"
         );
         let t: f64 = f[4].parse().unwrap();
+        if let Some(k) = truth_ns.iter().position(|&s| (t - s).abs() < 1.0) {
+            z_offsets[k].push(xyz[2] - truth_z[k]);
+        }
         let amplitude: f64 = f[5].parse().unwrap();
         let sigma: f64 = f[6].parse().unwrap();
         assert!(amplitude > 0.0 && sigma > 0.0, "{l}");
@@ -210,6 +224,17 @@ fn replay_of_the_sample_writes_consistent_outputs() {
         }
         both += usize::from(found == [true, true]);
     }
+    for (k, o) in z_offsets.iter_mut().enumerate() {
+        o.sort_by(f64::total_cmp);
+        let median = o[o.len() / 2];
+        assert!(
+            median.abs() < 0.05,
+            "surface {k}: median height offset {median} m"
+        );
+    }
+    let georef = &summary["source"]["georeference"];
+    assert_eq!(georef["georeferenced"], 2000, "{georef}");
+    assert_eq!(georef["output_crs"], "EPSG:32736", "{georef}");
     // Measured: 1985 of 2000 pulses with both surfaces, median offsets under 0.01 ns, 500 extras.
     assert!(both >= 1960, "{both} of 2000 pulses have both surfaces");
     for o in &mut offsets {
@@ -571,8 +596,20 @@ fn replay_of_a_damaged_capture_recovers_every_intact_record_and_says_what_it_ski
     let frames = records["frames"].as_u64().unwrap();
     let nav = records["nav_records"].as_u64().unwrap();
     assert_eq!(frames + nav, 2002 - 3, "{summary}");
-    assert_eq!(summary["pulses_in"], frames);
-    assert_eq!(summary["pulses_out"], frames);
+    // Every recovered frame is either processed or counted by the georeference step (one of the
+    // two navigation epochs is among the damaged records, so most pulses cannot be placed).
+    let missed: u64 = summary["source"]["georeference"]["missed"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    assert_eq!(
+        summary["pulses_in"].as_u64().unwrap() + missed,
+        frames,
+        "{summary}"
+    );
+    assert_eq!(summary["pulses_out"], summary["pulses_in"]);
     assert_eq!(skipped["bad_checksums"], 2, "{skipped}");
     assert!(
         skipped["bytes_skipped"].as_u64().unwrap() >= 29,

@@ -182,15 +182,17 @@ fn check_with_laspy(out: &Path, wkt: Option<&str>, points: &[serde_json::Value])
     stdout
 }
 
-/// `fwlidar replay` with `[output] las = true` on the capture sample: capture pulses carry no
-/// geometry, so the LAS is empty (and valid), and the summary counts every skipped pulse.
+/// `fwlidar replay` with `[output] las = true` and georeferencing off on the capture sample:
+/// capture pulses then carry no geometry, so the LAS is empty (and valid), and the summary
+/// counts every skipped pulse.
 #[test]
 fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometry() {
     let dir = tempfile::tempdir().unwrap();
     let config = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
         .unwrap()
-        .replace("las = false", "las = true");
-    assert!(config.contains("las = true"));
+        .replace("las = false", "las = true")
+        .replace("enabled = true", "enabled = false");
+    assert!(config.contains("las = true") && config.contains("enabled = false"));
     let cfg = dir.path().join("run.toml");
     std::fs::write(&cfg, config).unwrap();
     let out = dir.path().join("out");
@@ -220,4 +222,70 @@ fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometr
     assert!(skipped > 1000, "most sample pulses have returns: {las}");
     assert!(!out.join("returns.las.partial").exists());
     check_with_laspy(&out, None, &[]);
+}
+
+/// The capture sample georeferenced from its own NMEA into UTM 36S (`output_epsg` named, so the
+/// CRS is known before the file is written): laspy reads every return as a point at the x, y, z
+/// `returns.csv` gives, with the zone's WKT.
+#[test]
+fn georeferenced_capture_returns_read_back_with_laspy_where_returns_csv_puts_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
+        .unwrap()
+        .replace("las = false", "las = true")
+        .replace("# output_epsg = 32736", "output_epsg = 32736");
+    assert!(config.contains("\noutput_epsg = 32736"));
+    let cfg = dir.path().join("run.toml");
+    std::fs::write(&cfg, config).unwrap();
+    let out = dir.path().join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
+        .args([
+            "replay",
+            "replay/two_layer.fwcap",
+            "--no-progress",
+            "--config",
+        ])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .current_dir(ROOT)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let csv = std::fs::read_to_string(out.join("returns.csv")).unwrap();
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').skip(8).map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert!(rows.len() > 3000, "{} returns", rows.len());
+    let script = "import laspy, sys\n\
+                  las = laspy.read(sys.argv[1])\n\
+                  w = [v.string for v in las.header.vlrs if hasattr(v, 'string')]\n\
+                  print(len(las.points), w[0] if w else 'NONE')\n\
+                  for x, y, z in zip(las.x, las.y, las.z):\n\
+                  \x20   print(f'{x:.3f} {y:.3f} {z:.3f}')\n";
+    let o = Command::new(python())
+        .args(["-c", script])
+        .arg(out.join("returns.las"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8(o.stdout).unwrap();
+    let mut lines = text.lines();
+    let head = lines.next().unwrap();
+    assert!(head.starts_with(&format!("{} ", rows.len())), "{head}");
+    assert!(
+        head.contains("UTM zone 36S") && head.contains("32736"),
+        "{head}"
+    );
+    for (i, (l, r)) in lines.zip(&rows).enumerate() {
+        let p: Vec<f64> = l.split(' ').map(|v| v.parse().unwrap()).collect();
+        for k in 0..3 {
+            assert!(
+                (p[k] - r[k]).abs() <= 0.0011,
+                "point {i}: laspy {p:?}, returns.csv {r:?}"
+            );
+        }
+    }
 }

@@ -61,7 +61,16 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from(&config.output.dir));
-    let source = crate::source::open_file(&args.input).map_err(Failure::job)?;
+    let mut source = crate::source::open_file(&args.input).map_err(Failure::job)?;
+    if config.georeference.enabled {
+        source = Box::new(
+            crate::geo::georeference::GeoreferencingSource::new(
+                source,
+                config.georeference.clone(),
+            )
+            .map_err(Failure::usage)?,
+        );
+    }
     prepare_out_dir(&out_dir)?;
 
     let p = &config.pipeline;
@@ -84,6 +93,13 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         ));
     }
     if config.output.las && decomposes {
+        if source.facts().crs.is_none() {
+            tracing::warn!(
+                "returns.las will have no CRS record: the input states none before it is read \
+                 (georeferencing into the UTM zone of the first fix decides it too late; set \
+                 [georeference] output_epsg to name it)"
+            );
+        }
         sinks.push(Box::new(
             LasWaveSink::create(&out_dir, las_options(&source.facts())).map_err(Failure::job)?,
         ));
@@ -251,6 +267,15 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
                 v["rejected_by_reason"]
             );
         }
+    }
+    if let Some(g) = r.source.get("georeference") {
+        println!(
+            "  georeference: {} pulses placed in {}, {} carried their own geometry, missed {}",
+            g["georeferenced"],
+            g["output_crs"].as_str().unwrap_or("(no CRS yet)"),
+            g["with_own_geometry"],
+            g["missed"]
+        );
     }
     if let Some(las) = r.sinks.get("las") {
         println!(

@@ -39,6 +39,9 @@ pub struct RunConfig {
     /// Outputs.
     #[serde(default)]
     pub output: OutputConfig,
+    /// Georeferencing from the navigation stream (`src/geo/georeference.rs`).
+    #[serde(default)]
+    pub georeference: crate::geo::georeference::GeoreferenceConfig,
 }
 
 /// The per-pulse pipeline: workers, edges and stages.
@@ -154,6 +157,7 @@ impl Validate for RunConfig {
         }
         self.pipeline.validate(&field(path, "pipeline"), v);
         self.output.validate(&field(path, "output"), v);
+        self.georeference.validate(&field(path, "georeference"), v);
     }
 }
 

@@ -84,6 +84,29 @@ pub fn utm_epsg(lat: f64, lon: f64) -> u32 {
     }
 }
 
+/// OGC WKT (WKT1) of a WGS 84 / UTM zone CRS (EPSG 32601..=32660 north, 32701..=32760 south),
+/// written from the zone's defining parameters (central meridian 6·zone − 183°, scale 0.9996,
+/// false easting 500 km, false northing 0 or 10 000 km): what LAS 1.4 output needs, without a
+/// CRS database. `None` for other codes.
+pub fn utm_wkt(code: u32) -> Option<String> {
+    let (zone, south) = match code {
+        32601..=32660 => (code - 32600, false),
+        32701..=32760 => (code - 32700, true),
+        _ => return None,
+    };
+    let meridian = 6 * zone as i32 - 183;
+    Some(format!(
+        "PROJCS[\"WGS 84 / UTM zone {zone}{hemi}\",GEOGCS[\"WGS 84\",DATUM[\"WGS_1984\",\
+         SPHEROID[\"WGS 84\",6378137,298.257223563]],PRIMEM[\"Greenwich\",0],\
+         UNIT[\"degree\",0.0174532925199433]],PROJECTION[\"Transverse_Mercator\"],\
+         PARAMETER[\"latitude_of_origin\",0],PARAMETER[\"central_meridian\",{meridian}],\
+         PARAMETER[\"scale_factor\",0.9996],PARAMETER[\"false_easting\",500000],\
+         PARAMETER[\"false_northing\",{north}],UNIT[\"metre\",1],AUTHORITY[\"EPSG\",\"{code}\"]]",
+        hemi = if south { "S" } else { "N" },
+        north = if south { 10_000_000 } else { 0 },
+    ))
+}
+
 /// A projected output CRS.
 pub struct OutputCrs {
     code: u32,
@@ -256,6 +279,20 @@ mod tests {
         assert_eq!(utm_epsg(0.0, -180.0), 32601);
         assert_eq!(utm_epsg(10.0, 179.5), 32660);
         assert_eq!(utm_epsg(10.0, 359.0), 32630, "longitudes in 0..360 (LVIS)");
+    }
+
+    #[test]
+    fn utm_wkt_states_the_zone_parameters() {
+        let w = utm_wkt(32633).unwrap();
+        assert!(w.starts_with("PROJCS[\"WGS 84 / UTM zone 33N\""), "{w}");
+        assert!(
+            w.contains("PARAMETER[\"central_meridian\",15]")
+                && w.ends_with("AUTHORITY[\"EPSG\",\"32633\"]]")
+        );
+        let s = utm_wkt(32736).unwrap();
+        assert!(s.contains("zone 36S") && s.contains("central_meridian\",33]"));
+        assert!(s.contains("false_northing\",10000000]"));
+        assert_eq!(utm_wkt(2154), None);
     }
 
     #[test]

@@ -8,5 +8,6 @@
 pub mod crs;
 pub mod dem;
 pub mod georef;
+pub mod georeference;
 
 pub use crs::{GeoError, OutputCrs, ecef_of, geodetic_of_ecef, utm_epsg};
