@@ -182,20 +182,12 @@ fn check_with_laspy(out: &Path, wkt: Option<&str>, points: &[serde_json::Value])
     stdout
 }
 
-/// `fwlidar replay` with `[output] las = true` and georeferencing off on the capture sample:
-/// capture pulses then carry no geometry, so the LAS is empty (and valid), and the summary
-/// counts every skipped pulse.
-#[test]
-fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometry() {
-    let dir = tempfile::tempdir().unwrap();
-    let config = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
-        .unwrap()
-        .replace("las = false", "las = true")
-        .replace("enabled = true", "enabled = false");
-    assert!(config.contains("las = true") && config.contains("enabled = false"));
-    let cfg = dir.path().join("run.toml");
+/// Replays the bundled sample with the run configuration `config` (written into `dir`); the
+/// output folder and stdout. Fails the test if the replay fails.
+fn replay_sample_with(dir: &Path, config: &str) -> (PathBuf, String) {
+    let cfg = dir.join("run.toml");
     std::fs::write(&cfg, config).unwrap();
-    let out = dir.path().join("out");
+    let out = dir.join("out");
     let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
         .args([
             "replay",
@@ -209,8 +201,22 @@ fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometr
         .current_dir(ROOT)
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    (out, String::from_utf8_lossy(&o.stdout).into_owned())
+}
+
+/// `fwlidar replay` with `[output] las = true` and georeferencing off on the capture sample:
+/// capture pulses then carry no geometry, so the LAS is empty (and valid), and the summary
+/// counts every skipped pulse.
+#[test]
+fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometry() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
+        .unwrap()
+        .replace("las = false", "las = true")
+        .replace("enabled = true", "enabled = false");
+    assert!(config.contains("las = true") && config.contains("enabled = false"));
+    let (out, stdout) = replay_sample_with(dir.path(), &config);
     assert!(stdout.contains("returns.las: 0 points"), "{stdout}");
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
@@ -235,23 +241,7 @@ fn georeferenced_capture_returns_read_back_with_laspy_where_returns_csv_puts_the
         .replace("las = false", "las = true")
         .replace("# output_epsg = 32736", "output_epsg = 32736");
     assert!(config.contains("\noutput_epsg = 32736"));
-    let cfg = dir.path().join("run.toml");
-    std::fs::write(&cfg, config).unwrap();
-    let out = dir.path().join("out");
-    let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
-        .args([
-            "replay",
-            "replay/two_layer.fwcap",
-            "--no-progress",
-            "--config",
-        ])
-        .arg(&cfg)
-        .arg("--out")
-        .arg(&out)
-        .current_dir(ROOT)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (out, _) = replay_sample_with(dir.path(), &config);
     let csv = std::fs::read_to_string(out.join("returns.csv")).unwrap();
     let rows: Vec<Vec<f64>> = csv
         .lines()
