@@ -258,23 +258,39 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
                 ),
                 _ => String::new(),
             };
+            let reasons = match v["rejected_by_reason"].as_object() {
+                Some(m) if !m.is_empty() => format!(
+                    " ({})",
+                    m.iter()
+                        .map(|(k, n)| format!("{n} {k}"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+                _ => String::new(),
+            };
             println!(
-                "  navigation port {port}: {} bytes, {} samples ({}){span}, {} rejected {}",
+                "  navigation port {port}: {} bytes, {} samples ({}){span}, {} rejected{reasons}",
                 v["bytes"],
                 v["records"],
                 kinds.join(", "),
                 v["rejected"],
-                v["rejected_by_reason"]
             );
         }
     }
     if let Some(g) = r.source.get("georeference") {
+        let missed = match g["missed"].as_object() {
+            Some(m) if !m.is_empty() => m
+                .iter()
+                .map(|(k, n)| format!("{n} {k}"))
+                .collect::<Vec<_>>()
+                .join(", "),
+            _ => "none".into(),
+        };
         println!(
-            "  georeference: {} pulses placed in {}, {} carried their own geometry, missed {}",
+            "  georeference: {} pulses placed in {}, {} carried their own geometry, missed: {missed}",
             g["georeferenced"],
-            g["output_crs"].as_str().unwrap_or("(no CRS yet)"),
+            g["output_crs"].as_str().unwrap_or("(no fix, no CRS)"),
             g["with_own_geometry"],
-            g["missed"]
         );
     }
     if let Some(las) = r.sinks.get("las") {
