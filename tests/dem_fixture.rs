@@ -99,3 +99,122 @@ fn ign_dtm_agrees_with_its_own_ground_points() {
         "a one-pixel slip must fail the bar: {shifted_mad50} against {mad50}"
     );
 }
+
+/// Writes a GeoTIFF DEM in UTM 36S (EPSG:32736) around the bundled sample's flight line: a
+/// plane `h = −0.5 + 0.01 (x − x0)` on 1 m pixels, with one nodata pixel far from the line.
+fn write_utm36s_dem(path: &std::path::Path) -> (f64, f64) {
+    use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
+    use tiff::tags::Tag;
+    let (x0, y0) = (357_676.0, 7_235_440.0); // top-left corner
+    let (w, h) = (40u32, 40u32);
+    let mut data = Vec::new();
+    for row in 0..h {
+        for col in 0..w {
+            let x = x0 + col as f64 + 0.5;
+            let _ = row;
+            data.push((-0.5 + 0.01 * (x - x0)) as f32);
+        }
+    }
+    data[0] = -9999.0;
+    let f = std::fs::File::create(path).unwrap();
+    let mut enc = TiffEncoder::new(f).unwrap();
+    let mut img = enc.new_image::<Gray32Float>(w, h).unwrap();
+    let e = img.encoder();
+    e.write_tag(Tag::ModelPixelScaleTag, &[1.0f64, 1.0, 0.0][..])
+        .unwrap();
+    e.write_tag(Tag::ModelTiepointTag, &[0.0f64, 0.0, 0.0, x0, y0, 0.0][..])
+        .unwrap();
+    e.write_tag(
+        Tag::GeoKeyDirectoryTag,
+        &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32736][..],
+    )
+    .unwrap();
+    e.write_tag(Tag::GdalNodata, "-9999").unwrap();
+    img.write_data(&data).unwrap();
+    (x0, y0)
+}
+
+/// Replay of the sample with a DEM: `returns.csv` gains `height_above_ground` = z − DEM(x, y),
+/// checked against the plane the DEM was written from.
+#[test]
+fn replay_gives_each_return_its_height_above_the_dem() {
+    let dir = tempfile::tempdir().unwrap();
+    let dem = dir.path().join("dem36s.tif");
+    let (x0, _) = write_utm36s_dem(&dem);
+    let config =
+        std::fs::read_to_string(std::path::Path::new(common::ROOT).join("config/replay.toml"))
+            .unwrap()
+            .replace(
+                "on_missing = \"drop\"",
+                &format!("on_missing = \"drop\"\ndem = \"{}\"", dem.display()),
+            );
+    let cfg = dir.path().join("run.toml");
+    std::fs::write(&cfg, config).unwrap();
+    let out = dir.path().join("out");
+    let o = common::fwlidar(&[
+        "replay",
+        "replay/two_layer.fwcap",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let csv = std::fs::read_to_string(out.join("returns.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert!(
+        lines
+            .next()
+            .unwrap()
+            .ends_with(",x,y,z,height_above_ground")
+    );
+    let mut n = 0;
+    for l in lines {
+        let f: Vec<f64> = l.split(',').skip(8).map(|v| v.parse().unwrap()).collect();
+        let ground = -0.5 + 0.01 * (f[0] - x0);
+        assert!((f[3] - (f[2] - ground)).abs() < 0.002, "{l}");
+        n += 1;
+    }
+    assert!(n > 3000);
+}
+
+/// A DEM in another CRS than the named output CRS is refused when the configuration is loaded,
+/// naming the file and both codes; nothing is written.
+#[test]
+fn a_dem_in_another_crs_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let tif = fixture("dem/ign_lidarhd/DTM_test_data_77055_627760_LA93_IGN69_50CM.tif");
+    let config =
+        std::fs::read_to_string(std::path::Path::new(common::ROOT).join("config/replay.toml"))
+            .unwrap()
+            .replace(
+                "on_missing = \"drop\"",
+                &format!(
+                    "on_missing = \"drop\"\ndem = \"{}\"\noutput_epsg = 32736",
+                    tif.display()
+                ),
+            );
+    let cfg = dir.path().join("run.toml");
+    std::fs::write(&cfg, config).unwrap();
+    let out = dir.path().join("out");
+    let o = common::fwlidar(&[
+        "replay",
+        "replay/two_layer.fwcap",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    let err = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("georeference.dem")
+            && err.contains("DTM_test_data")
+            && err.contains("EPSG:2154")
+            && err.contains("EPSG:32736"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing written on a refused DEM");
+}

@@ -62,14 +62,27 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         .clone()
         .unwrap_or_else(|| PathBuf::from(&config.output.dir));
     let mut source = crate::source::open_file(&args.input).map_err(Failure::job)?;
+    let dem = match &config.georeference.dem {
+        Some(path) => Some(std::sync::Arc::new(
+            crate::geo::dem::Dem::open(Path::new(path)).map_err(Failure::job)?,
+        )),
+        None => None,
+    };
     if config.georeference.enabled {
-        source = Box::new(
-            crate::geo::georeference::GeoreferencingSource::new(
-                source,
-                config.georeference.clone(),
-            )
-            .map_err(Failure::usage)?,
-        );
+        let mut geo_cfg = config.georeference.clone();
+        // Register to the ground in the DEM's own CRS unless an output CRS is named (a named
+        // one that differs from the DEM's was refused when the configuration was loaded).
+        if geo_cfg.output_epsg.is_none()
+            && let Some(code) = dem.as_ref().and_then(|d| d.epsg)
+        {
+            geo_cfg.output_epsg = Some(code);
+        }
+        let mut g = crate::geo::georeference::GeoreferencingSource::new(source, geo_cfg)
+            .map_err(Failure::usage)?;
+        if let (Some(d), Some(path)) = (&dem, &config.georeference.dem) {
+            g = g.with_dem(d.clone(), path.clone());
+        }
+        source = Box::new(g);
     }
     prepare_out_dir(&out_dir)?;
 
@@ -89,7 +102,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     let decomposes = spec.stage_names.contains(&"decompose");
     if config.output.returns && decomposes {
         sinks.push(Box::new(
-            ReturnsCsvSink::create(&out_dir).map_err(Failure::job)?,
+            ReturnsCsvSink::create_with_dem(&out_dir, dem.clone()).map_err(Failure::job)?,
         ));
     }
     if config.output.las && decomposes {

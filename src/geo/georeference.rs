@@ -19,6 +19,7 @@ use std::collections::{BTreeMap, VecDeque};
 use serde::{Deserialize, Serialize};
 
 use super::crs::OutputCrs;
+use super::dem::Dem;
 use super::georef::{Mounting, georeference};
 use crate::config::load::{Validate, Validator, field};
 use crate::nav::dating::{GpsTime, WEEK_S};
@@ -65,6 +66,11 @@ pub struct GeoreferenceConfig {
     /// What happens to a pulse that cannot be placed. Default "drop".
     #[serde(default)]
     pub on_missing: OnMissing,
+    /// A GeoTIFF DEM (path as given, relative to the working directory): adds
+    /// `height_above_ground` to `returns.csv`. Its CRS becomes the output CRS unless
+    /// `output_epsg` names one, which must then be the DEM's. Default none.
+    #[serde(default)]
+    pub dem: Option<String>,
 }
 
 fn default_n() -> f64 {
@@ -90,6 +96,7 @@ impl Default for GeoreferenceConfig {
             max_gap_s: default_gap(),
             max_pending: default_pending(),
             on_missing: OnMissing::Drop,
+            dem: None,
         }
     }
 }
@@ -121,6 +128,18 @@ impl Validate for GeoreferenceConfig {
         {
             v.report(field(path, "output_epsg"), e.to_string());
         }
+        if let Some(dem) = &self.dem {
+            match Dem::open(std::path::Path::new(dem)) {
+                Err(e) => v.report(field(path, "dem"), e.to_string()),
+                Ok(d) => {
+                    if let Some(code) = self.output_epsg
+                        && let Err(e) = d.check_crs(dem, code)
+                    {
+                        v.report(field(path, "dem"), e.to_string());
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -146,6 +165,10 @@ pub struct GeoreferencingSource {
     ended: bool,
     stats: Stats,
     samples: Vec<(crate::nav::NavSample, Option<GpsTime>)>,
+    /// The DEM whose CRS must be the output CRS, and its file name.
+    dem: Option<(std::sync::Arc<Dem>, String)>,
+    /// Set when the DEM turned out to be in another CRS than the output's.
+    failed: Option<String>,
 }
 
 impl GeoreferencingSource {
@@ -171,7 +194,26 @@ impl GeoreferencingSource {
             ended: false,
             stats: Stats::default(),
             samples: Vec::new(),
+            dem: None,
+            failed: None,
         })
+    }
+
+    /// Checks `dem` against the output CRS as soon as that is known (now, when configured;
+    /// otherwise at the first fix): a mismatch stops the run with the DEM's error.
+    pub fn with_dem(mut self, dem: std::sync::Arc<Dem>, file: String) -> Self {
+        self.dem = Some((dem, file));
+        self.check_dem();
+        self
+    }
+
+    fn check_dem(&mut self) {
+        if let (Some((dem, file)), Some(crs)) = (&self.dem, &self.crs)
+            && self.failed.is_none()
+            && let Err(e) = dem.check_crs(file, crs.epsg())
+        {
+            self.failed = Some(e.to_string());
+        }
     }
 
     fn take_nav(&mut self, port: u8, bytes: &[u8]) {
@@ -182,7 +224,8 @@ impl GeoreferencingSource {
             .or_insert_with(|| NavDecoder::new(leap, 4096, None));
         let samples = &mut self.samples;
         dec.push(bytes, &mut |s, t| samples.push((s, t)));
-        for (s, t) in self.samples.drain(..) {
+        let mut batch = std::mem::take(&mut self.samples);
+        for (s, t) in batch.drain(..) {
             let t = match (t, s.time) {
                 (Some(t), _) => t,
                 (None, crate::nav::NavTime::GpsSecondsOfWeek { sow }) => GpsTime { week: 0, sow },
@@ -192,12 +235,16 @@ impl GeoreferencingSource {
                 && let (Some(lat), Some(lon)) = (s.lat, s.lon)
             {
                 match OutputCrs::utm_at(lat, lon) {
-                    Ok(c) => self.crs = Some(c),
+                    Ok(c) => {
+                        self.crs = Some(c);
+                        self.check_dem();
+                    }
                     Err(e) => tracing::warn!("no UTM zone for the first fix: {e}"),
                 }
             }
             self.trajectory.push(t, &s);
         }
+        self.samples = batch;
     }
 
     /// The pulse's time on the trajectory's scale.
@@ -318,6 +365,9 @@ impl Source for GeoreferencingSource {
 
     fn next(&mut self, pool: &PulsePool) -> Result<SourceEvent, SourceError> {
         loop {
+            if let Some(e) = &self.failed {
+                return Err(SourceError::Fatal(e.clone()));
+            }
             if let Some(p) = self.ready.pop_front() {
                 return Ok(SourceEvent::Pulse(p));
             }

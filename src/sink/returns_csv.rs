@@ -7,9 +7,11 @@
 //! - `amplitude_v`: peak amplitude of the Gaussian, volts (of the signal the fit saw);
 //! - `sigma_bins`: standard deviation, bins;
 //! - `residual_v`: RMS residual of the whole segment's fit, volts;
-//! - `x,y,z`: where the return lies, `anchor + time_ns · direction`, in the input file's CRS,
-//!   when the pulse carries its geometry (LAS, PulseWaves); empty otherwise (digitizer frames
-//!   wait for the georeference stage).
+//! - `x,y,z`: where the return lies, `anchor + time_ns · direction`, in the CRS of the pulse's
+//!   geometry (the input file's for LAS and PulseWaves, the output CRS for georeferenced
+//!   captures); empty for pulses without geometry;
+//! - `height_above_ground` (only when a DEM is configured, `[georeference] dem`): `z` minus the
+//!   DEM's bilinear height at `x, y`, metres; empty outside the DEM or next to its nodata.
 //!
 //! Pulses without returns write nothing. The file appears atomically at the end of the run
 //! (see [`AtomicFile`]); the georeferenced LAS returns of later issues replace it for mapping.
@@ -30,19 +32,37 @@ pub struct ReturnsCsvSink {
     file: AtomicFile,
     rows: u64,
     line: String,
+    dem: Option<std::sync::Arc<crate::geo::dem::Dem>>,
+    outside_dem: u64,
 }
 
 impl ReturnsCsvSink {
     /// Starts writing `returns.csv` into `dir` (which must exist).
     pub fn create(dir: &Path) -> Result<Self, SinkError> {
+        ReturnsCsvSink::create_with_dem(dir, None)
+    }
+
+    /// As [`ReturnsCsvSink::create`], with a `height_above_ground` column from `dem` (which
+    /// must be in the CRS of the pulses' geometry).
+    pub fn create_with_dem(
+        dir: &Path,
+        dem: Option<std::sync::Arc<crate::geo::dem::Dem>>,
+    ) -> Result<Self, SinkError> {
         let mut file = AtomicFile::create(dir.join("returns.csv"))?;
         let path = file.path().display().to_string();
-        writeln!(file.writer()?, "{RETURNS_HEADER}")
+        let extra = if dem.is_some() {
+            ",height_above_ground"
+        } else {
+            ""
+        };
+        writeln!(file.writer()?, "{RETURNS_HEADER}{extra}")
             .map_err(|source| SinkError::Io { path, source })?;
         Ok(ReturnsCsvSink {
             file,
             rows: 0,
             line: String::with_capacity(1 << 12),
+            dem,
+            outside_dem: 0,
         })
     }
 
@@ -78,13 +98,27 @@ impl PulseSink for ReturnsCsvSink {
             );
             // Replace the newline just written with the position columns.
             self.line.pop();
-            match &p.geometry {
-                Some(g) => {
-                    let at = |k: usize| g.anchor[k] + r.time_ns * g.direction[k];
-                    let _ = writeln!(self.line, ",{:.4},{:.4},{:.4}", at(0), at(1), at(2));
+            let at = p
+                .geometry
+                .map(|g| [0, 1, 2].map(|k| g.anchor[k] + r.time_ns * g.direction[k]));
+            match at {
+                Some([x, y, z]) => {
+                    let _ = write!(self.line, ",{x:.4},{y:.4},{z:.4}");
                 }
-                None => self.line.push_str(",,,\n"),
+                None => self.line.push_str(",,,"),
             }
+            if let Some(dem) = &self.dem {
+                match at.and_then(|[x, y, z]| dem.height_at(x, y).map(|g| z - g)) {
+                    Some(h) => {
+                        let _ = write!(self.line, ",{h:.4}");
+                    }
+                    None => {
+                        self.outside_dem += 1;
+                        self.line.push(',');
+                    }
+                }
+            }
+            self.line.push('\n');
         }
         let path = self.file.path().display().to_string();
         self.file
@@ -97,6 +131,16 @@ impl PulseSink for ReturnsCsvSink {
 
     fn flush(&mut self) -> Result<(), SinkError> {
         self.file.flush()
+    }
+
+    fn report(&self) -> serde_json::Value {
+        match self.dem {
+            Some(_) => serde_json::json!({
+                "rows": self.rows,
+                "returns_outside_dem": self.outside_dem,
+            }),
+            None => serde_json::Value::Null,
+        }
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {
