@@ -71,6 +71,11 @@ pub struct GeoreferenceConfig {
     /// `output_epsg` names one, which must then be the DEM's. Default none.
     #[serde(default)]
     pub dem: Option<String>,
+    /// Added to each pulse's time before the trajectory lookup, seconds: the digitizer clock's
+    /// offset from GPS time (as its PPS discipline measured it; GPS = digitizer + offset).
+    /// Default 0.
+    #[serde(default)]
+    pub pulse_time_offset_s: f64,
 }
 
 fn default_n() -> f64 {
@@ -97,6 +102,7 @@ impl Default for GeoreferenceConfig {
             max_pending: default_pending(),
             on_missing: OnMissing::Drop,
             dem: None,
+            pulse_time_offset_s: 0.0,
         }
     }
 }
@@ -117,6 +123,14 @@ impl Validate for GeoreferenceConfig {
             self.max_gap_s > 0.0 && self.max_gap_s <= 60.0,
             field(path, "max_gap_s"),
             format!("must be in (0, 60] s, got {}", self.max_gap_s),
+        );
+        v.require(
+            self.pulse_time_offset_s.abs() <= 604_800.0,
+            field(path, "pulse_time_offset_s"),
+            format!(
+                "must be within a GPS week (±604800 s), got {}",
+                self.pulse_time_offset_s
+            ),
         );
         v.require(
             (1..=1 << 22).contains(&self.max_pending),
@@ -251,8 +265,9 @@ impl GeoreferencingSource {
     fn trajectory_time(&self, p: &Pulse) -> Option<f64> {
         let newest = self.trajectory.newest()?;
         let adjusted = self.inner.facts().time_base.as_deref() == Some("gps_adjusted_standard");
+        let time = p.gps_time + self.cfg.pulse_time_offset_s;
         let g = if adjusted {
-            let s = p.gps_time + 1e9;
+            let s = time + 1e9;
             let week = (s / WEEK_S).floor();
             GpsTime {
                 week: week.max(0.0) as u32,
@@ -262,7 +277,7 @@ impl GeoreferencingSource {
             // Seconds of the week: the week the trajectory is in (the buffer's time counts from
             // the start of its first week), or the neighbouring one when the pulse is across
             // a week's end from the newest navigation.
-            let mut t = (newest / WEEK_S).floor() * WEEK_S + p.gps_time;
+            let mut t = (newest / WEEK_S).floor() * WEEK_S + time;
             if t - newest > WEEK_S / 2.0 {
                 t -= WEEK_S;
             } else if newest - t > WEEK_S / 2.0 {
@@ -552,6 +567,33 @@ mod tests {
         assert_eq!(report["missed"]["navigation_gap"], 1, "{report}");
         assert_eq!(report["missed"]["no_navigation_after"], 1, "{report}");
         assert_eq!(report["georeferenced"], 2);
+    }
+
+    #[test]
+    fn the_digitizer_clock_offset_moves_pulses_onto_gps_time() {
+        // Pulse times 10 s behind GPS (a digitizer clock offset): without the offset they fall
+        // before the navigation; with it they are placed.
+        let base = 345_600.0;
+        let events = || {
+            vec![
+                Ev::Nav(base),
+                Ev::Pulse(base - 10.0 + 0.05),
+                Ev::Nav(base + 0.1),
+            ]
+        };
+        let (out, report) = run(events(), cfg());
+        assert!(
+            out.is_empty() && report["missed"]["before_navigation"] == 1,
+            "{report}"
+        );
+        let (out, report) = run(
+            events(),
+            GeoreferenceConfig {
+                pulse_time_offset_s: 10.0,
+                ..cfg()
+            },
+        );
+        assert_eq!(out, vec![(base - 10.0 + 0.05, true)], "{report}");
     }
 
     #[test]
