@@ -56,6 +56,19 @@ impl Mounting {
     }
 }
 
+/// Footprint radius at a bin `t_ns` after t0, metres: the beam's full-angle (1/e²) divergence
+/// `divergence_mrad` spread over the range `t · c / (2 n)` (small-angle: radius = range ·
+/// divergence / 2), plus the beam's radius at the exit aperture `exit_radius_m`. What the
+/// voxeliser spreads each bin over.
+pub fn footprint_radius_m(
+    mount: &Mounting,
+    divergence_mrad: f64,
+    exit_radius_m: f64,
+    t_ns: f64,
+) -> f64 {
+    exit_radius_m + (t_ns.max(0.0) * mount.metres_per_ns()) * divergence_mrad * 1e-3 / 2.0
+}
+
 /// A georeferenced pulse.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Georeferenced {
@@ -346,6 +359,16 @@ mod tests {
         for t in [7330.0, 8000.0] {
             assert!(g.chord_error_m(&crs(), &mount(), t).unwrap() < 1e-6);
         }
+    }
+
+    #[test]
+    fn footprint_grows_with_range_by_half_the_divergence() {
+        // 0.5 mrad at 1000 m (6671 ns two-way in vacuum): a 0.25 m radius, the RIEGL Q680i's
+        // nominal 0.5 m footprint.
+        let t = 1000.0 / mount().metres_per_ns();
+        let r = footprint_radius_m(&mount(), 0.5, 0.0, t);
+        assert!((r - 0.25).abs() < 1e-9, "{r}");
+        assert_eq!(footprint_radius_m(&mount(), 0.5, 0.01, -5.0), 0.01);
     }
 
     #[test]
