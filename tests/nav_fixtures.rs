@@ -284,3 +284,39 @@ fn inspect_nav_prints_one_json_object_per_sample_and_a_summary() {
     assert_eq!(last["records"], 152);
     assert_eq!(last["rejected"], 0);
 }
+
+/// Every position gpsd reports for a log (its `.chk` TPVs with `lat`/`lon`, printed to 9
+/// decimals) is one of ours, to 1e-9 degrees: where gpsd reports fewer fixes, it reports a
+/// subset, not different numbers. How many distinct fixes each side has is printed.
+#[test]
+fn every_position_gpsd_reports_is_one_of_ours() {
+    for e in LOGS {
+        let bytes = std::fs::read(fixture(&format!("nav/gpsd/{}", e.file))).unwrap();
+        let (samples, _) = decode(&bytes, 4096);
+        let ours: Vec<(f64, f64)> = samples
+            .iter()
+            .filter_map(|(s, _)| s.lat.zip(s.lon))
+            .collect();
+        let chk = std::fs::read(fixture(&format!("nav/gpsd/{}.chk", e.file))).unwrap();
+        let mut theirs: Vec<(f64, f64)> = String::from_utf8_lossy(&chk)
+            .lines()
+            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+            .filter_map(|j| Some((j["lat"].as_f64()?, j["lon"].as_f64()?)))
+            .collect();
+        theirs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+        theirs.dedup();
+        assert!(!theirs.is_empty(), "{}: gpsd reports positions", e.file);
+        for (lat, lon) in &theirs {
+            let near = ours
+                .iter()
+                .any(|(a, b)| (a - lat).abs() < 1e-9 && (b - lon).abs() < 1e-9);
+            assert!(near, "{}: gpsd's ({lat}, {lon}) is none of ours", e.file);
+        }
+        eprintln!(
+            "{}: gpsd {} distinct positions, all among our {} position records",
+            e.file,
+            theirs.len(),
+            ours.len()
+        );
+    }
+}
