@@ -141,14 +141,11 @@ fn bench(c: &mut Criterion) {
             .unwrap()
             .geometry;
             let d = geo.direction;
-            let mut t = 4000.0f64;
-            for p in bins.iter_mut() {
-                *p = [
-                    geo.anchor[0] + t * d[0],
-                    geo.anchor[1] + t * d[1],
-                    geo.anchor[2] + t * d[2],
-                ];
-                t += 1.0;
+            // The first bin's position, then i bins on (an i32 index converts to f64 in SIMD).
+            let a = [0, 1, 2].map(|k| geo.anchor[k] + 4000.0 * d[k]);
+            for (i, p) in bins.iter_mut().enumerate() {
+                let t = i as i32 as f64;
+                *p = [a[0] + t * d[0], a[1] + t * d[1], a[2] + t * d[2]];
             }
             black_box(&bins);
         })
