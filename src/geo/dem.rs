@@ -210,6 +210,34 @@ impl Dem {
     }
 }
 
+impl Dem {
+    /// Height above the DEM of every bin of a segment: bin `i` lies `first_ns + i · sample_ns`
+    /// after the pulse's t0 at `anchor + t · direction` (in the DEM's CRS); `out[i]` gets its
+    /// height above the DEM there, metres, or NaN outside the DEM or next to nodata. Returns how
+    /// many bins got a height.
+    pub fn heights_above_ground(
+        &self,
+        geometry: &crate::pulse::PulseGeometry,
+        first_ns: f64,
+        sample_ns: f64,
+        out: &mut [f64],
+    ) -> usize {
+        let mut placed = 0;
+        for (i, h) in out.iter_mut().enumerate() {
+            let t = first_ns + i as f64 * sample_ns;
+            let [x, y, z] = [0, 1, 2].map(|k| geometry.anchor[k] + t * geometry.direction[k]);
+            *h = match self.height_at(x, y) {
+                Some(g) => {
+                    placed += 1;
+                    z - g
+                }
+                None => f64::NAN,
+            };
+        }
+        placed
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -223,6 +251,34 @@ mod tests {
             nodata: Some(-9999.0),
             heights,
         }
+    }
+
+    #[test]
+    fn every_bin_of_a_slanted_beam_gets_its_height_above_a_plane() {
+        // DEM z = 2x − 3y over its centres; a beam from (100.5, 199.5, 10) going down and east.
+        let (w, h) = (4, 3);
+        let mut v = Vec::new();
+        for r in 0..h {
+            for c in 0..w {
+                let (x, y) = (100.25 + 0.5 * c as f64, 199.75 - 0.5 * r as f64);
+                v.push((2.0 * x - 3.0 * y) as f32);
+            }
+        }
+        let d = dem(v, w, h);
+        let g = crate::pulse::PulseGeometry {
+            anchor: [100.5, 199.5, 10.0],
+            direction: [0.01, 0.0, -0.15],
+        };
+        let mut out = [0.0; 200];
+        let n = d.heights_above_ground(&g, 0.0, 1.0, &mut out);
+        // x leaves the centres' hull (101.75) after 125 bins.
+        assert_eq!(n, 126);
+        for (i, hag) in out.iter().enumerate().take(126) {
+            let t = i as f64;
+            let (x, y, z) = (100.5 + 0.01 * t, 199.5, 10.0 - 0.15 * t);
+            assert!((hag - (z - (2.0 * x - 3.0 * y))).abs() < 1e-3, "{i}: {hag}");
+        }
+        assert!(out[126..].iter().all(|h| h.is_nan()));
     }
 
     #[test]
