@@ -65,3 +65,38 @@ fn shipped_files_are_the_kinds_they_claim() {
         fwlidar::config::FullPolicy::DropNewest
     );
 }
+
+/// `[navigation]`: serial ports and the rollover date are checked with their field paths.
+#[test]
+fn navigation_serial_ports_and_earliest_date_are_checked() {
+    use fwlidar::config::{RunConfig, load_str};
+    let good = "[navigation]\nearliest_date = \"2019-04-07\"\n\
+                [[navigation.serial]]\ndevice = \"/dev/ttyUSB0\"\nbaud = 115200\nparity = \"none\"\n\
+                [[navigation.serial]]\ndevice = \"/dev/ttyUSB1\"\nbaud = 9600\nport = 1\n";
+    let c: RunConfig = load_str(good, "good.toml").unwrap();
+    assert_eq!(c.navigation.serial.len(), 2);
+    assert_eq!(c.navigation.serial[0].reconnect_ms, 500, "default");
+    assert_eq!(
+        c.navigation.earliest_days(),
+        Some(fwlidar::nav::nmea::days_from_civil(2019, 4, 7))
+    );
+    let bad = "[navigation]\nearliest_date = \"2019-02-30\"\n\
+               [[navigation.serial]]\ndevice = \"\"\nbaud = 10\n\
+               [[navigation.serial]]\ndevice = \"/dev/ttyS0\"\nbaud = 9600\n";
+    let e = load_str::<RunConfig>(bad, "bad.toml")
+        .unwrap_err()
+        .to_string();
+    for needle in [
+        "navigation.earliest_date",
+        "navigation.serial[0].device",
+        "navigation.serial[0].baud",
+        "navigation.serial[1].port",
+    ] {
+        assert!(e.contains(needle), "`{needle}` in {e}");
+    }
+    let typo = "[[navigation.serial]]\ndevice = \"/dev/ttyS0\"\nbaud = 9600\nparity = \"mark\"\n";
+    let e = load_str::<RunConfig>(typo, "typo.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("parity"), "{e}");
+}

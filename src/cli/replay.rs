@@ -78,7 +78,8 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
             geo_cfg.output_epsg = Some(code);
         }
         let mut g = crate::geo::georeference::GeoreferencingSource::new(source, geo_cfg)
-            .map_err(Failure::usage)?;
+            .map_err(Failure::usage)?
+            .with_earliest_date(config.navigation.earliest_days());
         if let (Some(d), Some(path)) = (&dem, &config.georeference.dem) {
             g = g.with_dem(d.clone(), path.clone());
         }
@@ -153,7 +154,10 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         &spec,
         source,
         Box::new(FanOut(sinks)),
-        Box::new(NavDecode::default()),
+        Box::new(NavDecode::new(
+            config.georeference.leap_seconds,
+            config.navigation.earliest_days(),
+        )),
         &control,
         tick,
     );

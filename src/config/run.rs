@@ -42,6 +42,88 @@ pub struct RunConfig {
     /// Georeferencing from the navigation stream (`src/geo/georeference.rs`).
     #[serde(default)]
     pub georeference: crate::geo::georeference::GeoreferenceConfig,
+    /// Navigation inputs and their time handling.
+    #[serde(default)]
+    pub navigation: NavigationConfig,
+}
+
+/// `[navigation]`: the receivers' serial ports (live input) and date handling.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NavigationConfig {
+    /// Serial ports of GNSS/INS receivers (`[[navigation.serial]]`: device, baud, parity,
+    /// port, reconnect_ms, read_timeout_ms; `src/source/serial.rs`). Default none.
+    #[serde(default)]
+    pub serial: Vec<crate::source::serial::SerialConfig>,
+    /// Earliest date a receiver can report, `YYYY-MM-DD`: NMEA dates before it are taken for a
+    /// 10-bit GPS week rollover and moved forward by 1024 weeks. Default none (dates as stated).
+    #[serde(default)]
+    pub earliest_date: Option<String>,
+}
+
+impl NavigationConfig {
+    /// `earliest_date` as days since 1970-01-01, when given and valid.
+    pub fn earliest_days(&self) -> Option<i64> {
+        self.earliest_date.as_deref().and_then(parse_date)
+    }
+}
+
+/// `YYYY-MM-DD` to days since 1970-01-01.
+fn parse_date(s: &str) -> Option<i64> {
+    let mut it = s.trim().split('-');
+    let y: i64 = it.next()?.parse().ok()?;
+    let m: u32 = it.next()?.parse().ok()?;
+    let d: u32 = it.next()?.parse().ok()?;
+    if it.next().is_some()
+        || !(1980..=2200).contains(&y)
+        || !(1..=12).contains(&m)
+        || !(1..=31).contains(&d)
+    {
+        return None;
+    }
+    let days = crate::nav::nmea::days_from_civil(y, m, d);
+    (crate::nav::dating::civil_of_days(days) == (y, m, d)).then_some(days)
+}
+
+impl Validate for NavigationConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        let mut ports = std::collections::BTreeSet::new();
+        for (i, s) in self.serial.iter().enumerate() {
+            let at = index(&field(path, "serial"), i);
+            v.require(
+                !s.device.as_os_str().is_empty(),
+                field(&at, "device"),
+                "must name a device, e.g. /dev/ttyUSB0",
+            );
+            v.require(
+                (50..=4_000_000).contains(&s.baud),
+                field(&at, "baud"),
+                format!("must be in 50..=4000000 bits/s, got {}", s.baud),
+            );
+            v.require(
+                ports.insert(s.port),
+                field(&at, "port"),
+                format!("port number {} is used twice", s.port),
+            );
+            v.require(
+                (1..=60_000).contains(&s.reconnect_ms),
+                field(&at, "reconnect_ms"),
+                format!("must be in 1..=60000 ms, got {}", s.reconnect_ms),
+            );
+            v.require(
+                (1..=10_000).contains(&s.read_timeout_ms),
+                field(&at, "read_timeout_ms"),
+                format!("must be in 1..=10000 ms, got {}", s.read_timeout_ms),
+            );
+        }
+        if let Some(d) = &self.earliest_date {
+            v.require(
+                parse_date(d).is_some(),
+                field(path, "earliest_date"),
+                format!("must be a date YYYY-MM-DD from 1980 on, got {d:?}"),
+            );
+        }
+    }
 }
 
 /// The per-pulse pipeline: workers, edges and stages.
@@ -158,6 +240,7 @@ impl Validate for RunConfig {
         self.pipeline.validate(&field(path, "pipeline"), v);
         self.output.validate(&field(path, "output"), v);
         self.georeference.validate(&field(path, "georeference"), v);
+        self.navigation.validate(&field(path, "navigation"), v);
     }
 }
 

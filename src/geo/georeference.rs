@@ -183,6 +183,8 @@ pub struct GeoreferencingSource {
     dem: Option<(std::sync::Arc<Dem>, String)>,
     /// Set when the DEM turned out to be in another CRS than the output's.
     failed: Option<String>,
+    /// Earliest valid receiver date (days since 1970), for week-rollover correction.
+    earliest_days: Option<i64>,
 }
 
 impl GeoreferencingSource {
@@ -210,7 +212,15 @@ impl GeoreferencingSource {
             samples: Vec::new(),
             dem: None,
             failed: None,
+            earliest_days: None,
         })
+    }
+
+    /// NMEA dates before `days` (since 1970-01-01) are taken for a 10-bit week rollover and
+    /// moved forward by 1024 weeks (`[navigation] earliest_date`).
+    pub fn with_earliest_date(mut self, days: Option<i64>) -> Self {
+        self.earliest_days = days;
+        self
     }
 
     /// Checks `dem` against the output CRS as soon as that is known (now, when configured;
@@ -231,11 +241,11 @@ impl GeoreferencingSource {
     }
 
     fn take_nav(&mut self, port: u8, bytes: &[u8]) {
-        let leap = self.cfg.leap_seconds;
+        let (leap, earliest) = (self.cfg.leap_seconds, self.earliest_days);
         let dec = self
             .decoders
             .entry(port)
-            .or_insert_with(|| NavDecoder::new(leap, 4096, None));
+            .or_insert_with(|| NavDecoder::new(leap, 4096, earliest));
         let samples = &mut self.samples;
         dec.push(bytes, &mut |s, t| samples.push((s, t)));
         let mut batch = std::mem::take(&mut self.samples);

@@ -23,20 +23,23 @@ struct Port {
 /// Decodes every port's navigation bytes and reports per port.
 pub struct NavDecode {
     leap_seconds: f64,
+    earliest_days: Option<i64>,
     ports: BTreeMap<u8, Port>,
 }
 
 impl Default for NavDecode {
     fn default() -> Self {
-        NavDecode::new(LEAP_SECONDS_NOW)
+        NavDecode::new(LEAP_SECONDS_NOW, None)
     }
 }
 
 impl NavDecode {
-    /// A consumer adding `leap_seconds` (GPS − UTC) to NMEA times.
-    pub fn new(leap_seconds: f64) -> Self {
+    /// A consumer adding `leap_seconds` (GPS − UTC) to NMEA times and correcting dates before
+    /// `earliest_days` (since 1970) for week rollover.
+    pub fn new(leap_seconds: f64, earliest_days: Option<i64>) -> Self {
         NavDecode {
             leap_seconds,
+            earliest_days,
             ports: BTreeMap::new(),
         }
     }
@@ -51,10 +54,10 @@ fn note(port: &mut Port, t: Option<GpsTime>) {
 
 impl NavConsumer for NavDecode {
     fn consume(&mut self, chunk: NavChunk) {
-        let leap = self.leap_seconds;
+        let (leap, earliest) = (self.leap_seconds, self.earliest_days);
         let port = self.ports.entry(chunk.port).or_insert_with(|| Port {
             chunks: 0,
-            decoder: NavDecoder::new(leap, MAX_UNDATED, None),
+            decoder: NavDecoder::new(leap, MAX_UNDATED, earliest),
             first: None,
             last: None,
         });
