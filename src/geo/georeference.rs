@@ -10,7 +10,8 @@
 //!
 //! A pulse the trajectory cannot place is counted by reason — `before_navigation` (earlier than
 //! the first sample kept), `navigation_gap` (bracketing samples further apart than
-//! `max_gap_s`), `navigation_late` (still not bracketed when `max_pending` pulses wait),
+//! `max_gap_s`), `navigation_late` (still not bracketed when `max_pending` pulses wait or a
+//! pulse `max_wait_s` later has arrived),
 //! `no_navigation_after` (the input ended first) — and dropped, or passed on without geometry
 //! (`on_missing = "pass"`).
 
@@ -63,6 +64,10 @@ pub struct GeoreferenceConfig {
     /// 65536.
     #[serde(default = "default_pending")]
     pub max_pending: usize,
+    /// Longest wait for navigation, seconds of pulse time: a pulse still not bracketed when a
+    /// pulse this much later has arrived is `navigation_late`. Default 1.
+    #[serde(default = "default_wait")]
+    pub max_wait_s: f64,
     /// What happens to a pulse that cannot be placed. Default "drop".
     #[serde(default)]
     pub on_missing: OnMissing,
@@ -90,6 +95,9 @@ fn default_gap() -> f64 {
 fn default_pending() -> usize {
     65_536
 }
+fn default_wait() -> f64 {
+    1.0
+}
 
 impl Default for GeoreferenceConfig {
     fn default() -> Self {
@@ -100,6 +108,7 @@ impl Default for GeoreferenceConfig {
             leap_seconds: default_leap(),
             max_gap_s: default_gap(),
             max_pending: default_pending(),
+            max_wait_s: default_wait(),
             on_missing: OnMissing::Drop,
             dem: None,
             pulse_time_offset_s: 0.0,
@@ -131,6 +140,11 @@ impl Validate for GeoreferenceConfig {
                 "must be within a GPS week (±604800 s), got {}",
                 self.pulse_time_offset_s
             ),
+        );
+        v.require(
+            self.max_wait_s > 0.0 && self.max_wait_s <= 3600.0,
+            field(path, "max_wait_s"),
+            format!("must be in (0, 3600] s, got {}", self.max_wait_s),
         );
         v.require(
             (1..=1 << 22).contains(&self.max_pending),
@@ -185,6 +199,8 @@ pub struct GeoreferencingSource {
     failed: Option<String>,
     /// Earliest valid receiver date (days since 1970), for week-rollover correction.
     earliest_days: Option<i64>,
+    /// Time of the latest pulse taken from the input, GPS seconds as the input states them.
+    latest_pulse_time: f64,
 }
 
 impl GeoreferencingSource {
@@ -213,6 +229,7 @@ impl GeoreferencingSource {
             dem: None,
             failed: None,
             earliest_days: None,
+            latest_pulse_time: f64::NEG_INFINITY,
         })
     }
 
@@ -347,7 +364,8 @@ impl GeoreferencingSource {
             let outcome = match pose {
                 Ok(pose) => Ok(pose),
                 Err(Miss::After | Miss::Empty) if !self.ended => {
-                    if self.pending.len() <= self.cfg.max_pending {
+                    let waited = self.latest_pulse_time - p.gps_time;
+                    if self.pending.len() <= self.cfg.max_pending && waited <= self.cfg.max_wait_s {
                         return;
                     }
                     Err("navigation_late")
@@ -407,6 +425,8 @@ impl Source for GeoreferencingSource {
                 SourceEvent::Pulse(p) => {
                     if p.geometry.is_some() {
                         self.stats.with_own_geometry += 1;
+                    } else if p.gps_time > self.latest_pulse_time {
+                        self.latest_pulse_time = p.gps_time;
                     }
                     self.pending.push_back(p);
                     self.stats.largest_wait = self.stats.largest_wait.max(self.pending.len());
@@ -577,6 +597,33 @@ mod tests {
         assert_eq!(report["missed"]["navigation_gap"], 1, "{report}");
         assert_eq!(report["missed"]["no_navigation_after"], 1, "{report}");
         assert_eq!(report["georeferenced"], 2);
+    }
+
+    #[test]
+    fn a_pulse_waits_at_most_max_wait_s_of_pulse_time() {
+        // Navigation stops at base + 0.1; pulses keep coming for 3 s: the early ones are late
+        // once a pulse 1 s younger arrives, not only at the end of the input.
+        let base = 345_600.0;
+        let mut events = vec![Ev::Nav(base), Ev::Nav(base + 0.1)];
+        for k in 0..30 {
+            events.push(Ev::Pulse(base + 0.2 + 0.1 * k as f64));
+        }
+        let (_, report) = run(
+            events,
+            GeoreferenceConfig {
+                max_pending: 1000,
+                max_wait_s: 1.0,
+                ..cfg()
+            },
+        );
+        let late = report["missed"]["navigation_late"].as_u64().unwrap();
+        let end = report["missed"]["no_navigation_after"].as_u64().unwrap();
+        assert_eq!(late + end, 30, "{report}");
+        assert!((19..=21).contains(&late), "{report}");
+        assert!(
+            report["largest_wait_pulses"].as_u64().unwrap() <= 12,
+            "{report}"
+        );
     }
 
     #[test]
