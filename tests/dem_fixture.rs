@@ -134,23 +134,22 @@ fn write_utm36s_dem(path: &std::path::Path) -> (f64, f64) {
     (x0, y0)
 }
 
-/// Replay of the sample with a DEM: `returns.csv` gains `height_above_ground` = z − DEM(x, y),
-/// checked against the plane the DEM was written from.
-#[test]
-fn replay_gives_each_return_its_height_above_the_dem() {
-    let dir = tempfile::tempdir().unwrap();
-    let dem = dir.path().join("dem36s.tif");
-    let (x0, _) = write_utm36s_dem(&dem);
+/// Replays the bundled sample with the embedded configuration plus `keys` in its
+/// `[georeference]` table (the file written into `dir`); the process output and the output folder.
+fn replay_with_georeference_keys(
+    dir: &std::path::Path,
+    keys: &str,
+) -> (std::process::Output, std::path::PathBuf) {
     let config =
         std::fs::read_to_string(std::path::Path::new(common::ROOT).join("config/replay.toml"))
             .unwrap()
             .replace(
                 "on_missing = \"drop\"",
-                &format!("on_missing = \"drop\"\ndem = \"{}\"", dem.display()),
+                &format!("on_missing = \"drop\"\n{keys}"),
             );
-    let cfg = dir.path().join("run.toml");
+    let cfg = dir.join("run.toml");
     std::fs::write(&cfg, config).unwrap();
-    let out = dir.path().join("out");
+    let out = dir.join("out");
     let o = common::fwlidar(&[
         "replay",
         "replay/two_layer.fwcap",
@@ -160,6 +159,18 @@ fn replay_gives_each_return_its_height_above_the_dem() {
         out.to_str().unwrap(),
         "--no-progress",
     ]);
+    (o, out)
+}
+
+/// Replay of the sample with a DEM: `returns.csv` gains `height_above_ground` = z − DEM(x, y),
+/// checked against the plane the DEM was written from.
+#[test]
+fn replay_gives_each_return_its_height_above_the_dem() {
+    let dir = tempfile::tempdir().unwrap();
+    let dem = dir.path().join("dem36s.tif");
+    let (x0, _) = write_utm36s_dem(&dem);
+    let (o, out) =
+        replay_with_georeference_keys(dir.path(), &format!("dem = \"{}\"", dem.display()));
     assert!(o.status.success(), "{}", common::text(&o.stderr));
     let csv = std::fs::read_to_string(out.join("returns.csv")).unwrap();
     let mut lines = csv.lines();
@@ -185,28 +196,10 @@ fn replay_gives_each_return_its_height_above_the_dem() {
 fn a_dem_in_another_crs_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let tif = fixture("dem/ign_lidarhd/DTM_test_data_77055_627760_LA93_IGN69_50CM.tif");
-    let config =
-        std::fs::read_to_string(std::path::Path::new(common::ROOT).join("config/replay.toml"))
-            .unwrap()
-            .replace(
-                "on_missing = \"drop\"",
-                &format!(
-                    "on_missing = \"drop\"\ndem = \"{}\"\noutput_epsg = 32736",
-                    tif.display()
-                ),
-            );
-    let cfg = dir.path().join("run.toml");
-    std::fs::write(&cfg, config).unwrap();
-    let out = dir.path().join("out");
-    let o = common::fwlidar(&[
-        "replay",
-        "replay/two_layer.fwcap",
-        "--config",
-        cfg.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--no-progress",
-    ]);
+    let (o, out) = replay_with_georeference_keys(
+        dir.path(),
+        &format!("dem = \"{}\"\noutput_epsg = 32736", tif.display()),
+    );
     let err = common::text(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(

@@ -253,10 +253,8 @@ mod tests {
         }
     }
 
-    #[test]
-    fn every_bin_of_a_slanted_beam_gets_its_height_above_a_plane() {
-        // DEM z = 2x − 3y over its centres; a beam from (100.5, 199.5, 10) going down and east.
-        let (w, h) = (4, 3);
+    /// Heights z = 2x − 3y at the centres of a `w` × `h` grid laid out as `dem` lays it.
+    fn plane(w: usize, h: usize) -> Vec<f32> {
         let mut v = Vec::new();
         for r in 0..h {
             for c in 0..w {
@@ -264,6 +262,14 @@ mod tests {
                 v.push((2.0 * x - 3.0 * y) as f32);
             }
         }
+        v
+    }
+
+    #[test]
+    fn every_bin_of_a_slanted_beam_gets_its_height_above_a_plane() {
+        // DEM z = 2x − 3y over its centres; a beam from (100.5, 199.5, 10) going down and east.
+        let (w, h) = (4, 3);
+        let v = plane(w, h);
         let d = dem(v, w, h);
         let g = crate::pulse::PulseGeometry {
             anchor: [100.5, 199.5, 10.0],
@@ -285,13 +291,7 @@ mod tests {
     fn bilinear_reproduces_a_plane_and_respects_nodata_and_edges() {
         // z = 2x − 3y sampled at the centres: bilinear is exact on a plane.
         let (w, h) = (4, 3);
-        let mut v = Vec::new();
-        for r in 0..h {
-            for c in 0..w {
-                let (x, y) = (100.25 + 0.5 * c as f64, 199.75 - 0.5 * r as f64);
-                v.push((2.0 * x - 3.0 * y) as f32);
-            }
-        }
+        let v = plane(w, h);
         let d = dem(v.clone(), w, h);
         let z = d.height_at(101.1, 199.1).unwrap();
         assert!((z - (2.0 * 101.1 - 3.0 * 199.1)).abs() < 1e-3, "{z}");
