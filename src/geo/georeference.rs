@@ -201,6 +201,8 @@ pub struct GeoreferencingSource {
     earliest_days: Option<i64>,
     /// Time of the latest pulse taken from the input, GPS seconds as the input states them.
     latest_pulse_time: f64,
+    /// The input's time base is adjusted standard GPS time (cached from its facts).
+    adjusted_time: Option<bool>,
 }
 
 impl GeoreferencingSource {
@@ -230,6 +232,7 @@ impl GeoreferencingSource {
             failed: None,
             earliest_days: None,
             latest_pulse_time: f64::NEG_INFINITY,
+            adjusted_time: None,
         })
     }
 
@@ -288,10 +291,17 @@ impl GeoreferencingSource {
         self.samples = batch;
     }
 
+    /// Whether the input's pulse times are adjusted standard GPS time; asked of the input once
+    /// (its facts are complete after its first record, before any pulse is placed).
+    fn adjusted_time(&mut self) -> bool {
+        *self.adjusted_time.get_or_insert_with(|| {
+            self.inner.facts().time_base.as_deref() == Some("gps_adjusted_standard")
+        })
+    }
+
     /// The pulse's time on the trajectory's scale.
-    fn trajectory_time(&self, p: &Pulse) -> Option<f64> {
+    fn trajectory_time(&self, p: &Pulse, adjusted: bool) -> Option<f64> {
         let newest = self.trajectory.newest()?;
-        let adjusted = self.inner.facts().time_base.as_deref() == Some("gps_adjusted_standard");
         let time = p.gps_time + self.cfg.pulse_time_offset_s;
         let g = if adjusted {
             let s = time + 1e9;
@@ -348,13 +358,17 @@ impl GeoreferencingSource {
 
     /// Moves every pulse that can now be decided from `pending` to `ready`, in order.
     fn drain(&mut self, pool: &PulsePool) {
+        if self.pending.is_empty() {
+            return;
+        }
+        let adjusted = self.adjusted_time();
         while let Some(p) = self.pending.front() {
             if p.geometry.is_some() {
                 let p = self.pending.pop_front().expect("front exists");
                 self.ready.push_back(p);
                 continue;
             }
-            let t = self.trajectory_time(p);
+            let t = self.trajectory_time(p, adjusted);
             let pose = t.ok_or(Miss::Empty).and_then(|t| {
                 Ok((
                     self.trajectory.position_at(t)?,
