@@ -111,35 +111,24 @@ fn bench(c: &mut Criterion) {
     };
     let pos = tr.position_at(t0 + 1.0).unwrap();
     let att = tr.attitude_at(t0 + 1.0).unwrap();
-    g.bench_function("pulse_geometry_only", |b| {
-        b.iter(|| {
-            black_box(
-                georeference(
-                    &crs,
-                    pos,
-                    &att,
-                    [black_box(12.5), f32::NAN],
-                    &mount,
-                    (4000.0, 4256.0),
-                )
-                .unwrap(),
-            )
-        })
-    });
+    // One pulse 12.5° off nadir, its return window 4000..4256 ns.
+    let place = || {
+        georeference(
+            &crs,
+            pos,
+            &att,
+            [black_box(12.5), f32::NAN],
+            &mount,
+            (4000.0, 4256.0),
+        )
+        .unwrap()
+    };
+    g.bench_function("pulse_geometry_only", |b| b.iter(|| black_box(place())));
     // Every bin's position in f64: `anchor + t · direction` for t = 4000, 4001, ... ns.
     let mut bins = vec![[0.0f64; 3]; 256];
     g.bench_function("pulse_geometry_and_256_bins", |b| {
         b.iter(|| {
-            let geo = georeference(
-                &crs,
-                pos,
-                &att,
-                [black_box(12.5), f32::NAN],
-                &mount,
-                (4000.0, 4256.0),
-            )
-            .unwrap()
-            .geometry;
+            let geo = place().geometry;
             let d = geo.direction;
             // The first bin's position, then i bins on (an i32 index converts to f64 in SIMD).
             let a = [0, 1, 2].map(|k| geo.anchor[k] + 4000.0 * d[k]);
