@@ -56,7 +56,7 @@ pub struct NoiseEstimate {
 }
 
 /// A discrete return found by Gaussian decomposition of one segment.
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct FittedReturn {
     /// Index of the segment in [`Pulse::segments`].
     pub segment: u16,
@@ -70,6 +70,24 @@ pub struct FittedReturn {
     pub sigma_bins: f32,
     /// RMS residual of the whole fit over the segment, signal units.
     pub residual: f32,
+    /// Calibrated backscatter of the return (the `calibrate` stage's units, see
+    /// `docs/calibration.md`): its amplitude times the calibration factor at its range. NaN until
+    /// a `calibrate` stage has run.
+    pub backscatter: f32,
+}
+
+impl Default for FittedReturn {
+    fn default() -> Self {
+        FittedReturn {
+            segment: 0,
+            position_bins: 0.0,
+            time_ns: 0.0,
+            amplitude: 0.0,
+            sigma_bins: 0.0,
+            residual: 0.0,
+            backscatter: f32::NAN,
+        }
+    }
 }
 
 /// Where a pulse's time axis lies in space, when the input file carries it (LAS waveform

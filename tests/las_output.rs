@@ -88,6 +88,7 @@ fn make_pulse(i: u64) -> Pulse {
             amplitude: 0.05 + (i % 13) as f32 * 0.1,
             sigma_bins: 1.5 + (i % 3) as f32 * 0.25,
             residual: 0.01,
+            backscatter: f32::NAN,
         });
     }
     p

@@ -497,6 +497,7 @@ fn make_pulse(i: u64) -> Pulse {
             amplitude: 0.5,
             sigma_bins: 1.5,
             residual: 0.01,
+            backscatter: f32::NAN,
         });
     }
     p

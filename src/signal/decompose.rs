@@ -350,6 +350,7 @@ impl Decomposer {
                 amplitude: g.amplitude as f32,
                 sigma_bins: g.sigma_bins as f32,
                 residual: rms,
+                backscatter: f32::NAN,
             });
         }
         stats.iterations = used;

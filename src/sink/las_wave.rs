@@ -603,6 +603,7 @@ mod tests {
                 amplitude,
                 sigma_bins: 2.0,
                 residual: 0.0,
+                backscatter: f32::NAN,
             });
         }
         p

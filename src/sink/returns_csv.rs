@@ -170,6 +170,7 @@ mod tests {
             amplitude: 0.5,
             sigma_bins: 3.0,
             residual: 0.01,
+            backscatter: f32::NAN,
         });
         p.returns.push(FittedReturn {
             segment: 1,
@@ -178,6 +179,7 @@ mod tests {
             amplitude: 0.125,
             sigma_bins: 2.5,
             residual: 0.01,
+            backscatter: f32::NAN,
         });
         sink.write(&p).unwrap();
         assert_eq!(sink.rows(), 2);
