@@ -27,3 +27,4 @@ pub mod signal;
 pub mod sim;
 pub mod sink;
 pub mod source;
+pub mod voxel;

@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 pub mod import;
 pub mod inspect;
 pub mod inspect_nav;
+pub mod merge;
 pub mod process;
 pub mod replay;
 pub mod simulate;
@@ -57,6 +58,9 @@ pub enum Command {
     /// Measure what accuracy costs in time: every method and setting on simulated pulses with
     /// known truth; writes a CSV, a markdown report and an SVG plot.
     Tradeoff(tradeoff::TradeoffArgs),
+    /// Combine voxel stores (voxels.zarr) of several flights or replays into one, independent
+    /// of order.
+    Merge(merge::MergeArgs),
 }
 
 /// A failure to report: the message and the exit code.
@@ -121,6 +125,7 @@ pub fn main() -> i32 {
         Command::Import(a) => import::run(a),
         Command::Process(a) => process::run(a),
         Command::Tradeoff(a) => tradeoff::run(a),
+        Command::Merge(a) => merge::run(a),
     };
     match result {
         Ok(()) => 0,

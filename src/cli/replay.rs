@@ -15,7 +15,9 @@ use crate::sink::atomic_file::write_atomic;
 use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use crate::sink::nav_decode::NavDecode;
 use crate::sink::returns_csv::ReturnsCsvSink;
+use crate::sink::voxel_tiles::{CrsSource, VoxelTilesSink};
 use crate::sink::waveform_csv::WaveformCsvSink;
+use crate::voxel::zarr::StoreInfo;
 use crate::sink::{FanOut, PulseSink};
 
 /// The sample replayed when no input is named.
@@ -68,6 +70,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         )),
         None => None,
     };
+    let mut decided_crs = None;
     if config.georeference.enabled {
         let mut geo_cfg = config.georeference.clone();
         // Register to the ground in the DEM's own CRS unless an output CRS is named (a named
@@ -83,6 +86,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         if let (Some(d), Some(path)) = (&dem, &config.georeference.dem) {
             g = g.with_dem(d.clone(), path.clone());
         }
+        decided_crs = Some(g.decided_crs());
         source = Box::new(g);
     }
     prepare_out_dir(&out_dir)?;
@@ -116,6 +120,32 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         }
         sinks.push(Box::new(
             LasWaveSink::create(&out_dir, las_options(&source.facts())).map_err(Failure::job)?,
+        ));
+    }
+    if config.voxels.enabled {
+        let facts = source.facts();
+        let crs = match (facts.crs.clone(), decided_crs) {
+            (Some(c), _) => CrsSource::Known(Some(c)),
+            (None, Some(cell)) => CrsSource::Decided(cell),
+            (None, None) => CrsSource::Known(None),
+        };
+        let info = StoreInfo {
+            crs_wkt: None,
+            epsg: None,
+            intensity_units: intensity_units(&spec.stage_names).into(),
+            run_key: run_key(&args.input, &config),
+            configuration: toml::to_string(&config).unwrap_or_default(),
+        };
+        sinks.push(Box::new(
+            VoxelTilesSink::create(
+                &out_dir,
+                config.voxels.clone(),
+                crs,
+                info,
+                dem.clone(),
+                facts.sensor.as_ref().map(|s| s.beam_divergence_mrad),
+            )
+            .map_err(Failure::job)?,
         ));
     }
     let control = RunControl::default();
@@ -192,6 +222,33 @@ fn las_options(facts: &crate::source::SourceFacts) -> LasWaveOptions {
         adjusted_standard_gps_time: facts.time_base.as_deref() == Some("gps_adjusted_standard"),
         ..LasWaveOptions::default()
     }
+}
+
+/// Units of the deposited intensity: calibrated backscatter after a `calibrate` stage, volts
+/// otherwise.
+fn intensity_units(stages: &[&str]) -> &'static str {
+    if stages.contains(&"calibrate") {
+        "calibrated backscatter (docs/calibration.md)"
+    } else {
+        "V"
+    }
+}
+
+/// Identifies a run for resuming its voxel store: the input's name and size and a checksum of
+/// the configuration (apart from the output folder).
+fn run_key(input: &Path, config: &RunConfig) -> String {
+    let size = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0);
+    let mut c = config.clone();
+    c.output.dir.clear();
+    let text = toml::to_string(&c).unwrap_or_default();
+    format!(
+        "{} ({size} bytes), configuration crc32c {:08x}",
+        input
+            .file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default(),
+        crc32c::crc32c(text.as_bytes())
+    )
 }
 
 fn prepare_out_dir(dir: &Path) -> Result<(), Failure> {
@@ -321,6 +378,39 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
             las["packets"],
             las["wdp_bytes"]
         );
+    }
+    if let Some(v) = r.sinks.get("voxels") {
+        let d = &v["deposits"];
+        let t = &v["tiles"];
+        let outside = ["bins_outside_extent", "bins_outside_heights", "bins_outside_dem"]
+            .iter()
+            .map(|k| d[*k].as_u64().unwrap_or(0))
+            .sum::<u64>();
+        println!(
+            "  voxels.zarr: {} bins of {} pulses deposited ({} outside the grid); tiles {} opened, \
+             {} closed ({} early), {} merged with the store, at most {} open ({:.1} MB each){}",
+            d["bins_deposited"],
+            d["pulses_deposited"],
+            outside,
+            t["opened"],
+            t["closed"],
+            t["closed_early"],
+            t["merged"],
+            t["peak_open"],
+            t["tile_bytes"].as_f64().unwrap_or(0.0) / 1e6,
+            match d["bins_resumed"].as_u64() {
+                Some(n) if n > 0 => format!("; resumed: {n} bins already in the store"),
+                _ => String::new(),
+            }
+        );
+        let skipped = d["pulses_no_geometry"].as_u64().unwrap_or(0)
+            + d["pulses_non_finite"].as_u64().unwrap_or(0);
+        if skipped > 0 {
+            println!(
+                "    voxels skipped {skipped} pulses ({} without geometry, {} non-finite)",
+                d["pulses_no_geometry"], d["pulses_non_finite"]
+            );
+        }
     }
     println!(
         "  {:<14} {:>10} {:>10} {:>10} {:>10} {:>10}   (service time, µs)",

@@ -45,6 +45,9 @@ pub struct RunConfig {
     /// Navigation inputs and their time handling.
     #[serde(default)]
     pub navigation: NavigationConfig,
+    /// Voxel tiles (`src/voxel/`).
+    #[serde(default)]
+    pub voxels: crate::voxel::grid::VoxelConfig,
 }
 
 /// `[navigation]`: the receivers' serial ports (live input) and date handling.
@@ -241,6 +244,16 @@ impl Validate for RunConfig {
         self.output.validate(&field(path, "output"), v);
         self.georeference.validate(&field(path, "georeference"), v);
         self.navigation.validate(&field(path, "navigation"), v);
+        self.voxels.validate(&field(path, "voxels"), v);
+        if self.voxels.enabled
+            && self.voxels.height == crate::voxel::grid::HeightMode::AboveDem
+            && self.georeference.dem.is_none()
+        {
+            v.report(
+                field(&field(path, "voxels"), "height"),
+                "\"above_dem\" needs a DEM: set [georeference] dem",
+            );
+        }
     }
 }
 

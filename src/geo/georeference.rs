@@ -203,6 +203,8 @@ pub struct GeoreferencingSource {
     latest_pulse_time: f64,
     /// The input's time base is adjusted standard GPS time (cached from its facts).
     adjusted_time: Option<bool>,
+    /// The output CRS once decided (WKT, or `EPSG:<code>`), for outputs created during the run.
+    decided: std::sync::Arc<std::sync::OnceLock<String>>,
 }
 
 impl GeoreferencingSource {
@@ -233,7 +235,27 @@ impl GeoreferencingSource {
             earliest_days: None,
             latest_pulse_time: f64::NEG_INFINITY,
             adjusted_time: None,
-        })
+            decided: Default::default(),
+        }
+        .decide_crs())
+    }
+
+    /// Publishes the output CRS, once known, to [`GeoreferencingSource::decided_crs`].
+    fn decide_crs(self) -> Self {
+        if let Some(c) = &self.crs {
+            let code = c.epsg();
+            let _ = self
+                .decided
+                .set(super::crs::utm_wkt(code).unwrap_or_else(|| format!("EPSG:{code}")));
+        }
+        self
+    }
+
+    /// The output CRS as OGC WKT (UTM zones) or `EPSG:<code>`, set when it is decided: at once
+    /// when the configuration names it, else at the first position fix (before any pulse is
+    /// georeferenced). Sinks created before the run read it at their first pulse.
+    pub fn decided_crs(&self) -> std::sync::Arc<std::sync::OnceLock<String>> {
+        self.decided.clone()
     }
 
     /// NMEA dates before `days` (since 1970-01-01) are taken for a 10-bit week rollover and
@@ -280,7 +302,11 @@ impl GeoreferencingSource {
             {
                 match OutputCrs::utm_at(lat, lon) {
                     Ok(c) => {
+                        let code = c.epsg();
                         self.crs = Some(c);
+                        let _ = self.decided.set(
+                            super::crs::utm_wkt(code).unwrap_or_else(|| format!("EPSG:{code}")),
+                        );
                         self.check_dem();
                     }
                     Err(e) => tracing::warn!("no UTM zone for the first fix: {e}"),

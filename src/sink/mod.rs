@@ -6,6 +6,7 @@ pub mod las_wave;
 pub mod nav_decode;
 pub mod nav_tally;
 pub mod returns_csv;
+pub mod voxel_tiles;
 pub mod waveform_csv;
 
 use crate::pulse::Pulse;
@@ -21,6 +22,9 @@ pub enum SinkError {
         /// The I/O error.
         source: std::io::Error,
     },
+    /// The voxel tile store failed (it names the file).
+    #[error("voxel tiles: {0}")]
+    Voxels(#[from] crate::voxel::zarr::StoreError),
     /// The data cannot be represented in the LAS file being written.
     #[error("cannot write {path}: {source}")]
     Las {

@@ -1,0 +1,469 @@
+//! The voxel-tile sink (`[voxels] enabled = true`): deposits every pulse's return bins into
+//! the voxel grid (`crate::voxel::voxelise`), closes tiles as the flight leaves them and writes
+//! them to `voxels.zarr` (`crate::voxel::zarr`).
+//!
+//! The store is created at the first pulse with geometry: that is when the output CRS is known
+//! for a capture georeferenced into the UTM zone of its first fix, and where the automatic
+//! extent is centred. Rerunning with the same output resumes a store the same run left behind
+//! (killed, or complete): tile by tile, deposits already in it are skipped.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+use crate::geo::dem::Dem;
+use crate::pulse::{Pulse, SegmentKind};
+use crate::sink::{PulseSink, SinkError};
+use crate::voxel::grid::{Grid, Placer, VoxelConfig};
+use crate::voxel::tiles::TileSet;
+use crate::voxel::voxelise::{DepositParams, DepositStats, deposit_pulse};
+use crate::voxel::zarr::{StoreError, StoreInfo, ZarrStore};
+
+/// Where the output CRS comes from.
+#[derive(Clone, Debug)]
+pub enum CrsSource {
+    /// Known before the run (the input states it, or the configuration names it): OGC WKT or
+    /// `EPSG:<code>`; `None` when nobody knows.
+    Known(Option<String>),
+    /// Decided by the georeferencing during the run (the UTM zone of the first fix).
+    Decided(Arc<OnceLock<String>>),
+}
+
+/// The EPSG code in a CRS description (`EPSG:<code>`, or the last `AUTHORITY["EPSG","<code>"]`
+/// of a WKT, which is the CRS's own).
+pub fn epsg_of(crs: &str) -> Option<u32> {
+    if let Some(code) = crs.strip_prefix("EPSG:") {
+        return code.trim().parse().ok();
+    }
+    let at = crs.rfind("AUTHORITY[\"EPSG\",\"")?;
+    let rest = &crs[at + 18..];
+    rest[..rest.find('"')?].parse().ok()
+}
+
+/// The sink.
+pub struct VoxelTilesSink {
+    cfg: VoxelConfig,
+    root: PathBuf,
+    crs: CrsSource,
+    info: StoreInfo,
+    dem: Option<Arc<Dem>>,
+    divergence_mrad: Option<f64>,
+    tiles: Option<TileSet>,
+    params: Option<DepositParams>,
+    stats: DepositStats,
+    next_seq: u64,
+    finished: bool,
+}
+
+fn store_err(e: StoreError) -> SinkError {
+    SinkError::Voxels(e)
+}
+
+impl VoxelTilesSink {
+    /// A sink writing `dir/voxels.zarr`. `info` carries the intensity units, the run identity
+    /// and the configuration text (its CRS fields are filled from `crs`); `dem` is needed for
+    /// heights above ground; `divergence_mrad` (the sensor's) for the footprint spread unless
+    /// the configuration gives one.
+    pub fn create(
+        dir: &Path,
+        cfg: VoxelConfig,
+        crs: CrsSource,
+        info: StoreInfo,
+        dem: Option<Arc<Dem>>,
+        divergence_mrad: Option<f64>,
+    ) -> Result<Self, SinkError> {
+        Ok(VoxelTilesSink {
+            root: dir.join("voxels.zarr"),
+            divergence_mrad: cfg.beam_divergence_mrad.or(divergence_mrad),
+            cfg,
+            crs,
+            info,
+            dem,
+            tiles: None,
+            params: None,
+            stats: DepositStats::default(),
+            next_seq: 0,
+            finished: false,
+        })
+    }
+
+    /// What was deposited and skipped so far.
+    pub fn stats(&self) -> &DepositStats {
+        &self.stats
+    }
+
+    /// The open tile set (after the first pulse with geometry).
+    pub fn tiles(&self) -> Option<&TileSet> {
+        self.tiles.as_ref()
+    }
+
+    fn start(&mut self, pulse: &Pulse) -> Result<(), SinkError> {
+        let Some(g) = pulse.geometry else {
+            return Ok(());
+        };
+        // Centre of the automatic extent: the middle of the pulse's first return segment.
+        let t = pulse
+            .segments
+            .iter()
+            .find(|s| s.kind == SegmentKind::Return)
+            .map(|s| s.start_ns + s.len as f64 * pulse.sample_ns / 2.0)
+            .unwrap_or(0.0);
+        let first = [
+            g.anchor[0] + t * g.direction[0],
+            g.anchor[1] + t * g.direction[1],
+        ];
+        if !first.iter().all(|v| v.is_finite()) {
+            return Ok(());
+        }
+        let crs = match &self.crs {
+            CrsSource::Known(c) => c.clone(),
+            CrsSource::Decided(cell) => cell.get().cloned(),
+        };
+        let mut info = self.info.clone();
+        info.epsg = crs.as_deref().and_then(epsg_of);
+        info.crs_wkt = crs.filter(|c| !c.starts_with("EPSG:"));
+        let grid = Grid::new(&self.cfg, first);
+        if let Some(e) = self.cfg.extent_m.is_none().then_some(()) {
+            let _ = e;
+            tracing::info!(
+                centre = ?first,
+                side_m = self.cfg.auto_extent_m,
+                "voxel store extent centred on the first pulse"
+            );
+        }
+        let store = ZarrStore::create_or_open(&self.root, grid.clone(), info).map_err(store_err)?;
+        if store.recovered_commits > 0 || store.discarded_pending > 0 || !store.tiles().is_empty()
+        {
+            tracing::info!(
+                tiles = store.tiles().len(),
+                recovered = store.recovered_commits,
+                discarded = store.discarded_pending,
+                "resuming the voxel store {}",
+                self.root.display()
+            );
+        }
+        self.params = Some(DepositParams {
+            placer: Placer::new(&grid),
+            height: grid.height,
+            dem: self.dem.clone(),
+            inv_quantum: 1.0 / grid.intensity_quantum,
+            footprint_divergence_rad: if self.cfg.footprint {
+                self.divergence_mrad.map(|d| d * 1e-3)
+            } else {
+                None
+            },
+        });
+        self.tiles = Some(TileSet::new(
+            store,
+            self.cfg.max_open_tiles,
+            self.cfg.close_after_s,
+        ));
+        Ok(())
+    }
+}
+
+impl PulseSink for VoxelTilesSink {
+    fn name(&self) -> &'static str {
+        "voxels"
+    }
+
+    fn write(&mut self, pulse: &Pulse) -> Result<(), SinkError> {
+        if self.tiles.is_none() {
+            self.start(pulse)?;
+        }
+        self.next_seq = pulse.seq + 1;
+        let (Some(tiles), Some(params)) = (self.tiles.as_mut(), self.params.as_ref()) else {
+            // No store yet: the pulse has no usable geometry; count it.
+            deposit_counts_only(pulse, &mut self.stats);
+            return Ok(());
+        };
+        tiles
+            .close_idle(pulse.seq, pulse.gps_time)
+            .map_err(store_err)?;
+        deposit_pulse(pulse, tiles, params, &mut self.stats).map_err(store_err)
+    }
+
+    fn flush(&mut self) -> Result<(), SinkError> {
+        Ok(())
+    }
+
+    fn finish(&mut self) -> Result<(), SinkError> {
+        if self.finished {
+            return Ok(());
+        }
+        self.finished = true;
+        if let Some(t) = self.tiles.as_mut() {
+            t.close_all(self.next_seq).map_err(store_err)?;
+        }
+        Ok(())
+    }
+
+    fn report(&self) -> serde_json::Value {
+        let mut v = serde_json::json!({
+            "store": self.root.display().to_string(),
+            "deposits": self.stats,
+        });
+        if let Some(t) = &self.tiles {
+            let s = t.store();
+            let g = t.grid();
+            v["tiles"] = serde_json::to_value(t.stats()).unwrap_or_default();
+            v["tiles"]["written"] = s.tiles_written.into();
+            v["tiles"]["bytes_written"] = s.bytes_written.into();
+            v["tiles"]["in_store"] = s.tiles().len().into();
+            v["tiles"]["recovered_commits"] = s.recovered_commits.into();
+            v["grid"] = serde_json::json!({
+                "epsg": s.info().epsg,
+                "voxel_size_m": g.voxel_size_m,
+                "levels": g.levels,
+                "tile_columns": g.tile_columns,
+                "extent_origin_m": g.extent_origin(),
+                "tiles": g.tiles,
+                "height": g.height.name(),
+                "intensity_units": s.info().intensity_units,
+            });
+        }
+        v
+    }
+}
+
+/// Counts a pulse seen before the store exists (it had no usable geometry).
+fn deposit_counts_only(pulse: &Pulse, stats: &mut DepositStats) {
+    match pulse.geometry {
+        None => stats.pulses_no_geometry += 1,
+        Some(_) => stats.pulses_non_finite += 1,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pulse::PulseGeometry;
+    use crate::voxel::tile::TileData;
+
+    /// A nadir pulse over (x, y): 40 return bins from 10 m above z = 0 down to 2 m below, 1 V
+    /// each except a 5 V echo at z = 0.
+    fn pulse(seq: u64, t: f64, x: f64, y: f64) -> Pulse {
+        let mut p = Pulse {
+            seq,
+            gps_time: t,
+            sample_ns: 1.0,
+            geometry: Some(PulseGeometry {
+                anchor: [x, y, 10.0],
+                direction: [0.0, 0.0, -0.15],
+            }),
+            ..Default::default()
+        };
+        p.push_segment(SegmentKind::Return, 0, 0.0, 0..80u16);
+        p.signal = (0..80)
+            .map(|i| if (66..=67).contains(&i) { 5.0 } else { 1.0 })
+            .collect();
+        p
+    }
+
+    fn cfg() -> VoxelConfig {
+        VoxelConfig {
+            enabled: true,
+            extent_m: Some([0.0, 0.0, 64.0, 64.0]),
+            z_range_m: [-1.5, 4.5],
+            voxel_size_m: [1.0, 1.0, 0.3],
+            tile_columns: 8,
+            max_open_tiles: 4,
+            close_after_s: 0.5,
+            ..VoxelConfig::default()
+        }
+    }
+
+    fn info() -> StoreInfo {
+        StoreInfo {
+            crs_wkt: None,
+            epsg: None,
+            intensity_units: "V".into(),
+            run_key: "test".into(),
+            configuration: String::new(),
+        }
+    }
+
+    fn run(dir: &Path, cfg: VoxelConfig, pulses: impl Iterator<Item = Pulse>) -> VoxelTilesSink {
+        let mut s = VoxelTilesSink::create(
+            dir,
+            cfg,
+            CrsSource::Known(Some("EPSG:32736".into())),
+            info(),
+            None,
+            None,
+        )
+        .unwrap();
+        for p in pulses {
+            s.write(&p).unwrap();
+        }
+        s.finish().unwrap();
+        s
+    }
+
+    /// A flight line eastwards over y = 4.5 then back westwards over y = 5.5, 10 pulses per
+    /// metre, 1 s per 10 m.
+    fn flight() -> impl Iterator<Item = Pulse> {
+        let out = (0..600).map(|i| pulse(i, i as f64 * 0.01, 0.05 + i as f64 * 0.1, 4.5));
+        let back = (0..600).map(|i| {
+            pulse(
+                600 + i,
+                10.0 + i as f64 * 0.01,
+                59.95 - i as f64 * 0.1,
+                5.5,
+            )
+        });
+        out.chain(back)
+    }
+
+    fn read_all(dir: &Path) -> Vec<([i64; 2], TileData)> {
+        let mut s = ZarrStore::open(&dir.join("voxels.zarr")).unwrap();
+        let n = s.grid().tile_voxels();
+        s.tiles()
+            .into_iter()
+            .map(|t| {
+                let mut d = TileData::new(n);
+                s.read_tile(t, &mut d).unwrap();
+                (t, d)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn bins_land_in_their_voxels_with_sums_counts_maxima_and_passes() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = run(
+            dir.path(),
+            cfg(),
+            [pulse(0, 0.0, 3.2, 2.7), pulse(1, 0.001, 3.4, 2.9)].into_iter(),
+        );
+        let st = s.stats();
+        // Bins at z = 10 − 0.15 i: inside [-1.5, 4.5) for i in 37..=76 → 40 per pulse.
+        assert_eq!(st.bins_deposited, 80);
+        assert_eq!(st.bins_outside_heights, 80);
+        let tiles = read_all(dir.path());
+        assert_eq!(tiles.len(), 1);
+        let (t, d) = &tiles[0];
+        assert_eq!(*t, [0, 0]);
+        // Column (3, 2); the echo at z = 0.1 and −0.05 is in level floor((z+1.5)/0.3) = 5 and
+        // 4: bins 66 (z = 0.1) → level 5, 67 (z = −0.05) → level 4.
+        let at = |k: usize| (k * 8 + 2) * 8 + 3;
+        assert_eq!(d.max[at(5)], 5.0);
+        assert_eq!(d.max[at(4)], 5.0);
+        // Level 5 spans z in [0, 0.3): bins 64 (0.4)? no: z = 10 − 0.15·i for i = 65, 66 → 0.25,
+        // 0.1 → two bins per pulse, one of 1 V and one of 5 V: sum 12 V over two pulses.
+        assert_eq!(d.samples[at(5)], 4);
+        assert_eq!(d.sum_q[at(5)], 12_000_000);
+        assert_eq!(d.pulses[at(5)], 2, "each pulse passed once");
+        assert_eq!(d.pulses[at(19)], 2);
+        let untouched = (2 * 8 + 2) * 8 + 3;
+        assert!(d.max[untouched + 1].is_nan() && d.samples[untouched + 1] == 0);
+    }
+
+    #[test]
+    fn tiles_close_behind_the_flight_and_a_second_line_merges_exactly() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = run(dir.path(), cfg(), flight());
+        let ts = s.tiles().unwrap().stats().clone();
+        // 60 m of line = 8 tiles (8 m each) out; back over the same tiles, of which the last
+        // two are still open at the turn: 14 openings, 6 of them merged with the store.
+        assert_eq!((ts.opened, ts.closed, ts.merged), (14, 14, 6), "{ts:?}");
+        assert!(ts.peak_open <= 4);
+        // Equal to one run with room for everything (no tile closed before the end).
+        let dir2 = tempfile::tempdir().unwrap();
+        let big = VoxelConfig {
+            max_open_tiles: 1000,
+            close_after_s: 1000.0,
+            ..cfg()
+        };
+        let s2 = run(dir2.path(), big, flight());
+        assert_eq!(s2.tiles().unwrap().stats().merged, 0);
+        let (a, b) = (read_all(dir.path()), read_all(dir2.path()));
+        assert_eq!(a.len(), b.len());
+        for ((ta, da), (tb, db)) in a.iter().zip(&b) {
+            assert_eq!(ta, tb);
+            assert_eq!(da.sum_q, db.sum_q);
+            assert_eq!(da.samples, db.samples);
+            assert_eq!(da.pulses, db.pulses);
+            let bits = |d: &TileData| d.max.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(da), bits(db));
+        }
+    }
+
+    #[test]
+    fn a_resumed_run_skips_what_the_store_holds_and_ends_identical() {
+        let full = tempfile::tempdir().unwrap();
+        run(full.path(), cfg(), flight());
+        // A run that stops after 900 pulses without closing its open tiles (as kill -9 would),
+        // then a rerun of everything into the same folder.
+        let cut = tempfile::tempdir().unwrap();
+        {
+            let mut s = VoxelTilesSink::create(
+                cut.path(),
+                cfg(),
+                CrsSource::Known(Some("EPSG:32736".into())),
+                info(),
+                None,
+                None,
+            )
+            .unwrap();
+            for p in flight().take(900) {
+                s.write(&p).unwrap();
+            }
+            assert!(s.tiles().unwrap().store().tiles_written > 0);
+            // Dropped without finish: open tiles are lost.
+        }
+        let s = run(cut.path(), cfg(), flight());
+        assert!(s.stats().bins_resumed > 0);
+        let (a, b) = (read_all(full.path()), read_all(cut.path()));
+        assert_eq!(a.len(), b.len());
+        for ((ta, da), (tb, db)) in a.iter().zip(&b) {
+            assert_eq!(ta, tb);
+            assert_eq!(da.sum_q, db.sum_q, "tile {ta:?}");
+            assert_eq!(da.samples, db.samples);
+            assert_eq!(da.pulses, db.pulses);
+        }
+    }
+
+    #[test]
+    fn pulses_without_or_with_broken_geometry_and_bins_outside_are_counted() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut none = pulse(0, 0.0, 1.0, 1.0);
+        none.geometry = None;
+        let mut nan = pulse(1, 0.0, 1.0, 1.0);
+        nan.geometry.as_mut().unwrap().anchor[0] = f64::NAN;
+        let outside = pulse(2, 0.0, 100.0, 1.0);
+        let s = run(dir.path(), cfg(), [none, nan, outside].into_iter());
+        let st = s.stats();
+        assert_eq!(st.pulses_no_geometry, 1);
+        assert_eq!(st.pulses_non_finite, 1);
+        assert_eq!(st.bins_outside_extent, 80);
+        assert_eq!(st.bins_deposited, 0);
+    }
+
+    #[test]
+    fn footprint_spreads_a_bin_over_the_columns_it_covers_and_keeps_its_sum() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = VoxelConfig {
+            footprint: true,
+            beam_divergence_mrad: Some(400.0), // 0.2 rad: 0.2 m radius per metre of range
+            ..cfg()
+        };
+        // Range at the echo is 80 bins ·0.15 m ≈ 10 m → radius ≈ 1 m: several 1 m columns.
+        let s = run(dir.path(), c, [pulse(0, 0.0, 4.5, 4.5)].into_iter());
+        let tiles = read_all(dir.path());
+        let total_q: i64 = tiles.iter().flat_map(|(_, d)| d.sum_q.iter()).sum();
+        let columns_hit: std::collections::BTreeSet<usize> = tiles
+            .iter()
+            .flat_map(|(_, d)| {
+                d.samples
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, n)| **n > 0)
+                    .map(|(o, _)| o % 64)
+            })
+            .collect();
+        assert!(columns_hit.len() >= 4, "{columns_hit:?}");
+        // 38 bins of 1 V and 2 of 5 V in range: 48 V, up to rounding of the shares.
+        assert!((total_q - 48_000_000).abs() < 1000, "{total_q}");
+        assert_eq!(s.stats().bins_deposited, 40);
+    }
+}

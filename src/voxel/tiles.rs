@@ -1,0 +1,237 @@
+//! The tile lifecycle: open tiles live in memory up to a bound; a tile closes when the flight
+//! has left it, is written to the store atomically and its memory reused; a tile touched again
+//! (a later flight line, or a resumed run) is read back and merged exactly.
+//!
+//! A tile closes when no bin has been deposited in it for `close_after_s` of pulse time **and**
+//! it lies outside the current swath (the bounding box of everything deposited during the last
+//! `close_after_s` to `2·close_after_s`). When `max_open_tiles` are open and another is
+//! needed, the one deposited least recently closes early (counted `closed_early`): memory stays
+//! bounded by `max_open_tiles` tiles whatever the flight's length.
+
+use std::collections::HashMap;
+
+use super::grid::Grid;
+use super::tile::TileData;
+use super::zarr::{StoreError, ZarrStore};
+
+/// Counters of the lifecycle (`summary.json`: `sinks.voxels.tiles`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct TileStats {
+    /// Tiles opened in memory.
+    pub opened: u64,
+    /// Tiles written and freed.
+    pub closed: u64,
+    /// Of those, closed because `max_open_tiles` were open.
+    pub closed_early: u64,
+    /// Tiles opened that were already in the store and merged with it.
+    pub merged: u64,
+    /// Most tiles open at once.
+    pub peak_open: usize,
+    /// Memory of one open tile, bytes.
+    pub tile_bytes: usize,
+}
+
+struct Slot {
+    tile: [i64; 2],
+    data: TileData,
+    /// Pulse time of the latest deposit, GPS seconds.
+    last_deposit_s: f64,
+    /// Deposits of pulses numbered below this are already in the tile (resume).
+    skip_below: u64,
+}
+
+/// Open tiles over a store.
+pub struct TileSet {
+    store: ZarrStore,
+    slots: Vec<Slot>,
+    free: Vec<usize>,
+    open: HashMap<[i64; 2], usize>,
+    max_open: usize,
+    close_after_s: f64,
+    /// Swath boxes `[cx0, cy0, cx1, cy1]` (tiles) of the current and the previous period.
+    swath: [[i64; 4]; 2],
+    period_end_s: f64,
+    next_check_s: f64,
+    stats: TileStats,
+}
+
+const EMPTY_BOX: [i64; 4] = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
+
+impl TileSet {
+    /// Tiles over `store`.
+    pub fn new(store: ZarrStore, max_open: usize, close_after_s: f64) -> TileSet {
+        let tile_bytes = store.grid().tile_voxels() * 20;
+        TileSet {
+            store,
+            slots: Vec::new(),
+            free: Vec::new(),
+            open: HashMap::with_capacity(max_open + 1),
+            max_open: max_open.max(1),
+            close_after_s,
+            swath: [EMPTY_BOX; 2],
+            period_end_s: f64::NEG_INFINITY,
+            next_check_s: f64::NEG_INFINITY,
+            stats: TileStats {
+                tile_bytes,
+                ..TileStats::default()
+            },
+        }
+    }
+
+    /// The grid.
+    pub fn grid(&self) -> &Grid {
+        self.store.grid()
+    }
+
+    /// The store.
+    pub fn store(&self) -> &ZarrStore {
+        &self.store
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> &TileStats {
+        &self.stats
+    }
+
+    /// Tiles open now.
+    pub fn open_count(&self) -> usize {
+        self.open.len()
+    }
+
+    /// The slot of `tile`, opening it (and closing another when full) if needed; `seq` is the
+    /// pulse about to deposit, `now_s` its time. Returns the slot and the sequence number below
+    /// which deposits are already in the tile.
+    pub fn slot_for(
+        &mut self,
+        tile: [i64; 2],
+        seq: u64,
+        now_s: f64,
+    ) -> Result<(usize, u64), StoreError> {
+        if let Some(&s) = self.open.get(&tile) {
+            return Ok((s, self.slots[s].skip_below));
+        }
+        if self.open.len() >= self.max_open {
+            let oldest = self
+                .open
+                .values()
+                .copied()
+                .min_by(|a, b| {
+                    self.slots[*a]
+                        .last_deposit_s
+                        .total_cmp(&self.slots[*b].last_deposit_s)
+                })
+                .expect("max_open >= 1");
+            self.close_slot(oldest, seq)?;
+            self.stats.closed_early += 1;
+        }
+        let s = match self.free.pop() {
+            Some(s) => s,
+            None => {
+                self.slots.push(Slot {
+                    tile,
+                    data: TileData::new(self.store.grid().tile_voxels()),
+                    last_deposit_s: now_s,
+                    skip_below: 0,
+                });
+                self.slots.len() - 1
+            }
+        };
+        let slot = &mut self.slots[s];
+        slot.tile = tile;
+        slot.last_deposit_s = now_s;
+        slot.skip_below = 0;
+        if self.store.read_tile(tile, &mut slot.data)? {
+            slot.skip_below = self.store.watermark(tile).unwrap_or(0);
+            self.stats.merged += 1;
+        }
+        self.open.insert(tile, s);
+        self.stats.opened += 1;
+        self.stats.peak_open = self.stats.peak_open.max(self.open.len());
+        Ok((s, self.slots[s].skip_below))
+    }
+
+    /// The accumulators of an open slot.
+    #[inline]
+    pub fn data(&mut self, slot: usize) -> &mut TileData {
+        &mut self.slots[slot].data
+    }
+
+    /// Notes a deposit into `slot` at pulse time `now_s` (for closing and the swath).
+    #[inline]
+    pub fn touched(&mut self, slot: usize, now_s: f64) {
+        let s = &mut self.slots[slot];
+        s.last_deposit_s = now_s;
+        let t = s.tile;
+        let b = &mut self.swath[0];
+        b[0] = b[0].min(t[0]);
+        b[1] = b[1].min(t[1]);
+        b[2] = b[2].max(t[0]);
+        b[3] = b[3].max(t[1]);
+    }
+
+    fn close_slot(&mut self, s: usize, watermark: u64) -> Result<(), StoreError> {
+        let slot = &self.slots[s];
+        let tile = slot.tile;
+        let w = watermark.max(slot.skip_below);
+        self.store.write_tile(tile, &slot.data, w)?;
+        self.open.remove(&tile);
+        self.free.push(s);
+        self.stats.closed += 1;
+        Ok(())
+    }
+
+    /// Closes the tiles the flight has left, given the time of the pulse about to be processed
+    /// (`seq`, everything before it deposited). Cheap when called per pulse: the open tiles are
+    /// examined at most eight times per `close_after_s`.
+    pub fn close_idle(&mut self, seq: u64, now_s: f64) -> Result<(), StoreError> {
+        if !now_s.is_finite() {
+            return Ok(());
+        }
+        if now_s >= self.period_end_s {
+            self.swath[1] = self.swath[0];
+            self.swath[0] = EMPTY_BOX;
+            self.period_end_s = now_s + self.close_after_s;
+        }
+        if now_s < self.next_check_s {
+            return Ok(());
+        }
+        self.next_check_s = now_s + self.close_after_s / 8.0;
+        let swath = [
+            self.swath[0][0].min(self.swath[1][0]),
+            self.swath[0][1].min(self.swath[1][1]),
+            self.swath[0][2].max(self.swath[1][2]),
+            self.swath[0][3].max(self.swath[1][3]),
+        ];
+        let mut idle: Vec<usize> = Vec::new();
+        for &s in self.open.values() {
+            let slot = &self.slots[s];
+            let t = slot.tile;
+            let inside =
+                t[0] >= swath[0] && t[0] <= swath[2] && t[1] >= swath[1] && t[1] <= swath[3];
+            if now_s - slot.last_deposit_s > self.close_after_s && !inside {
+                idle.push(s);
+            }
+        }
+        // Deterministic order (the store's content does not depend on it; its files' order does).
+        idle.sort_by_key(|s| self.slots[*s].tile);
+        for s in idle {
+            self.close_slot(s, seq)?;
+        }
+        Ok(())
+    }
+
+    /// Closes every open tile (end of the run); `next_seq` is one past the last pulse.
+    pub fn close_all(&mut self, next_seq: u64) -> Result<(), StoreError> {
+        let mut all: Vec<usize> = self.open.values().copied().collect();
+        all.sort_by_key(|s| self.slots[*s].tile);
+        for s in all {
+            self.close_slot(s, next_seq)?;
+        }
+        Ok(())
+    }
+
+    /// Takes the store back (after `close_all`).
+    pub fn into_store(self) -> ZarrStore {
+        self.store
+    }
+}

@@ -1,0 +1,263 @@
+//! Depositing a pulse into the voxel grid: every return bin at its own position.
+//!
+//! Bin `i` of a return segment lies `t = start_ns + i·sample_ns` after the pulse's t0 at
+//! `anchor + t·direction` (the pulse's geometry in the output CRS). It is deposited in the voxel
+//! that contains that point, so an off-nadir beam's bins land in the columns the beam really
+//! crossed — the seed's angular rectification, done per bin instead of per waveform. With
+//! `footprint = true` a bin is shared equally among the columns whose centres lie within the
+//! footprint radius at its range (beam divergence), at least the axis column.
+//!
+//! The deposited intensity is the bin's signal (volts) times its calibration factor when a
+//! `calibrate` stage ran. Each deposit adds to the voxel's intensity sum (integer quanta), its
+//! sample count and its maximum; the first bin of a pulse in a voxel also counts the pulse as
+//! having passed through it (a straight beam enters a voxel once). Pulses without geometry or
+//! with non-finite geometry, and bins outside the extent or the height range, are counted and
+//! never deposited.
+
+use crate::geo::dem::Dem;
+use crate::pulse::{Pulse, SegmentKind};
+
+use super::grid::{HeightMode, Placer};
+use super::tile::quantise;
+use super::tiles::TileSet;
+use super::zarr::StoreError;
+
+/// What the voxeliser did (`summary.json`: `sinks.voxels`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct DepositStats {
+    /// Pulses with at least one bin deposited.
+    pub pulses_deposited: u64,
+    /// Bins deposited.
+    pub bins_deposited: u64,
+    /// Pulses without geometry (not georeferenced).
+    pub pulses_no_geometry: u64,
+    /// Pulses whose anchor or direction is not finite.
+    pub pulses_non_finite: u64,
+    /// Pulses without a processed signal.
+    pub pulses_no_signal: u64,
+    /// Bins outside the horizontal extent.
+    pub bins_outside_extent: u64,
+    /// Bins outside the height range.
+    pub bins_outside_heights: u64,
+    /// Bins where the DEM has no height (`height = "above_dem"`).
+    pub bins_outside_dem: u64,
+    /// Bins whose intensity is not finite.
+    pub bins_non_finite: u64,
+    /// Bins already in the store from an interrupted run (skipped on resume).
+    pub bins_resumed: u64,
+}
+
+/// How bins become deposits.
+#[derive(Clone)]
+pub struct DepositParams {
+    /// Places positions on the grid.
+    pub placer: Placer,
+    /// Heights absolute or above the DEM.
+    pub height: HeightMode,
+    /// The DEM for `above_dem`.
+    pub dem: Option<std::sync::Arc<Dem>>,
+    /// 1 / intensity quantum.
+    pub inv_quantum: f64,
+    /// Spread over the footprint: full-angle divergence, radians (None: axis column only).
+    pub footprint_divergence_rad: Option<f64>,
+}
+
+/// Deposits `pulse` into `tiles`.
+pub fn deposit_pulse(
+    pulse: &Pulse,
+    tiles: &mut TileSet,
+    p: &DepositParams,
+    stats: &mut DepositStats,
+) -> Result<(), StoreError> {
+    let Some(g) = pulse.geometry else {
+        stats.pulses_no_geometry += 1;
+        return Ok(());
+    };
+    if !g.anchor.iter().chain(&g.direction).all(|v| v.is_finite()) {
+        stats.pulses_non_finite += 1;
+        return Ok(());
+    }
+    if pulse.signal.len() != pulse.raw.len() || pulse.signal.is_empty() {
+        stats.pulses_no_signal += 1;
+        return Ok(());
+    }
+    let seq = pulse.seq;
+    let now = pulse.gps_time;
+    let cal: Option<IdentityCalibration> = None; // CALIBRATION-MERGE
+    let metres_per_ns = (g.direction[0] * g.direction[0]
+        + g.direction[1] * g.direction[1]
+        + g.direction[2] * g.direction[2])
+        .sqrt();
+    let mut deposited = 0u64;
+    let mut cur_tile = [i64::MIN; 2];
+    let mut cur_slot = 0usize;
+    let mut cur_skip = 0u64;
+    let mut prev: ([i64; 2], u32) = ([i64::MIN; 2], u32::MAX);
+    let mut ground_col = [i64::MIN; 2];
+    let mut ground = 0.0f64;
+    for seg in pulse.segments.iter().filter(|s| s.kind == SegmentKind::Return) {
+        let values = &pulse.signal[seg.range()];
+        for (i, &v) in values.iter().enumerate() {
+            let t = seg.start_ns + i as f64 * pulse.sample_ns;
+            let x = g.anchor[0] + t * g.direction[0];
+            let y = g.anchor[1] + t * g.direction[1];
+            let mut z = g.anchor[2] + t * g.direction[2];
+            let Some(col) = p.placer.column(x, y) else {
+                stats.bins_outside_extent += 1;
+                continue;
+            };
+            if p.height == HeightMode::AboveDem {
+                if col != ground_col {
+                    match p.dem.as_ref().and_then(|d| d.height_at(x, y)) {
+                        Some(h) => {
+                            ground = h;
+                            ground_col = col;
+                        }
+                        None => {
+                            stats.bins_outside_dem += 1;
+                            continue;
+                        }
+                    }
+                }
+                z -= ground;
+            }
+            let Some(k) = p.placer.level(z) else {
+                stats.bins_outside_heights += 1;
+                continue;
+            };
+            let value = match &cal {
+                Some(c) => v * c.factor_at(t),
+                None => v,
+            };
+            if !value.is_finite() {
+                stats.bins_non_finite += 1;
+                continue;
+            }
+            match p.footprint_divergence_rad {
+                None => {
+                    let vi = p.placer.voxel(col, k);
+                    if vi.tile != cur_tile {
+                        let (s, skip) = tiles.slot_for(vi.tile, seq, now)?;
+                        tiles.touched(s, now);
+                        (cur_tile, cur_slot, cur_skip) = (vi.tile, s, skip);
+                    }
+                    if seq < cur_skip {
+                        stats.bins_resumed += 1;
+                        continue;
+                    }
+                    let data = tiles.data(cur_slot);
+                    data.deposit(vi.offset as usize, quantise(value, p.inv_quantum), value);
+                    if prev != (vi.tile, vi.offset) {
+                        data.pass(vi.offset as usize);
+                        prev = (vi.tile, vi.offset);
+                    }
+                    deposited += 1;
+                }
+                Some(div) => {
+                    let r = (t.max(0.0) * metres_per_ns) * div / 2.0;
+                    deposited += spread(
+                        tiles,
+                        p,
+                        stats,
+                        (seq, now),
+                        [x, y],
+                        col,
+                        k,
+                        r,
+                        value,
+                        &mut prev,
+                    )?;
+                }
+            }
+        }
+    }
+    if deposited > 0 {
+        stats.pulses_deposited += 1;
+        stats.bins_deposited += deposited;
+    }
+    Ok(())
+}
+
+/// Most columns one bin is spread over (a footprint wider than 8 columns on a side is spread
+/// over the 8 × 8 nearest the axis).
+const MAX_SPREAD: i64 = 4;
+
+/// Shares one bin among the columns whose centres lie within `r` of `(x, y)`.
+#[allow(clippy::too_many_arguments)]
+fn spread(
+    tiles: &mut TileSet,
+    p: &DepositParams,
+    stats: &mut DepositStats,
+    (seq, now): (u64, f64),
+    [x, y]: [f64; 2],
+    axis: [i64; 2],
+    k: i64,
+    r: f64,
+    value: f32,
+    prev: &mut ([i64; 2], u32),
+) -> Result<u64, StoreError> {
+    let mut cols = [[0i64; 2]; (2 * MAX_SPREAD * 2 * MAX_SPREAD) as usize];
+    let mut n = 0usize;
+    let reach_x = ((r * p.placer_inv(0)).ceil() as i64).clamp(0, MAX_SPREAD);
+    let reach_y = ((r * p.placer_inv(1)).ceil() as i64).clamp(0, MAX_SPREAD);
+    for dy in -reach_y..=reach_y {
+        for dx in -reach_x..=reach_x {
+            let c = [axis[0] + dx, axis[1] + dy];
+            let centre = p.placer.column_centre(c);
+            let d2 = (centre[0] - x).powi(2) + (centre[1] - y).powi(2);
+            if d2 <= r * r && n < cols.len() {
+                cols[n] = c;
+                n += 1;
+            }
+        }
+    }
+    if n == 0 {
+        cols[0] = axis;
+        n = 1;
+    }
+    let share = value / n as f32;
+    let q = quantise(share, p.inv_quantum);
+    let mut deposited = 0;
+    for &c in &cols[..n] {
+        // A column of the square may fall outside the extent: place it through its centre.
+        let centre = p.placer.column_centre(c);
+        if p.placer.column(centre[0], centre[1]).is_none() {
+            stats.bins_outside_extent += 1;
+            continue;
+        }
+        let vi = p.placer.voxel(c, k);
+        let (s, skip) = tiles.slot_for(vi.tile, seq, now)?;
+        tiles.touched(s, now);
+        if seq < skip {
+            stats.bins_resumed += 1;
+            continue;
+        }
+        tiles.data(s).deposit(vi.offset as usize, q, share);
+        deposited = 1;
+    }
+    // The pass is counted on the beam axis: the voxel of the axis column at this level.
+    let vi = p.placer.voxel(axis, k);
+    if *prev != (vi.tile, vi.offset) {
+        let (s, skip) = tiles.slot_for(vi.tile, seq, now)?;
+        tiles.touched(s, now);
+        if seq >= skip {
+            tiles.data(s).pass(vi.offset as usize);
+        }
+        *prev = (vi.tile, vi.offset);
+    }
+    Ok(deposited)
+}
+
+/// Stand-in until the calibrate stage lands. CALIBRATION-MERGE
+struct IdentityCalibration;
+impl IdentityCalibration {
+    fn factor_at(&self, _t: f64) -> f32 {
+        1.0
+    }
+}
+
+impl DepositParams {
+    fn placer_inv(&self, axis: usize) -> f64 {
+        self.placer.inv(axis)
+    }
+}

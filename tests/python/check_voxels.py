@@ -1,0 +1,116 @@
+"""Reads fwlidar's voxels.zarr with zarr-python and xarray (real clients) and checks values.
+
+Usage: check_voxels.py OUT_DIR
+Checks, against the replay's own returns.csv, waveforms.csv, pulses.csv and summary.json:
+named dimensions and coordinates, CRS attributes, the sums and counts of the deposited bins,
+that every return lies in an occupied voxel, pulse counts per level, and the two layers of the
+two-layer scene at their heights. Prints one JSON line of figures; exits non-zero on failure.
+"""
+import csv
+import json
+import math
+import sys
+import warnings
+
+import numpy as np
+import xarray as xr
+import zarr
+
+out = sys.argv[1]
+warnings.simplefilter("error")  # a warning from the readers is a failure
+
+with open(f"{out}/summary.json") as f:
+    summary = json.load(f)
+dep = summary["sinks"]["voxels"]["deposits"]
+
+ds = xr.open_zarr(f"{out}/voxels.zarr", consolidated=False)
+assert ds.intensity_sum.dims == ("z", "y", "x"), ds.intensity_sum.dims
+for c in ("x", "y", "z"):
+    assert c in ds.coords, c
+assert ds.x.attrs["standard_name"] == "projection_x_coordinate"
+assert ds.x.attrs["units"] == "m"
+assert ds.attrs["epsg"] == 32736, ds.attrs["epsg"]
+assert "UTM zone 36S" in ds.attrs["crs_wkt"], ds.attrs["crs_wkt"][:80]
+assert "UTM zone 36S" in ds.spatial_ref.attrs["crs_wkt"]
+assert ds.intensity_sum.attrs["grid_mapping"] == "spatial_ref"
+assert list(ds.attrs["voxel_size_m"]) == [0.5, 0.5, 0.15]
+assert "[voxels]" in ds.attrs["configuration"]
+vs = ds.attrs["voxel_size_m"]
+# The coordinates are voxel centres on the tile grid anchored at the CRS origin.
+assert abs((float(ds.x[0]) - vs[0] / 2) / vs[0] - round((float(ds.x[0]) - vs[0] / 2) / vs[0])) < 1e-6
+
+# Returns: every one lies in a voxel with samples (the window around them).
+with open(f"{out}/returns.csv") as f:
+    returns = list(csv.DictReader(f))
+xs = np.array([float(r["x"]) for r in returns])
+ys = np.array([float(r["y"]) for r in returns])
+zs = np.array([float(r["z"]) for r in returns])
+pad = 2.0
+win = ds.sel(
+    x=slice(xs.min() - pad, xs.max() + pad), y=slice(ys.min() - pad, ys.max() + pad)
+).load()
+counts = win.sample_count.values
+sums = win.intensity_sum.values  # decoded with scale_factor: volts
+assert counts.sum() == dep["bins_deposited"], (int(counts.sum()), dep["bins_deposited"])
+# Untouched voxels: zero sums and counts (not masked), NaN maxima.
+assert np.all(sums[counts == 0] == 0)
+assert np.all(np.isnan(win.intensity_max.values[counts == 0]))
+
+xi = np.floor((xs - float(win.x[0]) + vs[0] / 2) / vs[0]).astype(int)
+yi = np.floor((ys - float(win.y[0]) + vs[1] / 2) / vs[1]).astype(int)
+zi = np.floor((zs - float(win.z[0]) + vs[2] / 2) / vs[2]).astype(int)
+inside = (zi >= 0) & (zi < counts.shape[0])
+assert np.all(counts[zi[inside], yi[inside], xi[inside]] > 0), "a return in an empty voxel"
+
+# The sum of all deposited intensity equals the sum of the deposited bins of waveforms.csv:
+# every pulse deposits the same leading bins of its return segment (nadir, flat window).
+with open(f"{out}/pulses.csv") as f:
+    pulses = list(csv.DictReader(f))
+per_pulse = dep["bins_deposited"] // dep["pulses_deposited"]
+assert per_pulse * dep["pulses_deposited"] == dep["bins_deposited"]
+expected = 0.0
+with open(f"{out}/waveforms.csv") as f:
+    for meta, line in zip(pulses, f):
+        if meta["kind"] == "return":
+            expected += sum(float(v) for v in line.split(",")[:per_pulse])
+total = float(sums.sum())
+quantum = ds.attrs["intensity_quantum"]
+assert abs(total - expected) <= 1e-6 * abs(expected) + quantum * dep["bins_deposited"], (
+    total,
+    expected,
+)
+
+# A vertical beam passes every level of its window once: per level, the pulse counts over all
+# columns add up to the number of pulses (levels fully inside the recorded window).
+passes = win.pulse_count.values.sum(axis=(1, 2))
+full = passes[(win.z.values > -4.5) & (win.z.values < 24.5)]
+assert np.all(full == dep["pulses_deposited"]), full
+
+# The scene's two layers: ground at 0 m and a canopy layer at 15 m (plus the +0.27 m of
+# refraction the vacuum simulator leaves, docs/navigation.md). Mean intensity per level:
+profile = sums.sum(axis=(1, 2)) / np.maximum(counts.sum(axis=(1, 2)), 1)
+z = win.z.values
+low = profile[z < 7.5]
+high = profile[z >= 7.5]
+z_ground = z[z < 7.5][np.argmax(low)]
+z_canopy = z[z >= 7.5][np.argmax(high)]
+assert abs(z_ground - 0.27) < 0.5, z_ground
+assert abs(z_canopy - 15.27) < 0.5, z_canopy
+
+# zarr-python directly: chunk = tile.
+g = zarr.open_group(f"{out}/voxels.zarr", mode="r")
+a = g["sample_count"]
+assert a.chunks[1] == a.chunks[2] == ds.attrs["tile_columns"]
+print(
+    json.dumps(
+        {
+            "bins": int(counts.sum()),
+            "sum_v": total,
+            "expected_v": expected,
+            "ground_z": float(z_ground),
+            "canopy_z": float(z_canopy),
+            "zarr": zarr.__version__,
+            "xarray": xr.__version__,
+        }
+    )
+)

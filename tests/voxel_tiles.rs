@@ -1,0 +1,357 @@
+//! Voxel tiles end to end: replay writes `voxels.zarr`, read by zarr-python and xarray (real
+//! clients) with values checked; kill -9 and a rerun give the uninterrupted run's store, bit
+//! for bit; `fwlidar merge` adds stores exactly; bad outputs are refused clearly.
+
+mod common;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{BIN, ROOT, fwlidar, python, text};
+use fwlidar::voxel::tile::TileData;
+use fwlidar::voxel::zarr::ZarrStore;
+
+fn replay(input: &Path, out: &Path, config: Option<&Path>) -> std::process::Output {
+    let mut args = vec![
+        "replay".to_string(),
+        input.display().to_string(),
+        "--out".into(),
+        out.display().to_string(),
+        "--no-progress".into(),
+    ];
+    if let Some(c) = config {
+        args.push("--config".into());
+        args.push(c.display().to_string());
+    }
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    fwlidar(&args)
+}
+
+fn sample() -> PathBuf {
+    Path::new(ROOT).join("replay/two_layer.fwcap")
+}
+
+#[test]
+fn replay_writes_tiles_that_xarray_reads_with_the_right_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let o = replay(&sample(), &out, None);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let stdout = text(&o.stdout);
+    assert!(
+        stdout.contains("voxels.zarr: 404000 bins of 2000 pulses deposited"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("tiles 1 opened, 1 closed"), "{stdout}");
+    let o = Command::new(python())
+        .arg(Path::new(ROOT).join("tests/python/check_voxels.py"))
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "xarray/zarr check failed:\n{}\n{}",
+        text(&o.stdout),
+        text(&o.stderr)
+    );
+    let figures: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(figures["bins"], 404000);
+}
+
+/// A run configuration: denoise + Richardson-Lucy (slow enough to be killed mid-run), small
+/// tiles that close soon after the flight leaves them.
+fn crash_config(dir: &Path) -> PathBuf {
+    let p = dir.join("crash.toml");
+    std::fs::write(
+        &p,
+        r#"
+[pipeline]
+workers = 1
+[[pipeline.stages]]
+type = "denoise"
+[[pipeline.stages]]
+type = "deconvolve"
+method = { method = "richardson_lucy", iterations = 40 }
+kernel = "outgoing"
+max_samples = 1024
+[georeference]
+enabled = true
+[output]
+waveforms = false
+returns = false
+[voxels]
+enabled = true
+z_range_m = [-5.0, 30.0]
+tile_columns = 4
+close_after_s = 0.02
+max_open_tiles = 8
+"#,
+    )
+    .unwrap();
+    p
+}
+
+fn simulate(dir: &Path, pulses: u64, seed: u64, name: &str) -> PathBuf {
+    let cap = dir.join(name);
+    let o = fwlidar(&[
+        "simulate",
+        "--scene",
+        "config/scenes/two_layer.toml",
+        "--pulses",
+        &pulses.to_string(),
+        "--seed",
+        &seed.to_string(),
+        "--out",
+        cap.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    cap
+}
+
+/// Every file of a store below its data arrays, with its bytes.
+fn store_files(root: &Path) -> BTreeMap<String, Vec<u8>> {
+    fn walk(base: &Path, dir: &Path, out: &mut BTreeMap<String, Vec<u8>>) {
+        for e in std::fs::read_dir(dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(base, &p, out);
+            } else {
+                let rel = p.strip_prefix(base).unwrap().display().to_string();
+                out.insert(rel, std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    let mut m = BTreeMap::new();
+    walk(root, root, &mut m);
+    m
+}
+
+#[test]
+fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = simulate(dir.path(), 20_000, 7, "line.fwcap");
+    let cfg = crash_config(dir.path());
+    let whole = dir.path().join("whole");
+    let o = replay(&cap, &whole, Some(&cfg));
+    assert!(o.status.success(), "{}", text(&o.stderr));
+
+    let cut = dir.path().join("cut");
+    let mut child = Command::new(BIN)
+        .args(["replay", cap.to_str().unwrap(), "--out", cut.to_str().unwrap()])
+        .args(["--config", cfg.to_str().unwrap(), "--no-progress"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let records = cut.join("voxels.zarr/fwlidar_state/tiles");
+    let t0 = Instant::now();
+    while std::fs::read_dir(&records).map_or(0, |d| d.count()) < 3 {
+        assert!(t0.elapsed() < Duration::from_secs(60), "no tile closed");
+        if child.try_wait().unwrap().is_some() {
+            panic!("the replay finished before it could be killed: make the input longer");
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+    assert!(
+        !cut.join("summary.json").exists(),
+        "the run was killed before its end"
+    );
+
+    // Every tile closed before the kill is valid for a real reader.
+    let o = Command::new(python())
+        .arg(Path::new(ROOT).join("tests/python/check_killed_store.py"))
+        .arg(cut.join("voxels.zarr"))
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "{}{}",
+        text(&o.stdout),
+        text(&o.stderr)
+    );
+    let read: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    // Three records were seen; the newest may have been cut in the middle of its commit.
+    assert!(read["tiles"].as_u64().unwrap() >= 2, "{read}");
+
+    // The rerun resumes and ends with the same files, byte for byte.
+    let o = replay(&cap, &cut, Some(&cfg));
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(cut.join("summary.json")).unwrap()).unwrap();
+    let resumed = summary["sinks"]["voxels"]["deposits"]["bins_resumed"]
+        .as_u64()
+        .unwrap();
+    assert!(resumed > 0, "the rerun skipped what the store held");
+    let (a, b) = (
+        store_files(&whole.join("voxels.zarr")),
+        store_files(&cut.join("voxels.zarr")),
+    );
+    let data = |m: &BTreeMap<String, Vec<u8>>| {
+        m.iter()
+            .filter(|(k, _)| k.contains("/c/") && !k.starts_with("x/") && !k.starts_with("y/"))
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect::<BTreeMap<_, _>>()
+    };
+    let (da, db) = (data(&a), data(&b));
+    assert!(da.len() > 20, "{} chunk files", da.len());
+    assert_eq!(
+        da.keys().collect::<Vec<_>>(),
+        db.keys().collect::<Vec<_>>()
+    );
+    for (k, v) in &da {
+        assert!(db[k] == *v, "chunk {k} differs after kill -9 and rerun");
+    }
+    // The tile records (watermarks) match too.
+    for (k, v) in a.iter().filter(|(k, _)| k.starts_with("fwlidar_state/tiles/")) {
+        assert_eq!(b.get(k), Some(v), "{k}");
+    }
+
+    // A rerun of a complete store changes nothing.
+    let o = replay(&cap, &cut, Some(&cfg));
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert_eq!(data(&store_files(&cut.join("voxels.zarr"))), da);
+}
+
+fn read_all(root: &Path) -> BTreeMap<[i64; 2], TileData> {
+    let mut s = ZarrStore::open(root).unwrap();
+    let n = s.grid().tile_voxels();
+    s.tiles()
+        .into_iter()
+        .map(|t| {
+            let mut d = TileData::new(n);
+            s.read_tile(t, &mut d).unwrap();
+            (t, d)
+        })
+        .collect()
+}
+
+#[test]
+fn merge_adds_stores_exactly_and_refuses_what_does_not_fit() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = crash_config(dir.path());
+    let mut roots = Vec::new();
+    for seed in [1u64, 2] {
+        let cap = simulate(dir.path(), 3000, seed, &format!("s{seed}.fwcap"));
+        let out = dir.path().join(format!("o{seed}"));
+        let o = replay(&cap, &out, Some(&cfg));
+        assert!(o.status.success(), "{}", text(&o.stderr));
+        roots.push(out.join("voxels.zarr"));
+    }
+    let m1 = dir.path().join("m1.zarr");
+    let m2 = dir.path().join("m2.zarr");
+    let o = fwlidar(&[
+        "merge",
+        roots[0].to_str().unwrap(),
+        roots[1].to_str().unwrap(),
+        "--out",
+        m1.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert!(text(&o.stdout).contains("merged 2 stores"), "{}", text(&o.stdout));
+    let o = fwlidar(&[
+        "merge",
+        roots[1].to_str().unwrap(),
+        roots[0].to_str().unwrap(),
+        "--out",
+        m2.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    // Same bytes whatever the order.
+    let data = |p: &Path| {
+        store_files(p)
+            .into_iter()
+            .filter(|(k, _)| k.contains("/c/"))
+            .collect::<BTreeMap<_, _>>()
+    };
+    assert_eq!(data(&m1), data(&m2));
+    // Element-wise: sums and counts add, maxima take the larger.
+    let (a, b, m) = (read_all(&roots[0]), read_all(&roots[1]), read_all(&m1));
+    assert!(!m.is_empty());
+    let mut overlapping = 0;
+    for (t, md) in &m {
+        let empty = TileData::new(md.len());
+        let (ad, bd) = (a.get(t).unwrap_or(&empty), b.get(t).unwrap_or(&empty));
+        if a.contains_key(t) && b.contains_key(t) {
+            overlapping += 1;
+        }
+        for i in 0..md.len() {
+            assert_eq!(md.sum_q[i], ad.sum_q[i] + bd.sum_q[i]);
+            assert_eq!(md.samples[i], ad.samples[i] + bd.samples[i]);
+            assert_eq!(md.pulses[i], ad.pulses[i] + bd.pulses[i]);
+            let want = ad.max[i].max(bd.max[i]);
+            assert_eq!(md.max[i].to_bits(), want.to_bits());
+        }
+    }
+    assert!(overlapping > 0, "the two flights share tiles");
+
+    // An existing output is never overwritten; a store of another grid is refused.
+    let o = fwlidar(&["merge", roots[0].to_str().unwrap(), "--out", m1.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(text(&o.stderr).contains("exists"), "{}", text(&o.stderr));
+    let other_cfg = dir.path().join("other.toml");
+    std::fs::write(
+        &other_cfg,
+        std::fs::read_to_string(&cfg)
+            .unwrap()
+            .replace("tile_columns = 4", "tile_columns = 8"),
+    )
+    .unwrap();
+    let cap = dir.path().join("s1.fwcap");
+    let other = dir.path().join("other");
+    assert!(replay(&cap, &other, Some(&other_cfg)).status.success());
+    let m3 = dir.path().join("m3.zarr");
+    let o = fwlidar(&[
+        "merge",
+        roots[0].to_str().unwrap(),
+        other.join("voxels.zarr").to_str().unwrap(),
+        "--out",
+        m3.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        text(&o.stderr).contains("tile sizes differ: 4 and 8 columns"),
+        "{}",
+        text(&o.stderr)
+    );
+    assert!(!m3.exists());
+}
+
+#[test]
+fn an_output_that_cannot_hold_the_store_is_a_clear_error_and_nothing_is_changed() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    // voxels.zarr is a plain file.
+    std::fs::write(out.join("voxels.zarr"), b"precious").unwrap();
+    let o = replay(&sample(), &out, None);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
+    let err = text(&o.stderr);
+    assert!(err.contains("voxels.zarr"), "{err}");
+    assert_eq!(std::fs::read(out.join("voxels.zarr")).unwrap(), b"precious");
+
+    // A store written by another run (another configuration) is refused, not mixed into.
+    let out2 = dir.path().join("out2");
+    assert!(replay(&sample(), &out2, None).status.success());
+    let before = store_files(&out2.join("voxels.zarr"));
+    let cfg = dir.path().join("c.toml");
+    std::fs::write(
+        &cfg,
+        std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
+            .unwrap()
+            .replace("cutoff_ghz = 0.2", "cutoff_ghz = 0.25"),
+    )
+    .unwrap();
+    let o = replay(&sample(), &out2, Some(&cfg));
+    assert_eq!(o.status.code(), Some(1));
+    let err = text(&o.stderr);
+    assert!(err.contains("written by another run"), "{err}");
+    assert!(err.contains("nothing was changed"), "{err}");
+    assert_eq!(store_files(&out2.join("voxels.zarr")), before);
+}
