@@ -345,7 +345,7 @@ mod tests {
         assert_eq!(*t, [0, 0]);
         // Column (3, 2); the echo at z = 0.1 and −0.05 is in level floor((z+1.5)/0.3) = 5 and
         // 4: bins 66 (z = 0.1) → level 5, 67 (z = −0.05) → level 4.
-        let at = |k: usize| (k * 8 + 2) * 8 + 3;
+        let at = |k: usize| (2 * 8 + 3) * 20 + k;
         assert_eq!(d.max[at(5)], 5.0);
         assert_eq!(d.max[at(4)], 5.0);
         // Level 5 spans z in [0, 0.3): bins 64 (0.4)? no: z = 10 − 0.15·i for i = 65, 66 → 0.25,
@@ -354,8 +354,8 @@ mod tests {
         assert_eq!(d.sum_q[at(5)], 12_000_000);
         assert_eq!(d.pulses[at(5)], 2, "each pulse passed once");
         assert_eq!(d.pulses[at(19)], 2);
-        let untouched = (2 * 8 + 2) * 8 + 3;
-        assert!(d.max[untouched + 1].is_nan() && d.samples[untouched + 1] == 0);
+        let next_column = (2 * 8 + 4) * 20 + 5;
+        assert!(d.max[next_column].is_nan() && d.samples[next_column] == 0);
     }
 
     #[test]
@@ -458,7 +458,7 @@ mod tests {
                     .iter()
                     .enumerate()
                     .filter(|(_, n)| **n > 0)
-                    .map(|(o, _)| o % 64)
+                    .map(|(o, _)| o / 20)
             })
             .collect();
         assert!(columns_hit.len() >= 4, "{columns_hit:?}");

@@ -9,7 +9,10 @@
 //! different flights with the same voxel size and tile size line up and merge): tile `(tx, ty)`
 //! covers `origin + (tx·S, ty·S)` to `origin + ((tx+1)·S, (ty+1)·S)` with `S = tile_columns ·
 //! voxel size`. Inside a tile a voxel is `(k, j, i)`: level `k` from `z_range_m[0]` upwards,
-//! row `j` northwards, column `i` eastwards; its accumulators sit at `(k·T + j)·T + i`.
+//! row `j` northwards, column `i` eastwards. In memory its accumulators sit at
+//! `(j·T + i)·L + k` (`L` levels): a column is contiguous, so the bins of a near-vertical beam
+//! land in neighbouring cache lines. The store's chunks are in the `[z, y, x]` order of the
+//! arrays (`(k·T + j)·T + i`); `zarr` transposes when it writes and reads.
 
 use serde::{Deserialize, Serialize};
 
@@ -426,8 +429,8 @@ impl Placer {
     /// Global column `[cx, cy]` of a horizontal position, if inside the extent.
     #[inline]
     pub fn column(&self, x: f64, y: f64) -> Option<[i64; 2]> {
-        let cx = ((x - self.origin[0]) * self.inv[0]).floor();
-        let cy = ((y - self.origin[1]) * self.inv[1]).floor();
+        let cx = fast_floor((x - self.origin[0]) * self.inv[0]);
+        let cy = fast_floor((y - self.origin[1]) * self.inv[1]);
         // NaN fails both comparisons.
         if !(cx >= self.col_min[0] as f64 && cx < self.col_end[0] as f64) {
             return None;
@@ -441,20 +444,36 @@ impl Placer {
     /// Level of a height (absolute or above ground, as the grid measures), if inside the range.
     #[inline]
     pub fn level(&self, z: f64) -> Option<i64> {
-        let k = ((z - self.z_bottom) * self.inv[2]).floor();
+        let k = fast_floor((z - self.z_bottom) * self.inv[2]);
         (k >= 0.0 && k < self.levels as f64).then_some(k as i64)
     }
 
     /// The voxel of global column `c` at level `k`.
     #[inline]
     pub fn voxel(&self, c: [i64; 2], k: i64) -> VoxelIndex {
-        let tile = [c[0].div_euclid(self.side), c[1].div_euclid(self.side)];
-        let i = c[0].rem_euclid(self.side);
-        let j = c[1].rem_euclid(self.side);
+        let tile = self.tile_of(c);
         VoxelIndex {
             tile,
-            offset: ((k * self.side + j) * self.side + i) as u32,
+            offset: self.offset(c[0] - tile[0] * self.side, c[1] - tile[1] * self.side, k),
         }
+    }
+
+    /// The tile of global column `c`.
+    #[inline]
+    pub fn tile_of(&self, c: [i64; 2]) -> [i64; 2] {
+        [c[0].div_euclid(self.side), c[1].div_euclid(self.side)]
+    }
+
+    /// Columns along a tile's side.
+    #[inline]
+    pub fn side(&self) -> i64 {
+        self.side
+    }
+
+    /// Offset in a tile's accumulators of column `i` (east), row `j` (north), level `k`.
+    #[inline]
+    pub fn offset(&self, i: i64, j: i64, k: i64) -> u32 {
+        ((j * self.side + i) * self.levels + k) as u32
     }
 
     /// 1 / voxel size along `axis` (0 x, 1 y, 2 z), per metre.
@@ -469,6 +488,19 @@ impl Placer {
             self.origin[1] + (c[1] as f64 + 0.5) / self.inv[1],
         ]
     }
+}
+
+/// `v.floor()` for the values a grid meets, without the library call baseline x86-64 makes for
+/// `floor` (no SSE4.1 rounding instruction): truncation, corrected for negatives. Values beyond
+/// ±2⁶³ and NaN come out as whatever lies outside every grid (they are refused by the caller's
+/// range check).
+#[inline]
+fn fast_floor(v: f64) -> f64 {
+    if !(v.abs() < 9.0e18) {
+        return v; // NaN, infinities and huge values: refused by the range checks
+    }
+    let t = v as i64 as f64;
+    if t > v { t - 1.0 } else { t }
 }
 
 #[cfg(test)]
@@ -506,7 +538,7 @@ mod tests {
         assert_eq!(k, 2);
         let v = p.voxel(c, k);
         assert_eq!(v.tile, [12, 25]);
-        assert_eq!(v.offset, (2 * 16 + 1) * 16 + 8);
+        assert_eq!(v.offset, (16 + 8) * 20 + 2, "(j·T + i)·L + k");
         assert_eq!(p.column_centre(c), [100.25, 200.75]);
         assert!(p.column(95.9, 210.0).is_none(), "west of the snapped extent");
         assert!(p.column(f64::NAN, 210.0).is_none());
@@ -526,7 +558,10 @@ mod tests {
         assert_eq!(col, [-1, -17]);
         let v = p.voxel(col, 0);
         assert_eq!(v.tile, [-1, -2]);
-        assert_eq!(v.offset, 15 * 16 + 15);
+        assert_eq!(v.offset, (15 * 16 + 15) * 20);
+        for v in [-2.5, -2.0, -0.0, 0.0, 0.3, 7.0, 1e12 + 0.5, -1e12 - 0.5] {
+            assert_eq!(fast_floor(v), v.floor(), "{v}");
+        }
     }
 
     #[test]

@@ -90,6 +90,9 @@ pub fn deposit_pulse(
         .sqrt();
     let mut deposited = 0u64;
     let mut cur_tile = [i64::MIN; 2];
+    // First global column of the current tile (i64::MIN / 2: no tile yet).
+    let mut cur_c0 = [i64::MIN / 2; 2];
+    let side = p.placer.side();
     let mut cur_slot = 0usize;
     let mut cur_skip = 0u64;
     let mut prev: ([i64; 2], u32) = ([i64::MIN; 2], u32::MAX);
@@ -135,21 +138,25 @@ pub fn deposit_pulse(
             }
             match p.footprint_divergence_rad {
                 None => {
-                    let vi = p.placer.voxel(col, k);
-                    if vi.tile != cur_tile {
-                        let (s, skip) = tiles.slot_for(vi.tile, seq, now)?;
+                    let (mut i, mut j) = (col[0] - cur_c0[0], col[1] - cur_c0[1]);
+                    if !(0..side).contains(&i) || !(0..side).contains(&j) {
+                        let tile = p.placer.tile_of(col);
+                        let (s, skip) = tiles.slot_for(tile, seq, now)?;
                         tiles.touched(s, now);
-                        (cur_tile, cur_slot, cur_skip) = (vi.tile, s, skip);
+                        (cur_tile, cur_slot, cur_skip) = (tile, s, skip);
+                        cur_c0 = [tile[0] * side, tile[1] * side];
+                        (i, j) = (col[0] - cur_c0[0], col[1] - cur_c0[1]);
                     }
                     if seq < cur_skip {
                         stats.bins_resumed += 1;
                         continue;
                     }
+                    let offset = p.placer.offset(i, j, k);
                     let data = tiles.data(cur_slot);
-                    data.deposit(vi.offset as usize, quantise(value, p.inv_quantum), value);
-                    if prev != (vi.tile, vi.offset) {
-                        data.pass(vi.offset as usize);
-                        prev = (vi.tile, vi.offset);
+                    data.deposit(offset as usize, quantise(value, p.inv_quantum), value);
+                    if prev != (cur_tile, offset) {
+                        data.pass(offset as usize);
+                        prev = (cur_tile, offset);
                     }
                     deposited += 1;
                 }

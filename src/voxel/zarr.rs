@@ -417,20 +417,13 @@ impl ZarrStore {
                     ),
                 ));
             }
+            let order = DiskOrder::of(&self.grid);
             let raw = &self.raw;
             match a {
-                "intensity_sum" => {
-                    for (d, b) in into.sum_q.iter_mut().zip(raw.chunks_exact(8)) {
-                        *d = i64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
-                    }
-                }
-                "sample_count" => decode_u32(raw, &mut into.samples),
-                "pulse_count" => decode_u32(raw, &mut into.pulses),
-                _ => {
-                    for (d, b) in into.max.iter_mut().zip(raw.chunks_exact(4)) {
-                        *d = f32::from_le_bytes(b.try_into().unwrap_or([0; 4]));
-                    }
-                }
+                "intensity_sum" => order.read(raw, &mut into.sum_q, i64::from_le_bytes),
+                "sample_count" => order.read(raw, &mut into.samples, u32::from_le_bytes),
+                "pulse_count" => order.read(raw, &mut into.pulses, u32::from_le_bytes),
+                _ => order.read(raw, &mut into.max, f32::from_le_bytes),
             }
         }
         Ok(true)
@@ -445,27 +438,12 @@ impl ZarrStore {
     ) -> Result<(), StoreError> {
         for a in ARRAYS {
             self.raw.clear();
+            let order = DiskOrder::of(&self.grid);
             match a {
-                "intensity_sum" => {
-                    for v in &data.sum_q {
-                        self.raw.extend_from_slice(&v.to_le_bytes());
-                    }
-                }
-                "sample_count" => {
-                    for v in &data.samples {
-                        self.raw.extend_from_slice(&v.to_le_bytes());
-                    }
-                }
-                "pulse_count" => {
-                    for v in &data.pulses {
-                        self.raw.extend_from_slice(&v.to_le_bytes());
-                    }
-                }
-                _ => {
-                    for v in &data.max {
-                        self.raw.extend_from_slice(&v.to_le_bytes());
-                    }
-                }
+                "intensity_sum" => order.write(&data.sum_q, &mut self.raw, i64::to_le_bytes),
+                "sample_count" => order.write(&data.samples, &mut self.raw, u32::to_le_bytes),
+                "pulse_count" => order.write(&data.pulses, &mut self.raw, u32::to_le_bytes),
+                _ => order.write(&data.max, &mut self.raw, f32::to_le_bytes),
             }
             self.bytes_written += self.raw.len() as u64;
             self.packed.clear();
@@ -701,9 +679,42 @@ impl ZarrStore {
     }
 }
 
-fn decode_u32(raw: &[u8], out: &mut [u32]) {
-    for (d, b) in out.iter_mut().zip(raw.chunks_exact(4)) {
-        *d = u32::from_le_bytes(b.try_into().unwrap_or([0; 4]));
+/// Between the in-memory order of a tile (`(j·T + i)·L + k`, columns contiguous) and the
+/// chunk's `[z, y, x]` order (`(k·T + j)·T + i`).
+#[derive(Clone, Copy)]
+struct DiskOrder {
+    side: usize,
+    levels: usize,
+}
+
+impl DiskOrder {
+    fn of(grid: &Grid) -> Self {
+        DiskOrder {
+            side: grid.tile_columns as usize,
+            levels: grid.levels as usize,
+        }
+    }
+
+    /// Appends `mem` to `out` in chunk order, little endian.
+    fn write<T: Copy, const N: usize>(self, mem: &[T], out: &mut Vec<u8>, enc: fn(T) -> [u8; N]) {
+        let (t, l) = (self.side, self.levels);
+        out.reserve(mem.len() * N);
+        for k in 0..l {
+            for col in 0..t * t {
+                out.extend_from_slice(&enc(mem[col * l + k]));
+            }
+        }
+    }
+
+    /// Fills `mem` from chunk-order bytes `raw` (of the right length).
+    fn read<T: Copy, const N: usize>(self, raw: &[u8], mem: &mut [T], dec: fn([u8; N]) -> T) {
+        let (t, l) = (self.side, self.levels);
+        for (n, b) in raw.chunks_exact(N).enumerate() {
+            let (k, col) = (n / (t * t), n % (t * t));
+            if let (Some(d), Ok(bytes)) = (mem.get_mut(col * l + k), b.try_into()) {
+                *d = dec(bytes);
+            }
+        }
     }
 }
 
