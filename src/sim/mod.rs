@@ -128,6 +128,7 @@ pub(crate) mod test_support {
             max_scan_angle_deg: None,
             lever_arm_m: [0.1, 0.0, -0.2],
             boresight_deg: [0.0; 3],
+            calibration_constant: 1.0,
         }
     }
 }
