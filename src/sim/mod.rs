@@ -23,6 +23,9 @@ use crate::pulse::Pulse;
 use nmea::FlightLine;
 
 /// One item of the simulated stream.
+// Nearly every item is a pulse (a navigation epoch comes once per thousands of pulses), so the
+// enum's size is the pulse's either way; boxing it would add an allocation per simulated pulse.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub enum SimItem {
     /// A digitized pulse (its `gps_time` is its emission time).
