@@ -5,8 +5,8 @@ mod waveforms;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use fwlidar::pipeline::{DropCounts, Emitter, Stage};
-use fwlidar::pulse::{Pulse, PulsePool, SegmentKind};
-use fwlidar::signal::{Denoise, DenoiseConfig};
+use fwlidar::pulse::{FittedReturn, Pulse, PulsePool, SegmentKind};
+use fwlidar::signal::{Calibrate, CalibrateConfig, Denoise, DenoiseConfig};
 use std::hint::black_box;
 
 /// A CAO-like pulse at 1 ns sampling: a 64-sample outgoing pulse (16 ns FWHM) and a 256-sample
@@ -64,5 +64,59 @@ fn denoise(c: &mut Criterion) {
     assert_eq!(dropped.total(), 0);
 }
 
-criterion_group!(benches, denoise);
+/// One stage call on `pulse` (it comes back through `out` every iteration).
+fn run_once(stage: &mut dyn Stage, pulse: &mut Option<Box<Pulse>>, pool: &PulsePool) {
+    let mut out = Vec::with_capacity(1);
+    let mut dropped = DropCounts::default();
+    let mut errors = 0u64;
+    let p = pulse.take().expect("the pulse comes back every iteration");
+    let mut em = Emitter::new(&mut out, pool, &mut dropped, &mut errors);
+    stage.process(black_box(p), &mut em).expect("stage");
+    *pulse = out.pop();
+    assert!(pulse.is_some(), "the pulse was emitted");
+}
+
+/// The calibrate stage on the denoised CAO-like pulse with its two returns (outgoing energy and
+/// peak, two backscatter values), and the per-bin factor over its 256 return bins (what a
+/// consumer of `Pulse::calibration` pays per bin).
+fn calibrate(c: &mut Criterion) {
+    let pool = PulsePool::new(4);
+    let mut pulse = Some(Box::new(cao_like_pulse()));
+    run_once(
+        &mut Denoise::new(DenoiseConfig::default()),
+        &mut pulse,
+        &pool,
+    );
+    let p = pulse.as_mut().expect("denoised");
+    for (bin, amplitude) in [(67.0f32, 0.16f32), (167.0, 0.144)] {
+        p.returns.push(FittedReturn {
+            segment: 1,
+            position_bins: bin,
+            time_ns: 6500.0 + bin as f64,
+            amplitude,
+            sigma_bins: 6.8,
+            ..Default::default()
+        });
+    }
+    let mut stage = Calibrate::new(CalibrateConfig::default());
+    c.bench_function("calibrate_outgoing64_return256_2returns", |b| {
+        b.iter(|| run_once(&mut stage, &mut pulse, &pool))
+    });
+    let p = pulse.as_ref().expect("calibrated");
+    let cal = p.calibration.expect("calibrated");
+    let seg = p.segments[1];
+    let bins = p.signal_of(1);
+    c.bench_function("calibrate_factor_at_256_bins", |b| {
+        b.iter(|| {
+            let cal = black_box(cal);
+            let mut sum = 0.0f32;
+            for (i, &v) in bins.iter().enumerate() {
+                sum += cal.calibrated(v, seg.start_ns + i as f64 * p.sample_ns);
+            }
+            sum
+        })
+    });
+}
+
+criterion_group!(benches, denoise, calibrate);
 criterion_main!(benches);

@@ -107,6 +107,69 @@ pub struct PulseGeometry {
     pub direction: [f64; 3],
 }
 
+/// How to turn any bin of a pulse's [`Pulse::signal`] (volts) into calibrated backscatter,
+/// attached to the pulse by the `calibrate` stage (`src/signal/calibrate.rs`; the formula, its
+/// assumptions and units in `docs/calibration.md`). The signal itself stays in volts.
+///
+/// The calibrated value of a bin at time `t_ns` (ns after the pulse's t0, as
+/// [`Segment::start_ns`]) holding `v` volts is `v × factor_at(t_ns)`, with
+///
+/// `factor_at(t) = scale × (R(t) / reference_range_m)²`, `R(t) = (t − emission_ns) ×
+/// metres_per_ns`
+///
+/// when `range_normalised`, else `scale` for every bin. `scale` gathers the factors common to
+/// every bin of the shot: the system constant divided by the shot's relative outgoing energy.
+/// A bin at or before the emission (`R ≤ 0`) has no calibrated value: NaN.
+///
+/// A few flops per bin and no branch on data but the emission test: cheap enough to call for
+/// every bin of every pulse.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Calibration {
+    /// Factor common to every bin: `C / (E_out / E_ref)` with the factors switched off left
+    /// out, in calibrated units per volt (`docs/calibration.md`).
+    pub scale: f32,
+    /// Time of emission on the pulse's time axis, ns after t0 (the outgoing pulse's peak, or 0
+    /// when the input times from emission). Meaningless when `range_normalised` is false.
+    pub emission_ns: f64,
+    /// Metres of range per nanosecond of two-way travel time, `c / (2 n)`.
+    pub metres_per_ns: f64,
+    /// Range at which the range factor is 1, metres.
+    pub reference_range_m: f64,
+    /// Whether the `(R / R_ref)²` factor applies (false: range switched off, or the range of the
+    /// pulse is unknown and the stage's policy passed it unscaled).
+    pub range_normalised: bool,
+}
+
+impl Calibration {
+    /// The calibration factor of a bin `t_ns` after the pulse's t0: calibrated units per volt;
+    /// NaN at or before the emission when the range factor applies.
+    #[inline]
+    pub fn factor_at(&self, t_ns: f64) -> f32 {
+        if !self.range_normalised {
+            return self.scale;
+        }
+        let q = (t_ns - self.emission_ns) * (self.metres_per_ns / self.reference_range_m);
+        if q > 0.0 {
+            self.scale * (q * q) as f32
+        } else {
+            f32::NAN
+        }
+    }
+
+    /// Calibrated backscatter of `value_v` volts at `t_ns` after t0.
+    #[inline]
+    pub fn calibrated(&self, value_v: f32, t_ns: f64) -> f32 {
+        value_v * self.factor_at(t_ns)
+    }
+
+    /// Range of a bin `t_ns` after t0, metres (negative before the emission; meaningless when
+    /// `range_normalised` is false).
+    #[inline]
+    pub fn range_m(&self, t_ns: f64) -> f64 {
+        (t_ns - self.emission_ns) * self.metres_per_ns
+    }
+}
+
 /// One laser shot and everything the chain has learnt about it so far.
 #[derive(Debug)]
 pub struct Pulse {
@@ -140,6 +203,9 @@ pub struct Pulse {
     pub noise: NoiseEstimate,
     /// Returns found by the decomposition stage (empty before it).
     pub returns: Vec<FittedReturn>,
+    /// How to turn the signal's volts into calibrated backscatter, from the `calibrate` stage
+    /// (`None` before it, or when it did not run).
+    pub calibration: Option<Calibration>,
     /// When the pulse entered the process (for latency measurement).
     pub arrived: Instant,
 }
@@ -161,6 +227,7 @@ impl Default for Pulse {
             signal: Vec::new(),
             noise: NoiseEstimate::default(),
             returns: Vec::new(),
+            calibration: None,
             arrived: Instant::now(),
         }
     }
@@ -183,6 +250,7 @@ impl Pulse {
         self.signal.clear();
         self.noise = NoiseEstimate::default();
         self.returns.clear();
+        self.calibration = None;
         self.arrived = Instant::now();
     }
 

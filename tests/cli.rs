@@ -166,7 +166,7 @@ fn replay_of_the_sample_writes_consistent_outputs() {
         .iter()
         .map(|s| s["name"].as_str().unwrap())
         .collect();
-    assert_eq!(names, ["denoise", "deconvolve", "decompose"]);
+    assert_eq!(names, ["denoise", "deconvolve", "decompose", "calibrate"]);
     // ... and its discrete returns (returns.csv) sit where the physics puts the two surfaces:
     // two-way travel time 2R/c to the ground at 1000 m and to the plane 15 m above it.
     let c_m_per_ns = 0.299_792_458;
@@ -176,7 +176,8 @@ fn replay_of_the_sample_writes_consistent_outputs() {
     assert_eq!(
         lines.next(),
         Some(
-            "pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v,x,y,z"
+            "pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v,x,y,z,\
+             backscatter"
         )
     );
     let mut per_pulse: std::collections::BTreeMap<u64, Vec<f64>> = Default::default();
@@ -189,8 +190,8 @@ fn replay_of_the_sample_writes_consistent_outputs() {
     let mut z_offsets = [Vec::new(), Vec::new()];
     for l in lines {
         let f: Vec<&str> = l.split(',').collect();
-        assert_eq!(f.len(), 11, "{l}");
-        let xyz: Vec<f64> = f[8..]
+        assert_eq!(f.len(), 12, "{l}");
+        let xyz: Vec<f64> = f[8..11]
             .iter()
             .map(|v| v.parse().unwrap_or_else(|_| panic!("georeferenced: {l}")))
             .collect();

@@ -178,7 +178,7 @@ fn replay_gives_each_return_its_height_above_the_dem() {
         lines
             .next()
             .unwrap()
-            .ends_with(",x,y,z,height_above_ground")
+            .ends_with(",x,y,z,height_above_ground,backscatter")
     );
     let mut n = 0;
     for l in lines {

@@ -1,5 +1,6 @@
 //! No allocation per pulse on the hot path: the number of heap allocations of a whole run
-//! (source → denoise worker → sink) must not grow with the number of pulses. A counting global
+//! (source → denoise worker → sink; source → calibrate worker, which fills the signal itself,
+//! → sink) must not grow with the number of pulses. A counting global
 //! allocator sees every allocation of this test process.
 
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -10,7 +11,7 @@ use fwlidar::config::FullPolicy;
 use fwlidar::pipeline::runner::{PipelineSpec, StageFactory};
 use fwlidar::pipeline::testing::SyntheticSource;
 use fwlidar::pipeline::{RunControl, Stage, run};
-use fwlidar::signal::{Denoise, DenoiseConfig};
+use fwlidar::signal::{Calibrate, CalibrateConfig, Denoise, DenoiseConfig};
 use fwlidar::sink::NullSink;
 use fwlidar::sink::nav_tally::NavTally;
 
@@ -37,12 +38,21 @@ static GLOBAL: Counting = Counting;
 fn allocations_for(pulses: u64, workers: usize) -> u64 {
     let factory: StageFactory =
         Arc::new(|| vec![Box::new(Denoise::new(DenoiseConfig::default())) as Box<dyn Stage>]);
+    allocations_with(factory, vec!["denoise"], pulses, workers)
+}
+
+fn allocations_with(
+    factory: StageFactory,
+    stage_names: Vec<&'static str>,
+    pulses: u64,
+    workers: usize,
+) -> u64 {
     let spec = PipelineSpec {
         workers,
         queue_capacity: 8,
         input_policy: FullPolicy::Block,
         stages: factory,
-        stage_names: vec!["denoise"],
+        stage_names,
     };
     let before = ALLOCS.load(Ordering::SeqCst);
     let report = run(
@@ -69,4 +79,20 @@ fn allocations_do_not_grow_with_pulses() {
             "workers={workers}: {small} allocations for 10 000 pulses, {large} for 100 000"
         );
     }
+}
+
+#[test]
+fn calibrate_allocates_nothing_per_pulse() {
+    let factory: StageFactory = Arc::new(|| {
+        vec![Box::new(Calibrate::new(CalibrateConfig {
+            t0_is_emission: Some(true),
+            ..Default::default()
+        })) as Box<dyn Stage>]
+    });
+    let small = allocations_with(factory.clone(), vec!["calibrate"], 10_000, 1);
+    let large = allocations_with(factory, vec!["calibrate"], 100_000, 1);
+    assert!(
+        large.saturating_sub(small) < 1_000,
+        "{small} allocations for 10 000 pulses, {large} for 100 000"
+    );
 }

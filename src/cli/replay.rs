@@ -92,11 +92,25 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     prepare_out_dir(&out_dir)?;
 
     let p = &config.pipeline;
+    // Keys left to the input (the calibrate stage's system constant and time origin) are
+    // filled from what the opened input states, before the stages are built.
+    let facts = source.facts();
+    let mut stages = p.stages.clone();
+    for stage in &mut stages {
+        stage.resolve_from_input(&facts);
+        if let crate::pipeline::registry::StageConfig::Calibrate(c) = stage {
+            tracing::info!(
+                system_constant = c.system_constant_value.unwrap_or(1.0),
+                t0_is_emission = c.t0_is_emission.unwrap_or(false),
+                "calibrate stage resolved from the input"
+            );
+        }
+    }
     let spec = PipelineSpec::from_config(
         args.workers.unwrap_or(p.workers),
         p.queue_capacity,
         p.input_edge,
-        p.stages.clone(),
+        stages,
     );
     let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
     if config.output.waveforms {

@@ -57,10 +57,22 @@ pub struct SensorProfile {
     /// degrees. Default zero.
     #[serde(default)]
     pub boresight_deg: [f64; 3],
+    /// System constant C of the radiometric calibration (`calibrate` stage,
+    /// `docs/calibration.md`): calibrated backscatter = C × volts × (R / R_ref)² / (E / E_ref).
+    /// Its unit is the calibrated unit per volt (e.g. per volt for a reflectance-like, unitless
+    /// result, from a flight over a target of known reflectance); the default 1 leaves the
+    /// result in volts at the reference range and energy. Left out of the capture header when
+    /// it is 1, so captures stay readable by earlier versions.
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub calibration_constant: f64,
 }
 
 fn one() -> f64 {
     1.0
+}
+
+fn is_one(x: &f64) -> bool {
+    *x == 1.0
 }
 
 impl SensorProfile {
@@ -124,6 +136,14 @@ impl Validate for SensorProfile {
                 format!("must be in [0, 90) degrees off nadir, got {a}"),
             );
         }
+        v.require(
+            self.calibration_constant.is_finite() && self.calibration_constant > 0.0,
+            at("calibration_constant"),
+            format!(
+                "must be a positive finite number (calibrated units per volt), got {}",
+                self.calibration_constant
+            ),
+        );
         for (name, values) in [
             ("lever_arm_m", self.lever_arm_m),
             ("boresight_deg", self.boresight_deg),

@@ -3,6 +3,7 @@
 
 use super::load::{Validate, Validator, field};
 use crate::pipeline::registry::StageConfig;
+use crate::signal::calibrate::CalibrateConfig;
 use crate::signal::decompose::DecomposeConfig;
 use crate::signal::deconvolve::response::{ResponseError, response_from_flat_target};
 use crate::signal::deconvolve::{DeconvolveConfig, KernelSource, MethodConfig};
@@ -21,6 +22,7 @@ impl Validate for StageConfig {
             StageConfig::Denoise(c) => Validate::validate(c, path, v),
             StageConfig::Deconvolve(c) => Validate::validate(c, path, v),
             StageConfig::Decompose(c) => Validate::validate(c, path, v),
+            StageConfig::Calibrate(c) => Validate::validate(c, path, v),
         }
     }
 }
@@ -60,6 +62,28 @@ impl Validate for DenoiseConfig {
             format!(
                 "must be less than max_samples ({}), got {}",
                 self.max_samples, self.pretrigger_samples
+            ),
+        );
+    }
+}
+
+impl Validate for CalibrateConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        for (name, value) in [
+            ("system_constant_value", self.system_constant_value),
+            ("reference_range_m", Some(self.reference_range_m)),
+            ("reference_energy_v_ns", Some(self.reference_energy_v_ns)),
+        ] {
+            if let Some(x) = value {
+                v.positive(x, field(path, name));
+            }
+        }
+        v.require(
+            (1.0..=1.001).contains(&self.refractive_index),
+            field(path, "refractive_index"),
+            format!(
+                "must be in 1..=1.001 (1 = vacuum), got {}",
+                self.refractive_index
             ),
         );
     }

@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::pipeline::stage::{Passthrough, Stage};
+use crate::signal::calibrate::{Calibrate, CalibrateConfig};
 use crate::signal::decompose::{Decompose, DecomposeConfig};
 use crate::signal::deconvolve::{Deconvolve, DeconvolveConfig};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
@@ -23,6 +24,8 @@ pub enum StageConfig {
     Deconvolve(DeconvolveConfig),
     /// Gaussian decomposition of the return segments into discrete returns.
     Decompose(DecomposeConfig),
+    /// Radiometric calibration: volts, range, outgoing energy, system constant.
+    Calibrate(CalibrateConfig),
 }
 
 /// Accepts only an empty table: the keys of a stage kind that has none.
@@ -41,6 +44,7 @@ impl StageConfig {
             StageConfig::Denoise(_) => "denoise",
             StageConfig::Deconvolve(_) => "deconvolve",
             StageConfig::Decompose(_) => "decompose",
+            StageConfig::Calibrate(_) => "calibrate",
         }
     }
 
@@ -51,6 +55,16 @@ impl StageConfig {
             StageConfig::Denoise(c) => Box::new(Denoise::new(c.clone())),
             StageConfig::Deconvolve(c) => Box::new(Deconvolve::new(c.clone())),
             StageConfig::Decompose(c) => Box::new(Decompose::new(c.clone())),
+            StageConfig::Calibrate(c) => Box::new(Calibrate::new(c.clone())),
+        }
+    }
+
+    /// Fills the keys a stage leaves to the input (the `calibrate` stage's system constant
+    /// and time origin, [`CalibrateConfig::resolve_from_input`]) from what the opened input
+    /// states. Run once, before the stages are built.
+    pub fn resolve_from_input(&mut self, facts: &crate::source::SourceFacts) {
+        if let StageConfig::Calibrate(c) = self {
+            c.resolve_from_input(facts);
         }
     }
 }

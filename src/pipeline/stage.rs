@@ -105,6 +105,14 @@ impl<'a> Emitter<'a> {
         self.out.push(pulse);
     }
 
+    /// Counts `note` for a pulse the stage will still emit (with [`Emitter::emit`]): for a
+    /// pulse left partly unprocessed for more than one reason, each counted once.
+    pub fn note(&mut self, note: &'static str) {
+        if let Some(n) = self.notes.as_deref_mut() {
+            n.add(note, 1);
+        }
+    }
+
     /// Passes a pulse on to the next stage.
     pub fn emit(&mut self, pulse: Box<Pulse>) {
         self.out.push(pulse);

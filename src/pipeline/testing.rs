@@ -12,6 +12,8 @@ pub struct StageRun {
     pub dropped: DropCounts,
     /// Pulses rejected as errors.
     pub errors: u64,
+    /// Pulses emitted with a note ([`Emitter::emit_noted`], [`Emitter::note`]), by note.
+    pub notes: DropCounts,
 }
 
 /// Feeds `pulses` to `stage` one by one, then flushes it, and checks the stage contract:
@@ -24,14 +26,17 @@ pub fn run_stage(
     let mut emitted = Vec::new();
     let mut dropped = DropCounts::default();
     let mut errors = 0u64;
+    let mut notes = DropCounts::default();
     let mut n_in = 0u64;
     for (seq, mut p) in pulses.into_iter().enumerate() {
         p.seq = seq as u64;
         n_in += 1;
-        let mut em = Emitter::new(&mut emitted, &pool, &mut dropped, &mut errors);
+        let mut em =
+            Emitter::new(&mut emitted, &pool, &mut dropped, &mut errors).with_notes(&mut notes);
         stage.process(Box::new(p), &mut em)?;
     }
-    let mut em = Emitter::new(&mut emitted, &pool, &mut dropped, &mut errors);
+    let mut em =
+        Emitter::new(&mut emitted, &pool, &mut dropped, &mut errors).with_notes(&mut notes);
     stage.flush(&mut em)?;
     assert_eq!(
         emitted.len() as u64 + dropped.total(),
@@ -46,6 +51,7 @@ pub fn run_stage(
         emitted,
         dropped,
         errors,
+        notes,
     })
 }
 

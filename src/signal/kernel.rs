@@ -45,6 +45,21 @@ pub fn remove_baseline(row: &[f32]) -> Vec<f32> {
     row.iter().map(|v| v - base).collect()
 }
 
+/// Index of the first maximum of `x` (the peak sample of a recorded pulse: the zero-delay tap
+/// of a kernel, the emission reference of the `calibrate` stage); `None` when `x` is empty or
+/// holds no number above `f32::MIN` (NaN samples are never a maximum).
+pub fn peak_index(x: &[f32]) -> Option<usize> {
+    let mut peak = None;
+    let mut best = f32::MIN;
+    for (i, &v) in x.iter().enumerate() {
+        if v > best {
+            best = v;
+            peak = Some(i);
+        }
+    }
+    peak
+}
+
 /// Why a kernel could not be built.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum KernelError {
@@ -110,16 +125,7 @@ impl Kernel {
         for v in self.taps.iter_mut() {
             *v *= inv;
         }
-        // First index of the maximum.
-        let mut peak = 0usize;
-        let mut best = f32::MIN;
-        for (i, &v) in self.taps.iter().enumerate() {
-            if v > best {
-                best = v;
-                peak = i;
-            }
-        }
-        self.center = peak;
+        self.center = peak_index(&self.taps).unwrap_or(0);
         Ok(())
     }
 

@@ -1,6 +1,7 @@
-//! Per-pulse signal processing stages: denoise, deconvolve and decompose (peaks and a bounded
-//! Gaussian fit).
+//! Per-pulse signal processing stages: denoise, deconvolve, decompose (peaks and a bounded
+//! Gaussian fit) and calibrate (radiometric calibration).
 
+pub mod calibrate;
 pub mod decompose;
 pub mod deconvolve;
 pub mod denoise;
@@ -8,5 +9,6 @@ pub mod gauss_fit;
 pub mod kernel;
 pub mod peaks;
 
+pub use calibrate::{Calibrate, CalibrateConfig};
 pub use decompose::{Decompose, DecomposeConfig};
 pub use denoise::{Denoise, DenoiseConfig};

@@ -23,6 +23,9 @@ use crate::pulse::Pulse;
 use nmea::FlightLine;
 
 /// One item of the simulated stream.
+// Nearly every item is a pulse (a navigation epoch comes once per thousands of pulses), so the
+// enum's size is the pulse's either way; boxing it would add an allocation per simulated pulse.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub enum SimItem {
     /// A digitized pulse (its `gps_time` is its emission time).
@@ -128,6 +131,7 @@ pub(crate) mod test_support {
             max_scan_angle_deg: None,
             lever_arm_m: [0.1, 0.0, -0.2],
             boresight_deg: [0.0; 3],
+            calibration_constant: 1.0,
         }
     }
 }

@@ -1,5 +1,6 @@
 //! Discrete returns found by the decomposition stage, as `returns.csv`: one row per fitted
-//! Gaussian, `pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v`.
+//! Gaussian, `pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v,
+//! x,y,z[,height_above_ground],backscatter`.
 //!
 //! - `segment`: index of the segment within its pulse (the `segment` column of `pulses.csv`);
 //! - `position_bins`: centre in bins from the segment's first sample (fractional);
@@ -11,7 +12,10 @@
 //!   geometry (the input file's for LAS and PulseWaves, the output CRS for georeferenced
 //!   captures); empty for pulses without geometry;
 //! - `height_above_ground` (only when a DEM is configured, `[georeference] dem`): `z` minus the
-//!   DEM's bilinear height at `x, y`, metres; empty outside the DEM or next to its nodata.
+//!   DEM's bilinear height at `x, y`, metres; empty outside the DEM or next to its nodata;
+//! - `backscatter` (always the last column): the return's calibrated backscatter from a
+//!   `calibrate` stage (amplitude × calibration factor at `time_ns`, `docs/calibration.md`);
+//!   empty when not calibrated (no such stage, or a return at or before the emission).
 //!
 //! Pulses without returns write nothing. The file appears atomically at the end of the run
 //! (see [`AtomicFile`]); the georeferenced LAS returns of later issues replace it for mapping.
@@ -23,7 +27,8 @@ use crate::pulse::Pulse;
 use crate::sink::atomic_file::AtomicFile;
 use crate::sink::{PulseSink, SinkError};
 
-/// Header line of `returns.csv`.
+/// Header line of `returns.csv` up to `z`; then `height_above_ground` when a DEM is
+/// configured, and `backscatter` last.
 pub const RETURNS_HEADER: &str =
     "pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v,x,y,z";
 
@@ -51,9 +56,9 @@ impl ReturnsCsvSink {
         let mut file = AtomicFile::create(dir.join("returns.csv"))?;
         let path = file.path().display().to_string();
         let extra = if dem.is_some() {
-            ",height_above_ground"
+            ",height_above_ground,backscatter"
         } else {
-            ""
+            ",backscatter"
         };
         writeln!(file.writer()?, "{RETURNS_HEADER}{extra}")
             .map_err(|source| SinkError::Io { path, source })?;
@@ -118,6 +123,11 @@ impl PulseSink for ReturnsCsvSink {
                     }
                 }
             }
+            if r.backscatter.is_finite() {
+                let _ = write!(self.line, ",{}", r.backscatter);
+            } else {
+                self.line.push(',');
+            }
             self.line.push('\n');
         }
         let path = self.file.path().display().to_string();
@@ -179,7 +189,7 @@ mod tests {
             amplitude: 0.125,
             sigma_bins: 2.5,
             residual: 0.01,
-            backscatter: f32::NAN,
+            backscatter: 0.75,
         });
         sink.write(&p).unwrap();
         assert_eq!(sink.rows(), 2);
@@ -193,9 +203,9 @@ mod tests {
         assert_eq!(
             lines,
             [
-                RETURNS_HEADER,
-                "7,12.500000000,1,10.25,110.25,0.5,3,0.01,,,",
-                "7,12.500000000,1,40,140,0.125,2.5,0.01,,,"
+                format!("{RETURNS_HEADER},backscatter").as_str(),
+                "7,12.500000000,1,10.25,110.25,0.5,3,0.01,,,,",
+                "7,12.500000000,1,40,140,0.125,2.5,0.01,,,,0.75"
             ]
         );
     }
@@ -222,6 +232,9 @@ mod tests {
         sink.finish().unwrap();
         let text = std::fs::read_to_string(dir.path().join("returns.csv")).unwrap();
         let row = text.lines().nth(1).unwrap();
-        assert!(row.ends_with(",500001.0000,5000000.0000,985.0000"), "{row}");
+        assert!(
+            row.ends_with(",500001.0000,5000000.0000,985.0000,"),
+            "{row}"
+        );
     }
 }

@@ -43,7 +43,7 @@ impl CaptureSource {
             reader,
             path: path.to_path_buf(),
             total_bytes,
-            header: None,
+            header: first_header(path),
             stats: CaptureStats::default(),
         })
     }
@@ -56,6 +56,17 @@ impl CaptureSource {
     /// What was skipped so far.
     pub fn skipped(&self) -> &SkipReport {
         self.reader.skipped()
+    }
+}
+
+/// The capture's first record when it is a readable header (read by a second reader, so that
+/// [`Source::facts`] is known before the first event: the stages are configured from it). The
+/// source's own reading counts and checks it as usual.
+fn first_header(path: &Path) -> Option<CaptureHeader> {
+    let mut reader = CaptureReader::open(path).ok()?;
+    match reader.next_record()? {
+        Ok(Record::Header(text)) => CaptureHeader::parse(text).ok(),
+        _ => None,
     }
 }
 
@@ -76,7 +87,8 @@ impl Source for CaptureSource {
                     self.stats.headers += 1;
                     match CaptureHeader::parse(text) {
                         Ok(h) => {
-                            if self.header.is_none() {
+                            // The first one was read when the source was opened.
+                            if self.header.is_none() || self.stats.headers == 1 {
                                 tracing::info!(sensor = %h.sensor.name, origin = %h.capture.origin, "capture header");
                                 self.header = Some(h);
                             }
@@ -127,6 +139,9 @@ impl Source for CaptureSource {
                 sensor: Some(h.sensor.clone()),
                 time_base: Some(h.capture.time_base.clone()),
                 crs: h.capture.crs.clone(),
+                // Recorded and simulated frames time from the outgoing pulse's peak; imported
+                // ones keep their input's t0 (LAS: first sample, PulseWaves: anchor).
+                t0_is_emission: Some(h.capture.origin != "imported"),
             },
             None => super::SourceFacts::default(),
         }

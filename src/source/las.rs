@@ -85,6 +85,8 @@ impl Source for LasSource {
             sensor: None,
             time_base: Some(info.time_base().to_string()),
             crs: info.crs(),
+            // The time axis starts at the first digitised sample, not at emission.
+            t0_is_emission: Some(false),
         }
     }
 }

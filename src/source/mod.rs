@@ -61,8 +61,8 @@ pub trait Source: Send {
     }
 
     /// What the input states about its sensor, time base and coordinates, as far as known so far
-    /// (a capture states it in its first record, so ask after the first event). `fwlidar import`
-    /// writes it into the capture header.
+    /// (a capture source reads its first header when it is opened). `fwlidar import` writes it
+    /// into the capture header.
     fn facts(&self) -> SourceFacts {
         SourceFacts::default()
     }
@@ -99,6 +99,13 @@ pub struct SourceFacts {
     pub time_base: Option<String>,
     /// Coordinate reference system of the pulses' geometry: OGC WKT or `EPSG:<code>`.
     pub crs: Option<String>,
+    /// Whether the pulses' reference time t0 is the emission of the shot (so that a bin `t` ns
+    /// after t0 lies `t · c / (2 n)` from the sensor): true for digitizer frames recorded or
+    /// simulated by fwlidar (t0 = the outgoing pulse's peak), false for LAS (t0 = the first
+    /// digitised sample), PulseWaves (t0 = the anchor, anywhere on the beam) and imported
+    /// captures; `None` when the input does not say. Read by the `calibrate` stage for pulses
+    /// without an outgoing segment (`docs/calibration.md`).
+    pub t0_is_emission: Option<bool>,
 }
 
 /// The file formats an input file can be, told apart by their first bytes ([`InputKind::sniff`]).

@@ -82,6 +82,7 @@ where
             .then_some(f64::from(max_angle)),
         lever_arm_m: [0.0; 3],
         boresight_deg: [0.0; 3],
+        calibration_constant: 1.0,
     })
 }
 
@@ -157,6 +158,8 @@ impl Source for PulseWavesSource {
             sensor: self.sensor(),
             time_base: self.reader.time_base().as_str().map(str::to_string),
             crs: self.reader.crs().map(str::to_string),
+            // t0 is the anchor, which the format lets lie anywhere on the beam.
+            t0_is_emission: Some(false),
         }
     }
 }
