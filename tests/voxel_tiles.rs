@@ -33,9 +33,36 @@ fn sample() -> PathBuf {
     Path::new(ROOT).join("replay/two_layer.fwcap")
 }
 
+/// The embedded configuration without its calibrate stage: voxels hold volts.
+fn volts_config(dir: &Path) -> PathBuf {
+    let text = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml")).unwrap();
+    let start = text.find("[[pipeline.stages]]\ntype = \"calibrate\"").unwrap();
+    let end = start + text[start..].find("\n[georeference]").unwrap();
+    let p = dir.join("volts.toml");
+    std::fs::write(&p, format!("{}{}", &text[..start], &text[end..])).unwrap();
+    p
+}
+
+fn check_with_xarray(out: &Path, mode: &str) -> serde_json::Value {
+    let o = Command::new(python())
+        .arg(Path::new(ROOT).join("tests/python/check_voxels.py"))
+        .arg(out)
+        .arg(mode)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "xarray/zarr check failed:\n{}\n{}",
+        text(&o.stdout),
+        text(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
 #[test]
 fn replay_writes_tiles_that_xarray_reads_with_the_right_values() {
     let dir = tempfile::tempdir().unwrap();
+    // The embedded default: calibrated backscatter.
     let out = dir.path().join("out");
     let o = replay(&sample(), &out, None);
     assert!(o.status.success(), "{}", text(&o.stderr));
@@ -45,18 +72,13 @@ fn replay_writes_tiles_that_xarray_reads_with_the_right_values() {
         "{stdout}"
     );
     assert!(stdout.contains("tiles 1 opened, 1 closed"), "{stdout}");
-    let o = Command::new(python())
-        .arg(Path::new(ROOT).join("tests/python/check_voxels.py"))
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        o.status.success(),
-        "xarray/zarr check failed:\n{}\n{}",
-        text(&o.stdout),
-        text(&o.stderr)
-    );
-    let figures: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let figures = check_with_xarray(&out, "calibrated");
+    assert_eq!(figures["bins"], 404000);
+    // Without the calibrate stage: volts, summed exactly as waveforms.csv has them.
+    let volts = dir.path().join("volts");
+    let o = replay(&sample(), &volts, Some(&volts_config(dir.path())));
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let figures = check_with_xarray(&volts, "volts");
     assert_eq!(figures["bins"], 404000);
 }
 

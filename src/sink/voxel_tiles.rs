@@ -440,6 +440,32 @@ mod tests {
     }
 
     #[test]
+    fn calibrated_pulses_deposit_each_bin_times_its_own_factor() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut p = pulse(0, 0.0, 3.2, 2.7);
+        let cal = crate::pulse::Calibration {
+            scale: 2.0,
+            emission_ns: -30.0,
+            metres_per_ns: 0.15,
+            reference_range_m: 10.0,
+            range_normalised: true,
+        };
+        p.calibration = Some(cal);
+        let s = run(dir.path(), cfg(), [p].into_iter());
+        assert_eq!(s.stats().bins_deposited, 40);
+        let tiles = read_all(dir.path());
+        let d = &tiles[0].1;
+        // Level 5 of column (3, 2) holds bins 65 (1 V) and 66 (5 V).
+        let at5 = (2 * 8 + 3) * 20 + 5;
+        let want = 1.0 * cal.factor_at(65.0) + 5.0 * cal.factor_at(66.0);
+        let got = d.sum_q[at5] as f64 * 1e-6;
+        assert!((got - want as f64).abs() < 2e-6, "{got} vs {want}");
+        assert_eq!(d.max[at5], 5.0 * cal.factor_at(66.0));
+        // The factor grows with range: (96 · 0.15 / 10)² · 2 ≈ 4.1 at bin 66.
+        assert!(d.max[at5] > 20.0);
+    }
+
+    #[test]
     fn footprint_spreads_a_bin_over_the_columns_it_covers_and_keeps_its_sum() {
         let dir = tempfile::tempdir().unwrap();
         let c = VoxelConfig {

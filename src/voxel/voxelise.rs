@@ -83,7 +83,7 @@ pub fn deposit_pulse(
     }
     let seq = pulse.seq;
     let now = pulse.gps_time;
-    let cal: Option<IdentityCalibration> = None; // CALIBRATION-MERGE
+    let cal = pulse.calibration;
     let metres_per_ns = (g.direction[0] * g.direction[0]
         + g.direction[1] * g.direction[1]
         + g.direction[2] * g.direction[2])
@@ -253,14 +253,6 @@ fn spread(
         *prev = (vi.tile, vi.offset);
     }
     Ok(deposited)
-}
-
-/// Stand-in until the calibrate stage lands. CALIBRATION-MERGE
-struct IdentityCalibration;
-impl IdentityCalibration {
-    fn factor_at(&self, _t: f64) -> f32 {
-        1.0
-    }
 }
 
 impl DepositParams {
