@@ -429,8 +429,8 @@ impl Placer {
     /// Global column `[cx, cy]` of a horizontal position, if inside the extent.
     #[inline]
     pub fn column(&self, x: f64, y: f64) -> Option<[i64; 2]> {
-        let cx = fast_floor((x - self.origin[0]) * self.inv[0]);
-        let cy = fast_floor((y - self.origin[1]) * self.inv[1]);
+        let [gx, gy] = self.grid_xy(x, y);
+        let (cx, cy) = (fast_floor(gx), fast_floor(gy));
         // NaN fails both comparisons.
         if !(cx >= self.col_min[0] as f64 && cx < self.col_end[0] as f64) {
             return None;
@@ -476,6 +476,28 @@ impl Placer {
         ((j * self.side + i) * self.levels + k) as u32
     }
 
+    /// Fractional grid coordinates `[gx, gy]` of a horizontal position: the column is their
+    /// floor (what [`Placer::column`] computes before its range checks).
+    #[inline]
+    pub fn grid_xy(&self, x: f64, y: f64) -> [f64; 2] {
+        [
+            (x - self.origin[0]) * self.inv[0],
+            (y - self.origin[1]) * self.inv[1],
+        ]
+    }
+
+    /// Bottom of level 0, metres.
+    #[inline]
+    pub fn z_bottom(&self) -> f64 {
+        self.z_bottom
+    }
+
+    /// Levels of the grid.
+    #[inline]
+    pub fn levels(&self) -> i64 {
+        self.levels
+    }
+
     /// 1 / voxel size along `axis` (0 x, 1 y, 2 z), per metre.
     pub fn inv(&self, axis: usize) -> f64 {
         self.inv[axis]
@@ -495,7 +517,7 @@ impl Placer {
 /// ±2⁶³ and NaN come out as whatever lies outside every grid (they are refused by the caller's
 /// range check).
 #[inline]
-fn fast_floor(v: f64) -> f64 {
+pub fn fast_floor(v: f64) -> f64 {
     if !(v.abs() < 9.0e18) {
         return v; // NaN, infinities and huge values: refused by the range checks
     }

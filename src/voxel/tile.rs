@@ -74,6 +74,18 @@ impl TileData {
         self.max[offset] = self.max[offset].max(value);
     }
 
+    /// The accumulators of one column: `levels` voxels from `base` (sum, samples, max, pulses).
+    #[inline]
+    pub fn column_mut(&mut self, base: usize, levels: usize) -> ColumnMut<'_> {
+        let r = base..base + levels;
+        ColumnMut {
+            sum_q: &mut self.sum_q[r.clone()],
+            samples: &mut self.samples[r.clone()],
+            max: &mut self.max[r.clone()],
+            pulses: &mut self.pulses[r],
+        }
+    }
+
     /// Counts one pulse passing through the voxel at `offset`.
     #[inline]
     pub fn pass(&mut self, offset: usize) {
@@ -100,11 +112,47 @@ impl TileData {
     }
 }
 
-/// Quantises an intensity to the nearest whole quantum (saturating; NaN gives 0).
+/// The accumulators of one column of a tile, level by level.
+pub struct ColumnMut<'a> {
+    /// Sums, quanta.
+    pub sum_q: &'a mut [i64],
+    /// Samples.
+    pub samples: &'a mut [u32],
+    /// Maxima.
+    pub max: &'a mut [f32],
+    /// Pulses passed.
+    pub pulses: &'a mut [u32],
+}
+
+impl ColumnMut<'_> {
+    /// Deposits one sample at level `k` (must be below the column's length).
+    #[inline]
+    pub fn deposit(&mut self, k: usize, value_q: i64, value: f32) {
+        // One bounds check for the four arrays of equal length.
+        if k < self.sum_q.len() && k < self.samples.len() && k < self.max.len() {
+            self.sum_q[k] = self.sum_q[k].saturating_add(value_q);
+            self.samples[k] = self.samples[k].saturating_add(1);
+            self.max[k] = self.max[k].max(value);
+        }
+    }
+
+    /// Counts one pulse passing through level `k`.
+    #[inline]
+    pub fn pass(&mut self, k: usize) {
+        if let Some(p) = self.pulses.get_mut(k) {
+            *p = p.saturating_add(1);
+        }
+    }
+}
+
+/// Quantises an intensity to the nearest whole quantum, halves away from zero (saturating; NaN
+/// gives 0). Adds ±0.5 and truncates rather than calling `f64::round`, which baseline x86-64
+/// makes a library call.
 #[inline]
 pub fn quantise(value: f32, inv_quantum: f64) -> i64 {
-    // `as` saturates and maps NaN to 0.
-    (value as f64 * inv_quantum).round() as i64
+    let q = value as f64 * inv_quantum;
+    // `as` truncates towards zero, saturates and maps NaN to 0.
+    (q + 0.5f64.copysign(q)) as i64
 }
 
 #[cfg(test)]

@@ -81,6 +81,9 @@ pub fn deposit_pulse(
         stats.pulses_no_signal += 1;
         return Ok(());
     }
+    if p.footprint_divergence_rad.is_none() {
+        return deposit_on_axis(pulse, &g, tiles, p, stats);
+    }
     let seq = pulse.seq;
     let now = pulse.gps_time;
     let cal = pulse.calibration;
@@ -89,12 +92,6 @@ pub fn deposit_pulse(
         + g.direction[2] * g.direction[2])
         .sqrt();
     let mut deposited = 0u64;
-    let mut cur_tile = [i64::MIN; 2];
-    // First global column of the current tile (i64::MIN / 2: no tile yet).
-    let mut cur_c0 = [i64::MIN / 2; 2];
-    let side = p.placer.side();
-    let mut cur_slot = 0usize;
-    let mut cur_skip = 0u64;
     let mut prev: ([i64; 2], u32) = ([i64::MIN; 2], u32::MAX);
     let mut ground_col = [i64::MIN; 2];
     let mut ground = 0.0f64;
@@ -137,29 +134,7 @@ pub fn deposit_pulse(
                 continue;
             }
             match p.footprint_divergence_rad {
-                None => {
-                    let (mut i, mut j) = (col[0] - cur_c0[0], col[1] - cur_c0[1]);
-                    if !(0..side).contains(&i) || !(0..side).contains(&j) {
-                        let tile = p.placer.tile_of(col);
-                        let (s, skip) = tiles.slot_for(tile, seq, now)?;
-                        tiles.touched(s, now);
-                        (cur_tile, cur_slot, cur_skip) = (tile, s, skip);
-                        cur_c0 = [tile[0] * side, tile[1] * side];
-                        (i, j) = (col[0] - cur_c0[0], col[1] - cur_c0[1]);
-                    }
-                    if seq < cur_skip {
-                        stats.bins_resumed += 1;
-                        continue;
-                    }
-                    let offset = p.placer.offset(i, j, k);
-                    let data = tiles.data(cur_slot);
-                    data.deposit(offset as usize, quantise(value, p.inv_quantum), value);
-                    if prev != (cur_tile, offset) {
-                        data.pass(offset as usize);
-                        prev = (cur_tile, offset);
-                    }
-                    deposited += 1;
-                }
+                None => unreachable!("handled by deposit_on_axis"),
                 Some(div) => {
                     let r = (t.max(0.0) * metres_per_ns) * div / 2.0;
                     deposited += spread(
@@ -178,6 +153,144 @@ pub fn deposit_pulse(
             }
         }
     }
+    if deposited > 0 {
+        stats.pulses_deposited += 1;
+        stats.bins_deposited += deposited;
+    }
+    Ok(())
+}
+
+/// Deposits every return bin in the voxel of the beam axis. The bins are walked in runs that
+/// stay in one column: the tile, its slot, the resume watermark and the DEM height are looked
+/// up once per run, and a bin costs its position, a level and the deposit. A bin belongs to the
+/// run while its fractional grid coordinates stay inside the run's column, the same test
+/// [`Placer::column`] makes, so runs change nothing but the cost.
+fn deposit_on_axis(
+    pulse: &Pulse,
+    g: &crate::pulse::PulseGeometry,
+    tiles: &mut TileSet,
+    p: &DepositParams,
+    stats: &mut DepositStats,
+) -> Result<(), StoreError> {
+    let (seq, now) = (pulse.seq, pulse.gps_time);
+    let cal = pulse.calibration;
+    let placer = &p.placer;
+    let (side, levels) = (placer.side(), placer.levels());
+    let (inv_z, z_bottom) = (placer.inv(2), placer.z_bottom());
+    let above_dem = p.height == HeightMode::AboveDem;
+    let mut deposited = 0u64;
+    let (mut outside_heights, mut non_finite, mut resumed) = (0u64, 0u64, 0u64);
+    let mut prev: ([i64; 2], u32) = ([i64::MIN; 2], u32::MAX);
+    for seg in pulse.segments.iter().filter(|s| s.kind == SegmentKind::Return) {
+        let values = &pulse.signal[seg.range()];
+        let mut i = 0usize;
+        while i < values.len() {
+            // The first bin of a run: its column, tile, slot and ground.
+            let t = seg.start_ns + i as f64 * pulse.sample_ns;
+            let x = g.anchor[0] + t * g.direction[0];
+            let y = g.anchor[1] + t * g.direction[1];
+            let Some(col) = placer.column(x, y) else {
+                stats.bins_outside_extent += 1;
+                i += 1;
+                continue;
+            };
+            let ground = if above_dem {
+                match p.dem.as_ref().and_then(|d| d.height_at(x, y)) {
+                    Some(h) => h,
+                    None => {
+                        stats.bins_outside_dem += 1;
+                        i += 1;
+                        continue;
+                    }
+                }
+            } else {
+                0.0
+            };
+            let tile = placer.tile_of(col);
+            let (slot, skip) = tiles.slot_for(tile, seq, now)?;
+            tiles.touched(slot, now);
+            let base = placer.offset(col[0] - tile[0] * side, col[1] - tile[1] * side, 0) as usize;
+            let (cx, cy) = (col[0] as f64, col[1] as f64);
+            let mut column = tiles.data(slot).column_mut(base, levels as usize);
+            let inv_q = p.inv_quantum;
+            let levels_f = levels as f64;
+            // One bin of the run at fractional level `kf`: the deposit and its counts.
+            let mut bin = |j: usize, t: f64, kf: f64| {
+                // In range, truncation is the floor.
+                if !(kf >= 0.0 && kf < levels_f) {
+                    outside_heights += 1;
+                    return;
+                }
+                let v = values[j];
+                let value = match &cal {
+                    Some(c) => v * c.factor_at(t),
+                    None => v,
+                };
+                if !value.is_finite() {
+                    non_finite += 1;
+                    return;
+                }
+                if seq < skip {
+                    resumed += 1;
+                    return;
+                }
+                let k = kf as usize;
+                column.deposit(k, quantise(value, inv_q), value);
+                let off = (base + k) as u32;
+                if prev.1 != off || prev.0 != tile {
+                    column.pass(k);
+                    prev = (tile, off);
+                }
+                deposited += 1;
+            };
+            // Bins certainly inside the column, from the beam's slope in grid units (a margin
+            // of 1e-6 column keeps rounding from deciding): no horizontal test needed.
+            let [gx, gy] = placer.grid_xy(x, y);
+            let steps = |g: f64, c: f64, slope: f64| -> f64 {
+                if slope > 0.0 {
+                    (c + 1.0 - 1e-6 - g) / slope
+                } else if slope < 0.0 {
+                    (g - c - 1e-6) / -slope
+                } else {
+                    f64::INFINITY
+                }
+            };
+            let (sx, sy) = (
+                pulse.sample_ns * g.direction[0] * placer.inv(0),
+                pulse.sample_ns * g.direction[1] * placer.inv(1),
+            );
+            let safe = steps(gx, cx, sx).min(steps(gy, cy, sy)).max(0.0);
+            let safe_end = if safe >= (values.len() - i) as f64 {
+                values.len()
+            } else {
+                i + safe as usize
+            };
+            let mut j = i;
+            while j < safe_end {
+                let t = seg.start_ns + j as f64 * pulse.sample_ns;
+                let z = g.anchor[2] + t * g.direction[2] - ground;
+                bin(j, t, (z - z_bottom) * inv_z);
+                j += 1;
+            }
+            // Then bins near the column's edge, tested one by one.
+            while j < values.len() {
+                let t = seg.start_ns + j as f64 * pulse.sample_ns;
+                let x = g.anchor[0] + t * g.direction[0];
+                let y = g.anchor[1] + t * g.direction[1];
+                let [gx, gy] = placer.grid_xy(x, y);
+                if !(gx >= cx && gx < cx + 1.0 && gy >= cy && gy < cy + 1.0) {
+                    break;
+                }
+                let z = g.anchor[2] + t * g.direction[2] - ground;
+                bin(j, t, (z - z_bottom) * inv_z);
+                j += 1;
+            }
+            i = j.max(i + 1);
+        }
+    }
+    stats.bins_outside_heights += outside_heights;
+    stats.bins_non_finite += non_finite;
+    stats.bins_resumed += resumed;
     if deposited > 0 {
         stats.pulses_deposited += 1;
         stats.bins_deposited += deposited;
