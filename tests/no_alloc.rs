@@ -96,3 +96,74 @@ fn calibrate_allocates_nothing_per_pulse() {
         "{small} allocations for 10 000 pulses, {large} for 100 000"
     );
 }
+
+/// The voxeliser deposits pulses into open tiles without allocating: 20 000 and 200 000 pulses
+/// along a line over the same open tiles cost the same number of allocations.
+#[test]
+fn voxel_deposits_allocate_nothing_per_pulse() {
+    use fwlidar::pulse::{Pulse, PulseGeometry, SegmentKind};
+    use fwlidar::voxel::grid::{Grid, Placer, VoxelConfig};
+    use fwlidar::voxel::tiles::TileSet;
+    use fwlidar::voxel::voxelise::{DepositParams, DepositStats, deposit_pulse};
+    use fwlidar::voxel::zarr::{StoreInfo, ZarrStore};
+
+    let run = |pulses: u64| -> u64 {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = VoxelConfig {
+            enabled: true,
+            extent_m: Some([0.0, 0.0, 64.0, 64.0]),
+            z_range_m: [-5.0, 30.0],
+            ..VoxelConfig::default()
+        };
+        let grid = Grid::new(&cfg, [0.0, 0.0]);
+        let store = ZarrStore::create_or_open(
+            &dir.path().join("v.zarr"),
+            grid.clone(),
+            StoreInfo {
+                crs_wkt: None,
+                epsg: None,
+                intensity_units: "V".into(),
+                run_key: "t".into(),
+                configuration: String::new(),
+            },
+        )
+        .unwrap();
+        let mut tiles = TileSet::new(store, 16, 1e9);
+        let params = DepositParams {
+            placer: Placer::new(&grid),
+            height: grid.height,
+            dem: None,
+            inv_quantum: 1e6,
+            footprint_divergence_rad: None,
+        };
+        let mut stats = DepositStats::default();
+        let mut p = Pulse {
+            sample_ns: 1.0,
+            geometry: Some(PulseGeometry {
+                anchor: [1.0, 1.0, 30.0],
+                direction: [0.01, 0.0, -0.1499],
+            }),
+            ..Default::default()
+        };
+        p.push_segment(SegmentKind::Return, 0, 0.0, 0..225u16);
+        p.signal = (0..225).map(|i| i as f32 * 0.01).collect();
+        let before = ALLOCS.load(Ordering::SeqCst);
+        for i in 0..pulses {
+            p.seq = i;
+            p.gps_time = i as f64 * 1e-6;
+            // Back and forth over 60 m: the tiles stay open (close_after_s is large).
+            let x = 2.0 + (i % 600) as f64 * 0.1;
+            p.geometry.as_mut().unwrap().anchor[0] = x;
+            deposit_pulse(&p, &mut tiles, &params, &mut stats).unwrap();
+            tiles.close_idle(i, p.gps_time).unwrap();
+        }
+        let n = ALLOCS.load(Ordering::SeqCst) - before;
+        assert!(stats.bins_deposited > pulses * 200);
+        n
+    };
+    let (small, large) = (run(20_000), run(200_000));
+    assert_eq!(
+        small, large,
+        "{small} allocations for 20 000 pulses, {large} for 200 000"
+    );
+}

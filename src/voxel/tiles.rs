@@ -53,6 +53,8 @@ pub struct TileSet {
     period_end_s: f64,
     next_check_s: f64,
     stats: TileStats,
+    /// Reused list of the slots to close.
+    idle: Vec<usize>,
 }
 
 const EMPTY_BOX: [i64; 4] = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
@@ -75,6 +77,7 @@ impl TileSet {
                 tile_bytes,
                 ..TileStats::default()
             },
+            idle: Vec::with_capacity(max_open + 1),
         }
     }
 
@@ -202,7 +205,8 @@ impl TileSet {
             self.swath[0][2].max(self.swath[1][2]),
             self.swath[0][3].max(self.swath[1][3]),
         ];
-        let mut idle: Vec<usize> = Vec::new();
+        let mut idle = std::mem::take(&mut self.idle);
+        idle.clear();
         for &s in self.open.values() {
             let slot = &self.slots[s];
             let t = slot.tile;
@@ -213,11 +217,16 @@ impl TileSet {
             }
         }
         // Deterministic order (the store's content does not depend on it; its files' order does).
-        idle.sort_by_key(|s| self.slots[*s].tile);
-        for s in idle {
-            self.close_slot(s, seq)?;
+        idle.sort_unstable_by_key(|s| self.slots[*s].tile);
+        let mut result = Ok(());
+        for &s in &idle {
+            if let Err(e) = self.close_slot(s, seq) {
+                result = Err(e);
+                break;
+            }
         }
-        Ok(())
+        self.idle = idle;
+        result
     }
 
     /// Closes every open tile (end of the run); `next_seq` is one past the last pulse.
