@@ -115,7 +115,16 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
             );
         }
         sinks.push(Box::new(
-            LasWaveSink::create(&out_dir, las_options(&source.facts())).map_err(Failure::job)?,
+            LasWaveSink::create(
+                &out_dir,
+                LasWaveOptions {
+                    point_format: config.output.las_point_format,
+                    rotate_s: config.output.las_rotate_s,
+                    flush_s: config.output.las_flush_s,
+                    ..las_options(&source.facts())
+                },
+            )
+            .map_err(Failure::job)?,
         ));
     }
     let control = RunControl::default();
@@ -311,15 +320,28 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
         );
     }
     if let Some(las) = r.sinks.get("las") {
+        let files = las["files"].as_array().map_or(0, |f| f.len());
+        let name = if files == 1 {
+            las["files"][0].as_str().unwrap_or("returns.las").to_string()
+        } else {
+            format!("returns_NNNN.las ({files} files)")
+        };
+        let wdp = if las["point_format"] == 9 {
+            format!(
+                "; .wdp: {} packets, {} bytes",
+                las["packets"], las["wdp_bytes"]
+            )
+        } else {
+            String::new()
+        };
         println!(
-            "  returns.las: {} points from {} pulses; {} pulses without geometry skipped, {} \
-             returns unrepresentable; returns.wdp: {} packets, {} bytes",
+            "  {name}: {} points (format {}) from {} pulses; {} pulses without geometry \
+             skipped, {} returns unrepresentable{wdp}",
             las["points"],
+            las["point_format"],
             las["pulses_written"],
             las["pulses_without_geometry"],
             las["returns_unrepresentable"],
-            las["packets"],
-            las["wdp_bytes"]
         );
     }
     println!(
