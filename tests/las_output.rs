@@ -258,7 +258,10 @@ fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometr
         .replace("enabled = true", "enabled = false");
     assert!(config.contains("las = true") && config.contains("enabled = false"));
     let (out, stdout) = replay_sample_with(dir.path(), &config);
-    assert!(stdout.contains("returns.las: 0 points (format 6)"), "{stdout}");
+    assert!(
+        stdout.contains("returns.las: 0 points (format 6)"),
+        "{stdout}"
+    );
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
     let las = &summary["sinks"]["las"];

@@ -208,7 +208,11 @@ fn killed_replay_is_repaired_and_reads_back_as_the_uninterrupted_runs_prefix() {
         "{report}"
     );
     let bak = PathBuf::from(report["backup"].as_str().unwrap());
-    assert_eq!(std::fs::read(&bak).unwrap(), original, "backup is the original");
+    assert_eq!(
+        std::fs::read(&bak).unwrap(),
+        original,
+        "backup is the original"
+    );
     assert_eq!(
         report["wdp"]["record_length_after"].as_u64().unwrap() + 60,
         report["wdp"]["bytes"].as_u64().unwrap()
@@ -244,7 +248,11 @@ fn killed_replay_is_repaired_and_reads_back_as_the_uninterrupted_runs_prefix() {
     .unwrap();
     let r2 = repair_json(&cut);
     let rl = r2["point_record_length"].as_u64().unwrap();
-    assert_eq!(r2["trailing_bytes_dropped"].as_u64().unwrap(), rl - 7, "{r2}");
+    assert_eq!(
+        r2["trailing_bytes_dropped"].as_u64().unwrap(),
+        rl - 7,
+        "{r2}"
+    );
     assert!(r2["points"].as_u64().unwrap() < points + 1);
     if report["points_dropped_without_waveform"] == 0 {
         assert_eq!(r2["points"].as_u64().unwrap(), points - 1, "{r2}");
@@ -372,7 +380,11 @@ fn repair_refuses_bad_input_naming_the_file_and_field() {
     assert_eq!(r["points"], 5);
     let repaired = std::fs::read(&crashed).unwrap();
     let orig = std::fs::read(&good).unwrap();
-    assert_eq!(repaired[179..375], orig[179..375], "bounds and counts rebuilt");
+    assert_eq!(
+        repaired[179..375],
+        orig[179..375],
+        "bounds and counts rebuilt"
+    );
 }
 
 /// A crashed-looking format 9 file from the sink (header counts zeroed) and its `.wdp` header.

@@ -322,7 +322,10 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
     if let Some(las) = r.sinks.get("las") {
         let files = las["files"].as_array().map_or(0, |f| f.len());
         let name = if files == 1 {
-            las["files"][0].as_str().unwrap_or("returns.las").to_string()
+            las["files"][0]
+                .as_str()
+                .unwrap_or("returns.las")
+                .to_string()
         } else {
             format!("returns_NNNN.las ({files} files)")
         };

@@ -172,7 +172,8 @@ where
                 format!("point {i}: position {:?} is not finite", p.xyz),
             ));
         }
-        let o = *offset.get_or_insert_with(|| p.xyz.map(|v| (v / OFFSET_STEP).floor() * OFFSET_STEP));
+        let o =
+            *offset.get_or_insert_with(|| p.xyz.map(|v| (v / OFFSET_STEP).floor() * OFFSET_STEP));
         let scaled: [f64; 3] = std::array::from_fn(|k| ((p.xyz[k] - o[k]) / SCALE).round());
         if scaled
             .iter()
@@ -295,17 +296,25 @@ mod tests {
         assert_eq!(b.len(), off + 3 * 38);
         let rec1 = &b[off + 38..off + 76];
         assert_eq!(f32::from_le_bytes(rec1[30..34].try_into().unwrap()), 1.0);
-        assert_eq!(f32::from_le_bytes(rec1[34..38].try_into().unwrap()), -9999.0);
+        assert_eq!(
+            f32::from_le_bytes(rec1[34..38].try_into().unwrap()),
+            -9999.0
+        );
         assert!(!dir.path().join("t.las.partial").exists());
-        let e = write_point_cloud(
-            &path,
-            None,
-            &extra,
-            [(PointSix::default(), vec![1.0])],
-        )
-        .unwrap_err();
-        assert!(e.to_string().contains("t.las") && e.to_string().contains("point 0"), "{e}");
-        assert_eq!(std::fs::read(&path).unwrap(), b, "the old file survives a failure");
-        assert!(!dir.path().join("t.las.partial").exists(), "no temporary left");
+        let e =
+            write_point_cloud(&path, None, &extra, [(PointSix::default(), vec![1.0])]).unwrap_err();
+        assert!(
+            e.to_string().contains("t.las") && e.to_string().contains("point 0"),
+            "{e}"
+        );
+        assert_eq!(
+            std::fs::read(&path).unwrap(),
+            b,
+            "the old file survives a failure"
+        );
+        assert!(
+            !dir.path().join("t.las.partial").exists(),
+            "no temporary left"
+        );
     }
 }

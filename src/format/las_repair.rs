@@ -40,9 +40,7 @@ pub enum RepairError {
         reason: String,
     },
     /// The backup already exists: nothing was changed.
-    #[error(
-        "{file}: the backup {backup} already exists; move it away first (nothing was changed)"
-    )]
+    #[error("{file}: the backup {backup} already exists; move it away first (nothing was changed)")]
     BackupExists {
         /// The file to repair.
         file: String,
@@ -306,9 +304,7 @@ pub fn analyse<R: Read + Seek>(
         return Err(field(
             file,
             "offset to point data",
-            format!(
-                "{offset}, past the end of the file ({file_len} bytes): the VLR area is cut"
-            ),
+            format!("{offset}, past the end of the file ({file_len} bytes): the VLR area is cut"),
         ));
     }
     // The VLRs must lie between the header and the points.
@@ -439,7 +435,11 @@ pub fn analyse<R: Read + Seek>(
         offset_to_point_data: offset,
         points_in_header: {
             let n = u64_at(&h, 247);
-            if n == 0 { u64::from(u32_at(&h, 107)) } else { n }
+            if n == 0 {
+                u64::from(u32_at(&h, 107))
+            } else {
+                n
+            }
         },
         trailing_bytes_dropped: trailing,
         ..Default::default()
@@ -545,7 +545,13 @@ pub fn analyse<R: Read + Seek>(
 
     // The new header.
     let mut nh = h.clone();
-    let bound = |v: i32, k: usize| if n == 0 { 0.0 } else { off[k] + f64::from(v) * scale[k] };
+    let bound = |v: i32, k: usize| {
+        if n == 0 {
+            0.0
+        } else {
+            off[k] + f64::from(v) * scale[k]
+        }
+    };
     let bounds = [
         ("max X", 179, bound(max[0], 0)),
         ("min X", 187, bound(min[0], 0)),
@@ -603,7 +609,8 @@ pub fn analyse<R: Read + Seek>(
             nh[255 + 8 * k..263 + 8 * k].copy_from_slice(&v.to_le_bytes());
         }
     }
-    report.repaired = !report.changed.is_empty() || new_len != file_len || wdp_record_length.is_some();
+    report.repaired =
+        !report.changed.is_empty() || new_len != file_len || wdp_record_length.is_some();
     Ok(RepairPlan {
         header: nh,
         new_len,

@@ -4,7 +4,7 @@
 //! [`LasWriteError`]); the sink (`sink::las_wave`) decides what goes in them.
 //!
 //! All multi-byte values are little-endian. Layouts and field meanings: `docs/formats.md`,
-//! "Returns as LAS 1.4 with waveforms (output)".
+//! "Returns as LAS 1.4 (output)".
 
 /// Size of the LAS 1.4 public header block, bytes.
 pub const HEADER_SIZE: usize = 375;

@@ -318,11 +318,7 @@ impl LasWaveSink {
             wdp_path,
             start_gps: f64::NAN,
             flushed_gps: f64::NAN,
-            descriptors: Vec::with_capacity(if self.waveforms() {
-                MAX_DESCRIPTORS
-            } else {
-                0
-            }),
+            descriptors: Vec::with_capacity(if self.waveforms() { MAX_DESCRIPTORS } else { 0 }),
             last_descriptor: 0,
             offset: None,
             min: [i32::MAX; 3],
@@ -648,7 +644,8 @@ impl LasWaveSink {
                 );
                 b.extend_from_slice(&d.encode());
             }
-            let room = (MAX_DESCRIPTORS - f.descriptors.len()) * (VLR_HEADER_SIZE + DESCRIPTOR_SIZE);
+            let room =
+                (MAX_DESCRIPTORS - f.descriptors.len()) * (VLR_HEADER_SIZE + DESCRIPTOR_SIZE);
             if room > 0 {
                 let payload = room - VLR_HEADER_SIZE;
                 b.extend_from_slice(
@@ -1044,7 +1041,11 @@ mod tests {
         assert_eq!(u16_at(pt(0), 12), 2);
         assert_eq!(u16_at(pt(3), 12), 65535, "clipped");
         assert_eq!(f32_at(pt(0), 59), 1.0, "amplitude");
-        assert_eq!(f32_at(pt(0), 63), (2.0 * FWHM_PER_SIGMA) as f32, "width: FWHM in ns");
+        assert_eq!(
+            f32_at(pt(0), 63),
+            (2.0 * FWHM_PER_SIGMA) as f32,
+            "width: FWHM in ns"
+        );
         assert_eq!(f32_at(pt(0), 67), -9999.0, "backscatter NaN: no-data");
         assert_eq!(f32_at(pt(0), 71), 0.0, "residual");
         // Bounds as stored.
@@ -1227,7 +1228,8 @@ mod tests {
         .unwrap();
         // gps_time = 1000 + id: files [1000, 1002), [1002, 1004), [1004, ...).
         for id in 0..5 {
-            sink.write(&pulse(id, 0.5, true, &[(1, 110.0, 1.0)])).unwrap();
+            sink.write(&pulse(id, 0.5, true, &[(1, 110.0, 1.0)]))
+                .unwrap();
             if id == 2 {
                 assert!(dir.path().join("returns_0000.las").exists());
                 assert!(dir.path().join("returns_0000.wdp").exists());
@@ -1239,15 +1241,29 @@ mod tests {
             sink.stats().files,
             ["returns_0000.las", "returns_0001.las", "returns_0002.las"]
         );
-        assert!(!dir.path().join("returns_0003.las").exists(), "stale file removed");
-        assert!(!dir.path().join("returns_0004.wdp").exists(), "stale file removed");
+        assert!(
+            !dir.path().join("returns_0003.las").exists(),
+            "stale file removed"
+        );
+        assert!(
+            !dir.path().join("returns_0004.wdp").exists(),
+            "stale file removed"
+        );
         for (k, n) in [(0, 2), (1, 2), (2, 1)] {
             let b = std::fs::read(dir.path().join(format!("returns_{k:04}.las"))).unwrap();
             assert_eq!(u64_at(&b, 247), n);
             let w = std::fs::read(dir.path().join(format!("returns_{k:04}.wdp"))).unwrap();
-            assert_eq!(u64_at(&w, 20), 40 * n, "one 20-sample 16-bit packet per pulse");
+            assert_eq!(
+                u64_at(&w, 20),
+                40 * n,
+                "one 20-sample 16-bit packet per pulse"
+            );
             let offset = u32_at(&b, 96) as usize;
-            assert_eq!(u64_at(&b[offset..], 31), 60, "packets count from each file's .wdp");
+            assert_eq!(
+                u64_at(&b[offset..], 31),
+                60,
+                "packets count from each file's .wdp"
+            );
         }
     }
 
@@ -1261,11 +1277,17 @@ mod tests {
         assert_eq!(&b[0..4], b"LASF");
         assert_eq!(b.len() as u64, sink.offset_to_points(), "preamble at open");
         assert_eq!(u64_at(&b, 247), 0);
-        sink.write(&pulse(0, 0.5, true, &[(1, 110.0, 1.0)])).unwrap();
-        sink.write(&pulse(1, 0.5, true, &[(2, 305.0, 1.0)])).unwrap();
+        sink.write(&pulse(0, 0.5, true, &[(1, 110.0, 1.0)]))
+            .unwrap();
+        sink.write(&pulse(1, 0.5, true, &[(2, 305.0, 1.0)]))
+            .unwrap();
         sink.flush().unwrap();
         let b = std::fs::read(&partial).unwrap();
-        assert_eq!(f64_at(&b, 155), 500_000.0, "offset on disk with the first point");
+        assert_eq!(
+            f64_at(&b, 155),
+            500_000.0,
+            "offset on disk with the first point"
+        );
         assert_eq!(b.len() as u64, sink.offset_to_points() + 2 * 75);
         let v = vlrs(&b);
         assert_eq!((v[1].1, v[2].1), (100, 101), "both descriptors on disk");
