@@ -785,7 +785,9 @@ impl PulseSink for LasWaveSink {
         self.report.pulses_written += u64::from(n > 0);
         let f = self.file.as_mut().expect("a file is open");
         let every = self.options.flush_s;
-        if every > 0.0 && !(p.gps_time - f.flushed_gps < every) {
+        let elapsed = p.gps_time - f.flushed_gps;
+        // Also when time went backwards (or is NaN): a new time base, flush now.
+        if every > 0.0 && (elapsed >= every || elapsed < 0.0 || elapsed.is_nan()) {
             f.flushed_gps = p.gps_time;
             self.flush_open()?;
         }
