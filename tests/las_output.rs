@@ -387,3 +387,56 @@ fn rotation_writes_several_complete_files_holding_every_return() {
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }
+
+/// The hyper point cloud of the georeferenced sample: one point per return-segment sample above
+/// 10 V, exactly the values of `waveforms.csv` above it (laspy reads the `signal` extra byte), all
+/// in the CRS of `returns.las`.
+#[test]
+fn hyper_points_hold_every_return_sample_above_the_threshold() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
+        .unwrap()
+        .replace("hyper_points = false", "hyper_points = true")
+        .replace("# hyper_threshold_v = 10.0", "hyper_threshold_v = 10.0")
+        .replace("# output_epsg = 32736", "output_epsg = 32736");
+    assert!(config.contains("\nhyper_threshold_v = 10.0"));
+    let (out, stdout) = replay_sample_with(dir.path(), &config);
+    assert!(stdout.contains("hyper_points.las:"), "{stdout}");
+    // Expected: every value above 10 of the return segments in waveforms.csv.
+    let pulses = std::fs::read_to_string(out.join("pulses.csv")).unwrap();
+    let waves = std::fs::read_to_string(out.join("waveforms.csv")).unwrap();
+    let mut want: Vec<f32> = Vec::new();
+    for (row, line) in pulses.lines().skip(1).zip(waves.lines()) {
+        if row.split(',').nth(4) != Some("return") {
+            continue;
+        }
+        want.extend(
+            line.split(',')
+                .map(|v| v.parse::<f32>().unwrap())
+                .filter(|&v| v > 10.0),
+        );
+    }
+    want.sort_by(f32::total_cmp);
+    assert!(want.len() > 1000, "{} samples", want.len());
+    let script = "import laspy, sys, numpy as np\n\
+                  las = laspy.read(sys.argv[1])\n\
+                  assert las.header.point_format.id == 6\n\
+                  assert list(las.point_format.extra_dimension_names) == ['signal']\n\
+                  w = [v.string for v in las.header.vlrs if hasattr(v, 'string')]\n\
+                  assert '32736' in w[0], w\n\
+                  assert len(las.points) == las.header.point_count\n\
+                  for v in np.sort(np.asarray(las.signal, dtype=np.float32)):\n\
+                  \x20   print(repr(float(v)))\n";
+    let o = Command::new(python())
+        .args(["-c", script])
+        .arg(out.join("hyper_points.las"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let got: Vec<f32> = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| l.parse::<f64>().unwrap() as f32)
+        .collect();
+    assert_eq!(got.len(), want.len());
+    assert!(got == want, "signal values differ from waveforms.csv");
+}

@@ -12,6 +12,7 @@ use crate::config::RunConfig;
 use crate::pipeline::runner::{LiveCounters, PipelineSpec};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
 use crate::sink::atomic_file::write_atomic;
+use crate::sink::hyper_points::HyperPointSink;
 use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use crate::sink::nav_decode::NavDecode;
 use crate::sink::returns_csv::ReturnsCsvSink;
@@ -123,6 +124,19 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
                     flush_s: config.output.las_flush_s,
                     ..las_options(&source.facts())
                 },
+            )
+            .map_err(Failure::job)?,
+        ));
+    }
+    if config.output.hyper_points {
+        let facts = source.facts();
+        let wkt = las_options(&facts).crs_wkt;
+        sinks.push(Box::new(
+            HyperPointSink::create(
+                &out_dir,
+                config.output.hyper_threshold_v.unwrap_or(f32::INFINITY),
+                wkt.as_deref(),
+                config.output.las_flush_s,
             )
             .map_err(Failure::job)?,
         ));
@@ -345,6 +359,13 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
             las["pulses_written"],
             las["pulses_without_geometry"],
             las["returns_unrepresentable"],
+        );
+    }
+    if let Some(h) = r.sinks.get("hyper_points") {
+        println!(
+            "  hyper_points.las: {} points above {} V from {} pulses; {} pulses without geometry \
+             skipped",
+            h["points"], h["threshold_v"], h["pulses_written"], h["pulses_without_geometry"]
         );
     }
     println!(

@@ -197,6 +197,15 @@ pub struct OutputConfig {
     /// rebuilds); 0 = only when the 1 MiB buffer fills. Default 1.
     #[serde(default = "default_las_flush_s")]
     pub las_flush_s: f64,
+    /// Write the "hyper point cloud" `hyper_points.las` (point format 6): every sample of every
+    /// return segment whose processed signal exceeds `hyper_threshold_v`, for pulses with
+    /// geometry. Default false.
+    #[serde(default)]
+    pub hyper_points: bool,
+    /// Threshold of the hyper point cloud, V (processed signal above the baseline); required
+    /// with `hyper_points = true`. Default none.
+    #[serde(default)]
+    pub hyper_threshold_v: Option<f32>,
 }
 
 fn default_las_point_format() -> u8 {
@@ -223,6 +232,8 @@ impl Default for OutputConfig {
             las_point_format: default_las_point_format(),
             las_rotate_s: 0.0,
             las_flush_s: default_las_flush_s(),
+            hyper_points: false,
+            hyper_threshold_v: None,
         }
     }
 }
@@ -325,5 +336,17 @@ impl Validate for OutputConfig {
                 self.las_flush_s
             ),
         );
+        match self.hyper_threshold_v {
+            Some(t) => v.require(
+                t.is_finite() && t > 0.0,
+                field(path, "hyper_threshold_v"),
+                format!("must be a positive number of volts, got {t}"),
+            ),
+            None => v.require(
+                !self.hyper_points,
+                field(path, "hyper_threshold_v"),
+                "must be given (volts) when hyper_points = true",
+            ),
+        }
     }
 }

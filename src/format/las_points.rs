@@ -106,81 +106,195 @@ where
     I: IntoIterator<Item = (PointSix, E)>,
     E: AsRef<[f64]>,
 {
-    let r = write_inner(path, crs_wkt, extra, points);
+    let mut w = PointCloudWriter::create(path, crs_wkt, extra)?;
+    let r = points
+        .into_iter()
+        .try_for_each(|(p, e)| w.push(&p, e.as_ref()))
+        .and_then(|_| w.finish());
     if r.is_err() {
-        let mut tmp = path.as_os_str().to_os_string();
-        tmp.push(".partial");
-        let _ = std::fs::remove_file(tmp);
+        w.abandon();
     }
     r
 }
 
-fn write_inner<I, E>(
-    path: &Path,
-    crs_wkt: Option<&str>,
-    extra: &[ExtraDim],
-    points: I,
-) -> Result<PointCloudSummary, SinkError>
-where
-    I: IntoIterator<Item = (PointSix, E)>,
-    E: AsRef<[f64]>,
-{
-    let mut vlrs = Vec::new();
-    let mut n_vlrs = 0u32;
-    if let Some(wkt) = crs_wkt {
-        vlrs.extend(lw::wkt_vlr(wkt).map_err(|e| las_err(path, e.to_string()))?);
-        n_vlrs += 1;
+/// A LAS 1.4 point format 6 file written point by point (the streaming form of
+/// [`write_point_cloud`]): `NAME.partial` until [`PointCloudWriter::finish`] renames it into
+/// place. Its header and VLRs are written provisionally at creation and again (in place) when
+/// the first point fixes the offset, so a file cut off by a crash is a valid LAS file with a
+/// stale point count that `fwlidar repair` completes. [`PointCloudWriter::push`] does not
+/// allocate.
+pub struct PointCloudWriter {
+    path: std::path::PathBuf,
+    file: AtomicFile,
+    extra: Vec<ExtraDim>,
+    vlrs: Vec<u8>,
+    n_vlrs: u32,
+    record_len: usize,
+    rec: Vec<u8>,
+    offset: Option<[f64; 3]>,
+    min: [i32; 3],
+    max: [i32; 3],
+    by_return: [u64; 15],
+    n: u64,
+    done: bool,
+}
+
+impl PointCloudWriter {
+    /// Starts `path` (as `path.partial`) with its provisional header and VLRs.
+    pub fn create(
+        path: &Path,
+        crs_wkt: Option<&str>,
+        extra: &[ExtraDim],
+    ) -> Result<Self, SinkError> {
+        let mut vlrs = Vec::new();
+        let mut n_vlrs = 0u32;
+        if let Some(wkt) = crs_wkt {
+            vlrs.extend(lw::wkt_vlr(wkt).map_err(|e| las_err(path, e.to_string()))?);
+            n_vlrs += 1;
+        }
+        if !extra.is_empty() {
+            vlrs.extend(
+                lw::extra_bytes_vlr(extra, "fwlidar point attributes")
+                    .map_err(|e| las_err(path, e.to_string()))?,
+            );
+            n_vlrs += 1;
+        }
+        let record_len = PF6_SIZE + lw::extra_bytes_len(extra);
+        let file = AtomicFile::create(path)?;
+        let mut w = PointCloudWriter {
+            path: path.to_path_buf(),
+            file,
+            extra: extra.to_vec(),
+            vlrs,
+            n_vlrs,
+            record_len,
+            rec: vec![0u8; record_len],
+            offset: None,
+            min: [i32::MAX; 3],
+            max: [i32::MIN; 3],
+            by_return: [0; 15],
+            n: 0,
+            done: false,
+        };
+        let pre = w.preamble();
+        w.file.writer()?.write_all(&pre).map_err(|e| w.io_err(e))?;
+        Ok(w)
     }
-    if !extra.is_empty() {
-        vlrs.extend(
-            lw::extra_bytes_vlr(extra, "fwlidar point attributes")
-                .map_err(|e| las_err(path, e.to_string()))?,
+
+    fn io_err(&self, e: std::io::Error) -> SinkError {
+        SinkError::Io {
+            path: self.path.display().to_string(),
+            source: e,
+        }
+    }
+
+    /// Points written so far.
+    pub fn points(&self) -> u64 {
+        self.n
+    }
+
+    /// The header as it stands, then the VLRs.
+    fn preamble(&self) -> Vec<u8> {
+        let s = self.summary();
+        let (year, day) = lw::year_and_day(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs()),
         );
-        n_vlrs += 1;
+        let header = Header {
+            global_encoding: lw::GLOBAL_WKT,
+            system_identifier: "fwlidar".into(),
+            generating_software: concat!("fwlidar ", env!("CARGO_PKG_VERSION")).into(),
+            creation_day_of_year: day,
+            creation_year: year,
+            offset_to_point_data: (HEADER_SIZE + self.vlrs.len()) as u32,
+            number_of_vlrs: self.n_vlrs,
+            point_format: 6,
+            point_record_length: self.record_len as u16,
+            scale: [SCALE; 3],
+            offset: self.offset.unwrap_or([0.0; 3]),
+            max: s.max,
+            min: s.min,
+            start_of_waveform_data: 0,
+            start_of_first_evlr: 0,
+            number_of_evlrs: 0,
+            number_of_points: s.points,
+            points_by_return: s.by_return,
+        };
+        let mut b = header.encode().to_vec();
+        b.extend_from_slice(&self.vlrs);
+        b
     }
-    let record_len = PF6_SIZE + lw::extra_bytes_len(extra);
-    let offset_to_points = HEADER_SIZE + vlrs.len();
-    let mut file = AtomicFile::create(path)?;
-    let io_err = |e: std::io::Error| SinkError::Io {
-        path: path.display().to_string(),
-        source: e,
-    };
-    file.writer()?
-        .write_all(&vec![0u8; offset_to_points])
-        .map_err(io_err)?;
-    let mut rec = vec![0u8; record_len];
-    let mut offset: Option<[f64; 3]> = None;
-    let mut min = [i32::MAX; 3];
-    let mut max = [i32::MIN; 3];
-    let mut by_return = [0u64; 15];
-    let mut n = 0u64;
-    for (i, (p, values)) in points.into_iter().enumerate() {
-        let values = values.as_ref();
-        if values.len() != extra.len() {
+
+    /// What has been written so far.
+    pub fn summary(&self) -> PointCloudSummary {
+        let o = self.offset.unwrap_or([0.0; 3]);
+        let n = self.n;
+        let bound = |v: &[i32; 3]| -> [f64; 3] {
+            if n == 0 {
+                [0.0; 3]
+            } else {
+                std::array::from_fn(|k| o[k] + f64::from(v[k]) * SCALE)
+            }
+        };
+        PointCloudSummary {
+            points: n,
+            min: bound(&self.min),
+            max: bound(&self.max),
+            by_return: self.by_return,
+        }
+    }
+
+    /// Rewrites the header and VLRs in place and goes on at the end.
+    fn rewrite_preamble(&mut self) -> Result<(), SinkError> {
+        let pre = self.preamble();
+        let path = self.path.clone();
+        let w = self.file.writer()?;
+        w.seek(SeekFrom::Start(0))
+            .and_then(|_| w.write_all(&pre))
+            .and_then(|_| w.seek(SeekFrom::End(0)))
+            .map(|_| ())
+            .map_err(|e| SinkError::Io {
+                path: path.display().to_string(),
+                source: e,
+            })
+    }
+
+    /// Appends one point with its extra values (one per extra dimension).
+    pub fn push(&mut self, p: &PointSix, values: &[f64]) -> Result<(), SinkError> {
+        let i = self.n;
+        if values.len() != self.extra.len() {
             return Err(las_err(
-                path,
+                &self.path,
                 format!(
                     "point {i}: {} extra values for {} extra dimensions",
                     values.len(),
-                    extra.len()
+                    self.extra.len()
                 ),
             ));
         }
         if p.xyz.iter().any(|v| !v.is_finite()) {
             return Err(las_err(
-                path,
+                &self.path,
                 format!("point {i}: position {:?} is not finite", p.xyz),
             ));
         }
-        let o =
-            *offset.get_or_insert_with(|| p.xyz.map(|v| (v / OFFSET_STEP).floor() * OFFSET_STEP));
+        let o = match self.offset {
+            Some(o) => o,
+            None => {
+                let o = p.xyz.map(|v| (v / OFFSET_STEP).floor() * OFFSET_STEP);
+                self.offset = Some(o);
+                self.rewrite_preamble()?;
+                o
+            }
+        };
         let scaled: [f64; 3] = std::array::from_fn(|k| ((p.xyz[k] - o[k]) / SCALE).round());
         if scaled
             .iter()
             .any(|v| *v < f64::from(i32::MIN) || *v > f64::from(i32::MAX))
         {
             return Err(las_err(
-                path,
+                &self.path,
                 format!(
                     "point {i}: position {:?} is more than 2^31 mm from the offset {o:?}",
                     p.xyz
@@ -204,61 +318,52 @@ where
             },
             gps_time: p.gps_time,
         }
-        .encode_into(&mut rec);
-        lw::encode_extras(extra, values, &mut rec[PF6_SIZE..]);
-        file.writer()?.write_all(&rec).map_err(io_err)?;
+        .encode_into(&mut self.rec);
+        lw::encode_extras(&self.extra, values, &mut self.rec[PF6_SIZE..]);
+        let path = &self.path;
+        self.file
+            .writer()?
+            .write_all(&self.rec)
+            .map_err(|e| SinkError::Io {
+                path: path.display().to_string(),
+                source: e,
+            })?;
         for k in 0..3 {
-            min[k] = min[k].min(xyz[k]);
-            max[k] = max[k].max(xyz[k]);
+            self.min[k] = self.min[k].min(xyz[k]);
+            self.max[k] = self.max[k].max(xyz[k]);
         }
-        by_return[usize::from(rn) - 1] += 1;
-        n += 1;
+        self.by_return[usize::from(rn) - 1] += 1;
+        self.n += 1;
+        Ok(())
     }
-    let o = offset.unwrap_or([0.0; 3]);
-    let bound = |v: &[i32; 3]| -> [f64; 3] {
-        if n == 0 {
-            [0.0; 3]
-        } else {
-            std::array::from_fn(|k| o[k] + f64::from(v[k]) * SCALE)
+
+    /// Hands the buffered points to the OS (the file stays under its temporary name).
+    pub fn flush(&mut self) -> Result<(), SinkError> {
+        self.file.flush()
+    }
+
+    /// Writes the final header, syncs and renames the file into place. Idempotent.
+    pub fn finish(&mut self) -> Result<PointCloudSummary, SinkError> {
+        if !self.done {
+            let pre = self.preamble();
+            let w = self.file.writer()?;
+            let r = w.seek(SeekFrom::Start(0)).and_then(|_| w.write_all(&pre));
+            r.map_err(|e| self.io_err(e))?;
+            self.file.commit()?;
+            self.done = true;
         }
-    };
-    let (year, day) = lw::year_and_day(
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_secs()),
-    );
-    let header = Header {
-        global_encoding: lw::GLOBAL_WKT,
-        system_identifier: "fwlidar".into(),
-        generating_software: concat!("fwlidar ", env!("CARGO_PKG_VERSION")).into(),
-        creation_day_of_year: day,
-        creation_year: year,
-        offset_to_point_data: offset_to_points as u32,
-        number_of_vlrs: n_vlrs,
-        point_format: 6,
-        point_record_length: record_len as u16,
-        scale: [SCALE; 3],
-        offset: o,
-        max: bound(&max),
-        min: bound(&min),
-        start_of_waveform_data: 0,
-        start_of_first_evlr: 0,
-        number_of_evlrs: 0,
-        number_of_points: n,
-        points_by_return: by_return,
-    };
-    let w = file.writer()?;
-    w.seek(SeekFrom::Start(0))
-        .and_then(|_| w.write_all(&header.encode()))
-        .and_then(|_| w.write_all(&vlrs))
-        .map_err(io_err)?;
-    file.commit()?;
-    Ok(PointCloudSummary {
-        points: n,
-        min: bound(&min),
-        max: bound(&max),
-        by_return,
-    })
+        Ok(self.summary())
+    }
+
+    /// Gives up: removes the temporary file (the final name keeps what it had).
+    pub fn abandon(self) {
+        if !self.done {
+            let mut tmp = self.path.as_os_str().to_os_string();
+            tmp.push(".partial");
+            drop(self.file);
+            let _ = std::fs::remove_file(tmp);
+        }
+    }
 }
 
 #[cfg(test)]
