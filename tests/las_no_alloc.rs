@@ -88,7 +88,10 @@ fn hyper_points_without_allocating() {
     let during = ALLOCS.load(Ordering::SeqCst) - before;
     sink.finish().unwrap();
     assert!(sink.stats().points > 100_000);
-    assert_eq!(during, 0, "hyper points: {during} allocations while writing 2400 pulses");
+    assert_eq!(
+        during, 0,
+        "hyper points: {during} allocations while writing 2400 pulses"
+    );
 }
 
 fn writes_without_allocating(point_format: u8) {

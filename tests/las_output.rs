@@ -440,3 +440,34 @@ fn hyper_points_hold_every_return_sample_above_the_threshold() {
     assert_eq!(got.len(), want.len());
     assert!(got == want, "signal values differ from waveforms.csv");
 }
+
+/// Bad LAS output keys are reported by `fwlidar validate`, each with its field and reason.
+#[test]
+fn las_output_keys_are_validated() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("bad.toml");
+    std::fs::write(
+        &cfg,
+        "[output]\nhyper_points = true\nlas_point_format = 7\nlas_rotate_s = -1\nlas_flush_s = nan\n",
+    )
+    .unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
+        .arg("validate")
+        .arg(&cfg)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let err = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    for needle in [
+        "output.hyper_threshold_v: must be given",
+        "output.las_point_format: must be 6 or 9, got 7",
+        "output.las_rotate_s: must be 0 (one file) or a positive number of seconds, got -1",
+        "output.las_flush_s:",
+    ] {
+        assert!(err.contains(needle), "{needle:?} not in {err}");
+    }
+}
