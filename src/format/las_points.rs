@@ -10,7 +10,8 @@
 //!     let p = PointSix { xyz: [500_000.0 + f64::from(i), 6_650_000.0, 12.5], ..Default::default() };
 //!     (p, [f64::from(i)])
 //! });
-//! let summary = write_point_cloud("tile.las".as_ref(), Some("PROJCS[...]"), &extra, pts)?;
+//! let summary = write_point_cloud(std::path::Path::new("tile.las"), Some("PROJCS[...]"), &extra, pts)?;
+//! assert_eq!(summary.points, 10);
 //! # Ok::<(), fwlidar::sink::SinkError>(())
 //! ```
 //!
