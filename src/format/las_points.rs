@@ -329,9 +329,9 @@ impl PointCloudWriter {
                 path: path.display().to_string(),
                 source: e,
             })?;
-        for k in 0..3 {
-            self.min[k] = self.min[k].min(xyz[k]);
-            self.max[k] = self.max[k].max(xyz[k]);
+        for (k, v) in xyz.into_iter().enumerate() {
+            self.min[k] = self.min[k].min(v);
+            self.max[k] = self.max[k].max(v);
         }
         self.by_return[usize::from(rn) - 1] += 1;
         self.n += 1;

@@ -101,7 +101,8 @@ impl PulseSink for HyperPointSink {
                 continue;
             }
             for (i, &v) in sig.iter().enumerate() {
-                if !(v > self.threshold_v) {
+                // Only values above the threshold (NaN never is).
+                if v.is_nan() || v <= self.threshold_v {
                     continue;
                 }
                 let t = seg.start_ns + i as f64 * p.sample_ns;
