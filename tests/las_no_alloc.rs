@@ -6,6 +6,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use fwlidar::pulse::{FittedReturn, Pulse, PulseGeometry, SegmentKind};
 use fwlidar::sink::PulseSink;
+use fwlidar::sink::hyper_points::HyperPointSink;
 use fwlidar::sink::las_wave::{LasWaveOptions, LasWaveSink};
 
 struct Counting;
@@ -60,8 +61,49 @@ fn pulse(i: u64) -> Pulse {
 
 #[test]
 fn writing_pulses_does_not_allocate_after_warm_up() {
+    // One test (the allocation counter is global): format 6, then format 9 with its packets.
+    for point_format in [6, 9] {
+        writes_without_allocating(point_format);
+    }
+    hyper_points_without_allocating();
+}
+
+fn hyper_points_without_allocating() {
     let dir = tempfile::tempdir().unwrap();
-    let mut sink = LasWaveSink::create(dir.path(), LasWaveOptions::default()).unwrap();
+    let mut sink = HyperPointSink::create(dir.path(), 0.5, None, 1.0).unwrap();
+    let mut pulses: Vec<Pulse> = (0..12).map(pulse).collect();
+    for p in &mut pulses {
+        let n = p.raw.len();
+        p.signal = (0..n).map(|k| (k % 7) as f32 * 0.25).collect();
+    }
+    for p in &pulses {
+        sink.write(p).unwrap();
+    }
+    let before = ALLOCS.load(Ordering::SeqCst);
+    for _ in 0..200 {
+        for p in &pulses {
+            sink.write(p).unwrap();
+        }
+    }
+    let during = ALLOCS.load(Ordering::SeqCst) - before;
+    sink.finish().unwrap();
+    assert!(sink.stats().points > 100_000);
+    assert_eq!(
+        during, 0,
+        "hyper points: {during} allocations while writing 2400 pulses"
+    );
+}
+
+fn writes_without_allocating(point_format: u8) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut sink = LasWaveSink::create(
+        dir.path(),
+        LasWaveOptions {
+            point_format,
+            ..LasWaveOptions::default()
+        },
+    )
+    .unwrap();
     let pulses: Vec<Pulse> = (0..12).map(pulse).collect();
     for p in &pulses {
         sink.write(p).unwrap();
@@ -75,5 +117,8 @@ fn writing_pulses_does_not_allocate_after_warm_up() {
     let during = ALLOCS.load(Ordering::SeqCst) - before;
     sink.finish().unwrap();
     assert_eq!(sink.stats().points, 501 * 24);
-    assert_eq!(during, 0, "{during} allocations while writing 6000 pulses");
+    assert_eq!(
+        during, 0,
+        "format {point_format}: {during} allocations while writing 6000 pulses"
+    );
 }

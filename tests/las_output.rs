@@ -87,29 +87,22 @@ fn make_pulse(i: u64) -> Pulse {
             time_ns: start + f64::from(bins) * p.sample_ns,
             amplitude: 0.05 + (i % 13) as f32 * 0.1,
             sigma_bins: 1.5 + (i % 3) as f32 * 0.25,
-            residual: 0.01,
-            backscatter: f32::NAN,
+            residual: 0.01 + (i % 5) as f32 * 0.002,
+            // Calibrated on two pulses of three; NaN (no calibration) on the third.
+            backscatter: if i.is_multiple_of(3) {
+                f32::NAN
+            } else {
+                0.1 + (i % 17) as f32 * 0.01
+            },
         });
     }
     p
 }
 
-#[test]
-fn laspy_reads_returns_las_and_wdp() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut sink = LasWaveSink::create(
-        dir.path(),
-        LasWaveOptions {
-            crs_wkt: Some(UTM33N_WKT.to_string()),
-            ..Default::default()
-        },
-    )
-    .unwrap();
+/// What the sink should have written for `pulses`, one JSON object per point in file order.
+fn expected_points(pulses: &[Pulse]) -> Vec<serde_json::Value> {
     let mut points = Vec::new();
-    let pulses = 500;
-    for i in 0..pulses {
-        let p = make_pulse(i);
-        sink.write(&p).unwrap();
+    for p in pulses {
         let Some(g) = p.geometry else { continue };
         let mut order: Vec<usize> = (0..p.returns.len()).collect();
         order.sort_by(|&a, &b| p.returns[a].time_ns.total_cmp(&p.returns[b].time_ns));
@@ -129,8 +122,11 @@ fn laspy_reads_returns_las_and_wdp() {
                 "return_number": rank + 1,
                 "number_of_returns": order.len(),
                 "intensity": intensity,
-                "amplitude_v": r.amplitude,
-                "sigma_ns": f64::from(r.sigma_bins) * p.sample_ns,
+                "amplitude": r.amplitude,
+                // FWHM in ns.
+                "width": f64::from(r.sigma_bins) * p.sample_ns * 2.354_820_045_030_949,
+                "backscatter": (!r.backscatter.is_nan()).then_some(r.backscatter),
+                "residual": r.residual,
                 "location_ps": (r.time_ns - seg.start_ns) * 1000.0,
                 "xyz_t": g.direction.map(|d| -d / 1000.0),
                 "first_sample": g.direction.map(|d| d * seg.start_ns)
@@ -143,20 +139,64 @@ fn laspy_reads_returns_las_and_wdp() {
             }));
         }
     }
+    points
+}
+
+/// Writes 500 pulses with `options` into a temporary folder; the folder and the expected points.
+fn write_pulses(options: LasWaveOptions) -> (tempfile::TempDir, Vec<serde_json::Value>) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut sink = LasWaveSink::create(dir.path(), options).unwrap();
+    let pulses: Vec<Pulse> = (0..500).map(make_pulse).collect();
+    for p in &pulses {
+        sink.write(p).unwrap();
+    }
     sink.finish().unwrap();
+    let points = expected_points(&pulses);
     let stats = sink.stats();
     assert_eq!(stats.points, points.len() as u64);
-    assert_eq!(stats.pulses_without_geometry, pulses / 10);
-    let report = check_with_laspy(dir.path(), Some(UTM33N_WKT), &points);
+    assert_eq!(stats.pulses_without_geometry, 50);
+    (dir, points)
+}
+
+#[test]
+fn laspy_reads_returns_las_and_wdp() {
+    let (dir, points) = write_pulses(LasWaveOptions {
+        crs_wkt: Some(UTM33N_WKT.to_string()),
+        point_format: 9,
+        ..Default::default()
+    });
+    let report = check_with_laspy(dir.path(), Some(UTM33N_WKT), &points, 9, "returns.las");
     eprintln!("{report}");
 }
 
+/// Point format 6 (the default): 30-byte records + the four extra bytes, every value by name,
+/// no-data where the backscatter is NaN, the WKT CRS, no `.wdp`.
+#[test]
+fn laspy_reads_format_6_with_every_extra_byte_by_name() {
+    let (dir, points) = write_pulses(LasWaveOptions {
+        crs_wkt: Some(UTM33N_WKT.to_string()),
+        ..Default::default()
+    });
+    let report = check_with_laspy(dir.path(), Some(UTM33N_WKT), &points, 6, "returns.las");
+    assert!(report.contains("format 6"), "{report}");
+    assert!(!dir.path().join("returns.wdp").exists());
+}
+
 /// Runs the checker on `out` with the expected points; returns its report line.
-fn check_with_laspy(out: &Path, wkt: Option<&str>, points: &[serde_json::Value]) -> String {
+fn check_with_laspy(
+    out: &Path,
+    wkt: Option<&str>,
+    points: &[serde_json::Value],
+    point_format: u8,
+    las: &str,
+) -> String {
     let expected = out.join("expected.json");
     std::fs::write(
         &expected,
-        serde_json::to_vec(&json!({ "wkt": wkt, "points": points })).unwrap(),
+        serde_json::to_vec(&json!({
+            "wkt": wkt, "points": points, "point_format": point_format, "las": las,
+        }))
+        .unwrap(),
     )
     .unwrap();
     let py = python();
@@ -218,7 +258,10 @@ fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometr
         .replace("enabled = true", "enabled = false");
     assert!(config.contains("las = true") && config.contains("enabled = false"));
     let (out, stdout) = replay_sample_with(dir.path(), &config);
-    assert!(stdout.contains("returns.las: 0 points"), "{stdout}");
+    assert!(
+        stdout.contains("returns.las: 0 points (format 6)"),
+        "{stdout}"
+    );
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
     let las = &summary["sinks"]["las"];
@@ -228,7 +271,7 @@ fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometr
     assert_eq!(skipped + without_returns, 2000, "{las}");
     assert!(skipped > 1000, "most sample pulses have returns: {las}");
     assert!(!out.join("returns.las.partial").exists());
-    check_with_laspy(&out, None, &[]);
+    check_with_laspy(&out, None, &[], 6, "returns.las");
 }
 
 /// The capture sample georeferenced from its own NMEA into UTM 36S (`output_epsg` named, so the
@@ -278,5 +321,153 @@ fn georeferenced_capture_returns_read_back_with_laspy_where_returns_csv_puts_the
                 "point {i}: laspy {p:?}, returns.csv {r:?}"
             );
         }
+    }
+}
+
+/// The georeferenced sample with `las_rotate_s = 0.01` (the sample spans 0.04 s of pulse time)
+/// and point format 9: several `returns_NNNN.las` + `.wdp` pairs, each complete and read by
+/// laspy, with as many points in all as `returns.csv` has returns; no temporary file is left.
+#[test]
+fn rotation_writes_several_complete_files_holding_every_return() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
+        .unwrap()
+        .replace("las = false", "las = true")
+        .replace("las_point_format = 6", "las_point_format = 9")
+        .replace("las_rotate_s = 0.0", "las_rotate_s = 0.01")
+        .replace("# output_epsg = 32736", "output_epsg = 32736");
+    assert!(config.contains("las_rotate_s = 0.01") && config.contains("las_point_format = 9"));
+    let (out, stdout) = replay_sample_with(dir.path(), &config);
+    let returns = std::fs::read_to_string(out.join("returns.csv"))
+        .unwrap()
+        .lines()
+        .count()
+        - 1;
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let files: Vec<String> = summary["sinks"]["las"]["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap().to_string())
+        .collect();
+    assert!(files.len() >= 3, "{files:?}\n{stdout}");
+    for (k, f) in files.iter().enumerate() {
+        assert_eq!(f, &format!("returns_{k:04}.las"));
+    }
+    assert!(!out.join("returns.las").exists());
+    let script = "import laspy, sys, struct\n\
+                  from pathlib import Path\n\
+                  total = 0\n\
+                  for f in sys.argv[1:]:\n\
+                  \x20   las = laspy.read(f)\n\
+                  \x20   assert las.header.point_format.id == 9\n\
+                  \x20   assert len(las.points) == las.header.point_count > 0, f\n\
+                  \x20   wdp = Path(f[:-4] + '.wdp').read_bytes()\n\
+                  \x20   assert struct.unpack('<Q', wdp[20:28])[0] == len(wdp) - 60, f\n\
+                  \x20   end = las.wavepacket_offset.astype('u8') + las.wavepacket_size\n\
+                  \x20   assert int(end.max()) == len(wdp), f\n\
+                  \x20   assert list(las.point_format.extra_dimension_names) == \
+                  ['amplitude', 'width', 'backscatter', 'residual']\n\
+                  \x20   total += len(las.points)\n\
+                  print(total)\n";
+    let o = Command::new(python())
+        .args(["-c", script])
+        .args(files.iter().map(|f| out.join(f)))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let total: usize = String::from_utf8_lossy(&o.stdout).trim().parse().unwrap();
+    assert_eq!(total, returns, "every return in one of the files");
+    assert_eq!(summary["sinks"]["las"]["points"], returns);
+    let leftovers: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".partial"))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}
+
+/// The hyper point cloud of the georeferenced sample: one point per return-segment sample above
+/// 10 V, exactly the values of `waveforms.csv` above it (laspy reads the `signal` extra byte), all
+/// in the CRS of `returns.las`.
+#[test]
+fn hyper_points_hold_every_return_sample_above_the_threshold() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml"))
+        .unwrap()
+        .replace("hyper_points = false", "hyper_points = true")
+        .replace("# hyper_threshold_v = 10.0", "hyper_threshold_v = 10.0")
+        .replace("# output_epsg = 32736", "output_epsg = 32736");
+    assert!(config.contains("\nhyper_threshold_v = 10.0"));
+    let (out, stdout) = replay_sample_with(dir.path(), &config);
+    assert!(stdout.contains("hyper_points.las:"), "{stdout}");
+    // Expected: every value above 10 of the return segments in waveforms.csv.
+    let pulses = std::fs::read_to_string(out.join("pulses.csv")).unwrap();
+    let waves = std::fs::read_to_string(out.join("waveforms.csv")).unwrap();
+    let mut want: Vec<f32> = Vec::new();
+    for (row, line) in pulses.lines().skip(1).zip(waves.lines()) {
+        if row.split(',').nth(4) != Some("return") {
+            continue;
+        }
+        want.extend(
+            line.split(',')
+                .map(|v| v.parse::<f32>().unwrap())
+                .filter(|&v| v > 10.0),
+        );
+    }
+    want.sort_by(f32::total_cmp);
+    assert!(want.len() > 1000, "{} samples", want.len());
+    let script = "import laspy, sys, numpy as np\n\
+                  las = laspy.read(sys.argv[1])\n\
+                  assert las.header.point_format.id == 6\n\
+                  assert list(las.point_format.extra_dimension_names) == ['signal']\n\
+                  w = [v.string for v in las.header.vlrs if hasattr(v, 'string')]\n\
+                  assert '32736' in w[0], w\n\
+                  assert len(las.points) == las.header.point_count\n\
+                  for v in np.sort(np.asarray(las.signal, dtype=np.float32)):\n\
+                  \x20   print(repr(float(v)))\n";
+    let o = Command::new(python())
+        .args(["-c", script])
+        .arg(out.join("hyper_points.las"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let got: Vec<f32> = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| l.parse::<f64>().unwrap() as f32)
+        .collect();
+    assert_eq!(got.len(), want.len());
+    assert!(got == want, "signal values differ from waveforms.csv");
+}
+
+/// Bad LAS output keys are reported by `fwlidar validate`, each with its field and reason.
+#[test]
+fn las_output_keys_are_validated() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("bad.toml");
+    std::fs::write(
+        &cfg,
+        "[output]\nhyper_points = true\nlas_point_format = 7\nlas_rotate_s = -1\nlas_flush_s = nan\n",
+    )
+    .unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
+        .arg("validate")
+        .arg(&cfg)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let err = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    for needle in [
+        "output.hyper_threshold_v: must be given",
+        "output.las_point_format: must be 6 or 9, got 7",
+        "output.las_rotate_s: must be 0 (one file) or a positive number of seconds, got -1",
+        "output.las_flush_s:",
+    ] {
+        assert!(err.contains(needle), "{needle:?} not in {err}");
     }
 }

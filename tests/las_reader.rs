@@ -514,6 +514,7 @@ fn round_trip_through_our_writer() {
         LasWaveOptions {
             crs_wkt: Some("PROJCS[\"test\"]".into()),
             adjusted_standard_gps_time: true,
+            point_format: 9,
             ..Default::default()
         },
     )
@@ -578,7 +579,14 @@ fn round_trip_through_our_writer() {
 #[test]
 fn internal_waveform_data_in_las_13_and_14() {
     let dir = tempfile::tempdir().unwrap();
-    let mut sink = LasWaveSink::create(dir.path(), LasWaveOptions::default()).unwrap();
+    let mut sink = LasWaveSink::create(
+        dir.path(),
+        LasWaveOptions {
+            point_format: 9,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     for i in 0..50 {
         sink.write(&make_pulse(i)).unwrap();
     }
@@ -757,8 +765,9 @@ fn replay_of_the_real_las_writes_returns_that_read_back_as_the_same_pulses() {
     let dir = tempfile::tempdir().unwrap();
     let config = std::fs::read_to_string(Path::new(root).join("config/replay.toml"))
         .unwrap()
-        .replace("las = false", "las = true");
-    assert!(config.contains("las = true"));
+        .replace("las = false", "las = true")
+        .replace("las_point_format = 6", "las_point_format = 9");
+    assert!(config.contains("las = true") && config.contains("las_point_format = 9"));
     let cfg = dir.path().join("run.toml");
     std::fs::write(&cfg, config).unwrap();
     let out = dir.path().join("out");

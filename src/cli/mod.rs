@@ -9,6 +9,7 @@ pub mod inspect;
 pub mod inspect_nav;
 pub mod merge;
 pub mod process;
+pub mod repair;
 pub mod replay;
 pub mod simulate;
 pub mod tradeoff;
@@ -44,6 +45,9 @@ pub enum Command {
     /// Replay a recorded capture (or a LAS / PulseWaves waveform file) through the processing
     /// chain into an output folder.
     Replay(replay::ReplayArgs),
+    /// Rebuild the header of a LAS 1.4 file cut off by a crash (point count, bounds, per-return
+    /// counts), after copying it to FILE.bak.
+    Repair(repair::RepairArgs),
     /// Simulate a scene into a capture file.
     Simulate(simulate::SimulateArgs),
     /// Check configuration files (run configs, sensor profiles, scenes); report every error.
@@ -119,6 +123,7 @@ pub fn main() -> i32 {
     init_logging(cli.log_format, cli.verbose);
     let result = match cli.command {
         Command::Replay(a) => replay::run(a),
+        Command::Repair(a) => repair::run(a),
         Command::Simulate(a) => simulate::run(a),
         Command::Validate(a) => validate::run(a),
         Command::Inspect(a) => inspect::run(a),

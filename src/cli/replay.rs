@@ -12,6 +12,7 @@ use crate::config::RunConfig;
 use crate::pipeline::runner::{LiveCounters, PipelineSpec};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
 use crate::sink::atomic_file::write_atomic;
+use crate::sink::hyper_points::HyperPointSink;
 use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use crate::sink::nav_decode::NavDecode;
 use crate::sink::returns_csv::ReturnsCsvSink;
@@ -133,7 +134,29 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
             );
         }
         sinks.push(Box::new(
-            LasWaveSink::create(&out_dir, las_options(&source.facts())).map_err(Failure::job)?,
+            LasWaveSink::create(
+                &out_dir,
+                LasWaveOptions {
+                    point_format: config.output.las_point_format,
+                    rotate_s: config.output.las_rotate_s,
+                    flush_s: config.output.las_flush_s,
+                    ..las_options(&source.facts())
+                },
+            )
+            .map_err(Failure::job)?,
+        ));
+    }
+    if config.output.hyper_points {
+        let facts = source.facts();
+        let wkt = las_options(&facts).crs_wkt;
+        sinks.push(Box::new(
+            HyperPointSink::create(
+                &out_dir,
+                config.output.hyper_threshold_v.unwrap_or(f32::INFINITY),
+                wkt.as_deref(),
+                config.output.las_flush_s,
+            )
+            .map_err(Failure::job)?,
         ));
     }
     if config.voxels.enabled {
@@ -382,15 +405,38 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
         );
     }
     if let Some(las) = r.sinks.get("las") {
+        let files = las["files"].as_array().map_or(0, |f| f.len());
+        let name = if files == 1 {
+            las["files"][0]
+                .as_str()
+                .unwrap_or("returns.las")
+                .to_string()
+        } else {
+            format!("returns_NNNN.las ({files} files)")
+        };
+        let wdp = if las["point_format"] == 9 {
+            format!(
+                "; .wdp: {} packets, {} bytes",
+                las["packets"], las["wdp_bytes"]
+            )
+        } else {
+            String::new()
+        };
         println!(
-            "  returns.las: {} points from {} pulses; {} pulses without geometry skipped, {} \
-             returns unrepresentable; returns.wdp: {} packets, {} bytes",
+            "  {name}: {} points (format {}) from {} pulses; {} pulses without geometry \
+             skipped, {} returns unrepresentable{wdp}",
             las["points"],
+            las["point_format"],
             las["pulses_written"],
             las["pulses_without_geometry"],
             las["returns_unrepresentable"],
-            las["packets"],
-            las["wdp_bytes"]
+        );
+    }
+    if let Some(h) = r.sinks.get("hyper_points") {
+        println!(
+            "  hyper_points.las: {} points above {} V from {} pulses; {} pulses without geometry \
+             skipped",
+            h["points"], h["threshold_v"], h["pulses_written"], h["pulses_without_geometry"]
         );
     }
     if let Some(v) = r.sinks.get("voxels") {

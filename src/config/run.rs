@@ -181,12 +181,41 @@ pub struct OutputConfig {
     /// file is only written when the pipeline has a `decompose` stage.
     #[serde(default = "yes")]
     pub returns: bool,
-    /// Write the discrete returns of a `decompose` stage as LAS 1.4 point format 9 with their
-    /// raw waveforms (`returns.las` + `returns.wdp`), for the pulses whose input carries
-    /// geometry (LAS, PulseWaves). Default false; written only when the pipeline has a
+    /// Write the discrete returns of a `decompose` stage as LAS 1.4 (`returns.las`; with point
+    /// format 9 also `returns.wdp`), for the pulses that carry geometry (LAS, PulseWaves input,
+    /// or georeferenced captures). Default false; written only when the pipeline has a
     /// `decompose` stage.
     #[serde(default)]
     pub las: bool,
+    /// Point data record format of the LAS output: 6 (points) or 9 (points with their raw
+    /// waveforms in a `.wdp`). Default 6.
+    #[serde(default = "default_las_point_format")]
+    pub las_point_format: u8,
+    /// Start a new LAS file every this many seconds of pulse GPS time (`returns_0000.las`,
+    /// `returns_0001.las`, …); 0 = one file, `returns.las`. Default 0.
+    #[serde(default)]
+    pub las_rotate_s: f64,
+    /// Hand the open LAS file's buffered points to the operating system every this many
+    /// seconds of pulse GPS time (what a crash can lose beyond the header `fwlidar repair`
+    /// rebuilds); 0 = only when the 1 MiB buffer fills. Default 1.
+    #[serde(default = "default_las_flush_s")]
+    pub las_flush_s: f64,
+    /// Write the "hyper point cloud" `hyper_points.las` (point format 6): every sample of every
+    /// return segment whose processed signal exceeds `hyper_threshold_v`, for pulses with
+    /// geometry. Default false.
+    #[serde(default)]
+    pub hyper_points: bool,
+    /// Threshold of the hyper point cloud, V (processed signal above the baseline); required
+    /// with `hyper_points = true`. Default none.
+    #[serde(default)]
+    pub hyper_threshold_v: Option<f32>,
+}
+
+fn default_las_point_format() -> u8 {
+    6
+}
+fn default_las_flush_s() -> f64 {
+    1.0
 }
 
 fn default_out_dir() -> String {
@@ -203,6 +232,11 @@ impl Default for OutputConfig {
             waveforms: true,
             returns: true,
             las: false,
+            las_point_format: default_las_point_format(),
+            las_rotate_s: 0.0,
+            las_flush_s: default_las_flush_s(),
+            hyper_points: false,
+            hyper_threshold_v: None,
         }
     }
 }
@@ -294,5 +328,38 @@ impl Validate for OutputConfig {
             field(path, "dir"),
             "must not be empty",
         );
+        v.require(
+            matches!(self.las_point_format, 6 | 9),
+            field(path, "las_point_format"),
+            format!("must be 6 or 9, got {}", self.las_point_format),
+        );
+        v.require(
+            self.las_rotate_s.is_finite() && self.las_rotate_s >= 0.0,
+            field(path, "las_rotate_s"),
+            format!(
+                "must be 0 (one file) or a positive number of seconds, got {}",
+                self.las_rotate_s
+            ),
+        );
+        v.require(
+            self.las_flush_s.is_finite() && self.las_flush_s >= 0.0,
+            field(path, "las_flush_s"),
+            format!(
+                "must be 0 (when the buffer fills) or a positive number of seconds, got {}",
+                self.las_flush_s
+            ),
+        );
+        match self.hyper_threshold_v {
+            Some(t) => v.require(
+                t.is_finite() && t > 0.0,
+                field(path, "hyper_threshold_v"),
+                format!("must be a positive number of volts, got {t}"),
+            ),
+            None => v.require(
+                !self.hyper_points,
+                field(path, "hyper_threshold_v"),
+                "must be given (volts) when hyper_points = true",
+            ),
+        }
     }
 }

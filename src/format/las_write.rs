@@ -1,10 +1,10 @@
 //! Byte encoding of the LAS 1.4 (R15) structures fwlidar writes: the public header block, VLR
-//! and EVLR headers, the waveform packet descriptor, Extra Bytes descriptors and point data
-//! record format 9. Plain encoders: they check only what cannot be represented (and say so with
+//! and EVLR headers, the waveform packet descriptor, Extra Bytes descriptors (with no-data), the
+//! WKT CRS record and point data record formats 6 and 9. Plain encoders: they check only what cannot be represented (and say so with
 //! [`LasWriteError`]); the sink (`sink::las_wave`) decides what goes in them.
 //!
 //! All multi-byte values are little-endian. Layouts and field meanings: `docs/formats.md`,
-//! "Returns as LAS 1.4 with waveforms (output)".
+//! "Returns as LAS 1.4 (output)".
 
 /// Size of the LAS 1.4 public header block, bytes.
 pub const HEADER_SIZE: usize = 375;
@@ -229,6 +229,13 @@ impl WavePacketDescriptor {
 
 /// Extra Bytes `data_type` of a 4-byte float.
 pub const EXTRA_BYTES_F32: u8 = 9;
+/// Extra Bytes `data_type` of an 8-byte float.
+pub const EXTRA_BYTES_F64: u8 = 10;
+/// Extra Bytes options bit 0: the `no_data` field is meaningful.
+pub const EXTRA_BYTES_OPTION_NO_DATA: u8 = 1 << 0;
+/// The value fwlidar writes for "no data" in its floating-point extra bytes (declared in each
+/// descriptor's `no_data` field with option bit 0 when the dimension can lack a value).
+pub const EXTRA_BYTES_NO_DATA: f64 = -9999.0;
 
 /// One Extra Bytes descriptor (192 bytes) of a plain (unscaled, no no-data) value.
 pub fn extra_bytes_descriptor(
@@ -236,12 +243,197 @@ pub fn extra_bytes_descriptor(
     name: &str,
     description: &str,
 ) -> [u8; EXTRA_BYTES_DESCRIPTOR_SIZE] {
-    let mut b = [0u8; EXTRA_BYTES_DESCRIPTOR_SIZE];
-    b[2] = data_type;
-    // 3: options 0 (no no_data, min, max, scale or offset).
-    put_str(&mut b[4..36], name);
-    put_str(&mut b[160..192], description);
-    b
+    ExtraDim {
+        name: name.to_string(),
+        description: description.to_string(),
+        kind: if data_type == EXTRA_BYTES_F64 {
+            ExtraKind::F64
+        } else {
+            ExtraKind::F32
+        },
+        no_data: None,
+    }
+    .descriptor()
+}
+
+/// Storage type of an extra dimension fwlidar writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ExtraKind {
+    /// 4-byte IEEE float (Extra Bytes data type 9).
+    F32,
+    /// 8-byte IEEE float (data type 10).
+    F64,
+}
+
+impl ExtraKind {
+    /// Bytes per value.
+    pub fn size(self) -> usize {
+        match self {
+            ExtraKind::F32 => 4,
+            ExtraKind::F64 => 8,
+        }
+    }
+    /// The Extra Bytes `data_type` code.
+    pub fn data_type(self) -> u8 {
+        match self {
+            ExtraKind::F32 => EXTRA_BYTES_F32,
+            ExtraKind::F64 => EXTRA_BYTES_F64,
+        }
+    }
+}
+
+/// One extra dimension appended to every point record, declared by an Extra Bytes descriptor
+/// (VLR `LASF_Spec` / 4).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExtraDim {
+    /// Name (at most 32 bytes), e.g. `amplitude`.
+    pub name: String,
+    /// Description with its unit (at most 32 bytes), e.g. `Gaussian peak amplitude (V)`.
+    pub description: String,
+    /// Storage type.
+    pub kind: ExtraKind,
+    /// The value written in place of a missing one (NaN), declared with options bit 0; `None`:
+    /// the dimension always has a value (NaN is written as NaN).
+    pub no_data: Option<f64>,
+}
+
+impl ExtraDim {
+    /// A 4-byte float dimension without no-data.
+    pub fn f32(name: &str, description: &str) -> Self {
+        ExtraDim {
+            name: name.to_string(),
+            description: description.to_string(),
+            kind: ExtraKind::F32,
+            no_data: None,
+        }
+    }
+
+    /// The same with a declared no-data value ([`EXTRA_BYTES_NO_DATA`]) written for NaN.
+    pub fn with_no_data(mut self) -> Self {
+        self.no_data = Some(EXTRA_BYTES_NO_DATA);
+        self
+    }
+
+    /// The 192-byte descriptor: data type at 2, options at 3, name at 4, no_data at 40 (as the
+    /// data type's "anytype": a double for floats), description at 160.
+    pub fn descriptor(&self) -> [u8; EXTRA_BYTES_DESCRIPTOR_SIZE] {
+        let mut b = [0u8; EXTRA_BYTES_DESCRIPTOR_SIZE];
+        b[2] = self.kind.data_type();
+        if let Some(v) = self.no_data {
+            b[3] = EXTRA_BYTES_OPTION_NO_DATA;
+            b[40..48].copy_from_slice(&v.to_le_bytes());
+        }
+        put_str(&mut b[4..36], &self.name);
+        put_str(&mut b[160..192], &self.description);
+        b
+    }
+
+    /// Encodes `v` into the first [`ExtraKind::size`] bytes of `b` (the no-data value for NaN
+    /// when one is declared).
+    pub fn encode_into(&self, v: f64, b: &mut [u8]) {
+        let v = match self.no_data {
+            Some(nd) if v.is_nan() => nd,
+            _ => v,
+        };
+        match self.kind {
+            ExtraKind::F32 => b[..4].copy_from_slice(&(v as f32).to_le_bytes()),
+            ExtraKind::F64 => b[..8].copy_from_slice(&v.to_le_bytes()),
+        }
+    }
+}
+
+/// Bytes per point of `dims`.
+pub fn extra_bytes_len(dims: &[ExtraDim]) -> usize {
+    dims.iter().map(|d| d.kind.size()).sum()
+}
+
+/// Encodes `values` (one per dimension, in order) into `b`, which holds at least
+/// [`extra_bytes_len`] bytes.
+pub fn encode_extras(dims: &[ExtraDim], values: &[f64], b: &mut [u8]) {
+    let mut at = 0;
+    for (d, &v) in dims.iter().zip(values) {
+        d.encode_into(v, &mut b[at..]);
+        at += d.kind.size();
+    }
+}
+
+/// The Extra Bytes VLR (header and payload) declaring `dims`; empty when `dims` is.
+pub fn extra_bytes_vlr(dims: &[ExtraDim], description: &str) -> Result<Vec<u8>, LasWriteError> {
+    if dims.is_empty() {
+        return Ok(Vec::new());
+    }
+    for d in dims {
+        if d.name.is_empty() || d.name.len() > 32 || d.description.len() > 32 {
+            return Err(LasWriteError::Unrepresentable(format!(
+                "extra dimension {:?}: the name must be 1 to 32 bytes and the description at \
+                 most 32",
+                d.name
+            )));
+        }
+    }
+    let len = dims.len() * EXTRA_BYTES_DESCRIPTOR_SIZE;
+    let mut b = vlr_header(LASF_SPEC, EXTRA_BYTES_RECORD_ID, len, description)?.to_vec();
+    for d in dims {
+        b.extend_from_slice(&d.descriptor());
+    }
+    Ok(b)
+}
+
+/// The OGC WKT coordinate system VLR (`LASF_Projection` / 2112, NUL-terminated payload).
+pub fn wkt_vlr(wkt: &str) -> Result<Vec<u8>, LasWriteError> {
+    if wkt.as_bytes().contains(&0) {
+        return Err(LasWriteError::Unrepresentable(
+            "the CRS WKT contains a NUL byte".into(),
+        ));
+    }
+    let mut b = vlr_header(LASF_PROJECTION, WKT_RECORD_ID, wkt.len() + 1, "OGC WKT CRS")?.to_vec();
+    b.extend_from_slice(wkt.as_bytes());
+    b.push(0);
+    Ok(b)
+}
+
+/// Size of a point data record format 6, bytes.
+pub const PF6_SIZE: usize = 30;
+
+/// One point data record of format 6 (the fields fwlidar fills); also the first 30 bytes of
+/// formats 7 to 10.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PointRecord6 {
+    /// X, Y, Z as stored (scaled integers).
+    pub xyz: [i32; 3],
+    /// Intensity (16-bit normalised).
+    pub intensity: u16,
+    /// Return number, 1..=15.
+    pub return_number: u8,
+    /// Number of returns of the pulse, 1..=15.
+    pub number_of_returns: u8,
+    /// Scanner channel, 0..=3.
+    pub scanner_channel: u8,
+    /// Classification (0: never classified).
+    pub classification: u8,
+    /// Scan angle, units of 0.006°.
+    pub scan_angle: i16,
+    /// GPS time, s.
+    pub gps_time: f64,
+}
+
+impl PointRecord6 {
+    /// Encodes the record into the first [`PF6_SIZE`] bytes of `b` (scan direction, edge of
+    /// flight line, classification flags, user data and point source id are zero).
+    pub fn encode_into(&self, b: &mut [u8]) {
+        let b = &mut b[..PF6_SIZE];
+        b[0..4].copy_from_slice(&self.xyz[0].to_le_bytes());
+        b[4..8].copy_from_slice(&self.xyz[1].to_le_bytes());
+        b[8..12].copy_from_slice(&self.xyz[2].to_le_bytes());
+        b[12..14].copy_from_slice(&self.intensity.to_le_bytes());
+        b[14] = (self.return_number & 0x0f) | ((self.number_of_returns & 0x0f) << 4);
+        b[15] = (self.scanner_channel & 0x03) << 4;
+        b[16] = self.classification;
+        b[17] = 0;
+        b[18..20].copy_from_slice(&self.scan_angle.to_le_bytes());
+        b[20..22].copy_from_slice(&0u16.to_le_bytes());
+        b[22..30].copy_from_slice(&self.gps_time.to_le_bytes());
+    }
 }
 
 /// One point data record of format 9 (the fields fwlidar fills).
@@ -276,21 +468,25 @@ pub struct PointRecord9 {
 }
 
 impl PointRecord9 {
+    /// The first 30 bytes, shared with format 6.
+    pub fn core(&self) -> PointRecord6 {
+        PointRecord6 {
+            xyz: self.xyz,
+            intensity: self.intensity,
+            return_number: self.return_number,
+            number_of_returns: self.number_of_returns,
+            scanner_channel: self.scanner_channel,
+            classification: self.classification,
+            scan_angle: self.scan_angle,
+            gps_time: self.gps_time,
+        }
+    }
+
     /// Encodes the record into the first [`PF9_SIZE`] bytes of `b` (scan direction, edge of
     /// flight line, classification flags, user data and point source id are zero).
     pub fn encode_into(&self, b: &mut [u8]) {
         let b = &mut b[..PF9_SIZE];
-        b[0..4].copy_from_slice(&self.xyz[0].to_le_bytes());
-        b[4..8].copy_from_slice(&self.xyz[1].to_le_bytes());
-        b[8..12].copy_from_slice(&self.xyz[2].to_le_bytes());
-        b[12..14].copy_from_slice(&self.intensity.to_le_bytes());
-        b[14] = (self.return_number & 0x0f) | ((self.number_of_returns & 0x0f) << 4);
-        b[15] = (self.scanner_channel & 0x03) << 4;
-        b[16] = self.classification;
-        b[17] = 0;
-        b[18..20].copy_from_slice(&self.scan_angle.to_le_bytes());
-        b[20..22].copy_from_slice(&0u16.to_le_bytes());
-        b[22..30].copy_from_slice(&self.gps_time.to_le_bytes());
+        self.core().encode_into(b);
         b[30] = self.wave_packet_index;
         b[31..39].copy_from_slice(&self.wave_offset.to_le_bytes());
         b[39..43].copy_from_slice(&self.wave_size.to_le_bytes());

@@ -7,7 +7,11 @@
 //! - [`table`]: waveform tables (CSV, NumPy `.npy`) for `fwlidar process`.
 //! - [`las_read`]: LAS 1.3/1.4 waveform packets (point formats 4, 5, 9, 10, `.wdp` or
 //!   internal) read as pulses.
-//! - [`las_write`]: LAS 1.4 header, VLR/EVLR and point format 9 encoding (returns output).
+//! - [`las_write`]: LAS 1.4 header, VLR/EVLR, Extra Bytes and point formats 6 and 9 encoding
+//!   (returns output).
+//! - [`las_points`]: a complete LAS 1.4 point format 6 file written atomically from an iterator
+//!   of points with extra dimensions (voxel tiles and other point outputs).
+//! - [`las_repair`]: rebuilding the header of a LAS 1.4 file cut off by a crash.
 //! - [`pulsewaves`]: PulseWaves 0.3 `.pls` + `.wvs` reader (input).
 //!
 //! Byte layouts are specified in `docs/formats.md`.
@@ -17,7 +21,9 @@ pub mod capture_reader;
 pub mod capture_writer;
 pub mod frame;
 pub mod header;
+pub mod las_points;
 pub mod las_read;
+pub mod las_repair;
 pub mod las_write;
 pub mod pulsewaves;
 pub mod table;

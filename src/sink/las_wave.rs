@@ -1,37 +1,43 @@
-//! Discrete returns as a LAS 1.4 file of point data record format 9, with the waveforms they
-//! came from in an external waveform data packet file: `returns.las` + `returns.wdp`.
+//! Discrete returns as LAS 1.4 points: point data record format 6 (default) or format 9 with the
+//! waveforms they came from in an external waveform data packet file (`.las` + `.wdp`), in one
+//! file or rotated every N seconds of pulse time.
 //!
 //! - One point per fitted return ([`Pulse::returns`]) of every pulse that has a
 //!   [`PulseGeometry`]; its position is `anchor + time_ns · direction` (CRS units), stored with
-//!   scale [`SCALE`] and an offset taken from the first point (multiples of 1000 CRS units).
-//! - One waveform packet per (pulse, return segment that has at least one return): the segment's
-//!   **raw digitizer counts**, 8-bit when the pulse's `bits` ≤ 8, else 16-bit little-endian, so
-//!   the file holds what the sensor recorded; the packet's descriptor carries the pulse's gain and
-//!   offset (`volts = offset + gain · count`) and the sample interval in picoseconds.
-//!   Descriptors (VLR `LASF_Spec` / 99 + index) are made on demand per distinct (bits, samples,
-//!   sample interval, gain, offset), at most 255; a 256th is an error.
-//! - The parametric line: for a point P with return point waveform location L (ps from the
-//!   packet's first sample to the return), `(x_t, y_t, z_t) = −direction / 1000` (CRS units per
-//!   ps), so the first sample lies at `P + L · (x_t, y_t, z_t)` and sample `i` at
-//!   `P + (L − i · spacing_ps) · (x_t, y_t, z_t)`.
+//!   scale [`SCALE`] and an offset taken from the file's first point (multiples of 1000 CRS
+//!   units).
+//! - Format 9 only: one waveform packet per (pulse, return segment that has at least one
+//!   return): the segment's **raw digitizer counts**, 8-bit when the pulse's `bits` ≤ 8, else
+//!   16-bit little-endian; the packet's descriptor carries the pulse's gain and offset
+//!   (`volts = offset + gain · count`) and the sample interval in picoseconds. Descriptors (VLR
+//!   `LASF_Spec` / 99 + index) are made on demand per distinct (bits, samples, sample interval,
+//!   gain, offset), at most 255 per file; a 256th is an error.
+//! - The parametric line (format 9): for a point P with return point waveform location L (ps
+//!   from the packet's first sample to the return), `(x_t, y_t, z_t) = −direction / 1000` (CRS
+//!   units per ps), so the first sample lies at `P + L · (x_t, y_t, z_t)`.
 //! - Intensity: the Gaussian's amplitude in digitizer counts (`amplitude / gain`), normalised to
 //!   16 bits as LAS asks (`× 65536 / 2^bits`), rounded, clipped to 0..=65535 (clips counted).
-//! - With [`LasWaveOptions::extra_bytes`]: two extra f32 per point, `amplitude_v` (V) and
-//!   `sigma_ns` (ns), declared in an Extra Bytes VLR.
+//! - With [`LasWaveOptions::extra_bytes`]: four f32 per point declared in an Extra Bytes VLR
+//!   ([`return_extra_dims`]): `amplitude` (V), `width` (FWHM, ns), `backscatter` (calibrated;
+//!   the declared no-data value −9999 while it is NaN) and `residual` (V).
 //!
-//! Pulses without geometry or without returns write nothing and are counted
-//! ([`LasWaveReport`]). Points stream through a buffered writer; the header and the VLRs are
-//! written at [`PulseSink::finish`] by seeking back into a region reserved for them (the unused
-//! part of the descriptor room is one padding VLR). Both files are written as `NAME.partial`
-//! and renamed into place at the end (see [`AtomicFile`]), the `.wdp` first. Layout and every
-//! field: `docs/formats.md`, "Returns as LAS 1.4 with waveforms (output)".
+//! **Crash safety.** Each file is written as `NAME.partial` and renamed into place when it is
+//! complete (the `.wdp` first). Its header and VLRs are written *provisionally* at open and
+//! rewritten (seek back, then on at the end) whenever they change: when the first point fixes
+//! the offset and when a descriptor is added; so at any moment the bytes the OS has are a LAS
+//! file whose VLRs are final and whose points follow them, only the point count and bounds being
+//! stale. `fwlidar repair` (`format::las_repair`) completes such a file after a crash. The open
+//! file's buffers are handed to the OS every [`LasWaveOptions::flush_s`] seconds of pulse time.
+//! With rotation ([`LasWaveOptions::rotate_s`]) a crash thus costs at most the open file's
+//! header (repairable) and its last unflushed points. Layout and every field: `docs/formats.md`,
+//! "Returns as LAS 1.4 (output)".
 
 use std::io::{Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use crate::format::las_write::{
-    self as lw, DESCRIPTOR_SIZE, EVLR_HEADER_SIZE, EXTRA_BYTES_DESCRIPTOR_SIZE, HEADER_SIZE,
-    Header, LasWriteError, MAX_DESCRIPTORS, PF9_SIZE, PointRecord9, VLR_HEADER_SIZE,
+    self as lw, DESCRIPTOR_SIZE, EVLR_HEADER_SIZE, ExtraDim, HEADER_SIZE, Header, LasWriteError,
+    MAX_DESCRIPTORS, PF6_SIZE, PF9_SIZE, PointRecord6, PointRecord9, VLR_HEADER_SIZE,
     WavePacketDescriptor,
 };
 use crate::pulse::{Pulse, PulseGeometry};
@@ -42,17 +48,29 @@ use crate::sink::{PulseSink, SinkError};
 pub const SCALE: f64 = 0.001;
 /// The offset is the first point's position rounded down to a multiple of this (CRS units).
 pub const OFFSET_STEP: f64 = 1000.0;
-/// Bytes of extra bytes per point with [`LasWaveOptions::extra_bytes`]: `amplitude_v`,
-/// `sigma_ns`, both f32.
-pub const EXTRA_BYTES: usize = 8;
+/// Bytes of extra bytes per point with [`LasWaveOptions::extra_bytes`]: `amplitude`, `width`,
+/// `backscatter`, `residual`, f32 each.
+pub const EXTRA_BYTES: usize = 16;
 /// User id of the padding VLR that fills the unused descriptor room.
 pub const PADDING_USER_ID: &str = "fwlidar";
 /// Record id of the padding VLR.
 pub const PADDING_RECORD_ID: u16 = 1;
-/// Room reserved between the header and the points for the descriptor VLRs, bytes.
+/// Room reserved between the header and the points for the descriptor VLRs (format 9), bytes.
 pub const DESCRIPTOR_ROOM: usize = MAX_DESCRIPTORS * (VLR_HEADER_SIZE + DESCRIPTOR_SIZE);
 /// Largest return number LAS point formats 6–10 hold.
 pub const MAX_RETURNS: usize = 15;
+/// FWHM of a Gaussian in standard deviations, `2 √(2 ln 2)`.
+pub const FWHM_PER_SIGMA: f64 = 2.354_820_045_030_949;
+
+/// The extra dimensions of every return point, in record order.
+pub fn return_extra_dims() -> [ExtraDim; 4] {
+    [
+        ExtraDim::f32("amplitude", "Gaussian peak amplitude (V)"),
+        ExtraDim::f32("width", "Gaussian FWHM (ns)"),
+        ExtraDim::f32("backscatter", "calibrated backscatter").with_no_data(),
+        ExtraDim::f32("residual", "RMS fit residual of segment (V)"),
+    ]
+}
 
 /// Settings of the LAS output.
 #[derive(Clone, Debug, PartialEq)]
@@ -60,12 +78,22 @@ pub struct LasWaveOptions {
     /// Coordinate reference system of the pulses' geometry as OGC WKT, written as VLR
     /// `LASF_Projection` / 2112; `None` writes no CRS record.
     pub crs_wkt: Option<String>,
-    /// Append `amplitude_v` and `sigma_ns` (f32 each) to every point, declared in an Extra
-    /// Bytes VLR. Default true.
+    /// Append the [`return_extra_dims`] (f32 each) to every point, declared in an Extra Bytes
+    /// VLR. Default true.
     pub extra_bytes: bool,
     /// The pulses' GPS time is Adjusted Standard GPS time (global encoding bit 0); else GPS
     /// seconds of the week. Default false.
     pub adjusted_standard_gps_time: bool,
+    /// Point data record format: 6 (points only) or 9 (points with waveform packets in a `.wdp`
+    /// beside each `.las`). Default 6.
+    pub point_format: u8,
+    /// Start a new file when a pulse's GPS time is this many seconds past the first pulse of the
+    /// open file (or before it): `returns_0000.las`, `returns_0001.las`, …; 0 = one file,
+    /// `returns.las`. Default 0.
+    pub rotate_s: f64,
+    /// Hand the open file's buffered bytes to the OS when a pulse's GPS time is this many
+    /// seconds past the last time it was done (0 = only when the 1 MiB buffers fill). Default 1.
+    pub flush_s: f64,
 }
 
 impl Default for LasWaveOptions {
@@ -74,6 +102,9 @@ impl Default for LasWaveOptions {
             crs_wkt: None,
             extra_bytes: true,
             adjusted_standard_gps_time: false,
+            point_format: 6,
+            rotate_s: 0.0,
+            flush_s: 1.0,
         }
     }
 }
@@ -96,36 +127,54 @@ pub struct LasWaveReport {
     pub returns_beyond_15: u64,
     /// Intensities clipped to 65535.
     pub intensity_clipped: u64,
-    /// Waveform packets written to the `.wdp`.
+    /// Waveform packets written to the `.wdp` files (format 9).
     pub packets: u64,
-    /// Size of the `.wdp`, bytes (its 60-byte header included).
+    /// Size of the `.wdp` files, bytes (their 60-byte headers included; format 9).
     pub wdp_bytes: u64,
-    /// Waveform packet descriptors used.
+    /// Waveform packet descriptors used (largest number in one file; format 9).
     pub descriptors: u64,
+    /// Point data record format written.
+    pub point_format: u8,
+    /// The LAS files completed, in order (names in the output folder).
+    pub files: Vec<String>,
 }
 
 /// What distinguishes two descriptors: stored bits, samples, spacing (ps), gain and offset
 /// (f32 bit patterns, as the pulse carries them).
 type DescKey = (u8, u32, u32, u32, u32);
 
-/// Writes `returns.las` and `returns.wdp` into a folder.
-pub struct LasWaveSink {
+/// The file being written and what its header will say.
+struct OpenFile {
     las: AtomicFile,
-    wdp: AtomicFile,
+    wdp: Option<AtomicFile>,
     las_path: PathBuf,
     wdp_path: PathBuf,
-    options: LasWaveOptions,
-    /// Encoded VLRs known at creation (WKT, Extra Bytes), in file order.
-    fixed_vlrs: Vec<u8>,
-    fixed_vlr_count: u32,
-    record_len: usize,
+    /// GPS time of the first pulse written to it (NaN before).
+    start_gps: f64,
+    /// GPS time of the last hand-over of the buffers to the OS (NaN before).
+    flushed_gps: f64,
     descriptors: Vec<(DescKey, WavePacketDescriptor)>,
     last_descriptor: usize,
     offset: Option<[f64; 3]>,
     min: [i32; 3],
     max: [i32; 3],
     by_return: [u64; MAX_RETURNS],
+    points: u64,
     wdp_pos: u64,
+}
+
+/// Writes the returns as LAS into a folder.
+pub struct LasWaveSink {
+    dir: PathBuf,
+    options: LasWaveOptions,
+    dims: Vec<ExtraDim>,
+    /// Encoded VLRs known at creation (WKT, Extra Bytes), in file order.
+    fixed_vlrs: Vec<u8>,
+    fixed_vlr_count: u32,
+    record_len: usize,
+    file: Option<OpenFile>,
+    /// Index of the open (or next) file.
+    file_index: u32,
     finished: bool,
     report: LasWaveReport,
     // Scratch reused from pulse to pulse.
@@ -133,6 +182,7 @@ pub struct LasWaveSink {
     packet_of_segment: Vec<Option<(u8, u64, u32)>>,
     record: Vec<u8>,
     samples: Vec<u8>,
+    preamble: Vec<u8>,
 }
 
 fn las_err(path: &Path, source: LasWriteError) -> SinkError {
@@ -149,84 +199,79 @@ fn io_err(path: &Path, source: std::io::Error) -> SinkError {
     }
 }
 
+/// Name of LAS file `index` (`returns.las` without rotation, else `returns_NNNN.las`) and of its
+/// `.wdp`.
+pub fn file_names(rotating: bool, index: u32) -> (String, String) {
+    if rotating {
+        (
+            format!("returns_{index:04}.las"),
+            format!("returns_{index:04}.wdp"),
+        )
+    } else {
+        ("returns.las".into(), "returns.wdp".into())
+    }
+}
+
 impl LasWaveSink {
-    /// Starts writing `returns.las` and `returns.wdp` into `dir` (which must exist).
+    /// Starts writing the returns into `dir` (which must exist): opens the first file.
     pub fn create(dir: &Path, options: LasWaveOptions) -> Result<Self, SinkError> {
-        let las_path = dir.join("returns.las");
+        let (first_name, _) = file_names(options.rotate_s > 0.0, 0);
+        let las_path = dir.join(first_name);
+        if options.point_format != 6 && options.point_format != 9 {
+            return Err(las_err(
+                &las_path,
+                LasWriteError::Unrepresentable(format!(
+                    "point data record format {} (6 or 9 are written)",
+                    options.point_format
+                )),
+            ));
+        }
         let mut fixed_vlrs = Vec::new();
         let mut fixed_vlr_count = 0;
         if let Some(wkt) = &options.crs_wkt {
-            if wkt.as_bytes().contains(&0) {
-                return Err(las_err(
-                    &las_path,
-                    LasWriteError::Unrepresentable("the CRS WKT contains a NUL byte".into()),
-                ));
-            }
-            let len = wkt.len() + 1;
-            let h = lw::vlr_header(lw::LASF_PROJECTION, lw::WKT_RECORD_ID, len, "OGC WKT CRS")
-                .map_err(|e| las_err(&las_path, e))?;
-            fixed_vlrs.extend_from_slice(&h);
-            fixed_vlrs.extend_from_slice(wkt.as_bytes());
-            fixed_vlrs.push(0);
+            fixed_vlrs.extend(lw::wkt_vlr(wkt).map_err(|e| las_err(&las_path, e))?);
             fixed_vlr_count += 1;
         }
-        if options.extra_bytes {
-            let h = lw::vlr_header(
-                lw::LASF_SPEC,
-                lw::EXTRA_BYTES_RECORD_ID,
-                2 * EXTRA_BYTES_DESCRIPTOR_SIZE,
-                "fwlidar return attributes",
-            )
-            .map_err(|e| las_err(&las_path, e))?;
-            fixed_vlrs.extend_from_slice(&h);
-            fixed_vlrs.extend_from_slice(&lw::extra_bytes_descriptor(
-                lw::EXTRA_BYTES_F32,
-                "amplitude_v",
-                "Gaussian peak amplitude, volts",
-            ));
-            fixed_vlrs.extend_from_slice(&lw::extra_bytes_descriptor(
-                lw::EXTRA_BYTES_F32,
-                "sigma_ns",
-                "Gaussian standard deviation, ns",
-            ));
+        let dims: Vec<ExtraDim> = if options.extra_bytes {
+            return_extra_dims().to_vec()
+        } else {
+            Vec::new()
+        };
+        if !dims.is_empty() {
+            fixed_vlrs.extend(
+                lw::extra_bytes_vlr(&dims, "fwlidar return attributes")
+                    .map_err(|e| las_err(&las_path, e))?,
+            );
             fixed_vlr_count += 1;
         }
-        let record_len = PF9_SIZE + if options.extra_bytes { EXTRA_BYTES } else { 0 };
-
-        let mut las = AtomicFile::create(&las_path)?;
-        let mut wdp = AtomicFile::create(dir.join("returns.wdp"))?;
-        // Room for the header and every VLR; filled in at finish.
-        let preamble = HEADER_SIZE + fixed_vlrs.len() + DESCRIPTOR_ROOM;
-        las.writer()?
-            .write_all(&vec![0u8; preamble])
-            .map_err(|e| io_err(&las_path, e))?;
-        let wdp_path = wdp.path().to_path_buf();
-        wdp.writer()?
-            .write_all(&[0u8; EVLR_HEADER_SIZE])
-            .map_err(|e| io_err(&wdp_path, e))?;
-        Ok(LasWaveSink {
-            las,
-            wdp,
-            las_path,
-            wdp_path,
+        let core = if options.point_format == 9 {
+            PF9_SIZE
+        } else {
+            PF6_SIZE
+        };
+        let record_len = core + lw::extra_bytes_len(&dims);
+        let mut sink = LasWaveSink {
+            dir: dir.to_path_buf(),
+            report: LasWaveReport {
+                point_format: options.point_format,
+                ..Default::default()
+            },
             options,
+            dims,
             fixed_vlrs,
             fixed_vlr_count,
             record_len,
-            descriptors: Vec::with_capacity(MAX_DESCRIPTORS),
-            last_descriptor: 0,
-            offset: None,
-            min: [i32::MAX; 3],
-            max: [i32::MIN; 3],
-            by_return: [0; MAX_RETURNS],
-            wdp_pos: EVLR_HEADER_SIZE as u64,
+            file: None,
+            file_index: 0,
             finished: false,
-            report: LasWaveReport::default(),
             order: Vec::with_capacity(64),
             packet_of_segment: Vec::with_capacity(8),
             record: vec![0u8; record_len],
             samples: Vec::with_capacity(1 << 13),
-        })
+            preamble: Vec::new(),
+        };
+        sink.open_file()?;
+        Ok(sink)
     }
 
     /// What has been written and skipped so far.
@@ -234,27 +279,98 @@ impl LasWaveSink {
         &self.report
     }
 
-    /// Bytes from the start of `returns.las` to the first point record.
-    pub fn offset_to_points(&self) -> u64 {
-        (HEADER_SIZE + self.fixed_vlrs.len() + DESCRIPTOR_ROOM) as u64
+    fn waveforms(&self) -> bool {
+        self.options.point_format == 9
     }
 
-    /// Index (1..=255) of the descriptor for `key`, made on first use.
+    /// Bytes from the start of a LAS file to its first point record.
+    pub fn offset_to_points(&self) -> u64 {
+        let room = if self.waveforms() { DESCRIPTOR_ROOM } else { 0 };
+        (HEADER_SIZE + self.fixed_vlrs.len() + room) as u64
+    }
+
+    /// Opens file `self.file_index` with its provisional header and VLRs (and the `.wdp` with a
+    /// provisional record header).
+    fn open_file(&mut self) -> Result<(), SinkError> {
+        let (las_name, wdp_name) = file_names(self.options.rotate_s > 0.0, self.file_index);
+        let las_path = self.dir.join(las_name);
+        let wdp_path = self.dir.join(wdp_name);
+        let las = AtomicFile::create(&las_path)?;
+        let wdp = if self.waveforms() {
+            let mut w = AtomicFile::create(&wdp_path)?;
+            let evlr = lw::evlr_header(
+                lw::LASF_SPEC,
+                lw::WAVEFORM_DATA_RECORD_ID,
+                0,
+                "fwlidar raw waveform packets",
+            );
+            w.writer()?
+                .write_all(&evlr)
+                .map_err(|e| io_err(&wdp_path, e))?;
+            Some(w)
+        } else {
+            None
+        };
+        self.file = Some(OpenFile {
+            las,
+            wdp,
+            las_path,
+            wdp_path,
+            start_gps: f64::NAN,
+            flushed_gps: f64::NAN,
+            descriptors: Vec::with_capacity(if self.waveforms() { MAX_DESCRIPTORS } else { 0 }),
+            last_descriptor: 0,
+            offset: None,
+            min: [i32::MAX; 3],
+            max: [i32::MIN; 3],
+            by_return: [0; MAX_RETURNS],
+            points: 0,
+            wdp_pos: EVLR_HEADER_SIZE as u64,
+        });
+        self.build_preamble()?;
+        let f = self.file.as_mut().expect("just opened");
+        f.las
+            .writer()?
+            .write_all(&self.preamble)
+            .map_err(|e| io_err(&f.las_path, e))
+    }
+
+    /// Rewrites the open file's header and VLRs in place (they changed), then goes on at its
+    /// end. The seek hands the buffered points to the OS first, and the second one the new
+    /// preamble, so the OS always holds a preamble that matches the points after it.
+    fn rewrite_preamble(&mut self) -> Result<(), SinkError> {
+        self.build_preamble()?;
+        let f = self.file.as_mut().expect("a file is open");
+        let w = f.las.writer()?;
+        w.seek(SeekFrom::Start(0))
+            .and_then(|_| w.write_all(&self.preamble))
+            .and_then(|_| w.seek(SeekFrom::End(0)))
+            .map(|_| ())
+            .map_err(|e| io_err(&f.las_path, e))
+    }
+
+    /// Index (1..=255) of the descriptor for `key`, made on first use (the preamble is then
+    /// rewritten so the file on disk declares it before any point uses it).
     fn descriptor(&mut self, key: DescKey, d: WavePacketDescriptor) -> Result<u8, SinkError> {
-        if self.descriptors.get(self.last_descriptor).map(|e| e.0) == Some(key) {
-            return Ok(self.last_descriptor as u8 + 1);
+        let f = self.file.as_mut().expect("a file is open");
+        if f.descriptors.get(f.last_descriptor).map(|e| e.0) == Some(key) {
+            return Ok(f.last_descriptor as u8 + 1);
         }
-        let i = match self.descriptors.iter().position(|e| e.0 == key) {
+        let i = match f.descriptors.iter().position(|e| e.0 == key) {
             Some(i) => i,
             None => {
-                if self.descriptors.len() == MAX_DESCRIPTORS {
-                    return Err(las_err(self.las.path(), LasWriteError::TooManyDescriptors));
+                if f.descriptors.len() == MAX_DESCRIPTORS {
+                    return Err(las_err(&f.las_path, LasWriteError::TooManyDescriptors));
                 }
-                self.descriptors.push((key, d));
-                self.descriptors.len() - 1
+                f.descriptors.push((key, d));
+                let i = f.descriptors.len() - 1;
+                f.last_descriptor = i;
+                self.report.descriptors = self.report.descriptors.max(i as u64 + 1);
+                self.rewrite_preamble()?;
+                return Ok(i as u8 + 1);
             }
         };
-        self.last_descriptor = i;
+        f.last_descriptor = i;
         Ok(i as u8 + 1)
     }
 
@@ -264,8 +380,9 @@ impl LasWaveSink {
         let bits: u8 = if p.bits <= 8 { 8 } else { 16 };
         let spacing = (p.sample_ns * 1000.0).round();
         if !(spacing >= 1.0 && spacing <= f64::from(u32::MAX)) {
+            let f = self.file.as_ref().expect("a file is open");
             return Err(las_err(
-                self.las.path(),
+                &f.las_path,
                 LasWriteError::Unrepresentable(format!(
                     "sample interval {} ns is not a whole number of picoseconds in 1..2^32",
                     p.sample_ns
@@ -299,13 +416,15 @@ impl LasWaveSink {
             }
         }
         let size = self.samples.len() as u32;
-        self.wdp
-            .writer()?
+        let f = self.file.as_mut().expect("a file is open");
+        let wdp = f.wdp.as_mut().expect("format 9 has a .wdp");
+        wdp.writer()?
             .write_all(&self.samples)
-            .map_err(|e| io_err(&self.wdp_path, e))?;
-        let at = self.wdp_pos;
-        self.wdp_pos += u64::from(size);
+            .map_err(|e| io_err(&f.wdp_path, e))?;
+        let at = f.wdp_pos;
+        f.wdp_pos += u64::from(size);
         self.report.packets += 1;
+        self.report.wdp_bytes += u64::from(size);
         Ok((index, at, size))
     }
 
@@ -349,6 +468,8 @@ impl LasWaveSink {
             }
         };
         let xyz_t = g.direction.map(|d| (-d / 1000.0) as f32);
+        let waveforms = self.waveforms();
+        let core = if waveforms { PF9_SIZE } else { PF6_SIZE };
         let mut written = 0;
         for rank in 0..self.order.len() {
             let r = p.returns[self.order[rank] as usize];
@@ -358,9 +479,17 @@ impl LasWaveSink {
                 self.report.returns_unrepresentable += 1;
                 continue;
             }
-            let offset = *self
-                .offset
-                .get_or_insert_with(|| pos.map(|v| (v / OFFSET_STEP).floor() * OFFSET_STEP));
+            let f = self.file.as_mut().expect("a file is open");
+            let offset = match f.offset {
+                Some(o) => o,
+                None => {
+                    let o = pos.map(|v| (v / OFFSET_STEP).floor() * OFFSET_STEP);
+                    f.offset = Some(o);
+                    // The offset is part of the header: on disk before the first point.
+                    self.rewrite_preamble()?;
+                    o
+                }
+            };
             let scaled =
                 std::array::from_fn::<f64, 3, _>(|k| ((pos[k] - offset[k]) / SCALE).round());
             if scaled
@@ -371,20 +500,12 @@ impl LasWaveSink {
                 continue;
             }
             let xyz = scaled.map(|v| v as i32);
-            let (index, at, size) = match self.packet_of_segment[s] {
-                Some(packet) => packet,
-                None => {
-                    let packet = self.write_packet(p, s)?;
-                    self.packet_of_segment[s] = Some(packet);
-                    packet
-                }
-            };
             let seg = p.segments[s];
             let return_number = (rank + 1).min(MAX_RETURNS) as u8;
             if rank >= MAX_RETURNS {
                 self.report.returns_beyond_15 += 1;
             }
-            let rec = PointRecord9 {
+            let point = PointRecord6 {
                 xyz,
                 intensity: self.intensity(p, r.amplitude),
                 return_number,
@@ -393,37 +514,67 @@ impl LasWaveSink {
                 classification: 0,
                 scan_angle,
                 gps_time: p.gps_time,
-                wave_packet_index: index,
-                wave_offset: at,
-                wave_size: size,
-                wave_location_ps: ((r.time_ns - seg.start_ns) * 1000.0) as f32,
-                xyz_t,
             };
-            rec.encode_into(&mut self.record);
-            if self.options.extra_bytes {
-                let sigma_ns = (f64::from(r.sigma_bins) * p.sample_ns) as f32;
-                self.record[PF9_SIZE..PF9_SIZE + 4].copy_from_slice(&r.amplitude.to_le_bytes());
-                self.record[PF9_SIZE + 4..PF9_SIZE + 8].copy_from_slice(&sigma_ns.to_le_bytes());
+            if waveforms {
+                let (index, at, size) = match self.packet_of_segment[s] {
+                    Some(packet) => packet,
+                    None => {
+                        let packet = self.write_packet(p, s)?;
+                        self.packet_of_segment[s] = Some(packet);
+                        packet
+                    }
+                };
+                PointRecord9 {
+                    xyz,
+                    intensity: point.intensity,
+                    return_number,
+                    number_of_returns: n_returns,
+                    scanner_channel: point.scanner_channel,
+                    classification: 0,
+                    scan_angle,
+                    gps_time: p.gps_time,
+                    wave_packet_index: index,
+                    wave_offset: at,
+                    wave_size: size,
+                    wave_location_ps: ((r.time_ns - seg.start_ns) * 1000.0) as f32,
+                    xyz_t,
+                }
+                .encode_into(&mut self.record);
+            } else {
+                point.encode_into(&mut self.record);
             }
-            self.las
+            if !self.dims.is_empty() {
+                let width_ns = f64::from(r.sigma_bins) * p.sample_ns * FWHM_PER_SIGMA;
+                let values = [
+                    f64::from(r.amplitude),
+                    width_ns,
+                    f64::from(r.backscatter),
+                    f64::from(r.residual),
+                ];
+                lw::encode_extras(&self.dims, &values, &mut self.record[core..]);
+            }
+            let f = self.file.as_mut().expect("a file is open");
+            f.las
                 .writer()?
                 .write_all(&self.record)
-                .map_err(|e| io_err(&self.las_path, e))?;
+                .map_err(|e| io_err(&f.las_path, e))?;
             for (k, v) in xyz.into_iter().enumerate() {
-                self.min[k] = self.min[k].min(v);
-                self.max[k] = self.max[k].max(v);
+                f.min[k] = f.min[k].min(v);
+                f.max[k] = f.max[k].max(v);
             }
-            self.by_return[return_number as usize - 1] += 1;
+            f.by_return[return_number as usize - 1] += 1;
+            f.points += 1;
             self.report.points += 1;
             written += 1;
         }
         Ok(written)
     }
 
-    /// The header as it stands.
+    /// The open file's header as it stands.
     fn header(&self) -> Header {
-        let n = self.report.points;
-        let offset = self.offset.unwrap_or([0.0; 3]);
+        let f = self.file.as_ref().expect("a file is open");
+        let n = f.points;
+        let offset = f.offset.unwrap_or([0.0; 3]);
         let bound = |v: &[i32; 3]| -> [f64; 3] {
             if n == 0 {
                 [0.0; 3]
@@ -436,10 +587,18 @@ impl LasWaveSink {
                 .duration_since(std::time::UNIX_EPOCH)
                 .map_or(0, |d| d.as_secs()),
         );
-        let mut global = lw::GLOBAL_WAVEFORM_EXTERNAL | lw::GLOBAL_WKT;
+        let mut global = lw::GLOBAL_WKT;
+        if self.waveforms() {
+            global |= lw::GLOBAL_WAVEFORM_EXTERNAL;
+        }
         if self.options.adjusted_standard_gps_time {
             global |= lw::GLOBAL_ADJUSTED_STANDARD_GPS;
         }
+        let descriptor_vlrs = if self.waveforms() {
+            f.descriptors.len() as u32 + u32::from(f.descriptors.len() < MAX_DESCRIPTORS)
+        } else {
+            0
+        };
         Header {
             global_encoding: global,
             system_identifier: "fwlidar waveform decomposition".into(),
@@ -447,58 +606,150 @@ impl LasWaveSink {
             creation_day_of_year: day,
             creation_year: year,
             offset_to_point_data: self.offset_to_points() as u32,
-            number_of_vlrs: self.fixed_vlr_count
-                + self.descriptors.len() as u32
-                + u32::from(self.descriptors.len() < MAX_DESCRIPTORS),
-            point_format: 9,
+            number_of_vlrs: self.fixed_vlr_count + descriptor_vlrs,
+            point_format: self.options.point_format,
             point_record_length: self.record_len as u16,
             scale: [SCALE; 3],
             offset,
-            max: bound(&self.max),
-            min: bound(&self.min),
+            max: bound(&f.max),
+            min: bound(&f.min),
             start_of_waveform_data: 0,
             start_of_first_evlr: 0,
             number_of_evlrs: 0,
             number_of_points: n,
-            points_by_return: self.by_return,
+            points_by_return: f.by_return,
         }
     }
 
-    /// Header and VLRs, exactly `offset_to_points` bytes.
-    fn preamble(&self) -> Result<Vec<u8>, SinkError> {
-        let mut b = Vec::with_capacity(self.offset_to_points() as usize);
-        b.extend_from_slice(&self.header().encode());
+    /// Header and VLRs of the open file into `self.preamble`, exactly `offset_to_points` bytes.
+    fn build_preamble(&mut self) -> Result<(), SinkError> {
+        let header = self.header().encode();
+        let f = self.file.as_ref().expect("a file is open");
+        let b = &mut self.preamble;
+        b.clear();
+        b.extend_from_slice(&header);
         b.extend_from_slice(&self.fixed_vlrs);
-        let path = self.las.path();
-        for (i, (_, d)) in self.descriptors.iter().enumerate() {
-            let id = lw::DESCRIPTOR_RECORD_ID_BASE + 1 + i as u16;
-            b.extend_from_slice(
-                &lw::vlr_header(
-                    lw::LASF_SPEC,
-                    id,
-                    DESCRIPTOR_SIZE,
-                    "waveform packet descriptor",
-                )
-                .map_err(|e| las_err(path, e))?,
-            );
-            b.extend_from_slice(&d.encode());
-        }
-        let room = (MAX_DESCRIPTORS - self.descriptors.len()) * (VLR_HEADER_SIZE + DESCRIPTOR_SIZE);
-        if room > 0 {
-            let payload = room - VLR_HEADER_SIZE;
-            b.extend_from_slice(
-                &lw::vlr_header(
-                    PADDING_USER_ID,
-                    PADDING_RECORD_ID,
-                    payload,
-                    "unused descriptor room",
-                )
-                .map_err(|e| las_err(path, e))?,
-            );
-            b.resize(b.len() + payload, 0);
+        if self.options.point_format == 9 {
+            let path = &f.las_path;
+            for (i, (_, d)) in f.descriptors.iter().enumerate() {
+                let id = lw::DESCRIPTOR_RECORD_ID_BASE + 1 + i as u16;
+                b.extend_from_slice(
+                    &lw::vlr_header(
+                        lw::LASF_SPEC,
+                        id,
+                        DESCRIPTOR_SIZE,
+                        "waveform packet descriptor",
+                    )
+                    .map_err(|e| las_err(path, e))?,
+                );
+                b.extend_from_slice(&d.encode());
+            }
+            let room =
+                (MAX_DESCRIPTORS - f.descriptors.len()) * (VLR_HEADER_SIZE + DESCRIPTOR_SIZE);
+            if room > 0 {
+                let payload = room - VLR_HEADER_SIZE;
+                b.extend_from_slice(
+                    &lw::vlr_header(
+                        PADDING_USER_ID,
+                        PADDING_RECORD_ID,
+                        payload,
+                        "unused descriptor room",
+                    )
+                    .map_err(|e| las_err(path, e))?,
+                );
+                b.resize(b.len() + payload, 0);
+            }
         }
         debug_assert_eq!(b.len() as u64, self.offset_to_points());
-        Ok(b)
+        Ok(())
+    }
+
+    /// Completes the open file: final header, the `.wdp`'s record header, both renamed into
+    /// place (the `.wdp` first).
+    fn close_file(&mut self) -> Result<(), SinkError> {
+        if self.file.is_none() {
+            return Ok(());
+        }
+        self.build_preamble()?;
+        let mut f = self.file.take().expect("checked");
+        if let Some(wdp) = f.wdp.as_mut() {
+            let evlr = lw::evlr_header(
+                lw::LASF_SPEC,
+                lw::WAVEFORM_DATA_RECORD_ID,
+                f.wdp_pos - EVLR_HEADER_SIZE as u64,
+                "fwlidar raw waveform packets",
+            );
+            let w = wdp.writer()?;
+            w.seek(SeekFrom::Start(0))
+                .and_then(|_| w.write_all(&evlr))
+                .map_err(|e| io_err(&f.wdp_path, e))?;
+            self.report.wdp_bytes += EVLR_HEADER_SIZE as u64;
+            wdp.commit()?;
+        }
+        let w = f.las.writer()?;
+        w.seek(SeekFrom::Start(0))
+            .and_then(|_| w.write_all(&self.preamble))
+            .map_err(|e| io_err(&f.las_path, e))?;
+        f.las.commit()?;
+        let name = f
+            .las_path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        tracing::debug!(file = %name, points = f.points, "LAS file complete");
+        self.report.files.push(name);
+        self.file_index += 1;
+        Ok(())
+    }
+
+    /// Removes `returns_NNNN.las` / `.wdp` left by an earlier run from `NNNN` = the number of
+    /// files this run wrote on (a shorter run must not leave an older run's tail beside it).
+    fn remove_stale_rotated_files(&self) {
+        if self.options.rotate_s <= 0.0 {
+            return;
+        }
+        let mut k = self.file_index;
+        loop {
+            let (las, wdp) = file_names(true, k);
+            let (las, wdp) = (self.dir.join(las), self.dir.join(wdp));
+            let found = las.exists() || wdp.exists();
+            if !found {
+                break;
+            }
+            for p in [las, wdp] {
+                if p.exists()
+                    && let Err(e) = std::fs::remove_file(&p)
+                {
+                    tracing::warn!(file = %p.display(), "cannot remove a stale LAS file: {e}");
+                }
+            }
+            k += 1;
+        }
+    }
+
+    /// Closes the open file and opens the next when `gps_time` lies past its window.
+    fn rotate_if_due(&mut self, gps_time: f64) -> Result<(), SinkError> {
+        let rotate = self.options.rotate_s;
+        if rotate <= 0.0 {
+            return Ok(());
+        }
+        let start = self.file.as_ref().map_or(f64::NAN, |f| f.start_gps);
+        if start.is_nan() || !(gps_time >= start + rotate || gps_time < start) {
+            return Ok(());
+        }
+        self.close_file()?;
+        self.open_file()
+    }
+
+    /// Hands the open file's buffers to the OS (the `.wdp` first).
+    fn flush_open(&mut self) -> Result<(), SinkError> {
+        if let Some(f) = self.file.as_mut() {
+            if let Some(w) = f.wdp.as_mut() {
+                w.flush()?;
+            }
+            f.las.flush()?;
+        }
+        Ok(())
     }
 }
 
@@ -516,49 +767,50 @@ impl PulseSink for LasWaveSink {
             self.report.pulses_without_geometry += 1;
             return Ok(());
         };
+        if self.finished {
+            return Err(io_err(
+                &self.dir.join("returns.las"),
+                std::io::Error::other("the LAS output is already finished"),
+            ));
+        }
+        self.rotate_if_due(p.gps_time)?;
+        let f = self.file.as_mut().expect("a file is open");
+        if f.start_gps.is_nan() {
+            f.start_gps = p.gps_time;
+            f.flushed_gps = p.gps_time;
+        }
         // Counts are kept per point, so the header matches the file even when a later return
         // of the pulse fails (e.g. a 256th descriptor) and the run ends there.
         let n = self.write_points(p, &g)?;
         self.report.pulses_written += u64::from(n > 0);
+        let f = self.file.as_mut().expect("a file is open");
+        let every = self.options.flush_s;
+        let elapsed = p.gps_time - f.flushed_gps;
+        // Also when time went backwards (or is NaN): a new time base, flush now.
+        if every > 0.0 && (elapsed >= every || elapsed < 0.0 || elapsed.is_nan()) {
+            f.flushed_gps = p.gps_time;
+            self.flush_open()?;
+        }
         Ok(())
     }
 
     fn flush(&mut self) -> Result<(), SinkError> {
-        self.las.flush()?;
-        self.wdp.flush()
+        self.flush_open()
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {
         if self.finished {
             return Ok(());
         }
-        let wdp_path = self.wdp.path().to_path_buf();
-        let evlr = lw::evlr_header(
-            lw::LASF_SPEC,
-            lw::WAVEFORM_DATA_RECORD_ID,
-            self.wdp_pos - EVLR_HEADER_SIZE as u64,
-            "fwlidar raw waveform packets",
-        );
-        let w = self.wdp.writer()?;
-        w.seek(SeekFrom::Start(0))
-            .and_then(|_| w.write_all(&evlr))
-            .map_err(|e| io_err(&wdp_path, e))?;
-        let preamble = self.preamble()?;
-        let las_path = self.las.path().to_path_buf();
-        let w = self.las.writer()?;
-        w.seek(SeekFrom::Start(0))
-            .and_then(|_| w.write_all(&preamble))
-            .map_err(|e| io_err(&las_path, e))?;
-        self.report.wdp_bytes = self.wdp_pos;
-        self.report.descriptors = self.descriptors.len() as u64;
-        self.wdp.commit()?;
-        self.las.commit()?;
+        self.close_file()?;
+        self.remove_stale_rotated_files();
         self.finished = true;
         tracing::info!(
             points = self.report.points,
+            files = self.report.files.len(),
             packets = self.report.packets,
             pulses_without_geometry = self.report.pulses_without_geometry,
-            "returns.las written"
+            "LAS returns written"
         );
         Ok(())
     }
@@ -609,6 +861,13 @@ mod tests {
         p
     }
 
+    fn pf9() -> LasWaveOptions {
+        LasWaveOptions {
+            point_format: 9,
+            ..Default::default()
+        }
+    }
+
     fn u16_at(b: &[u8], o: usize) -> u16 {
         u16::from_le_bytes(b[o..o + 2].try_into().unwrap())
     }
@@ -654,7 +913,7 @@ mod tests {
             dir.path(),
             LasWaveOptions {
                 crs_wkt: Some(wkt.clone()),
-                ..Default::default()
+                ..pf9()
             },
         )
         .unwrap();
@@ -691,6 +950,8 @@ mod tests {
                 packets: 3,
                 wdp_bytes: 60 + 2 * 20 + 2 * 10 + 2 * 20,
                 descriptors: 3,
+                point_format: 9,
+                files: vec!["returns.las".into()],
             }
         );
 
@@ -704,7 +965,7 @@ mod tests {
         );
         assert_eq!(u16_at(&b, 94), 375);
         assert_eq!(b[104], 9);
-        assert_eq!(u16_at(&b, 105), 67, "59 bytes of format 9 + 8 extra bytes");
+        assert_eq!(u16_at(&b, 105), 75, "59 bytes of format 9 + 16 extra bytes");
         assert_eq!(u64_at(&b, 247), 4);
         assert_eq!(
             (u64_at(&b, 255), u64_at(&b, 263), u64_at(&b, 271)),
@@ -718,7 +979,7 @@ mod tests {
         );
         let offset = u32_at(&b, 96) as usize;
         assert_eq!(offset as u64, sink.offset_to_points());
-        assert_eq!(b.len(), offset + 4 * 67);
+        assert_eq!(b.len(), offset + 4 * 75);
 
         let v = vlrs(&b);
         assert_eq!(v[0].0, "LASF_Projection");
@@ -726,7 +987,7 @@ mod tests {
         assert_eq!(v[0].2, [wkt.as_bytes(), b"\0"].concat());
         assert_eq!(
             (v[1].0.as_str(), v[1].1, v[1].2.len()),
-            ("LASF_Spec", 4, 384)
+            ("LASF_Spec", 4, 768)
         );
         let ids: Vec<u16> = v[2..5].iter().map(|x| x.1).collect();
         assert_eq!(ids, [100, 101, 102]);
@@ -747,7 +1008,7 @@ mod tests {
         assert_eq!(v.len(), 6);
 
         // Points: time order within the pulse.
-        let pt = |i: usize| &b[offset + 67 * i..offset + 67 * (i + 1)];
+        let pt = |i: usize| &b[offset + 75 * i..offset + 75 * (i + 1)];
         let z = |i: usize| u32_at(pt(i), 8) as i32;
         assert_eq!(
             z(0),
@@ -781,7 +1042,14 @@ mod tests {
         // Intensity: 1 V / 0.5 V per count = 2 counts of a 16-bit digitizer; extra bytes.
         assert_eq!(u16_at(pt(0), 12), 2);
         assert_eq!(u16_at(pt(3), 12), 65535, "clipped");
-        assert_eq!((f32_at(pt(0), 59), f32_at(pt(0), 63)), (1.0, 2.0));
+        assert_eq!(f32_at(pt(0), 59), 1.0, "amplitude");
+        assert_eq!(
+            f32_at(pt(0), 63),
+            (2.0 * FWHM_PER_SIGMA) as f32,
+            "width: FWHM in ns"
+        );
+        assert_eq!(f32_at(pt(0), 67), -9999.0, "backscatter NaN: no-data");
+        assert_eq!(f32_at(pt(0), 71), 0.0, "residual");
         // Bounds as stored.
         assert_eq!(f64_at(&b, 211), 1000.0 - 101.0 * 0.15, "max z");
         assert_eq!(f64_at(&b, 219), 1000.0 - 305.0 * 0.15, "min z");
@@ -803,7 +1071,7 @@ mod tests {
             dir.path(),
             LasWaveOptions {
                 extra_bytes: false,
-                ..Default::default()
+                ..pf9()
             },
         )
         .unwrap();
@@ -830,7 +1098,7 @@ mod tests {
     #[test]
     fn a_256th_descriptor_is_an_error_naming_the_file() {
         let dir = tempfile::tempdir().unwrap();
-        let mut sink = LasWaveSink::create(dir.path(), LasWaveOptions::default()).unwrap();
+        let mut sink = LasWaveSink::create(dir.path(), pf9()).unwrap();
         for i in 0..MAX_DESCRIPTORS {
             sink.write(&pulse(i as u64, 0.5 + i as f32, true, &[(1, 110.0, 1.0)]))
                 .unwrap();
@@ -855,14 +1123,14 @@ mod tests {
             256,
             "255 pulses + the first return of the failing one"
         );
-        assert_eq!(b.len(), u32_at(&b, 96) as usize + 256 * 67);
+        assert_eq!(b.len(), u32_at(&b, 96) as usize + 256 * 75);
         assert_eq!(sink.stats().points, 256);
     }
 
     #[test]
     fn unrepresentable_returns_are_skipped_and_counted() {
         let dir = tempfile::tempdir().unwrap();
-        let mut sink = LasWaveSink::create(dir.path(), LasWaveOptions::default()).unwrap();
+        let mut sink = LasWaveSink::create(dir.path(), pf9()).unwrap();
         sink.write(&pulse(0, 0.5, true, &[(1, 110.0, 1.0)]))
             .unwrap();
         let mut far = pulse(1, 0.5, true, &[(1, 110.0, 1.0), (1, 111.0, 1.0)]);
@@ -881,7 +1149,7 @@ mod tests {
     fn a_missing_folder_is_an_error_naming_the_file() {
         let dir = tempfile::tempdir().unwrap();
         let missing = dir.path().join("nope");
-        let Err(e) = LasWaveSink::create(&missing, LasWaveOptions::default()) else {
+        let Err(e) = LasWaveSink::create(&missing, pf9()) else {
             panic!("created in a missing folder");
         };
         assert!(e.to_string().contains("nope/returns.las"), "{e}");
@@ -889,7 +1157,7 @@ mod tests {
             dir.path(),
             LasWaveOptions {
                 crs_wkt: Some("bad\0wkt".into()),
-                ..Default::default()
+                ..pf9()
             },
         ) else {
             panic!("accepted a NUL in the WKT");
@@ -900,7 +1168,7 @@ mod tests {
     #[test]
     fn empty_run_gives_a_valid_empty_file() {
         let dir = tempfile::tempdir().unwrap();
-        let mut sink = LasWaveSink::create(dir.path(), LasWaveOptions::default()).unwrap();
+        let mut sink = LasWaveSink::create(dir.path(), pf9()).unwrap();
         sink.finish().unwrap();
         let b = std::fs::read(dir.path().join("returns.las")).unwrap();
         assert_eq!(u64_at(&b, 247), 0);
@@ -908,5 +1176,125 @@ mod tests {
         assert_eq!(vlrs(&b).len(), 2);
         let w = std::fs::read(dir.path().join("returns.wdp")).unwrap();
         assert_eq!((w.len(), u64_at(&w, 20)), (60, 0));
+    }
+
+    #[test]
+    fn format_6_records_are_30_bytes_plus_extras_and_no_wdp() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut sink = LasWaveSink::create(dir.path(), LasWaveOptions::default()).unwrap();
+        let mut p = pulse(0, 0.5, true, &[(2, 305.0, 2.0), (1, 110.0, 1.0)]);
+        p.returns[0].backscatter = 0.125;
+        p.returns[0].residual = 0.5;
+        sink.write(&p).unwrap();
+        sink.finish().unwrap();
+        assert!(!dir.path().join("returns.wdp").exists());
+        assert!(!dir.path().join("returns.wdp.partial").exists());
+        let b = std::fs::read(dir.path().join("returns.las")).unwrap();
+        assert_eq!(b[104], 6);
+        assert_eq!(u16_at(&b, 105), 46);
+        assert_eq!(u16_at(&b, 6), 1 << 4, "WKT bit only");
+        assert_eq!(u32_at(&b, 100), 1, "the Extra Bytes VLR");
+        let offset = u32_at(&b, 96) as usize;
+        assert_eq!(offset, 375 + 54 + 768);
+        assert_eq!(b.len(), offset + 2 * 46);
+        let pt = |i: usize| &b[offset + 46 * i..offset + 46 * (i + 1)];
+        assert_eq!(pt(0)[14], 0x21);
+        assert_eq!(pt(1)[14], 0x22);
+        assert_eq!(f64_at(pt(1), 22), 1000.0);
+        assert_eq!(f32_at(pt(1), 30), 2.0, "amplitude of the later return");
+        assert_eq!(f32_at(pt(1), 38), 0.125, "backscatter");
+        assert_eq!(f32_at(pt(1), 42), 0.5, "residual");
+        assert_eq!(f32_at(pt(0), 38), -9999.0, "no-data");
+        let v = vlrs(&b);
+        let d = &v[0].2;
+        let names: Vec<&[u8]> = (0..4).map(|k| &d[192 * k + 4..192 * k + 15]).collect();
+        assert_eq!(&names[2][..11], b"backscatter");
+        assert_eq!((d[192 * 2 + 2], d[192 * 2 + 3]), (9, 1), "f32, no_data bit");
+        assert_eq!(f64_at(d, 192 * 2 + 40), -9999.0);
+        assert_eq!((d[2], d[3]), (9, 0), "amplitude: f32, no options");
+    }
+
+    #[test]
+    fn rotation_completes_each_file_before_the_next_and_removes_stale_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("returns_0003.las"), b"stale").unwrap();
+        std::fs::write(dir.path().join("returns_0004.wdp"), b"stale").unwrap();
+        let mut sink = LasWaveSink::create(
+            dir.path(),
+            LasWaveOptions {
+                rotate_s: 2.0,
+                point_format: 9,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        // gps_time = 1000 + id: files [1000, 1002), [1002, 1004), [1004, ...).
+        for id in 0..5 {
+            sink.write(&pulse(id, 0.5, true, &[(1, 110.0, 1.0)]))
+                .unwrap();
+            if id == 2 {
+                assert!(dir.path().join("returns_0000.las").exists());
+                assert!(dir.path().join("returns_0000.wdp").exists());
+                assert!(dir.path().join("returns_0001.las.partial").exists());
+            }
+        }
+        sink.finish().unwrap();
+        assert_eq!(
+            sink.stats().files,
+            ["returns_0000.las", "returns_0001.las", "returns_0002.las"]
+        );
+        assert!(
+            !dir.path().join("returns_0003.las").exists(),
+            "stale file removed"
+        );
+        assert!(
+            !dir.path().join("returns_0004.wdp").exists(),
+            "stale file removed"
+        );
+        for (k, n) in [(0, 2), (1, 2), (2, 1)] {
+            let b = std::fs::read(dir.path().join(format!("returns_{k:04}.las"))).unwrap();
+            assert_eq!(u64_at(&b, 247), n);
+            let w = std::fs::read(dir.path().join(format!("returns_{k:04}.wdp"))).unwrap();
+            assert_eq!(
+                u64_at(&w, 20),
+                40 * n,
+                "one 20-sample 16-bit packet per pulse"
+            );
+            let offset = u32_at(&b, 96) as usize;
+            assert_eq!(
+                u64_at(&b[offset..], 31),
+                60,
+                "packets count from each file's .wdp"
+            );
+        }
+    }
+
+    #[test]
+    fn the_open_file_always_has_a_valid_provisional_header() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut sink = LasWaveSink::create(dir.path(), pf9()).unwrap();
+        sink.flush().unwrap();
+        let partial = dir.path().join("returns.las.partial");
+        let b = std::fs::read(&partial).unwrap();
+        assert_eq!(&b[0..4], b"LASF");
+        assert_eq!(b.len() as u64, sink.offset_to_points(), "preamble at open");
+        assert_eq!(u64_at(&b, 247), 0);
+        sink.write(&pulse(0, 0.5, true, &[(1, 110.0, 1.0)]))
+            .unwrap();
+        sink.write(&pulse(1, 0.5, true, &[(2, 305.0, 1.0)]))
+            .unwrap();
+        sink.flush().unwrap();
+        let b = std::fs::read(&partial).unwrap();
+        assert_eq!(
+            f64_at(&b, 155),
+            500_000.0,
+            "offset on disk with the first point"
+        );
+        assert_eq!(b.len() as u64, sink.offset_to_points() + 2 * 75);
+        let v = vlrs(&b);
+        assert_eq!((v[1].1, v[2].1), (100, 101), "both descriptors on disk");
+        let w = std::fs::read(dir.path().join("returns.wdp.partial")).unwrap();
+        assert_eq!(u16_at(&w, 18), 65535, "provisional waveform record header");
+        sink.finish().unwrap();
     }
 }

@@ -2,6 +2,7 @@
 //! and as LAS 1.4 with waveforms; voxel tiles as a later issue lands).
 
 pub mod atomic_file;
+pub mod hyper_points;
 pub mod las_wave;
 pub mod nav_decode;
 pub mod nav_tally;

@@ -1,10 +1,12 @@
-"""Reads returns.las + returns.wdp with laspy (and the .wdp with plain Python) and checks them
-against what the writer was given.
+"""Reads returns.las (point format 6) or returns.las + returns.wdp (format 9) with laspy (and the
+.wdp with plain Python) and checks them against what the writer was given.
 
 Usage: python read_las.py OUT_DIR EXPECTED.json
-EXPECTED.json: {"wkt": str, "points": [{x, y, z, gps_time, return_number, number_of_returns,
-intensity, amplitude_v, sigma_ns, location_ps, xyz_t: [3], first_sample: [3], bits, spacing_ps, gain, offset,
-counts: [...]}, ...]} in file order. Exits non-zero with a message on the first inconsistency.
+EXPECTED.json: {"wkt": str, "point_format": 6 | 9 (default 9), "las": file name (default
+returns.las), "points": [{x, y, z, gps_time, return_number, number_of_returns, intensity,
+amplitude, width, backscatter (null: no data), residual, and for format 9 location_ps,
+xyz_t: [3], first_sample: [3], bits, spacing_ps, gain, offset, counts: [...]}, ...]} in file
+order. Exits non-zero with a message on the first inconsistency.
 """
 import json
 import struct
@@ -22,13 +24,18 @@ except ImportError as e:  # the Rust test turns this into a failure naming the p
 def main(out: Path, expected_path: Path) -> None:
     exp = json.loads(expected_path.read_text())
     pts = exp["points"]
-    las = laspy.read(out / "returns.las")
+    fmt = exp.get("point_format", 9)
+    las_name = exp.get("las", "returns.las")
+    wdp_path = out / (las_name[:-4] + ".wdp")
+    las = laspy.read(out / las_name)
     h = las.header
     assert (h.version.major, h.version.minor) == (1, 4), h.version
-    assert h.point_format.id == 9, h.point_format.id
+    assert h.point_format.id == fmt, h.point_format.id
     assert h.point_count == len(pts) == len(las.points), (h.point_count, len(pts))
-    assert h.global_encoding.waveform_data_packets_external, "global encoding bit 2"
+    assert h.global_encoding.waveform_data_packets_external == (fmt == 9), "global encoding bit 2"
     assert not h.global_encoding.waveform_data_packets_internal
+    if fmt == 6:
+        assert not wdp_path.exists(), "format 6 writes no .wdp"
     assert h.global_encoding.wkt, "global encoding bit 4"
     assert list(h.scales) == [0.001] * 3, h.scales
 
@@ -38,8 +45,24 @@ def main(out: Path, expected_path: Path) -> None:
         assert not wkts, wkts
     else:
         assert len(wkts) == 1 and wkts[0].string == exp["wkt"], wkts
+    # The Extra Bytes VLR: names, types, options, no-data, descriptions with units.
+    eb = [v for v in h.vlrs if v.record_id == 4 and v.user_id == "LASF_Spec"]
+    assert len(eb) == 1, eb
+    structs = eb[0].extra_bytes_structs
+    got = [(d.name.decode(), d.data_type, d.options) for d in structs]
+    assert got == [("amplitude", 9, 0), ("width", 9, 0), ("backscatter", 9, 1), ("residual", 9, 0)], got
+    assert structs[0].no_data is None, "amplitude declares no no-data"
+    nd = float(np.asarray(structs[2].no_data).ravel()[0])
+    assert nd == -9999.0, structs[2].no_data
+    desc = [d.description.decode() for d in structs]
+    assert desc[0].endswith("(V)") and desc[1].endswith("(ns)") and desc[3].endswith("(V)"), desc
+    assert list(las.point_format.extra_dimension_names) == ["amplitude", "width", "backscatter", "residual"]
+    if not pts and fmt == 6:
+        assert list(h.mins) == [0, 0, 0] and list(h.maxs) == [0, 0, 0], (h.mins, h.maxs)
+        print(f"laspy {laspy.__version__}: 0 points, format 6: all as written")
+        return
     if not pts:
-        wdp = (out / "returns.wdp").read_bytes()
+        wdp = wdp_path.read_bytes()
         assert len(wdp) == 60 and struct.unpack("<Q", wdp[20:28])[0] == 0, len(wdp)
         assert list(h.mins) == [0, 0, 0] and list(h.maxs) == [0, 0, 0], (h.mins, h.maxs)
         print(f"laspy {laspy.__version__}: 0 points, empty .wdp: all as written")
@@ -63,8 +86,18 @@ def main(out: Path, expected_path: Path) -> None:
     assert list(h.number_of_points_by_return) == list(by_return), h.number_of_points_by_return
 
     # Extra bytes read back as named dimensions.
-    assert np.allclose(np.asarray(las.amplitude_v), col("amplitude_v"), rtol=1e-6)
-    assert np.allclose(np.asarray(las.sigma_ns), col("sigma_ns"), rtol=1e-6)
+    assert np.allclose(np.asarray(las.amplitude), col("amplitude"), rtol=1e-6), "amplitude"
+    assert np.allclose(np.asarray(las.width), col("width"), rtol=1e-6), "width"
+    assert np.allclose(np.asarray(las.residual), col("residual"), rtol=1e-6), "residual"
+    bs = np.asarray(las.backscatter, dtype=np.float64)
+    want = np.array([np.nan if p["backscatter"] is None else p["backscatter"] for p in pts])
+    nodata = np.isnan(want)
+    assert np.all(bs[nodata] == -9999.0), "backscatter no-data"
+    assert np.allclose(bs[~nodata], want[~nodata], rtol=1e-6), "backscatter"
+    if fmt == 6:
+        print(f"laspy {laspy.__version__}: {len(pts)} points of format 6, "
+              f"{int(nodata.sum())} without backscatter: all as written")
+        return
 
     # Wave packet fields and the parametric line.
     loc = np.asarray(las.return_point_wave_location, dtype=np.float64)
@@ -83,7 +116,7 @@ def main(out: Path, expected_path: Path) -> None:
         if isinstance(v, laspy.vlrs.known.WaveformPacketVlr)
     }
     assert 1 <= len(descriptors) <= 255, len(descriptors)
-    wdp = (out / "returns.wdp").read_bytes()
+    wdp = wdp_path.read_bytes()
     reserved, user_id, record_id, length, _desc = struct.unpack("<H16sHQ32s", wdp[:60])
     assert user_id.rstrip(b"\0") == b"LASF_Spec" and record_id == 65535, (user_id, record_id)
     assert length == len(wdp) - 60, (length, len(wdp))
