@@ -62,8 +62,8 @@ fn deposit(c: &mut Criterion) {
     ] {
         let dir = tempfile::tempdir().unwrap();
         let grid = Grid::new(&cfg(), [0.0, 0.0]);
-        let store = ZarrStore::create_or_open(&dir.path().join("v.zarr"), grid.clone(), info())
-            .unwrap();
+        let store =
+            ZarrStore::create_or_open(&dir.path().join("v.zarr"), grid.clone(), info()).unwrap();
         let mut tiles = TileSet::new(store, 64, 1e9);
         let params = DepositParams {
             placer: Placer::new(&grid),

@@ -421,10 +421,15 @@ fn hyper_points_hold_every_return_sample_above_the_threshold() {
     let script = "import laspy, sys, numpy as np\n\
                   las = laspy.read(sys.argv[1])\n\
                   assert las.header.point_format.id == 6\n\
-                  assert list(las.point_format.extra_dimension_names) == ['signal']\n\
+                  assert list(las.point_format.extra_dimension_names) == ['signal', 'backscatter']\n\
                   w = [v.string for v in las.header.vlrs if hasattr(v, 'string')]\n\
                   assert '32736' in w[0], w\n\
                   assert len(las.points) == las.header.point_count\n\
+                  b = np.asarray(las.backscatter, dtype=np.float64)\n\
+                  s = np.asarray(las.signal, dtype=np.float64)\n\
+                  assert np.all(np.isfinite(b)) and np.all(b > 0), b.min()\n\
+                  r = b / s\n\
+                  assert r.max() / r.min() < 1.2, (r.min(), r.max())\n\
                   for v in np.sort(np.asarray(las.signal, dtype=np.float32)):\n\
                   \x20   print(repr(float(v)))\n";
     let o = Command::new(python())

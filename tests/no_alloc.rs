@@ -35,6 +35,10 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static GLOBAL: Counting = Counting;
 
+/// The counter is global: the tests of this file take turns so that one does not count another's
+/// allocations.
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 fn allocations_for(pulses: u64, workers: usize) -> u64 {
     let factory: StageFactory =
         Arc::new(|| vec![Box::new(Denoise::new(DenoiseConfig::default())) as Box<dyn Stage>]);
@@ -69,6 +73,7 @@ fn allocations_with(
 
 #[test]
 fn allocations_do_not_grow_with_pulses() {
+    let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     for workers in [1, 2] {
         let small = allocations_for(10_000, workers);
         let large = allocations_for(100_000, workers);
@@ -83,6 +88,7 @@ fn allocations_do_not_grow_with_pulses() {
 
 #[test]
 fn calibrate_allocates_nothing_per_pulse() {
+    let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let factory: StageFactory = Arc::new(|| {
         vec![Box::new(Calibrate::new(CalibrateConfig {
             t0_is_emission: Some(true),
@@ -101,6 +107,7 @@ fn calibrate_allocates_nothing_per_pulse() {
 /// along a line over the same open tiles cost the same number of allocations.
 #[test]
 fn voxel_deposits_allocate_nothing_per_pulse() {
+    let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     use fwlidar::pulse::{Pulse, PulseGeometry, SegmentKind};
     use fwlidar::voxel::grid::{Grid, Placer, VoxelConfig};
     use fwlidar::voxel::tiles::TileSet;

@@ -36,10 +36,14 @@ fn sample() -> PathBuf {
 /// The embedded configuration without its calibrate stage: voxels hold volts.
 fn volts_config(dir: &Path) -> PathBuf {
     let text = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml")).unwrap();
-    let start = text.find("[[pipeline.stages]]\ntype = \"calibrate\"").unwrap();
+    let start = text
+        .find("[[pipeline.stages]]\ntype = \"calibrate\"")
+        .unwrap();
     let end = start + text[start..].find("\n[georeference]").unwrap();
     let p = dir.join("volts.toml");
-    std::fs::write(&p, format!("{}{}", &text[..start], &text[end..])).unwrap();
+    let text =
+        format!("{}{}", &text[..start], &text[end..]).replace("\nlas = false", "\nlas = true");
+    std::fs::write(&p, text).unwrap();
     p
 }
 
@@ -80,6 +84,36 @@ fn replay_writes_tiles_that_xarray_reads_with_the_right_values() {
     assert!(o.status.success(), "{}", text(&o.stderr));
     let figures = check_with_xarray(&volts, "volts");
     assert_eq!(figures["bins"], 404000);
+    // The tile as a LAS point cloud (laspy): one point per occupied voxel, the same totals.
+    let las: Vec<PathBuf> = std::fs::read_dir(volts.join("voxels_las"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(las.len(), 1, "{las:?}");
+    let o = Command::new(python())
+        .arg("-c")
+        .arg(
+            "import sys, json, laspy, numpy as np, xarray as xr\n\
+             las = laspy.read(sys.argv[1])\n\
+             assert las.header.point_format.id == 6\n\
+             names = list(las.point_format.extra_dimension_names)\n\
+             assert names == ['mean', 'maximum', 'samples', 'pulses'], names\n\
+             n = np.asarray(las.samples, dtype=np.float64)\n\
+             s = float((np.asarray(las.mean, dtype=np.float64) * n).sum())\n\
+             w = [v.string for v in las.header.vlrs if hasattr(v, 'string')]\n\
+             assert w and 'UTM zone 36S' in w[0], w\n\
+             print(json.dumps({'points': len(las.points), 'samples': int(n.sum()), 'sum': s}))\n",
+        )
+        .arg(&las[0])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["samples"], 404000, "{v}");
+    let sum = v["sum"].as_f64().unwrap();
+    let want = figures["sum_v"].as_f64().unwrap();
+    assert!((sum - want).abs() < 1e-4 * want.abs(), "{sum} vs {want}");
+    assert!(v["points"].as_u64().unwrap() > 200, "{v}");
 }
 
 /// A run configuration: denoise + Richardson-Lucy (slow enough to be killed mid-run), small
@@ -162,7 +196,12 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
 
     let cut = dir.path().join("cut");
     let mut child = Command::new(BIN)
-        .args(["replay", cap.to_str().unwrap(), "--out", cut.to_str().unwrap()])
+        .args([
+            "replay",
+            cap.to_str().unwrap(),
+            "--out",
+            cut.to_str().unwrap(),
+        ])
         .args(["--config", cfg.to_str().unwrap(), "--no-progress"])
         .stdout(Stdio::null())
         .stderr(Stdio::null())
@@ -200,12 +239,7 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
         .arg(cut.join("voxels.zarr"))
         .output()
         .unwrap();
-    assert!(
-        o.status.success(),
-        "{}{}",
-        text(&o.stdout),
-        text(&o.stderr)
-    );
+    assert!(o.status.success(), "{}{}", text(&o.stdout), text(&o.stderr));
     let read: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert!(read["tiles"].as_u64().unwrap() >= 3, "{read}");
 
@@ -230,15 +264,15 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
     };
     let (da, db) = (data(&a), data(&b));
     assert!(da.len() > 20, "{} chunk files", da.len());
-    assert_eq!(
-        da.keys().collect::<Vec<_>>(),
-        db.keys().collect::<Vec<_>>()
-    );
+    assert_eq!(da.keys().collect::<Vec<_>>(), db.keys().collect::<Vec<_>>());
     for (k, v) in &da {
         assert!(db[k] == *v, "chunk {k} differs after kill -9 and rerun");
     }
     // The tile records (watermarks) match too.
-    for (k, v) in a.iter().filter(|(k, _)| k.starts_with("fwlidar_state/tiles/")) {
+    for (k, v) in a
+        .iter()
+        .filter(|(k, _)| k.starts_with("fwlidar_state/tiles/"))
+    {
         assert_eq!(b.get(k), Some(v), "{k}");
     }
 
@@ -284,7 +318,11 @@ fn merge_adds_stores_exactly_and_refuses_what_does_not_fit() {
         "--no-progress",
     ]);
     assert!(o.status.success(), "{}", text(&o.stderr));
-    assert!(text(&o.stdout).contains("merged 2 stores"), "{}", text(&o.stdout));
+    assert!(
+        text(&o.stdout).contains("merged 2 stores"),
+        "{}",
+        text(&o.stdout)
+    );
     let o = fwlidar(&[
         "merge",
         roots[1].to_str().unwrap(),
@@ -323,7 +361,12 @@ fn merge_adds_stores_exactly_and_refuses_what_does_not_fit() {
     assert!(overlapping > 0, "the two flights share tiles");
 
     // An existing output is never overwritten; a store of another grid is refused.
-    let o = fwlidar(&["merge", roots[0].to_str().unwrap(), "--out", m1.to_str().unwrap()]);
+    let o = fwlidar(&[
+        "merge",
+        roots[0].to_str().unwrap(),
+        "--out",
+        m1.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(2));
     assert!(text(&o.stderr).contains("exists"), "{}", text(&o.stderr));
     let other_cfg = dir.path().join("other.toml");

@@ -94,8 +94,10 @@ pub fn run(args: MergeArgs) -> Result<(), Failure> {
     let bar = (!args.no_progress).then(|| {
         let bar = ProgressBar::new(tiles.len() as u64);
         bar.set_style(
-            ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} tiles")
-                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} tiles",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
         );
         bar
     });

@@ -18,8 +18,8 @@ use crate::sink::nav_decode::NavDecode;
 use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::voxel_tiles::{CrsSource, VoxelTilesSink};
 use crate::sink::waveform_csv::WaveformCsvSink;
-use crate::voxel::zarr::StoreInfo;
 use crate::sink::{FanOut, PulseSink};
+use crate::voxel::zarr::StoreInfo;
 
 /// The sample replayed when no input is named.
 pub const DEFAULT_SAMPLE: &str = "replay/two_layer.fwcap";
@@ -442,10 +442,14 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
     if let Some(v) = r.sinks.get("voxels") {
         let d = &v["deposits"];
         let t = &v["tiles"];
-        let outside = ["bins_outside_extent", "bins_outside_heights", "bins_outside_dem"]
-            .iter()
-            .map(|k| d[*k].as_u64().unwrap_or(0))
-            .sum::<u64>();
+        let outside = [
+            "bins_outside_extent",
+            "bins_outside_heights",
+            "bins_outside_dem",
+        ]
+        .iter()
+        .map(|k| d[*k].as_u64().unwrap_or(0))
+        .sum::<u64>();
         println!(
             "  voxels.zarr: {} bins of {} pulses deposited ({} outside the grid); tiles {} opened, \
              {} closed ({} early), {} merged with the store, at most {} open ({:.1} MB each){}",

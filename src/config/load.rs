@@ -138,7 +138,7 @@ pub enum Validated {
     /// A sensor profile (a `[sensor]` table).
     Sensor(SensorFile),
     /// A run configuration (`sensor_profile`, `[pipeline]`, `[output]`).
-    Run(RunConfig),
+    Run(Box<RunConfig>),
     /// A simulator scene (a `[scene]` table).
     Scene(Box<crate::sim::SceneFile>),
 }
@@ -177,7 +177,7 @@ pub fn validate_any(path: impl AsRef<Path>) -> Result<Validated, ConfigErrors> {
     } else if doc.table.contains_key("scene") {
         loader.run(doc.table).map(|f| Validated::Scene(Box::new(f)))
     } else {
-        loader.run(doc.table).map(Validated::Run)
+        loader.run(doc.table).map(|r| Validated::Run(Box::new(r)))
     }
 }
 

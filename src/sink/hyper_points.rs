@@ -2,11 +2,10 @@
 //! above a threshold, as a LAS 1.4 point of format 6 (`hyper_points.las`), for pulses that carry
 //! geometry. The point lies where the sample was taken, `anchor + (start_ns + i · sample_ns) ·
 //! direction`; intensity is the sample in digitizer counts normalised to 16 bits (as the
-//! returns' intensity); one extra f32, `signal` (V), holds the value itself. GPS time, scan
-//! angle from the pulse; return number 1 of 1; classification 0.
-//!
-//! Calibrated backscatter per sample is not written: it needs the pulse's calibration, which
-//! the `calibrate` stage (being written) will add.
+//! returns' intensity); extra f32 values: `signal` (V), the value itself, and `backscatter`,
+//! the sample's calibrated backscatter when a `calibrate` stage ran (the LAS no-data value
+//! otherwise, or before the emission). GPS time, scan angle from the pulse; return number 1 of
+//! 1; classification 0.
 //!
 //! Written with [`PointCloudWriter`]: `hyper_points.las.partial`, provisional header at open,
 //! buffers handed to the OS every `flush_s` seconds of pulse time, renamed into place at the end;
@@ -59,7 +58,10 @@ impl HyperPointSink {
         crs_wkt: Option<&str>,
         flush_s: f64,
     ) -> Result<Self, SinkError> {
-        let extra = [ExtraDim::f32("signal", "processed signal (V)")];
+        let extra = [
+            ExtraDim::f32("signal", "processed signal (V)"),
+            ExtraDim::f32("backscatter", "calibrated backscatter").with_no_data(),
+        ];
         Ok(HyperPointSink {
             w: PointCloudWriter::create(&dir.join(FILE_NAME), crs_wkt, &extra)?,
             threshold_v,
@@ -131,7 +133,10 @@ impl PulseSink for HyperPointSink {
                     scan_angle_deg: p.scan_angle_deg[0],
                     gps_time: p.gps_time,
                 };
-                self.w.push(&point, &[f64::from(v)])?;
+                // Calibrated backscatter of the sample when a calibrate stage ran (NaN: no-data).
+                let backscatter = p.calibration.map_or(f32::NAN, |c| c.calibrated(v, t));
+                self.w
+                    .push(&point, &[f64::from(v), f64::from(backscatter)])?;
                 self.report.points += 1;
             }
         }
@@ -196,16 +201,23 @@ mod tests {
         );
         let b = std::fs::read(dir.path().join(FILE_NAME)).unwrap();
         let off = u32::from_le_bytes(b[96..100].try_into().unwrap()) as usize;
-        assert_eq!(b.len(), off + 2 * 34);
+        // 30 bytes of format 6 + two f32 extra bytes (signal, backscatter).
+        assert_eq!(b.len(), off + 2 * 38);
         let z = |i: usize| {
-            i32::from_le_bytes(b[off + 34 * i + 8..off + 34 * i + 12].try_into().unwrap())
+            i32::from_le_bytes(b[off + 38 * i + 8..off + 38 * i + 12].try_into().unwrap())
         };
         // Sample 1 at 102 ns: z = 500 - 102 * 0.15 = 484.7; sample 3 at 106 ns: 484.1.
         assert_eq!((z(0), z(1)), (484_700, 484_100));
-        let f = |i: usize| {
-            f32::from_le_bytes(b[off + 34 * i + 30..off + 34 * i + 34].try_into().unwrap())
+        let f = |i: usize, e: usize| {
+            f32::from_le_bytes(
+                b[off + 38 * i + 30 + 4 * e..off + 38 * i + 34 + 4 * e]
+                    .try_into()
+                    .unwrap(),
+            )
         };
-        assert_eq!((f(0), f(1)), (2.0, 3.0));
+        assert_eq!((f(0, 0), f(1, 0)), (2.0, 3.0));
+        // No calibrate stage ran: backscatter is the declared no-data value.
+        assert_eq!((f(0, 1), f(1, 1)), (-9999.0, -9999.0));
         let inten = u16::from_le_bytes([b[off + 12], b[off + 13]]);
         assert_eq!(inten, 4, "2 V / 0.5 V per count");
     }

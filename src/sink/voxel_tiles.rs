@@ -122,8 +122,7 @@ impl VoxelTilesSink {
         info.epsg = crs.as_deref().and_then(epsg_of);
         info.crs_wkt = crs.filter(|c| !c.starts_with("EPSG:"));
         let grid = Grid::new(&self.cfg, first);
-        if let Some(e) = self.cfg.extent_m.is_none().then_some(()) {
-            let _ = e;
+        if self.cfg.extent_m.is_none() {
             tracing::info!(
                 centre = ?first,
                 side_m = self.cfg.auto_extent_m,
@@ -131,8 +130,7 @@ impl VoxelTilesSink {
             );
         }
         let store = ZarrStore::create_or_open(&self.root, grid.clone(), info).map_err(store_err)?;
-        if store.recovered_commits > 0 || store.discarded_pending > 0 || !store.tiles().is_empty()
-        {
+        if store.recovered_commits > 0 || store.discarded_pending > 0 || !store.tiles().is_empty() {
             tracing::info!(
                 tiles = store.tiles().len(),
                 recovered = store.recovered_commits,
@@ -152,11 +150,21 @@ impl VoxelTilesSink {
                 None
             },
         });
-        self.tiles = Some(TileSet::new(
-            store,
-            self.cfg.max_open_tiles,
-            self.cfg.close_after_s,
-        ));
+        let wkt = store.info().crs_wkt.clone();
+        let mut tiles = TileSet::new(store, self.cfg.max_open_tiles, self.cfg.close_after_s);
+        if self.cfg.las {
+            let dir = self
+                .root
+                .parent()
+                .unwrap_or(Path::new("."))
+                .join("voxels_las");
+            std::fs::create_dir_all(&dir).map_err(|source| SinkError::Io {
+                path: dir.display().to_string(),
+                source,
+            })?;
+            tiles = tiles.with_las(dir, wkt);
+        }
+        self.tiles = Some(tiles);
         Ok(())
     }
 }
@@ -303,14 +311,8 @@ mod tests {
     /// metre, 1 s per 10 m.
     fn flight() -> impl Iterator<Item = Pulse> {
         let out = (0..600).map(|i| pulse(i, i as f64 * 0.01, 0.05 + i as f64 * 0.1, 4.5));
-        let back = (0..600).map(|i| {
-            pulse(
-                600 + i,
-                10.0 + i as f64 * 0.01,
-                59.95 - i as f64 * 0.1,
-                5.5,
-            )
-        });
+        let back =
+            (0..600).map(|i| pulse(600 + i, 10.0 + i as f64 * 0.01, 59.95 - i as f64 * 0.1, 5.5));
         out.chain(back)
     }
 

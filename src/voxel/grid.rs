@@ -315,7 +315,9 @@ impl Grid {
 
     /// Whether tile `(tx, ty)` (global numbering) is inside the store's extent.
     pub fn contains_tile(&self, tile: [i64; 2]) -> bool {
-        (0..2).all(|a| tile[a] >= self.tile_min[a] && tile[a] < self.tile_min[a] + self.tiles[a] as i64)
+        (0..2).all(|a| {
+            tile[a] >= self.tile_min[a] && tile[a] < self.tile_min[a] + self.tiles[a] as i64
+        })
     }
 
     /// Chunk indices `[row, column]` of a tile in the store's arrays.
@@ -518,8 +520,9 @@ impl Placer {
 /// range check).
 #[inline]
 pub fn fast_floor(v: f64) -> f64 {
-    if !(v.abs() < 9.0e18) {
-        return v; // NaN, infinities and huge values: refused by the range checks
+    // NaN, infinities and huge values come back as they are: refused by the range checks.
+    if v.is_nan() || v.abs() >= 9.0e18 {
+        return v;
     }
     let t = v as i64 as f64;
     if t > v { t - 1.0 } else { t }
@@ -562,7 +565,10 @@ mod tests {
         assert_eq!(v.tile, [12, 25]);
         assert_eq!(v.offset, (16 + 8) * 20 + 2, "(j·T + i)·L + k");
         assert_eq!(p.column_centre(c), [100.25, 200.75]);
-        assert!(p.column(95.9, 210.0).is_none(), "west of the snapped extent");
+        assert!(
+            p.column(95.9, 210.0).is_none(),
+            "west of the snapped extent"
+        );
         assert!(p.column(f64::NAN, 210.0).is_none());
         assert!(p.level(3.0).is_none() && p.level(-0.01).is_none());
         assert!(p.level(f64::INFINITY).is_none());

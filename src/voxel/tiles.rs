@@ -29,6 +29,8 @@ pub struct TileStats {
     pub peak_open: usize,
     /// Memory of one open tile, bytes.
     pub tile_bytes: usize,
+    /// Tile LAS files written (`[voxels] las`).
+    pub las_files: u64,
 }
 
 struct Slot {
@@ -55,6 +57,8 @@ pub struct TileSet {
     stats: TileStats,
     /// Reused list of the slots to close.
     idle: Vec<usize>,
+    /// Write each closed tile's occupied voxels as LAS into this folder (with this CRS WKT).
+    las: Option<(std::path::PathBuf, Option<String>)>,
 }
 
 const EMPTY_BOX: [i64; 4] = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
@@ -78,7 +82,15 @@ impl TileSet {
                 ..TileStats::default()
             },
             idle: Vec::with_capacity(max_open + 1),
+            las: None,
         }
+    }
+
+    /// Also writes every closed tile's occupied voxels as `DIR/tile_<tx>_<ty>.las` (rewritten,
+    /// complete, when the tile closes again).
+    pub fn with_las(mut self, dir: std::path::PathBuf, crs_wkt: Option<String>) -> Self {
+        self.las = Some((dir, crs_wkt));
+        self
     }
 
     /// The grid.
@@ -177,6 +189,16 @@ impl TileSet {
         let tile = slot.tile;
         let w = watermark.max(slot.skip_below);
         self.store.write_tile(tile, &slot.data, w)?;
+        if let Some((dir, wkt)) = &self.las {
+            let path = dir.join(format!("tile_{}_{}.las", tile[0], tile[1]));
+            tile_las(&path, wkt.as_deref(), self.store.grid(), tile, &slot.data).map_err(|e| {
+                StoreError::Io {
+                    path: path.display().to_string(),
+                    source: std::io::Error::other(e.to_string()),
+                }
+            })?;
+            self.stats.las_files += 1;
+        }
         self.open.remove(&tile);
         self.free.push(s);
         self.stats.closed += 1;
@@ -243,4 +265,69 @@ impl TileSet {
     pub fn into_store(self) -> ZarrStore {
         self.store
     }
+}
+
+/// Writes the occupied voxels of a tile (at least one sample) as a LAS 1.4 point format 6 file:
+/// a point at each voxel's centre (z as the grid measures it: absolute, or above the DEM), with
+/// extra dimensions `mean` (intensity sum / samples), `maximum`, `samples` and `pulses`;
+/// intensity is the mean scaled to 16 bits over the tile's largest mean.
+pub fn tile_las(
+    path: &std::path::Path,
+    crs_wkt: Option<&str>,
+    grid: &Grid,
+    tile: [i64; 2],
+    data: &TileData,
+) -> Result<(), crate::sink::SinkError> {
+    use crate::format::las_points::{PointSix, write_point_cloud};
+    use crate::format::las_write::ExtraDim;
+    let (t, l) = (grid.tile_columns as usize, grid.levels as usize);
+    let tm = grid.tile_m();
+    let west = grid.origin_m[0] + tile[0] as f64 * tm[0];
+    let south = grid.origin_m[1] + tile[1] as f64 * tm[1];
+    let v = grid.voxel_size_m;
+    let q = grid.intensity_quantum;
+    let mean = |o: usize| data.sum_q[o] as f64 * q / data.samples[o] as f64;
+    let top = (0..data.len())
+        .filter(|&o| data.samples[o] > 0)
+        .map(mean)
+        .fold(0.0f64, f64::max);
+    let points = (0..t * t).flat_map(move |col| {
+        let (j, i) = (col / t, col % t);
+        (0..l).filter_map(move |k| {
+            let o = col * l + k;
+            (data.samples[o] > 0).then(|| {
+                let m = mean(o);
+                let p = PointSix {
+                    xyz: [
+                        west + (i as f64 + 0.5) * v[0],
+                        south + (j as f64 + 0.5) * v[1],
+                        grid.z_bottom_m + (k as f64 + 0.5) * v[2],
+                    ],
+                    intensity: if top > 0.0 {
+                        (m.max(0.0) / top * 65535.0).round() as u16
+                    } else {
+                        0
+                    },
+                    ..PointSix::default()
+                };
+                (
+                    p,
+                    [
+                        m,
+                        f64::from(data.max[o]),
+                        f64::from(data.samples[o]),
+                        f64::from(data.pulses[o]),
+                    ],
+                )
+            })
+        })
+    });
+    let extra = [
+        ExtraDim::f32("mean", "mean deposited intensity"),
+        ExtraDim::f32("maximum", "largest deposited intensity"),
+        ExtraDim::f32("samples", "bins deposited"),
+        ExtraDim::f32("pulses", "pulses passed through"),
+    ];
+    write_point_cloud(path, crs_wkt, &extra, points)?;
+    Ok(())
 }

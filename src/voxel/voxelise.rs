@@ -95,7 +95,11 @@ pub fn deposit_pulse(
     let mut prev: ([i64; 2], u32) = ([i64::MIN; 2], u32::MAX);
     let mut ground_col = [i64::MIN; 2];
     let mut ground = 0.0f64;
-    for seg in pulse.segments.iter().filter(|s| s.kind == SegmentKind::Return) {
+    for seg in pulse
+        .segments
+        .iter()
+        .filter(|s| s.kind == SegmentKind::Return)
+    {
         let values = &pulse.signal[seg.range()];
         for (i, &v) in values.iter().enumerate() {
             let t = seg.start_ns + i as f64 * pulse.sample_ns;
@@ -181,7 +185,11 @@ fn deposit_on_axis(
     let mut deposited = 0u64;
     let (mut outside_heights, mut non_finite, mut resumed) = (0u64, 0u64, 0u64);
     let mut prev: ([i64; 2], u32) = ([i64::MIN; 2], u32::MAX);
-    for seg in pulse.segments.iter().filter(|s| s.kind == SegmentKind::Return) {
+    for seg in pulse
+        .segments
+        .iter()
+        .filter(|s| s.kind == SegmentKind::Return)
+    {
         let values = &pulse.signal[seg.range()];
         let mut i = 0usize;
         while i < values.len() {

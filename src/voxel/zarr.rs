@@ -69,7 +69,9 @@ pub enum StoreError {
         what: String,
     },
     /// The store holds another grid or another run's tiles; nothing was changed.
-    #[error("{path}: {what}; nothing was changed (choose another output, or combine stores with `fwlidar merge`)")]
+    #[error(
+        "{path}: {what}; nothing was changed (choose another output, or combine stores with `fwlidar merge`)"
+    )]
     Mismatch {
         /// The store.
         path: String,
@@ -248,8 +250,8 @@ impl ZarrStore {
     pub fn open(root: &Path) -> Result<Self, StoreError> {
         let meta = root.join("zarr.json");
         let text = fs::read(&meta).map_err(io(&meta))?;
-        let v: Value = serde_json::from_slice(&text)
-            .map_err(|e| invalid(&meta, format!("not JSON: {e}")))?;
+        let v: Value =
+            serde_json::from_slice(&text).map_err(|e| invalid(&meta, format!("not JSON: {e}")))?;
         let attrs = v
             .get("attributes")
             .ok_or_else(|| invalid(&meta, "no `attributes`"))?;
@@ -763,7 +765,7 @@ mod tests {
     fn sample(n: usize, seed: u32) -> TileData {
         let mut t = TileData::new(n);
         for i in 0..n {
-            if (i as u32 ^ seed) % 3 == 0 {
+            if (i as u32 ^ seed).is_multiple_of(3) {
                 t.deposit(i, i as i64 * 1000 - 7, i as f32 * 0.5);
                 t.pass(i);
             }
@@ -803,7 +805,9 @@ mod tests {
         assert!(e.to_string().contains("another run"), "{e}");
         let mut g2 = g.clone();
         g2.levels += 1;
-        let e = ZarrStore::create_or_open(&root, g2, info("a")).err().unwrap();
+        let e = ZarrStore::create_or_open(&root, g2, info("a"))
+            .err()
+            .unwrap();
         assert!(e.to_string().contains("height ranges differ"), "{e}");
     }
 
@@ -852,6 +856,9 @@ mod tests {
         fs::write(&p, b"not gzip").unwrap();
         let mut back = TileData::new(n);
         let e = s.read_tile([0, 0], &mut back).unwrap_err().to_string();
-        assert!(e.contains("sample_count") && e.contains("decompress"), "{e}");
+        assert!(
+            e.contains("sample_count") && e.contains("decompress"),
+            "{e}"
+        );
     }
 }
