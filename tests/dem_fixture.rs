@@ -211,3 +211,71 @@ fn a_dem_in_another_crs_is_refused() {
     );
     assert!(!out.exists(), "nothing written on a refused DEM");
 }
+
+/// Voxel heights above the DEM (`[voxels] height = "above_dem"`), read with xarray: the z
+/// coordinate is the height above ground, every return lies in an occupied voxel at its
+/// `height_above_ground`, and the ground layer's peak sits at the returns' height above the DEM.
+#[test]
+fn voxels_above_the_dem_put_the_ground_where_the_dem_says() {
+    let dir = tempfile::tempdir().unwrap();
+    let dem = dir.path().join("dem36s.tif");
+    write_utm36s_dem(&dem);
+    let config =
+        std::fs::read_to_string(std::path::Path::new(common::ROOT).join("config/replay.toml"))
+            .unwrap()
+            .replace(
+                "on_missing = \"drop\"",
+                &format!("on_missing = \"drop\"\ndem = \"{}\"", dem.display()),
+            )
+            .replace("height = \"absolute\"", "height = \"above_dem\"");
+    assert!(config.contains("height = \"above_dem\""));
+    let cfg = dir.path().join("run.toml");
+    std::fs::write(&cfg, config).unwrap();
+    let out = dir.path().join("out");
+    let o = common::fwlidar(&[
+        "replay",
+        "replay/two_layer.fwcap",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let script = r#"
+import csv, sys, json, numpy as np, xarray as xr
+out = sys.argv[1]
+ds = xr.open_zarr(out + "/voxels.zarr", consolidated=False)
+assert ds.z.attrs["standard_name"] == "height_above_ground", ds.z.attrs
+assert ds.attrs["height"] == "above_dem"
+with open(out + "/returns.csv") as f:
+    rows = list(csv.DictReader(f))
+x = np.array([float(r["x"]) for r in rows]); y = np.array([float(r["y"]) for r in rows])
+h = np.array([float(r["height_above_ground"]) for r in rows])
+win = ds.sel(x=slice(x.min() - 2, x.max() + 2), y=slice(y.min() - 2, y.max() + 2)).load()
+v = ds.attrs["voxel_size_m"]
+xi = np.floor((x - float(win.x[0]) + v[0] / 2) / v[0]).astype(int)
+yi = np.floor((y - float(win.y[0]) + v[1] / 2) / v[1]).astype(int)
+zi = np.floor((h - float(win.z[0]) + v[2] / 2) / v[2]).astype(int)
+n = win.sample_count.values
+ok = (zi >= 0) & (zi < n.shape[0])
+assert np.all(n[zi[ok], yi[ok], xi[ok]] > 0), "a return in an empty voxel"
+s = win.intensity_sum.values.sum(axis=(1, 2)) / np.maximum(n.sum(axis=(1, 2)), 1)
+z = win.z.values
+peak = z[z < 7.5][np.argmax(s[z < 7.5])]
+ground = np.median(h[h < 7.5])
+assert abs(peak - ground) < 0.5, (peak, ground)
+print(json.dumps({"peak": float(peak), "ground_returns": float(ground)}))
+"#;
+    let o = std::process::Command::new(common::python())
+        .args(["-c", script])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "{}{}",
+        common::text(&o.stdout),
+        common::text(&o.stderr)
+    );
+}

@@ -442,6 +442,42 @@ mod tests {
     }
 
     #[test]
+    fn a_pulse_crossing_tiles_with_room_for_one_keeps_every_deposit() {
+        // Slanted pulses crossing from tile (0, 0) into (1, 0) (8 m tiles) and on; with room for
+        // one open tile, tiles close early between pulses but never under the pulse.
+        let slanted = |seq: u64| {
+            // Alternately from x = 6 and x = 14 m: each pulse reopens what the last one closed.
+            let x = 6.0 + (seq % 2) as f64 * 8.0 + (seq / 2) as f64 * 0.05;
+            let mut p = pulse(seq, seq as f64 * 0.001, x, 3.0);
+            p.geometry.as_mut().unwrap().direction = [0.06, 0.0, -0.14];
+            p
+        };
+        let tight = tempfile::tempdir().unwrap();
+        let roomy = tempfile::tempdir().unwrap();
+        let s1 = run(
+            tight.path(),
+            VoxelConfig {
+                max_open_tiles: 1,
+                ..cfg()
+            },
+            (0..40).map(slanted),
+        );
+        let s2 = run(roomy.path(), cfg(), (0..40).map(slanted));
+        let st = s1.tiles().unwrap().stats();
+        assert!(st.closed_early > 0 && st.merged > 0, "{st:?}");
+        assert_eq!(st.peak_open, 2, "the bound gives way by one under a pulse");
+        assert_eq!(s1.stats().bins_deposited, s2.stats().bins_deposited);
+        let (a, b) = (read_all(tight.path()), read_all(roomy.path()));
+        assert_eq!(a.len(), b.len());
+        for ((ta, da), (tb, db)) in a.iter().zip(&b) {
+            assert_eq!(ta, tb);
+            assert_eq!(da.sum_q, db.sum_q);
+            assert_eq!(da.samples, db.samples);
+            assert_eq!(da.pulses, db.pulses);
+        }
+    }
+
+    #[test]
     fn calibrated_pulses_deposit_each_bin_times_its_own_factor() {
         let dir = tempfile::tempdir().unwrap();
         let mut p = pulse(0, 0.0, 3.2, 2.7);

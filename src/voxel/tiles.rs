@@ -40,6 +40,8 @@ struct Slot {
     last_deposit_s: f64,
     /// Deposits of pulses numbered below this are already in the tile (resume).
     skip_below: u64,
+    /// The latest pulse that asked for the tile.
+    last_seq: u64,
 }
 
 /// Open tiles over a store.
@@ -123,21 +125,27 @@ impl TileSet {
         now_s: f64,
     ) -> Result<(usize, u64), StoreError> {
         if let Some(&s) = self.open.get(&tile) {
+            self.slots[s].last_seq = seq;
             return Ok((s, self.slots[s].skip_below));
         }
         if self.open.len() >= self.max_open {
+            // The tile deposited least recently, among those the current pulse has not touched:
+            // its watermark must not split a pulse, and the caller may hold the slots of this
+            // pulse's tiles. When every open tile is this pulse's, the bound gives way by one.
             let oldest = self
                 .open
                 .values()
                 .copied()
+                .filter(|s| self.slots[*s].last_seq < seq)
                 .min_by(|a, b| {
                     self.slots[*a]
                         .last_deposit_s
                         .total_cmp(&self.slots[*b].last_deposit_s)
-                })
-                .expect("max_open >= 1");
-            self.close_slot(oldest, seq)?;
-            self.stats.closed_early += 1;
+                });
+            if let Some(oldest) = oldest {
+                self.close_slot(oldest, seq)?;
+                self.stats.closed_early += 1;
+            }
         }
         let s = match self.free.pop() {
             Some(s) => s,
@@ -147,6 +155,7 @@ impl TileSet {
                     data: TileData::new(self.store.grid().tile_voxels()),
                     last_deposit_s: now_s,
                     skip_below: 0,
+                    last_seq: seq,
                 });
                 self.slots.len() - 1
             }
@@ -155,6 +164,7 @@ impl TileSet {
         slot.tile = tile;
         slot.last_deposit_s = now_s;
         slot.skip_below = 0;
+        slot.last_seq = seq;
         if self.store.read_tile(tile, &mut slot.data)? {
             slot.skip_below = self.store.watermark(tile).unwrap_or(0);
             self.stats.merged += 1;

@@ -18,7 +18,7 @@ use crate::geo::dem::Dem;
 use crate::pulse::{Pulse, SegmentKind};
 
 use super::grid::{HeightMode, Placer};
-use super::tile::quantise;
+use super::tile::{ColumnMut, quantise};
 use super::tiles::TileSet;
 use super::zarr::StoreError;
 
@@ -184,6 +184,9 @@ fn deposit_on_axis(
     let above_dem = p.height == HeightMode::AboveDem;
     let mut deposited = 0u64;
     let (mut outside_heights, mut non_finite, mut resumed) = (0u64, 0u64, 0u64);
+    // The tile of the previous run, its slot and resume mark (a pulse opens no tile twice: a
+    // slot closed early is never one the current pulse has touched).
+    let mut cur: ([i64; 2], usize, u64) = ([i64::MIN; 2], 0, 0);
     let mut prev: ([i64; 2], u32) = ([i64::MIN; 2], u32::MAX);
     for seg in pulse
         .segments
@@ -215,11 +218,64 @@ fn deposit_on_axis(
                 0.0
             };
             let tile = placer.tile_of(col);
-            let (slot, skip) = tiles.slot_for(tile, seq, now)?;
-            tiles.touched(slot, now);
+            if tile != cur.0 {
+                let (slot, skip) = tiles.slot_for(tile, seq, now)?;
+                tiles.touched(slot, now);
+                cur = (tile, slot, skip);
+            }
+            let (slot, skip) = (cur.1, cur.2);
             let base = placer.offset(col[0] - tile[0] * side, col[1] - tile[1] * side, 0) as usize;
             let (cx, cy) = (col[0] as f64, col[1] as f64);
+            // Bins certainly inside the column, from the beam's slope in grid units (a margin
+            // of 1e-6 column keeps rounding from deciding): no horizontal test needed.
+            let [gx, gy] = placer.grid_xy(x, y);
+            let steps = |g: f64, c: f64, slope: f64| -> f64 {
+                if slope > 0.0 {
+                    (c + 1.0 - 1e-6 - g) / slope
+                } else if slope < 0.0 {
+                    (g - c - 1e-6) / -slope
+                } else {
+                    f64::INFINITY
+                }
+            };
+            let (sx, sy) = (
+                pulse.sample_ns * g.direction[0] * placer.inv(0),
+                pulse.sample_ns * g.direction[1] * placer.inv(1),
+            );
+            let safe = steps(gx, cx, sx).min(steps(gy, cy, sy)).max(0.0);
+            let safe_end = if safe >= (values.len() - i) as f64 {
+                values.len()
+            } else {
+                i + safe as usize
+            };
             let mut column = tiles.data(slot).column_mut(base, levels as usize);
+            if prev.0 != tile {
+                prev = (tile, u32::MAX);
+            }
+            let span = Span {
+                values: &values[..safe_end],
+                first: i,
+                start_ns: seg.start_ns,
+                sample_ns: pulse.sample_ns,
+                // Fractional level of a bin t ns after t0: c0 + c1·t.
+                c0: (g.anchor[2] - ground - z_bottom) * inv_z,
+                c1: g.direction[2] * inv_z,
+                inv_q: p.inv_quantum,
+                base: base as u32,
+            };
+            let mut counts = SpanCounts::default();
+            if seq < skip {
+                // Already in the store (resume): count, do not deposit.
+                resumed += (safe_end - i) as u64;
+            } else if let Some(c) = &cal {
+                span.deposit(&mut column, &mut prev.1, &mut counts, |t| c.factor_at(t));
+            } else {
+                span.deposit(&mut column, &mut prev.1, &mut counts, |_| 1.0);
+            }
+            deposited += counts.deposited;
+            outside_heights += counts.outside_heights;
+            non_finite += counts.non_finite;
+            let mut j = safe_end.max(i);
             let inv_q = p.inv_quantum;
             let levels_f = levels as f64;
             // One bin of the run at fractional level `kf`: the deposit and its counts.
@@ -251,35 +307,6 @@ fn deposit_on_axis(
                 }
                 deposited += 1;
             };
-            // Bins certainly inside the column, from the beam's slope in grid units (a margin
-            // of 1e-6 column keeps rounding from deciding): no horizontal test needed.
-            let [gx, gy] = placer.grid_xy(x, y);
-            let steps = |g: f64, c: f64, slope: f64| -> f64 {
-                if slope > 0.0 {
-                    (c + 1.0 - 1e-6 - g) / slope
-                } else if slope < 0.0 {
-                    (g - c - 1e-6) / -slope
-                } else {
-                    f64::INFINITY
-                }
-            };
-            let (sx, sy) = (
-                pulse.sample_ns * g.direction[0] * placer.inv(0),
-                pulse.sample_ns * g.direction[1] * placer.inv(1),
-            );
-            let safe = steps(gx, cx, sx).min(steps(gy, cy, sy)).max(0.0);
-            let safe_end = if safe >= (values.len() - i) as f64 {
-                values.len()
-            } else {
-                i + safe as usize
-            };
-            let mut j = i;
-            while j < safe_end {
-                let t = seg.start_ns + j as f64 * pulse.sample_ns;
-                let z = g.anchor[2] + t * g.direction[2] - ground;
-                bin(j, t, (z - z_bottom) * inv_z);
-                j += 1;
-            }
             // Then bins near the column's edge, tested one by one.
             while j < values.len() {
                 let t = seg.start_ns + j as f64 * pulse.sample_ns;
@@ -304,6 +331,84 @@ fn deposit_on_axis(
         stats.bins_deposited += deposited;
     }
     Ok(())
+}
+
+/// Bins `first..values.len()` of a return segment, all in one column.
+struct Span<'a> {
+    values: &'a [f32],
+    first: usize,
+    start_ns: f64,
+    sample_ns: f64,
+    c0: f64,
+    c1: f64,
+    inv_q: f64,
+    /// Offset of the column's level 0 in its tile.
+    base: u32,
+}
+
+/// What a span did.
+#[derive(Default)]
+struct SpanCounts {
+    deposited: u64,
+    outside_heights: u64,
+    non_finite: u64,
+}
+
+impl Span<'_> {
+    /// The hot loop: per bin its time, level, calibrated value, and the four accumulators.
+    /// `factor` is the calibration (a constant 1 without one, which the compiler folds).
+    #[inline(always)]
+    fn deposit(
+        &self,
+        column: &mut ColumnMut<'_>,
+        prev_off: &mut u32,
+        counts: &mut SpanCounts,
+        factor: impl Fn(f64) -> f32,
+    ) {
+        let n = column.sum_q.len();
+        // Equal lengths, stated once so that one comparison bounds every index below.
+        let (sum_q, samples, max, pulses) = (
+            &mut column.sum_q[..n],
+            &mut column.samples[..n],
+            &mut column.max[..n],
+            &mut column.pulses[..n],
+        );
+        let levels_f = n as f64;
+        let mut prev = *prev_off;
+        for (j, &v) in self.values.iter().enumerate().skip(self.first) {
+            let t = self.start_ns + j as f64 * self.sample_ns;
+            let kf = self.c0 + t * self.c1;
+            // In range, truncation is the floor.
+            if !(kf >= 0.0 && kf < levels_f) {
+                counts.outside_heights += 1;
+                continue;
+            }
+            let value = v * factor(t);
+            if !value.is_finite() {
+                counts.non_finite += 1;
+                continue;
+            }
+            let k = kf as usize;
+            if k >= n {
+                counts.outside_heights += 1;
+                continue;
+            }
+            // Plain adds: 2^63 quanta or 2^32 samples in one voxel are out of reach; merging
+            // saturates.
+            sum_q[k] = sum_q[k].wrapping_add(quantise(value, self.inv_q));
+            samples[k] = samples[k].wrapping_add(1);
+            // NaN (nothing yet) fails the comparison and takes the value.
+            let m = max[k];
+            max[k] = if m >= value { m } else { value };
+            let off = self.base + k as u32;
+            if off != prev {
+                pulses[k] = pulses[k].wrapping_add(1);
+                prev = off;
+            }
+            counts.deposited += 1;
+        }
+        *prev_off = prev;
+    }
 }
 
 /// Most columns one bin is spread over (a footprint wider than 8 columns on a side is spread
