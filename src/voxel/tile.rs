@@ -145,14 +145,20 @@ impl ColumnMut<'_> {
     }
 }
 
-/// Quantises an intensity to the nearest whole quantum, halves away from zero (saturating; NaN
-/// gives 0). Adds ±0.5 and truncates rather than calling `f64::round`, which baseline x86-64
-/// makes a library call.
+/// Quantises an intensity to the nearest whole quantum (ties to even), clamped to ±2^50 quanta
+/// (far beyond any real sum's terms); NaN gives an unspecified value — callers deposit only
+/// finite values.
+///
+/// Adding 1.5·2^52 rounds to an integer in the floating-point unit (round to nearest even),
+/// and that integer is then the low bits of the sum's representation: the quantum comes out of
+/// an integer subtraction, without a float-to-int conversion, so a block of bins quantises in
+/// vector registers.
 #[inline]
 pub fn quantise(value: f32, inv_quantum: f64) -> i64 {
-    let q = value as f64 * inv_quantum;
-    // `as` truncates towards zero, saturates and maps NaN to 0.
-    (q + 0.5f64.copysign(q)) as i64
+    const MAGIC: f64 = 6_755_399_441_055_744.0; // 1.5 · 2^52
+    const LIMIT: f64 = 1_125_899_906_842_624.0; // 2^50
+    let q = (value as f64 * inv_quantum).clamp(-LIMIT, LIMIT);
+    ((q + MAGIC).to_bits() as i64).wrapping_sub(MAGIC.to_bits() as i64)
 }
 
 #[cfg(test)]
@@ -201,11 +207,21 @@ mod tests {
     }
 
     #[test]
-    fn quantisation_rounds_and_saturates() {
-        assert_eq!(quantise(1.5e-6, 1e6), 2);
-        assert_eq!(quantise(-1.5e-6, 1e6), -2);
-        assert_eq!(quantise(f32::NAN, 1e6), 0);
-        assert_eq!(quantise(f32::INFINITY, 1e6), i64::MAX);
+    fn quantisation_rounds_to_nearest_and_clamps() {
+        assert_eq!(quantise(1.4e-6, 1e6), 1);
+        assert_eq!(quantise(1.6e-6, 1e6), 2);
+        assert_eq!(quantise(-1.6e-6, 1e6), -2);
+        assert_eq!(quantise(2.5, 1.0), 2, "ties to even");
+        assert_eq!(quantise(3.5, 1.0), 4, "ties to even");
+        assert_eq!(quantise(-3.5, 1.0), -4);
+        assert_eq!(quantise(0.0, 1e6), 0);
+        assert_eq!(quantise(123.456_79, 1e6), 123_456_787);
+        assert_eq!(quantise(f32::INFINITY, 1e6), 1 << 50);
+        assert_eq!(quantise(f32::NEG_INFINITY, 1e6), -(1 << 50));
+        for v in [0.37f32, -12.5, 1e-3, 4096.25, -0.000_75] {
+            let want = (v as f64 * 1e6).round_ties_even() as i64;
+            assert_eq!(quantise(v, 1e6), want, "{v}");
+        }
     }
 
     #[test]

@@ -375,37 +375,56 @@ impl Span<'_> {
         );
         let levels_f = n as f64;
         let mut prev = *prev_off;
-        for (j, &v) in self.values.iter().enumerate().skip(self.first) {
-            let t = self.start_ns + j as f64 * self.sample_ns;
-            let kf = self.c0 + t * self.c1;
-            // In range, truncation is the floor.
-            if !(kf >= 0.0 && kf < levels_f) {
-                counts.outside_heights += 1;
-                continue;
+        // Two passes over blocks of bins: the arithmetic without branches (level, calibrated
+        // value, quantum; the compiler vectorises it), then the updates.
+        const BLOCK: usize = 64;
+        const OUTSIDE: u32 = u32::MAX;
+        const NON_FINITE: u32 = u32::MAX - 1;
+        let mut ks = [0u32; BLOCK];
+        let mut qs = [0i64; BLOCK];
+        let mut vs = [0f32; BLOCK];
+        let mut j0 = self.first;
+        while j0 < self.values.len() {
+            let len = (self.values.len() - j0).min(BLOCK);
+            let block = &self.values[j0..j0 + len];
+            let t0 = self.start_ns + j0 as f64 * self.sample_ns;
+            for (b, &v) in block.iter().enumerate() {
+                let t = t0 + (b as i32) as f64 * self.sample_ns;
+                let kf = self.c0 + t * self.c1;
+                let value = v * factor(t);
+                let inside = kf >= 0.0 && kf < levels_f;
+                // In range (levels < 2^26), truncation to i32 is the floor.
+                let k = if inside { kf as i32 as u32 } else { OUTSIDE };
+                ks[b] = if value.is_finite() || !inside { k } else { NON_FINITE };
+                qs[b] = quantise(value, self.inv_q);
+                vs[b] = value;
             }
-            let value = v * factor(t);
-            if !value.is_finite() {
-                counts.non_finite += 1;
-                continue;
+            for b in 0..len {
+                let k = ks[b] as usize;
+                if k >= n {
+                    if ks[b] == NON_FINITE {
+                        counts.non_finite += 1;
+                    } else {
+                        counts.outside_heights += 1;
+                    }
+                    continue;
+                }
+                let value = vs[b];
+                // Plain adds: 2^63 quanta or 2^32 samples in one voxel are out of reach;
+                // merging saturates.
+                sum_q[k] = sum_q[k].wrapping_add(qs[b]);
+                samples[k] = samples[k].wrapping_add(1);
+                // NaN (nothing yet) fails the comparison and takes the value.
+                let m = max[k];
+                max[k] = if m >= value { m } else { value };
+                let off = self.base + k as u32;
+                if off != prev {
+                    pulses[k] = pulses[k].wrapping_add(1);
+                    prev = off;
+                }
+                counts.deposited += 1;
             }
-            let k = kf as usize;
-            if k >= n {
-                counts.outside_heights += 1;
-                continue;
-            }
-            // Plain adds: 2^63 quanta or 2^32 samples in one voxel are out of reach; merging
-            // saturates.
-            sum_q[k] = sum_q[k].wrapping_add(quantise(value, self.inv_q));
-            samples[k] = samples[k].wrapping_add(1);
-            // NaN (nothing yet) fails the comparison and takes the value.
-            let m = max[k];
-            max[k] = if m >= value { m } else { value };
-            let off = self.base + k as u32;
-            if off != prev {
-                pulses[k] = pulses[k].wrapping_add(1);
-                prev = off;
-            }
-            counts.deposited += 1;
+            j0 += len;
         }
         *prev_off = prev;
     }
