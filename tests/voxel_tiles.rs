@@ -429,3 +429,95 @@ fn an_output_that_cannot_hold_the_store_is_a_clear_error_and_nothing_is_changed(
     assert!(err.contains("nothing was changed"), "{err}");
     assert_eq!(store_files(&out2.join("voxels.zarr")), before);
 }
+
+mod damaged_store {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// A small store with two tiles, written once and copied for each case.
+    fn pristine() -> &'static Path {
+        static DIR: std::sync::OnceLock<tempfile::TempDir> = std::sync::OnceLock::new();
+        DIR.get_or_init(|| {
+            use fwlidar::voxel::grid::{Grid, VoxelConfig};
+            use fwlidar::voxel::zarr::StoreInfo;
+            let dir = tempfile::tempdir().unwrap();
+            let grid = Grid::new(
+                &VoxelConfig {
+                    extent_m: Some([0.0, 0.0, 16.0, 8.0]),
+                    z_range_m: [0.0, 0.6],
+                    tile_columns: 4,
+                    ..VoxelConfig::default()
+                },
+                [0.0, 0.0],
+            );
+            let mut s = ZarrStore::create_or_open(
+                &dir.path().join("v.zarr"),
+                grid.clone(),
+                StoreInfo {
+                    crs_wkt: None,
+                    epsg: Some(32736),
+                    intensity_units: "V".into(),
+                    run_key: "p".into(),
+                    configuration: String::new(),
+                },
+            )
+            .unwrap();
+            let mut t = TileData::new(grid.tile_voxels());
+            t.deposit(3, 1000, 1.0);
+            t.pass(3);
+            s.write_tile([0, 0], &t, 7).unwrap();
+            s.write_tile([1, 0], &t, 9).unwrap();
+            dir
+        })
+        .path()
+    }
+
+    fn copy_dir(from: &Path, to: &Path) {
+        std::fs::create_dir_all(to).unwrap();
+        for e in std::fs::read_dir(from).unwrap() {
+            let p = e.unwrap().path();
+            let q = to.join(p.file_name().unwrap());
+            if p.is_dir() {
+                copy_dir(&p, &q);
+            } else {
+                std::fs::copy(&p, &q).unwrap();
+            }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+        /// Opening and reading a store whose files were cut, overwritten or garbled returns an
+        /// error or data, never panics (the reader behind `merge` and resuming).
+        #[test]
+        fn a_damaged_store_never_panics(
+            which in 0usize..64,
+            cut in proptest::option::of(0usize..4096),
+            flips in proptest::collection::vec((0usize..4096, any::<u8>()), 0..8),
+        ) {
+            let dir = tempfile::tempdir().unwrap();
+            let root = dir.path().join("v.zarr");
+            copy_dir(&pristine().join("v.zarr"), &root);
+            let files: Vec<String> = store_files(&root).into_keys().collect();
+            let victim = root.join(&files[which % files.len()]);
+            let mut bytes = std::fs::read(&victim).unwrap();
+            if let Some(c) = cut {
+                bytes.truncate(c.min(bytes.len()));
+            }
+            for (at, v) in flips {
+                if !bytes.is_empty() {
+                    let i = at % bytes.len();
+                    bytes[i] = v;
+                }
+            }
+            std::fs::write(&victim, &bytes).unwrap();
+            if let Ok(mut s) = ZarrStore::open(&root) {
+                let n = s.grid().tile_voxels().min(1 << 20);
+                let mut d = TileData::new(n);
+                for t in s.tiles() {
+                    let _ = s.read_tile(t, &mut d);
+                }
+            }
+        }
+    }
+}
