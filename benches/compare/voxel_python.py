@@ -34,7 +34,7 @@ def make(zenith_deg, batch):
     shape = (400, 2048, 2048)  # levels, rows, columns of a 1 km store
     sums = np.zeros(shape[0] * shape[1] * shape[2] // 64, dtype=np.float64)  # one tile's worth
     counts = np.zeros_like(sums, dtype=np.uint32)
-    maxima = np.full_like(sums, np.nan, dtype=np.float32)
+    maxima = np.full_like(sums, -np.inf, dtype=np.float32)
     passes = np.zeros_like(sums, dtype=np.uint32)
     inv = np.array([2.0, 2.0, 1 / 0.15])
 
