@@ -41,8 +41,11 @@ fn volts_config(dir: &Path) -> PathBuf {
         .unwrap();
     let end = start + text[start..].find("\n[georeference]").unwrap();
     let p = dir.join("volts.toml");
-    let text =
-        format!("{}{}", &text[..start], &text[end..]).replace("\nlas = false", "\nlas = true");
+    let mut text = format!("{}{}", &text[..start], &text[end..]);
+    // The last `las = false` is [voxels]'s (the first is [output]'s returns.las).
+    let at = text.rfind("\nlas = false").unwrap();
+    text.replace_range(at..at + "\nlas = false".len(), "\nlas = true");
+    assert!(text.contains("[output]") && text.matches("\nlas = false").count() == 1);
     std::fs::write(&p, text).unwrap();
     p
 }
@@ -520,4 +523,59 @@ mod damaged_store {
             }
         }
     }
+}
+
+/// A full disk: the replay stops with an error naming the voxel file it could not write and
+/// "No space left on device", exit 1; the input is untouched. Needs a small tmpfs, so root (CI
+/// runs as root); elsewhere the test says it could not mount and checks nothing.
+#[test]
+fn a_full_disk_stops_the_replay_with_an_error_naming_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let mnt = dir.path().join("small");
+    std::fs::create_dir_all(&mnt).unwrap();
+    let m = Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=48k", "tmpfs"])
+        .arg(&mnt)
+        .output();
+    let Ok(m) = m.as_ref().map_err(|e| e.to_string()).and_then(|o| {
+        if o.status.success() {
+            Ok(o)
+        } else {
+            Err(text(&o.stderr))
+        }
+    }) else {
+        eprintln!(
+            "SKIPPED a_full_disk_stops_the_replay_with_an_error_naming_the_file: cannot mount a \
+             48 kB tmpfs here ({:?}); CI runs as root and can",
+            m.as_ref().map(|o| text(&o.stderr)).unwrap_or_default()
+        );
+        return;
+    };
+    let _ = m;
+    struct Unmount(PathBuf);
+    impl Drop for Unmount {
+        fn drop(&mut self) {
+            let _ = Command::new("umount").arg(&self.0).output();
+        }
+    }
+    let _guard = Unmount(mnt.clone());
+    // Voxels only (the CSV outputs would fill the disk first, which is the same path).
+    let cfg = dir.path().join("voxels_only.toml");
+    std::fs::write(
+        &cfg,
+        std::fs::read_to_string(volts_config(dir.path()))
+            .unwrap()
+            .replace("waveforms = true", "waveforms = false")
+            .replace("returns = true", "returns = false"),
+    )
+    .unwrap();
+    let input = sample();
+    let before = std::fs::read(&input).unwrap();
+    let out = mnt.join("out");
+    let o = replay(&input, &out, Some(&cfg));
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
+    let err = text(&o.stderr);
+    assert!(err.contains("voxels.zarr"), "{err}");
+    assert!(err.contains("No space left on device"), "{err}");
+    assert_eq!(std::fs::read(&input).unwrap(), before, "the input is never touched");
 }

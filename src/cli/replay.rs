@@ -235,14 +235,21 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     let summary_path = out_dir.join("summary.json");
     let json = serde_json::to_vec_pretty(&report)
         .map_err(|e| Failure::job(format!("cannot encode summary: {e}")))?;
-    write_atomic(&summary_path, &json).map_err(Failure::job)?;
+    // The run's own failure comes first: a full disk usually stops an output and then the
+    // summary too.
+    let summary_written = write_atomic(&summary_path, &json);
     print_summary(&report, &args.input, &out_dir);
     if let Some(f) = &report.fatal {
         return Err(Failure::job(format!(
-            "replay of {} failed: {f}",
-            args.input.display()
+            "replay of {} failed: {f}{}",
+            args.input.display(),
+            match &summary_written {
+                Ok(()) => String::new(),
+                Err(e) => format!(" (and the summary could not be written: {e})"),
+            }
         )));
     }
+    summary_written.map_err(Failure::job)?;
     if report.stopped_early {
         tracing::warn!("replay stopped by signal; outputs hold what was processed until then");
     }
