@@ -577,5 +577,9 @@ fn a_full_disk_stops_the_replay_with_an_error_naming_the_file() {
     let err = text(&o.stderr);
     assert!(err.contains("voxels.zarr"), "{err}");
     assert!(err.contains("No space left on device"), "{err}");
-    assert_eq!(std::fs::read(&input).unwrap(), before, "the input is never touched");
+    assert_eq!(
+        std::fs::read(&input).unwrap(),
+        before,
+        "the input is never touched"
+    );
 }

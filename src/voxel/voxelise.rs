@@ -383,21 +383,35 @@ impl Span<'_> {
         let mut ks = [0u32; BLOCK];
         let mut qs = [0i64; BLOCK];
         let mut vs = [0f32; BLOCK];
+        let mut kfs = [0f64; BLOCK];
         let mut j0 = self.first;
         while j0 < self.values.len() {
             let len = (self.values.len() - j0).min(BLOCK);
             let block = &self.values[j0..j0 + len];
             let t0 = self.start_ns + j0 as f64 * self.sample_ns;
-            for (b, &v) in block.iter().enumerate() {
-                let t = t0 + (b as i32) as f64 * self.sample_ns;
-                let kf = self.c0 + t * self.c1;
-                let value = v * factor(t);
+            let (c0, c1, dt, inv_q) = (self.c0, self.c1, self.sample_ns, self.inv_q);
+            // Loops of one element type each, so that they vectorise.
+            for (b, kf) in kfs[..len].iter_mut().enumerate() {
+                *kf = c0 + (t0 + (b as i32) as f64 * dt) * c1;
+            }
+            for (b, (out, &v)) in vs[..len].iter_mut().zip(block).enumerate() {
+                *out = v * factor(t0 + (b as i32) as f64 * dt);
+            }
+            for (q, &v) in qs[..len].iter_mut().zip(&vs[..len]) {
+                *q = quantise(v, inv_q);
+            }
+            for ((k, &kf), &v) in ks[..len].iter_mut().zip(&kfs[..len]).zip(&vs[..len]) {
                 let inside = kf >= 0.0 && kf < levels_f;
-                // In range (levels < 2^26), truncation to i32 is the floor.
-                let k = if inside { kf as i32 as u32 } else { OUTSIDE };
-                ks[b] = if value.is_finite() || !inside { k } else { NON_FINITE };
-                qs[b] = quantise(value, self.inv_q);
-                vs[b] = value;
+                let level = if inside {
+                    floor_in_range(kf) as u32
+                } else {
+                    OUTSIDE
+                };
+                *k = if v.is_finite() || !inside {
+                    level
+                } else {
+                    NON_FINITE
+                };
             }
             for b in 0..len {
                 let k = ks[b] as usize;
@@ -428,6 +442,17 @@ impl Span<'_> {
         }
         *prev_off = prev;
     }
+}
+
+/// `floor(x)` as an integer for `0 <= x < 2^50`, without a float-to-int conversion (so that a
+/// block of levels converts in vector registers): round to the nearest integer by adding and
+/// subtracting 1.5·2^52, step down where that rounded up, and read the integer from the bits.
+#[inline(always)]
+fn floor_in_range(x: f64) -> i64 {
+    const MAGIC: f64 = 6_755_399_441_055_744.0; // 1.5 · 2^52
+    let r = (x + MAGIC) - MAGIC;
+    let f = if r > x { r - 1.0 } else { r };
+    ((f + MAGIC).to_bits() as i64).wrapping_sub(MAGIC.to_bits() as i64)
 }
 
 /// Most columns one bin is spread over (a footprint wider than 8 columns on a side is spread
@@ -503,5 +528,32 @@ fn spread(
 impl DepositParams {
     fn placer_inv(&self, axis: usize) -> f64 {
         self.placer.inv(axis)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::floor_in_range;
+
+    #[test]
+    fn floor_without_conversion_is_the_floor() {
+        let mut x = 0.0f64;
+        while x < 500.0 {
+            assert_eq!(floor_in_range(x), x.floor() as i64, "{x}");
+            x += 0.037;
+        }
+        for x in [
+            0.0,
+            1.0,
+            2.0,
+            2.5,
+            3.5,
+            1.0 - 1e-12,
+            399.999_999_999,
+            4.0 - f64::EPSILON * 4.0,
+            1e15 + 0.5,
+        ] {
+            assert_eq!(floor_in_range(x), x.floor() as i64, "{x}");
+        }
     }
 }
