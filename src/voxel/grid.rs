@@ -463,7 +463,13 @@ impl Placer {
     /// The tile of global column `c`.
     #[inline]
     pub fn tile_of(&self, c: [i64; 2]) -> [i64; 2] {
-        [c[0].div_euclid(self.side), c[1].div_euclid(self.side)]
+        if self.side.count_ones() == 1 {
+            // A power of two: the arithmetic shift is the floor division, negatives included.
+            let s = self.side.trailing_zeros();
+            [c[0] >> s, c[1] >> s]
+        } else {
+            [c[0].div_euclid(self.side), c[1].div_euclid(self.side)]
+        }
     }
 
     /// Columns along a tile's side.

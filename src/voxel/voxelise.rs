@@ -188,6 +188,13 @@ fn deposit_on_axis(
     // slot closed early is never one the current pulse has touched).
     let mut cur: ([i64; 2], usize, u64) = ([i64::MIN; 2], 0, 0);
     let mut prev: ([i64; 2], u32) = ([i64::MIN; 2], u32::MAX);
+    let mut scratch = Scratch::new();
+    // The beam's horizontal slope in columns per bin, and its reciprocal (0: vertical).
+    let slope = [
+        pulse.sample_ns * g.direction[0] * placer.inv(0),
+        pulse.sample_ns * g.direction[1] * placer.inv(1),
+    ];
+    let per_column = slope.map(|s| if s != 0.0 { 1.0 / s.abs() } else { 0.0 });
     for seg in pulse
         .segments
         .iter()
@@ -229,20 +236,17 @@ fn deposit_on_axis(
             // Bins certainly inside the column, from the beam's slope in grid units (a margin
             // of 1e-6 column keeps rounding from deciding): no horizontal test needed.
             let [gx, gy] = placer.grid_xy(x, y);
-            let steps = |g: f64, c: f64, slope: f64| -> f64 {
-                if slope > 0.0 {
-                    (c + 1.0 - 1e-6 - g) / slope
-                } else if slope < 0.0 {
-                    (g - c - 1e-6) / -slope
+            // Bins until the beam leaves the column along one axis (infinite when vertical).
+            let steps = |g: f64, c: f64, axis: usize| -> f64 {
+                if slope[axis] > 0.0 {
+                    (c + 1.0 - 1e-6 - g) * per_column[axis]
+                } else if slope[axis] < 0.0 {
+                    (g - c - 1e-6) * per_column[axis]
                 } else {
                     f64::INFINITY
                 }
             };
-            let (sx, sy) = (
-                pulse.sample_ns * g.direction[0] * placer.inv(0),
-                pulse.sample_ns * g.direction[1] * placer.inv(1),
-            );
-            let safe = steps(gx, cx, sx).min(steps(gy, cy, sy)).max(0.0);
+            let safe = steps(gx, cx, 0).min(steps(gy, cy, 1)).max(0.0);
             let safe_end = if safe >= (values.len() - i) as f64 {
                 values.len()
             } else {
@@ -268,9 +272,11 @@ fn deposit_on_axis(
                 // Already in the store (resume): count, do not deposit.
                 resumed += (safe_end - i) as u64;
             } else if let Some(c) = &cal {
-                span.deposit(&mut column, &mut prev.1, &mut counts, |t| c.factor_at(t));
+                span.deposit(&mut column, &mut prev.1, &mut counts, &mut scratch, |t| {
+                    c.factor_at(t)
+                });
             } else {
-                span.deposit(&mut column, &mut prev.1, &mut counts, |_| 1.0);
+                span.deposit(&mut column, &mut prev.1, &mut counts, &mut scratch, |_| 1.0);
             }
             deposited += counts.deposited;
             outside_heights += counts.outside_heights;
@@ -346,6 +352,28 @@ struct Span<'a> {
     base: u32,
 }
 
+/// Bins handled per block by [`Span::deposit`].
+const BLOCK: usize = 64;
+
+/// The per-block arrays of [`Span::deposit`], made once per pulse.
+struct Scratch {
+    ks: [u32; BLOCK],
+    qs: [i64; BLOCK],
+    vs: [f32; BLOCK],
+    kfs: [f64; BLOCK],
+}
+
+impl Scratch {
+    fn new() -> Self {
+        Scratch {
+            ks: [0; BLOCK],
+            qs: [0; BLOCK],
+            vs: [0.0; BLOCK],
+            kfs: [0.0; BLOCK],
+        }
+    }
+}
+
 /// What a span did.
 #[derive(Default)]
 struct SpanCounts {
@@ -363,6 +391,7 @@ impl Span<'_> {
         column: &mut ColumnMut<'_>,
         prev_off: &mut u32,
         counts: &mut SpanCounts,
+        scratch: &mut Scratch,
         factor: impl Fn(f64) -> f32,
     ) {
         let n = column.sum_q.len();
@@ -377,13 +406,9 @@ impl Span<'_> {
         let mut prev = *prev_off;
         // Two passes over blocks of bins: the arithmetic without branches (level, calibrated
         // value, quantum; the compiler vectorises it), then the updates.
-        const BLOCK: usize = 64;
         const OUTSIDE: u32 = u32::MAX;
         const NON_FINITE: u32 = u32::MAX - 1;
-        let mut ks = [0u32; BLOCK];
-        let mut qs = [0i64; BLOCK];
-        let mut vs = [0f32; BLOCK];
-        let mut kfs = [0f64; BLOCK];
+        let Scratch { ks, qs, vs, kfs } = scratch;
         let mut j0 = self.first;
         while j0 < self.values.len() {
             let len = (self.values.len() - j0).min(BLOCK);
