@@ -220,27 +220,16 @@ fn voxels_above_the_dem_put_the_ground_where_the_dem_says() {
     let dir = tempfile::tempdir().unwrap();
     let dem = dir.path().join("dem36s.tif");
     write_utm36s_dem(&dem);
-    let config =
-        std::fs::read_to_string(std::path::Path::new(common::ROOT).join("config/replay.toml"))
-            .unwrap()
+    let (o, out) = replay_with_config(dir.path(), |c| {
+        let c = c
             .replace(
                 "on_missing = \"drop\"",
                 &format!("on_missing = \"drop\"\ndem = \"{}\"", dem.display()),
             )
             .replace("height = \"absolute\"", "height = \"above_dem\"");
-    assert!(config.contains("height = \"above_dem\""));
-    let cfg = dir.path().join("run.toml");
-    std::fs::write(&cfg, config).unwrap();
-    let out = dir.path().join("out");
-    let o = common::fwlidar(&[
-        "replay",
-        "replay/two_layer.fwcap",
-        "--config",
-        cfg.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--no-progress",
-    ]);
+        assert!(c.contains("height = \"above_dem\""));
+        c
+    });
     assert!(o.status.success(), "{}", common::text(&o.stderr));
     let script = r#"
 import csv, sys, json, numpy as np, xarray as xr

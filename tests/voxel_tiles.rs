@@ -286,15 +286,11 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
 }
 
 fn read_all(root: &Path) -> BTreeMap<[i64; 2], TileData> {
-    let mut s = ZarrStore::open(root).unwrap();
-    let n = s.grid().tile_voxels();
-    s.tiles()
+    ZarrStore::open(root)
+        .unwrap()
+        .read_all()
+        .unwrap()
         .into_iter()
-        .map(|t| {
-            let mut d = TileData::new(n);
-            s.read_tile(t, &mut d).unwrap();
-            (t, d)
-        })
         .collect()
 }
 

@@ -317,16 +317,24 @@ mod tests {
     }
 
     fn read_all(dir: &Path) -> Vec<([i64; 2], TileData)> {
-        let mut s = ZarrStore::open(&dir.join("voxels.zarr")).unwrap();
-        let n = s.grid().tile_voxels();
-        s.tiles()
-            .into_iter()
-            .map(|t| {
-                let mut d = TileData::new(n);
-                s.read_tile(t, &mut d).unwrap();
-                (t, d)
-            })
-            .collect()
+        ZarrStore::open(&dir.join("voxels.zarr"))
+            .unwrap()
+            .read_all()
+            .unwrap()
+    }
+
+    /// Two stores' tiles hold the same sums, counts and maxima (bit for bit).
+    fn assert_same_tiles(a: &Path, b: &Path) {
+        let (a, b) = (read_all(a), read_all(b));
+        assert_eq!(a.len(), b.len());
+        let bits = |d: &TileData| d.max.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for ((ta, da), (tb, db)) in a.iter().zip(&b) {
+            assert_eq!(ta, tb);
+            assert_eq!(da.sum_q, db.sum_q, "tile {ta:?}");
+            assert_eq!(da.samples, db.samples, "tile {ta:?}");
+            assert_eq!(da.pulses, db.pulses, "tile {ta:?}");
+            assert_eq!(bits(da), bits(db), "tile {ta:?}");
+        }
     }
 
     #[test]
@@ -378,16 +386,7 @@ mod tests {
         };
         let s2 = run(dir2.path(), big, flight());
         assert_eq!(s2.tiles().unwrap().stats().merged, 0);
-        let (a, b) = (read_all(dir.path()), read_all(dir2.path()));
-        assert_eq!(a.len(), b.len());
-        for ((ta, da), (tb, db)) in a.iter().zip(&b) {
-            assert_eq!(ta, tb);
-            assert_eq!(da.sum_q, db.sum_q);
-            assert_eq!(da.samples, db.samples);
-            assert_eq!(da.pulses, db.pulses);
-            let bits = |d: &TileData| d.max.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-            assert_eq!(bits(da), bits(db));
-        }
+        assert_same_tiles(dir.path(), dir2.path());
     }
 
     #[test]
@@ -415,14 +414,7 @@ mod tests {
         }
         let s = run(cut.path(), cfg(), flight());
         assert!(s.stats().bins_resumed > 0);
-        let (a, b) = (read_all(full.path()), read_all(cut.path()));
-        assert_eq!(a.len(), b.len());
-        for ((ta, da), (tb, db)) in a.iter().zip(&b) {
-            assert_eq!(ta, tb);
-            assert_eq!(da.sum_q, db.sum_q, "tile {ta:?}");
-            assert_eq!(da.samples, db.samples);
-            assert_eq!(da.pulses, db.pulses);
-        }
+        assert_same_tiles(full.path(), cut.path());
     }
 
     #[test]
@@ -467,14 +459,7 @@ mod tests {
         assert!(st.closed_early > 0 && st.merged > 0, "{st:?}");
         assert_eq!(st.peak_open, 2, "the bound gives way by one under a pulse");
         assert_eq!(s1.stats().bins_deposited, s2.stats().bins_deposited);
-        let (a, b) = (read_all(tight.path()), read_all(roomy.path()));
-        assert_eq!(a.len(), b.len());
-        for ((ta, da), (tb, db)) in a.iter().zip(&b) {
-            assert_eq!(ta, tb);
-            assert_eq!(da.sum_q, db.sum_q);
-            assert_eq!(da.samples, db.samples);
-            assert_eq!(da.pulses, db.pulses);
-        }
+        assert_same_tiles(tight.path(), roomy.path());
     }
 
     #[test]

@@ -190,6 +190,35 @@ impl ZarrStore {
         &self.info
     }
 
+    /// A store at `root` with nothing read or written yet.
+    fn at(root: &Path, grid: Grid, info: StoreInfo) -> Self {
+        ZarrStore {
+            root: root.to_path_buf(),
+            grid,
+            info,
+            raw: Vec::new(),
+            packed: Vec::new(),
+            records: Default::default(),
+            tiles_written: 0,
+            bytes_written: 0,
+            recovered_commits: 0,
+            discarded_pending: 0,
+        }
+    }
+
+    /// Every tile of the store with its accumulators, in tile order (tests, small stores: one
+    /// tile's memory each).
+    pub fn read_all(&mut self) -> Result<Vec<([i64; 2], TileData)>, StoreError> {
+        let n = self.grid.tile_voxels();
+        let mut out = Vec::new();
+        for t in self.tiles() {
+            let mut d = TileData::new(n);
+            self.read_tile(t, &mut d)?;
+            out.push((t, d));
+        }
+        Ok(out)
+    }
+
     /// Creates the store at `root`, or opens the one there when it was written by the same run
     /// on the same grid (a resumed run): committed but unfinished tiles are completed and
     /// uncommitted chunks removed. Another grid or run is refused without changing anything.
@@ -230,18 +259,7 @@ impl ZarrStore {
                 what: "the folder exists, is not empty and is not a voxel store".into(),
             });
         }
-        let s = ZarrStore {
-            root: root.to_path_buf(),
-            grid,
-            info,
-            raw: Vec::new(),
-            packed: Vec::new(),
-            records: Default::default(),
-            tiles_written: 0,
-            bytes_written: 0,
-            recovered_commits: 0,
-            discarded_pending: 0,
-        };
+        let s = ZarrStore::at(root, grid, info);
         s.write_metadata()?;
         Ok(s)
     }
@@ -275,18 +293,7 @@ impl ZarrStore {
                 .to_string(),
             configuration: s("configuration").unwrap_or_default(),
         };
-        let mut store = ZarrStore {
-            root: root.to_path_buf(),
-            grid,
-            info,
-            raw: Vec::new(),
-            packed: Vec::new(),
-            records: Default::default(),
-            tiles_written: 0,
-            bytes_written: 0,
-            recovered_commits: 0,
-            discarded_pending: 0,
-        };
+        let mut store = ZarrStore::at(root, grid, info);
         store.recover()?;
         Ok(store)
     }
