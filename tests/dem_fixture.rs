@@ -140,13 +140,24 @@ fn replay_with_georeference_keys(
     dir: &std::path::Path,
     keys: &str,
 ) -> (std::process::Output, std::path::PathBuf) {
-    let config =
+    replay_with_config(dir, |c| {
+        c.replace(
+            "on_missing = \"drop\"",
+            &format!("on_missing = \"drop\"\n{keys}"),
+        )
+    })
+}
+
+/// Replays the bundled sample with the embedded configuration as `edit` changes it (the file
+/// written into `dir`); the process output and the output folder.
+fn replay_with_config(
+    dir: &std::path::Path,
+    edit: impl Fn(String) -> String,
+) -> (std::process::Output, std::path::PathBuf) {
+    let config = edit(
         std::fs::read_to_string(std::path::Path::new(common::ROOT).join("config/replay.toml"))
-            .unwrap()
-            .replace(
-                "on_missing = \"drop\"",
-                &format!("on_missing = \"drop\"\n{keys}"),
-            );
+            .unwrap(),
+    );
     let cfg = dir.join("run.toml");
     std::fs::write(&cfg, config).unwrap();
     let out = dir.join("out");
