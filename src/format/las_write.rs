@@ -436,25 +436,12 @@ impl PointRecord6 {
     }
 }
 
-/// One point data record of format 9 (the fields fwlidar fills).
+/// One point data record of format 9 (the fields fwlidar fills): the format 6 record and the
+/// wave packet fields.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PointRecord9 {
-    /// X, Y, Z as stored (scaled integers).
-    pub xyz: [i32; 3],
-    /// Intensity (16-bit normalised).
-    pub intensity: u16,
-    /// Return number, 1..=15.
-    pub return_number: u8,
-    /// Number of returns of the pulse, 1..=15.
-    pub number_of_returns: u8,
-    /// Scanner channel, 0..=3.
-    pub scanner_channel: u8,
-    /// Classification (0: never classified).
-    pub classification: u8,
-    /// Scan angle, units of 0.006°.
-    pub scan_angle: i16,
-    /// GPS time, s.
-    pub gps_time: f64,
+    /// The first 30 bytes, shared with format 6.
+    pub core: PointRecord6,
     /// Wave packet descriptor index (0: no waveform).
     pub wave_packet_index: u8,
     /// Byte offset of the packet in the waveform data (the `.wdp` file, from its start).
@@ -468,25 +455,11 @@ pub struct PointRecord9 {
 }
 
 impl PointRecord9 {
-    /// The first 30 bytes, shared with format 6.
-    pub fn core(&self) -> PointRecord6 {
-        PointRecord6 {
-            xyz: self.xyz,
-            intensity: self.intensity,
-            return_number: self.return_number,
-            number_of_returns: self.number_of_returns,
-            scanner_channel: self.scanner_channel,
-            classification: self.classification,
-            scan_angle: self.scan_angle,
-            gps_time: self.gps_time,
-        }
-    }
-
     /// Encodes the record into the first [`PF9_SIZE`] bytes of `b` (scan direction, edge of
     /// flight line, classification flags, user data and point source id are zero).
     pub fn encode_into(&self, b: &mut [u8]) {
         let b = &mut b[..PF9_SIZE];
-        self.core().encode_into(b);
+        self.core.encode_into(b);
         b[30] = self.wave_packet_index;
         b[31..39].copy_from_slice(&self.wave_offset.to_le_bytes());
         b[39..43].copy_from_slice(&self.wave_size.to_le_bytes());
@@ -611,14 +584,16 @@ mod tests {
     #[test]
     fn point_record_layout() {
         let p = PointRecord9 {
-            xyz: [1, -2, 3],
-            intensity: 513,
-            return_number: 2,
-            number_of_returns: 3,
-            scanner_channel: 1,
-            classification: 0,
-            scan_angle: -5,
-            gps_time: 12.5,
+            core: PointRecord6 {
+                xyz: [1, -2, 3],
+                intensity: 513,
+                return_number: 2,
+                number_of_returns: 3,
+                scanner_channel: 1,
+                classification: 0,
+                scan_angle: -5,
+                gps_time: 12.5,
+            },
             wave_packet_index: 4,
             wave_offset: 60,
             wave_size: 600,

@@ -525,14 +525,7 @@ impl LasWaveSink {
                     }
                 };
                 PointRecord9 {
-                    xyz,
-                    intensity: point.intensity,
-                    return_number,
-                    number_of_returns: n_returns,
-                    scanner_channel: point.scanner_channel,
-                    classification: 0,
-                    scan_angle,
-                    gps_time: p.gps_time,
+                    core: point,
                     wave_packet_index: index,
                     wave_offset: at,
                     wave_size: size,

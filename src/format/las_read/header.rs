@@ -9,8 +9,8 @@ use super::{
 use crate::format::las_write::{
     DESCRIPTOR_RECORD_ID_BASE, DESCRIPTOR_SIZE, EVLR_HEADER_SIZE, GLOBAL_ADJUSTED_STANDARD_GPS,
     GLOBAL_WAVEFORM_EXTERNAL, GLOBAL_WKT, HEADER_SIZE, Header, LASF_PROJECTION, LASF_SPEC,
-    MAX_DESCRIPTORS, PointRecord9, VLR_HEADER_SIZE, WAVEFORM_DATA_RECORD_ID, WKT_RECORD_ID,
-    WavePacketDescriptor,
+    MAX_DESCRIPTORS, PointRecord6, PointRecord9, VLR_HEADER_SIZE, WAVEFORM_DATA_RECORD_ID,
+    WKT_RECORD_ID, WavePacketDescriptor,
 };
 
 /// Record id of the GeoTIFF GeoKeyDirectoryTag VLR (`LASF_Projection`).
@@ -174,21 +174,23 @@ impl PointRecord9 {
             )
         };
         PointRecord9 {
-            xyz: [
-                u32_at(b, 0) as i32,
-                u32_at(b, 4) as i32,
-                u32_at(b, 8) as i32,
-            ],
-            intensity: u16_at(b, 12),
-            return_number,
-            number_of_returns,
-            scanner_channel,
-            classification: b
-                .get(if layout.extended { 16 } else { 15 })
-                .copied()
-                .unwrap_or(0),
-            scan_angle,
-            gps_time: f64_at(b, layout.gps_at),
+            core: PointRecord6 {
+                xyz: [
+                    u32_at(b, 0) as i32,
+                    u32_at(b, 4) as i32,
+                    u32_at(b, 8) as i32,
+                ],
+                intensity: u16_at(b, 12),
+                return_number,
+                number_of_returns,
+                scanner_channel,
+                classification: b
+                    .get(if layout.extended { 16 } else { 15 })
+                    .copied()
+                    .unwrap_or(0),
+                scan_angle,
+                gps_time: f64_at(b, layout.gps_at),
+            },
             wave_packet_index: b.get(w).copied().unwrap_or(0),
             wave_offset: u64_at(b, w + 1),
             wave_size: u32_at(b, w + 9),
@@ -709,16 +711,18 @@ mod tests {
     #[test]
     fn point_formats_4_5_10_decode_their_waveform_fields() {
         let rec = PointRecord9 {
-            xyz: [1, -2, 3],
-            return_number: 2,
-            number_of_returns: 3,
-            gps_time: 7.5,
+            core: PointRecord6 {
+                xyz: [1, -2, 3],
+                return_number: 2,
+                number_of_returns: 3,
+                gps_time: 7.5,
+                ..Default::default()
+            },
             wave_packet_index: 3,
             wave_offset: 600,
             wave_size: 120,
             wave_location_ps: 1234.5,
             xyz_t: [1.0, 2.0, -3.0],
-            ..Default::default()
         };
         let mut pf9 = [0u8; 59];
         rec.encode_into(&mut pf9);
@@ -738,9 +742,9 @@ mod tests {
         pf5[34..63].copy_from_slice(&pf4[28..57]);
         for (b, f) in [(&pf9[..], 9), (&pf10[..], 10), (&pf4[..], 4), (&pf5[..], 5)] {
             let got = PointRecord9::decode(b, PointLayout::of(f).unwrap());
-            assert_eq!(got.xyz, rec.xyz, "format {f}");
-            assert_eq!((got.return_number, got.number_of_returns), (2, 3));
-            assert_eq!(got.gps_time, 7.5);
+            assert_eq!(got.core.xyz, rec.core.xyz, "format {f}");
+            assert_eq!((got.core.return_number, got.core.number_of_returns), (2, 3));
+            assert_eq!(got.core.gps_time, 7.5);
             assert_eq!(
                 (got.wave_packet_index, got.wave_offset, got.wave_size),
                 (3, 600, 120),
@@ -750,7 +754,7 @@ mod tests {
             assert_eq!(got.xyz_t, rec.xyz_t);
         }
         let got = PointRecord9::decode(&pf4, PointLayout::of(4).unwrap());
-        assert_eq!(f64::from(got.scan_angle) * 0.006, -4.998);
+        assert_eq!(f64::from(got.core.scan_angle) * 0.006, -4.998);
         // Short input reads as zeros, no panic.
         let got = PointRecord9::decode(&pf9[..10], PointLayout::of(9).unwrap());
         assert_eq!(got.wave_packet_index, 0);

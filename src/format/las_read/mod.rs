@@ -542,8 +542,8 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
         pulse.returns.clear();
         pulse.noise = Default::default();
         pulse.pulse_id = n;
-        pulse.gps_time = p.gps_time;
-        pulse.scan_angle_deg = [f32::from(p.scan_angle) * 0.006, f32::NAN];
+        pulse.gps_time = p.core.gps_time;
+        pulse.scan_angle_deg = [f32::from(p.core.scan_angle) * 0.006, f32::NAN];
         pulse.sample_ns = f64::from(d.temporal_spacing_ps) / 1000.0;
         pulse.gain_v_per_dn = d.digitizer_gain as f32;
         pulse.offset_v = d.digitizer_offset as f32;
@@ -575,7 +575,7 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
 
 /// The point's position, CRS units.
 pub fn position(h: &Header, p: &PointRecord9) -> [f64; 3] {
-    std::array::from_fn(|k| f64::from(p.xyz[k]) * h.scale[k] + h.offset[k])
+    std::array::from_fn(|k| f64::from(p.core.xyz[k]) * h.scale[k] + h.offset[k])
 }
 
 /// The pulse geometry of a point's packet: anchor at the first sample `P + L · v`, direction
