@@ -30,6 +30,19 @@ pub fn run(args: ValidateArgs) -> Result<(), Failure> {
                         r.pipeline.input_edge
                     ),
                     Validated::Scene(s) => format!("scene: {} pulses", s.scene.pulses),
+                    Validated::World(s) => format!(
+                        "described scene: {} tree(s), {} grass patch(es), {} box(es), {} roof(s), \
+                         effects [{}]",
+                        s.tree.len(),
+                        s.grass.len(),
+                        s.boxes.len(),
+                        s.roof.len(),
+                        s.effects
+                            .iter()
+                            .map(|e| e.name())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
                 };
                 println!("{}: ok ({kind})", file.display());
                 if let Validated::Run(r) = &v {

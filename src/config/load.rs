@@ -141,6 +141,8 @@ pub enum Validated {
     Run(Box<RunConfig>),
     /// A simulator scene (a `[scene]` table).
     Scene(Box<crate::sim::SceneFile>),
+    /// A described simulator scene (a `[flight]` table: terrain, objects, flight plan).
+    World(Box<crate::sim::world::scene::WorldScene>),
 }
 
 /// Reads, parses, deserializes and validates the file at `path` as a `T`, reporting every
@@ -165,14 +167,17 @@ pub fn load_str<T: DeserializeOwned + Validate>(
 }
 
 /// Validates the file at `path` as whichever kind it is, decided by its top-level tables: a
-/// `[sensor]` table makes it a sensor profile, a `[scene]` table a simulator scene (schema,
-/// values and its sensor profile), anything else a run configuration.
+/// `[flight]` table makes it a described simulator scene, a `[sensor]` table a sensor profile,
+/// a `[scene]` table an analytic simulator scene (schema, values and its sensor profile),
+/// anything else a run configuration.
 pub fn validate_any(path: impl AsRef<Path>) -> Result<Validated, ConfigErrors> {
     let path = path.as_ref();
     let text = read_text(path)?;
     let doc = parse(&text, path)?;
     let loader = Loader::new(&text, path, &doc.spans);
-    if doc.table.contains_key("sensor") {
+    if doc.table.contains_key("flight") {
+        loader.run(doc.table).map(|f| Validated::World(Box::new(f)))
+    } else if doc.table.contains_key("sensor") {
         loader.run(doc.table).map(Validated::Sensor)
     } else if doc.table.contains_key("scene") {
         loader.run(doc.table).map(|f| Validated::Scene(Box::new(f)))

@@ -14,6 +14,7 @@ pub mod analytic;
 pub mod nmea;
 pub mod scene;
 pub mod truth;
+pub mod world;
 
 pub use analytic::{AnalyticSim, PulseTruth, SurfaceKind, SurfaceTruth};
 pub use scene::{FlightConfig, NoiseConfig, Scene, SceneError, SceneFile};

@@ -268,7 +268,10 @@ impl Default for Scene {
 }
 
 /// Parses TOML `text` into `T`, reporting the failing field's path.
-fn parse_toml<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> Result<T, SceneError> {
+pub(crate) fn parse_toml<T: serde::de::DeserializeOwned>(
+    text: &str,
+    what: &str,
+) -> Result<T, SceneError> {
     let de = toml::Deserializer::parse(text).map_err(|e| SceneError::Parse {
         what: what.to_string(),
         field: String::new(),
@@ -282,7 +285,7 @@ fn parse_toml<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> Result<
 }
 
 /// Reads a referenced file as UTF-8 text, at most [`crate::config::load::MAX_CONFIG_BYTES`].
-fn read(path: &Path) -> Result<String, SceneError> {
+pub(crate) fn read(path: &Path) -> Result<String, SceneError> {
     let io = |source| SceneError::Io {
         path: path.to_path_buf(),
         source,

@@ -1,0 +1,669 @@
+//! The scene simulator: waveforms, navigation and truth from a described scene
+//! ([`scene::WorldScene`]), simulating only the effects the scene lists.
+//!
+//! Per pulse: the flight plan and scan pattern give the shot ([`flight`]); the beam (its axis,
+//! or sub-rays across the footprint with the `footprint` effect) is traced through the scene
+//! ([`geometry`]); every solid hit becomes an echo of amplitude
+//! `peak_dn · w · ρ · cos i · T · (R_ref / R)²` (`w` the sub-ray's share of the pulse energy,
+//! `T` the fraction that crossed the media before it) at two-way time `2 R n / c`, and every
+//! stretch of leaves intercepts `T_in − T_out` of the beam (Beer-Lambert, the hot-spot
+//! assumption: the return retraces the gaps it came through), integrated in quarter-sample
+//! bins. The received waveform is that cross-section convolved with the outgoing pulse and the
+//! receiver response (Gaussians: `σ² = σ_out² + σ_rx²`, area preserved); the truth is the same
+//! cross-section with a 2 ns pulse (the seed's truth), also area preserving. Then, only when
+//! named: ringing, timing jitter, noise, quantisation, saturation, packet loss.
+//!
+//! Without `quantisation` the digitizer has `2^(14 − bits)` steps per count (at least 1) and
+//! without `saturation` 4× the sensor's range, so that the samples are the analytic waveform to
+//! within 1/512 count for sensors of up to 14 bits (the pulse records the finer gain).
+
+pub mod flight;
+pub mod geometry;
+pub mod render;
+pub mod scene;
+
+use std::path::Path;
+
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::config::sensor::SensorProfile;
+use crate::pulse::{Pulse, SegmentKind};
+use crate::sim::SimItem;
+use crate::sim::analytic::FWHM_PER_SIGMA;
+use crate::sim::nmea::{NavFix, gga, pashr, zda};
+use crate::sim::scene::SceneError;
+
+use flight::{FlightPlan, Shot, footprint_rays};
+use geometry::{ObjectKind, TraceScratch, V3};
+use render::{add_gaussian, add_ringing};
+use scene::{Effect, Noise, WorldScene};
+
+/// Speed of light in vacuum, metres per nanosecond.
+const C_M_PER_NS: f64 = 0.299_792_458;
+
+/// Quarter-sample bins for media.
+const FINE: usize = 4;
+
+/// One thing a pulse met: the truth to score against.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Scatterer {
+    /// What it is.
+    pub kind: ObjectKind,
+    /// Index of the object (tree, grass patch, box, roof) in the scene file.
+    pub object: u32,
+    /// Range from the scanner where it starts, metres.
+    pub range_m: f64,
+    /// Range where it ends (media; = `range_m` for surfaces), metres.
+    pub range_end_m: f64,
+    /// Where it starts, scene frame, metres.
+    pub position: V3,
+    /// Fraction of the pulse's energy it intercepted (0..1).
+    pub fraction: f64,
+    /// Reflectance.
+    pub reflectance: f64,
+    /// Echo amplitude it contributes (surfaces: peak above the baseline with an ideal
+    /// receiver; media: the sum over the stretch), counts.
+    pub amplitude_dn: f64,
+}
+
+/// The truth of one pulse.
+#[derive(Clone, Debug, Default)]
+pub struct ShotTruth {
+    /// Sequence number.
+    pub seq: u64,
+    /// GPS time, seconds.
+    pub gps_time: f64,
+    /// Lost by the `packet_loss` effect (not in the capture).
+    pub lost: bool,
+    /// The emission came this much after the recorded t0 (`timing_jitter`), ns.
+    pub jitter_ns: f64,
+    /// Scanner origin and unit beam, scene frame.
+    pub origin: V3,
+    /// Unit beam direction, scene frame.
+    pub beam: V3,
+    /// Scan angles recorded, degrees.
+    pub scan_deg: [f64; 2],
+    /// Time of the first return sample after t0, ns.
+    pub return_start_ns: f64,
+    /// Everything met, in the order traced (sub-ray by sub-ray).
+    pub scatterers: Vec<Scatterer>,
+    /// The truth waveform (2 ns pulse, area preserving), counts above the baseline at the
+    /// sensor's gain, one value per return sample.
+    pub truth: Vec<f64>,
+    /// The noiseless received waveform before digitizing, counts above the baseline.
+    pub clean: Vec<f64>,
+}
+
+/// Generates the pulses of a described scene, in order.
+#[derive(Debug)]
+pub struct WorldSim {
+    scene: WorldScene,
+    sensor: SensorProfile,
+    geo: geometry::Scene,
+    plan: FlightPlan,
+    metres_per_ns: f64,
+    dt: f64,
+    sigma_out: f64,
+    sigma_rx: f64,
+    sigma_truth: f64,
+    outgoing_len: usize,
+    outgoing_start_ns: f64,
+    /// Steps per sensor count in the recorded samples.
+    steps_per_count: f64,
+    max_raw: f64,
+    bits: u8,
+    noise_rng: ChaCha8Rng,
+    jitter_rng: ChaCha8Rng,
+    loss_rng: ChaCha8Rng,
+    next: u64,
+    scratch: TraceScratch,
+    rays: Vec<(V3, f64)>,
+    fine: Vec<f64>,
+}
+
+fn rng(seed: u64, stream: u64) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15))
+}
+
+/// A standard normal draw (Box-Muller).
+pub fn normal(rng: &mut ChaCha8Rng) -> f64 {
+    let u1: f64 = rng.random_range(f64::MIN_POSITIVE..1.0);
+    let u2: f64 = rng.random_range(0.0..1.0);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// A Poisson draw of mean `lambda` (exact below 30, normal approximation above).
+fn poisson(rng: &mut ChaCha8Rng, lambda: f64) -> f64 {
+    if lambda <= 0.0 {
+        return 0.0;
+    }
+    if lambda < 30.0 {
+        let l = (-lambda).exp();
+        let (mut k, mut p) = (0.0, 1.0);
+        loop {
+            p *= rng.random_range(0.0..1.0f64);
+            if p <= l {
+                return k;
+            }
+            k += 1.0;
+        }
+    }
+    (lambda + lambda.sqrt() * normal(rng)).round().max(0.0)
+}
+
+impl WorldSim {
+    /// A simulator for `scene` (its relative paths from `base_dir`) seen by `sensor`.
+    pub fn new(
+        scene: &WorldScene,
+        sensor: &SensorProfile,
+        base_dir: &Path,
+    ) -> Result<Self, SceneError> {
+        scene.validate(sensor)?;
+        let geo = geometry::Scene::build(scene, base_dir)?;
+        let plan = FlightPlan::new(scene, sensor, |x, y| geo.ground_height(x, y));
+        let dt = sensor.sample_interval_ns;
+        let fwhm = scene
+            .sensor
+            .outgoing_fwhm_ns
+            .unwrap_or(sensor.pulse_fwhm_ns);
+        let sigma_out = fwhm / FWHM_PER_SIGMA;
+        let sigma_rx = scene.sensor.receiver_fwhm_ns / FWHM_PER_SIGMA;
+        let outgoing_len = ((10.0 * sigma_out / dt).ceil() as usize).max(1);
+        let bits = sensor.bits_per_sample;
+        let steps_per_count = if scene.has(Effect::Quantisation) {
+            1.0
+        } else {
+            2f64.powi((14 - bits.min(14) as i32).max(0))
+        };
+        let full = ((1u64 << bits) - 1) as f64;
+        let max_raw = if scene.has(Effect::Saturation) {
+            full * steps_per_count
+        } else {
+            65_535.0
+        };
+        Ok(WorldSim {
+            metres_per_ns: C_M_PER_NS / (2.0 * scene.sensor.refractive_index),
+            dt,
+            sigma_out,
+            sigma_rx,
+            sigma_truth: 2.0 / FWHM_PER_SIGMA,
+            outgoing_len,
+            outgoing_start_ns: -((outgoing_len / 2) as f64) * dt,
+            steps_per_count,
+            max_raw,
+            bits: if steps_per_count == 1.0 && scene.has(Effect::Saturation) {
+                bits
+            } else {
+                16
+            },
+            noise_rng: rng(scene.seed, 1),
+            jitter_rng: rng(scene.seed, 2),
+            loss_rng: rng(scene.seed, 3),
+            next: 0,
+            scratch: TraceScratch::default(),
+            rays: Vec::new(),
+            fine: Vec::new(),
+            geo,
+            plan,
+            scene: scene.clone(),
+            sensor: sensor.clone(),
+        })
+    }
+
+    /// The scene.
+    pub fn scene(&self) -> &WorldScene {
+        &self.scene
+    }
+
+    /// The sensor.
+    pub fn sensor(&self) -> &SensorProfile {
+        &self.sensor
+    }
+
+    /// The flight plan.
+    pub fn plan(&self) -> &FlightPlan {
+        &self.plan
+    }
+
+    /// The traced geometry.
+    pub fn geometry(&self) -> &geometry::Scene {
+        &self.geo
+    }
+
+    /// Metres of range per nanosecond of two-way time.
+    pub fn metres_per_ns(&self) -> f64 {
+        self.metres_per_ns
+    }
+
+    /// Standard deviation of the received echo of a point target, ns.
+    pub fn echo_sigma_ns(&self) -> f64 {
+        (self.sigma_out * self.sigma_out + self.sigma_rx * self.sigma_rx).sqrt()
+    }
+
+    /// Pulses still to generate.
+    pub fn remaining(&self) -> u64 {
+        self.plan.pulses() - self.next
+    }
+
+    /// Fills `pulse` and `truth` with the next pulse; `None` at the end, `Some(false)` when the
+    /// pulse was lost (`packet_loss`: not to be recorded).
+    pub fn fill_next(&mut self, pulse: &mut Pulse, truth: &mut ShotTruth) -> Option<bool> {
+        if self.next >= self.plan.pulses() {
+            return None;
+        }
+        let k = self.next;
+        self.next += 1;
+        let shot = self.plan.shot(k);
+        let jitter = if self.scene.has(Effect::TimingJitter) {
+            self.scene.timing_jitter_ns * normal(&mut self.jitter_rng)
+        } else {
+            0.0
+        };
+        let lost = self.scene.has(Effect::PacketLoss)
+            && self.loss_rng.random_range(0.0..1.0f64) < self.scene.packet_loss;
+        self.render(k, &shot, jitter, pulse, truth);
+        truth.lost = lost;
+        Some(!lost)
+    }
+
+    fn window_start_ns(&self, shot: &Shot) -> f64 {
+        let top = self.scene.sensor.window_top_m;
+        let down = (-shot.beam[2]).max(1e-6);
+        let s_ground = self
+            .geo
+            .ground_hit(shot.origin, shot.beam)
+            .map(|(s, _)| s)
+            .unwrap_or(shot.origin[2] / down);
+        let t = (s_ground - top / down) / self.metres_per_ns;
+        (t / self.dt).round() * self.dt
+    }
+
+    fn render(
+        &mut self,
+        k: u64,
+        shot: &Shot,
+        jitter: f64,
+        pulse: &mut Pulse,
+        truth: &mut ShotTruth,
+    ) {
+        let s = &self.scene;
+        let n = s.sensor.return_samples as usize;
+        let dt = self.dt;
+        let start = self.window_start_ns(shot);
+        truth.seq = k;
+        truth.gps_time = shot.gps_time;
+        truth.jitter_ns = jitter;
+        truth.origin = shot.origin;
+        truth.beam = shot.beam;
+        truth.scan_deg = shot.scan_deg;
+        truth.return_start_ns = start;
+        truth.scatterers.clear();
+        truth.clean.clear();
+        truth.clean.resize(n, 0.0);
+        truth.truth.clear();
+        truth.truth.resize(n, 0.0);
+        let sigma_k = self.echo_sigma_ns();
+        let gain_k = self.sigma_out / sigma_k;
+        let gain_t = self.sigma_out / self.sigma_truth;
+        let ringing = s.has(Effect::Ringing).then(|| s.ringing.clone());
+        // Fine bins over the window and a margin of 6σ each side.
+        let margin = (6.0 * sigma_k / dt).ceil() as usize + 1;
+        let fine_t0 = start - margin as f64 * dt;
+        let fine_n = (n + 2 * margin) * FINE;
+        let delta = dt / FINE as f64;
+        self.fine.clear();
+        self.fine.resize(fine_n, 0.0);
+        if s.has(Effect::Footprint) {
+            footprint_rays(
+                shot.beam,
+                self.sensor.beam_divergence_mrad * 1e-3,
+                s.footprint_rings,
+                &mut self.rays,
+            );
+        } else {
+            self.rays.clear();
+            self.rays.push((shot.beam, 1.0));
+        }
+        let peak = s.sensor.peak_dn;
+        let r_ref = s.sensor.reference_range_m;
+        let mpn = self.metres_per_ns;
+        for ri in 0..self.rays.len() {
+            let (d, w) = self.rays[ri];
+            self.geo.trace(shot.origin, d, &mut self.scratch);
+            let stop = self
+                .scratch
+                .hits
+                .first()
+                .map_or(f64::INFINITY, |h| h.range_m);
+            // Media: walk the breakpoints; in each stretch the active media share the
+            // extinction.
+            let mut trans = 1.0f64;
+            let media = &self.scratch.media;
+            if !media.is_empty() {
+                let mut cuts = [0.0f64; 16];
+                let mut nc = 0;
+                for m in media.iter().take(8) {
+                    cuts[nc] = m.enter_m;
+                    cuts[nc + 1] = m.exit_m.min(stop);
+                    nc += 2;
+                }
+                let cuts = &mut cuts[..nc];
+                cuts.sort_by(f64::total_cmp);
+                for c in 0..nc.saturating_sub(1) {
+                    let (a, b) = (cuts[c], cuts[c + 1]);
+                    if b <= a {
+                        continue;
+                    }
+                    let mid = 0.5 * (a + b);
+                    let (mut k_tot, mut k_rho) = (0.0, 0.0);
+                    for m in media.iter().take(8) {
+                        if m.enter_m <= mid && mid < m.exit_m {
+                            k_tot += m.extinction_per_m;
+                            k_rho += m.extinction_per_m * m.reflectance;
+                        }
+                    }
+                    if k_tot <= 0.0 {
+                        continue;
+                    }
+                    let rho = k_rho / k_tot;
+                    let t_a = trans;
+                    // Transmission at range r inside this stretch.
+                    let t_at = |r: f64| t_a * (-k_tot * (r - a)).exp();
+                    // Quarter-sample bins: the energy intercepted in each, at its centre.
+                    let (ta, tb) = (a / mpn + jitter, b / mpn + jitter);
+                    let f_lo = ((ta - fine_t0) / delta).floor().max(0.0) as usize;
+                    let f_hi = (((tb - fine_t0) / delta).ceil().max(0.0) as usize).min(fine_n);
+                    let mut sum_amp = 0.0;
+                    for f in f_lo..f_hi {
+                        let u = (fine_t0 + f as f64 * delta).max(ta);
+                        let v = (fine_t0 + (f + 1) as f64 * delta).min(tb);
+                        if v <= u {
+                            continue;
+                        }
+                        let (ru, rv) = ((u - jitter) * mpn, (v - jitter) * mpn);
+                        let e = t_at(ru) - t_at(rv);
+                        let r_mid = 0.5 * (ru + rv);
+                        let amp = peak * w * rho * e * (r_ref / r_mid).powi(2);
+                        self.fine[f] += amp;
+                        sum_amp += amp;
+                    }
+                    // The whole stretch attenuates, inside the recorded window or not.
+                    let whole = t_at(b);
+                    trans = whole;
+                    for m in media.iter().take(8) {
+                        if m.enter_m <= mid && mid < m.exit_m {
+                            let share = m.extinction_per_m / k_tot;
+                            truth.scatterers.push(Scatterer {
+                                kind: m.kind,
+                                object: m.object,
+                                range_m: a,
+                                range_end_m: b,
+                                position: at(shot.origin, a, d),
+                                fraction: w * (t_a - whole) * share,
+                                reflectance: m.reflectance,
+                                amplitude_dn: sum_amp * share * m.reflectance / rho.max(1e-300),
+                            });
+                        }
+                    }
+                }
+            }
+            if let Some(h) = self.scratch.hits.first() {
+                let amp = peak
+                    * w
+                    * h.reflectance
+                    * h.cos_incidence
+                    * trans
+                    * (r_ref / h.range_m).powi(2);
+                let t = h.range_m / mpn;
+                truth.scatterers.push(Scatterer {
+                    kind: h.kind,
+                    object: h.object,
+                    range_m: h.range_m,
+                    range_end_m: h.range_m,
+                    position: at(shot.origin, h.range_m, d),
+                    fraction: w * trans,
+                    reflectance: h.reflectance,
+                    amplitude_dn: amp,
+                });
+                add_gaussian(
+                    &mut truth.clean,
+                    start,
+                    dt,
+                    t + jitter,
+                    amp * gain_k,
+                    sigma_k,
+                );
+                add_gaussian(
+                    &mut truth.truth,
+                    start,
+                    dt,
+                    t,
+                    amp * gain_t,
+                    self.sigma_truth,
+                );
+                if let Some(r) = &ringing {
+                    add_ringing(&mut truth.clean, start, dt, t + jitter, amp, r);
+                }
+            }
+        }
+        for f in 0..fine_n {
+            let amp = self.fine[f];
+            if amp == 0.0 {
+                continue;
+            }
+            let t = fine_t0 + (f as f64 + 0.5) * delta;
+            add_gaussian(&mut truth.clean, start, dt, t, amp * gain_k, sigma_k);
+            add_gaussian(
+                &mut truth.truth,
+                start,
+                dt,
+                t - jitter,
+                amp * gain_t,
+                self.sigma_truth,
+            );
+            if let Some(r) = &ringing {
+                add_ringing(&mut truth.clean, start, dt, t, amp, r);
+            }
+        }
+        // The pulse.
+        pulse.reset();
+        pulse.seq = k;
+        pulse.pulse_id = k;
+        pulse.gps_time = shot.gps_time;
+        pulse.scan_angle_deg = [shot.scan_deg[0] as f32, shot.scan_deg[1] as f32];
+        pulse.sample_ns = dt;
+        pulse.gain_v_per_dn = (self.sensor.digitizer_gain_v_per_dn / self.steps_per_count) as f32;
+        pulse.offset_v = self.sensor.digitizer_offset_v as f32;
+        pulse.bits = self.bits;
+        let first = pulse.raw.len();
+        let out_peak = self.scene.sensor.outgoing_peak_dn * gain_k;
+        for i in 0..self.outgoing_len {
+            let t = self.outgoing_start_ns + i as f64 * dt - jitter;
+            let z = t / sigma_k;
+            let clean = out_peak * (-0.5 * z * z).exp();
+            let raw = self.digitize(clean);
+            pulse.raw.push(raw);
+        }
+        let out = pulse.push_segment(SegmentKind::Outgoing, 0, self.outgoing_start_ns, []);
+        pulse.segments[out].first = first as u32;
+        pulse.segments[out].len = self.outgoing_len as u32;
+        let first = pulse.raw.len();
+        for i in 0..n {
+            let raw = self.digitize(truth.clean[i]);
+            pulse.raw.push(raw);
+        }
+        let ret = pulse.push_segment(SegmentKind::Return, 0, start, []);
+        pulse.segments[ret].first = first as u32;
+        pulse.segments[ret].len = n as u32;
+    }
+
+    /// Noise, quantisation and saturation of one sample `clean` counts above the baseline.
+    fn digitize(&mut self, clean: f64) -> u16 {
+        let s = &self.scene;
+        let mut v = s.sensor.baseline_dn + clean;
+        if s.has(Effect::Noise) {
+            match s.noise {
+                Some(Noise::Uniform { amplitude_dn }) if amplitude_dn > 0.0 => {
+                    v += self.noise_rng.random_range(-amplitude_dn..=amplitude_dn)
+                }
+                Some(Noise::Gaussian { sigma_dn }) => v += sigma_dn * normal(&mut self.noise_rng),
+                Some(Noise::Poisson {
+                    photons_per_dn,
+                    dark_sigma_dn,
+                }) => {
+                    let photons = poisson(&mut self.noise_rng, clean.max(0.0) * photons_per_dn);
+                    v = s.sensor.baseline_dn
+                        + photons / photons_per_dn
+                        + dark_sigma_dn * normal(&mut self.noise_rng);
+                }
+                _ => {}
+            }
+        }
+        (v * self.steps_per_count).round().clamp(0.0, self.max_raw) as u16
+    }
+}
+
+fn at(o: V3, s: f64, d: V3) -> V3 {
+    [o[0] + s * d[0], o[1] + s * d[1], o[2] + s * d[2]]
+}
+
+/// The interleaved stream of a described scene: navigation epochs and pulses in time order,
+/// as a capture holds them (lost pulses are left out and listed in [`WorldItems::lost`]).
+#[derive(Debug)]
+pub struct WorldItems {
+    sim: WorldSim,
+    nav_rng: ChaCha8Rng,
+    next_nav: u64,
+    nav_epochs: u64,
+    nav_rate: f64,
+    truth: ShotTruth,
+    lost: Vec<u64>,
+    pending: Option<Pulse>,
+}
+
+impl WorldItems {
+    /// The stream of `sim`.
+    pub fn new(sim: WorldSim) -> Self {
+        let nav = &sim.scene.navigation;
+        let span = if sim.plan.pulses() == 0 {
+            0.0
+        } else {
+            let (a, b) = sim.plan.span_gps();
+            b - a
+        };
+        let nav_epochs = if sim.plan.pulses() == 0 {
+            0
+        } else {
+            (span * nav.rate_hz - 1e-9).ceil().max(0.0) as u64 + 1
+        };
+        WorldItems {
+            nav_rng: rng(sim.scene.seed, 4),
+            nav_rate: nav.rate_hz,
+            sim,
+            next_nav: 0,
+            nav_epochs,
+            truth: ShotTruth::default(),
+            lost: Vec::new(),
+            pending: None,
+        }
+    }
+
+    /// The generator.
+    pub fn sim(&self) -> &WorldSim {
+        &self.sim
+    }
+
+    /// The truth of the last pulse generated (recorded or lost).
+    pub fn last_truth(&self) -> &ShotTruth {
+        &self.truth
+    }
+
+    /// Sequence numbers of the pulses lost so far.
+    pub fn lost(&self) -> &[u64] {
+        &self.lost
+    }
+
+    fn nav_time(&self, j: u64) -> f64 {
+        self.sim.scene.gps_time_start_s + j as f64 / self.nav_rate
+    }
+
+    /// The navigation bytes of epoch `gps` (None inside a dropout).
+    fn nav_bytes(&mut self, gps: f64) -> Option<Vec<u8>> {
+        let s = &self.sim.scene;
+        let nav = &s.navigation;
+        let t = gps - s.gps_time_start_s;
+        if s.has(Effect::NavigationDropouts)
+            && nav.dropouts.iter().any(|d| t >= d[0] && t < d[0] + d[1])
+        {
+            return None;
+        }
+        let pose = self.sim.plan.pose(t);
+        let mut fix = NavFix {
+            utc_time_of_day_s: (gps - nav.gps_utc_offset_s).rem_euclid(86_400.0),
+            lat_deg: pose.geodetic.lat_deg,
+            lon_deg: pose.geodetic.lon_deg,
+            altitude_m: pose.geodetic.height_m,
+            heading_deg: pose.attitude_deg[2],
+            roll_deg: pose.attitude_deg[0],
+            pitch_deg: pose.attitude_deg[1],
+        };
+        if s.has(Effect::NavigationNoise) {
+            let (m, n) = crate::nav::trajectory::radii(fix.lat_deg.to_radians());
+            let sp = nav.position_noise_m;
+            let sa = nav.attitude_noise_deg;
+            let r = &mut self.nav_rng;
+            fix.lat_deg += (sp * normal(r) / m).to_degrees();
+            fix.lon_deg += (sp * normal(r) / (n * fix.lat_deg.to_radians().cos())).to_degrees();
+            fix.altitude_m += sp * normal(r);
+            fix.roll_deg += sa * normal(r);
+            fix.pitch_deg += sa * normal(r);
+            fix.heading_deg = (fix.heading_deg + sa * normal(r)).rem_euclid(360.0);
+        }
+        let mut text = gga(&fix);
+        text.push_str(&pashr(&fix));
+        let centis = (fix.utc_time_of_day_s * 100.0).round() as i64;
+        if centis % 100 == 0 {
+            text.push_str(&zda(nav.gps_week, gps, nav.gps_utc_offset_s));
+        }
+        Some(text.into_bytes())
+    }
+}
+
+impl Iterator for WorldItems {
+    type Item = SimItem;
+
+    fn next(&mut self) -> Option<SimItem> {
+        loop {
+            if self.pending.is_none() {
+                let mut p = Pulse::default();
+                match self.sim.fill_next(&mut p, &mut self.truth) {
+                    None => {}
+                    Some(true) => self.pending = Some(p),
+                    Some(false) => {
+                        self.lost.push(self.truth.seq);
+                        continue;
+                    }
+                }
+            }
+            let pulse_time = self.pending.as_ref().map(|p| p.gps_time);
+            let nav_time = (self.next_nav < self.nav_epochs).then(|| self.nav_time(self.next_nav));
+            match (nav_time, pulse_time) {
+                (Some(tn), tp) if tp.is_none_or(|tp| tn <= tp) => {
+                    self.next_nav += 1;
+                    if let Some(bytes) = self.nav_bytes(tn) {
+                        return Some(SimItem::Nav {
+                            receive_time_ns: (tn * 1e9).round() as u64,
+                            bytes,
+                        });
+                    }
+                }
+                (_, Some(_)) => return self.pending.take().map(SimItem::Pulse),
+                _ => return None,
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;
