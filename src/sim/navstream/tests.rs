@@ -262,7 +262,8 @@ fn noise_has_zero_mean_and_the_configured_sigma() {
     let (_, records) = run(&mut s, 5000);
     let t = truth();
     let (m, n) = radii(t.lat_deg.to_radians());
-    let columns: [(&str, f64, Box<dyn Fn(&EpochRecord) -> f64>); 9] = [
+    type Column = (&'static str, f64, Box<dyn Fn(&EpochRecord) -> f64>);
+    let columns: [Column; 9] = [
         ("north", noise.position_m, Box::new(|r| r.errors.north_m)),
         ("east", noise.position_m, Box::new(|r| r.errors.east_m)),
         ("up", noise.position_m, Box::new(|r| r.errors.up_m)),
@@ -297,7 +298,7 @@ fn noise_has_zero_mean_and_the_configured_sigma() {
         ),
     ];
     for (name, sigma, f) in &columns {
-        let v: Vec<f64> = records.iter().map(|r| f(r)).collect();
+        let v: Vec<f64> = records.iter().map(f).collect();
         let (mean, std) = stats(&v);
         // The mean of 5000 draws has a standard error of sigma / 70.7: 4 of them is 0.057.
         assert!(
