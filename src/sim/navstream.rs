@@ -323,25 +323,39 @@ pub struct EpochRecord {
 }
 
 /// The truth `fix` with `errors` applied: north/east/up metres converted to latitude and
-/// longitude with the WGS84 meridian and prime-vertical radii at the fix's latitude; roll
-/// wrapped to -180..180, pitch and latitude clamped to ±90, heading and longitude wrapped.
-/// Zero errors leave every value exactly as it was.
+/// longitude with the WGS84 meridian and prime-vertical radii at the fix's latitude (at a pole,
+/// where longitude is undefined, an east error leaves it as it was); latitude and pitch clamped
+/// to ±90, roll and longitude wrapped to -180..180 and heading to 0..360 when they leave those
+/// ranges. Zero errors leave every value exactly as it was.
 pub fn noisy_fix(fix: &NavFix, errors: &NavErrors) -> NavFix {
     if *errors == NavErrors::default() {
         return *fix;
     }
     let phi = fix.lat_deg.to_radians();
     let (m, n) = radii(phi);
+    let parallel_m = n * phi.cos();
     let lat_deg = fix.lat_deg + (errors.north_m / m).to_degrees();
-    let lon_deg = fix.lon_deg + (errors.east_m / (n * phi.cos())).to_degrees();
+    let mut lon_deg = fix.lon_deg;
+    if parallel_m > 1e-3 {
+        lon_deg += (errors.east_m / parallel_m).to_degrees();
+    }
     NavFix {
         utc_time_of_day_s: fix.utc_time_of_day_s,
         lat_deg: lat_deg.clamp(-90.0, 90.0),
-        lon_deg: (lon_deg + 180.0).rem_euclid(360.0) - 180.0,
+        lon_deg: wrap_180(lon_deg),
         altitude_m: fix.altitude_m + errors.up_m,
         heading_deg: (fix.heading_deg + errors.heading_deg).rem_euclid(360.0),
-        roll_deg: (fix.roll_deg + errors.roll_deg + 180.0).rem_euclid(360.0) - 180.0,
+        roll_deg: wrap_180(fix.roll_deg + errors.roll_deg),
         pitch_deg: (fix.pitch_deg + errors.pitch_deg).clamp(-90.0, 90.0),
+    }
+}
+
+/// `deg` unchanged in -180..=180, else wrapped into -180..180.
+fn wrap_180(deg: f64) -> f64 {
+    if (-180.0..=180.0).contains(&deg) {
+        deg
+    } else {
+        (deg + 180.0).rem_euclid(360.0) - 180.0
     }
 }
 

@@ -476,6 +476,33 @@ fn bad_input_is_not_sent_and_does_not_panic() {
             Some(DropReason::InvalidInput)
         );
     }
+    // At a pole an east error cannot move the longitude; nothing becomes NaN.
+    let mut noisy = stream(
+        NavigationConfig {
+            noise: Some(NavNoise {
+                position_m: 1.0,
+                attitude_deg: 100.0,
+                heading_deg: 100.0,
+            }),
+            formats: vec![StreamFormat::Nmea, StreamFormat::Novatel],
+            ..Default::default()
+        },
+        3,
+    );
+    for lat in [90.0, -90.0] {
+        for k in 0..20 {
+            let pole = NavFix {
+                lat_deg: lat,
+                ..truth()
+            };
+            assert!(noisy.epoch_bytes(100.0 + k as f64, &pole, &mut out));
+            let r = noisy.last_epoch().unwrap().reported;
+            assert_eq!(r.lon_deg, truth().lon_deg);
+            assert!(r.lat_deg.abs() <= 90.0 && r.pitch_deg.abs() <= 90.0);
+            assert!(r.roll_deg.abs() <= 180.0 && (0.0..360.0).contains(&r.heading_deg));
+        }
+    }
+    assert!(!String::from_utf8_lossy(&out).contains("NaN"));
     assert_eq!(week_ms(1690, 604_800.5), Some((1691, 500)));
     assert_eq!(week_ms(1690, -0.25), Some((1689, 604_799_750)));
     assert_eq!(week_ms(1690, 0.0004), Some((1690, 0)));
