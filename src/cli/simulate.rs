@@ -192,7 +192,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
         }
     }
     let total = sim.plan().pulses();
-    let mut items = WorldItems::new(sim);
+    let mut items = WorldItems::new(sim).map_err(Failure::usage)?;
     let table = toml::to_string(&scene)
         .ok()
         .and_then(|t| toml::from_str::<toml::Table>(&t).ok());

@@ -31,7 +31,8 @@ use crate::config::sensor::SensorProfile;
 use crate::pulse::{Pulse, SegmentKind};
 use crate::sim::SimItem;
 use crate::sim::analytic::FWHM_PER_SIGMA;
-use crate::sim::nmea::{NavFix, gga, pashr, zda};
+use crate::sim::navstream::NavStream;
+use crate::sim::nmea::NavFix;
 use crate::sim::scene::SceneError;
 
 use flight::{FlightPlan, Shot, footprint_rays};
@@ -533,7 +534,7 @@ fn at(o: V3, s: f64, d: V3) -> V3 {
 #[derive(Debug)]
 pub struct WorldItems {
     sim: WorldSim,
-    nav_rng: ChaCha8Rng,
+    nav: NavStream,
     next_nav: u64,
     nav_epochs: u64,
     nav_rate: f64,
@@ -544,7 +545,7 @@ pub struct WorldItems {
 
 impl WorldItems {
     /// The stream of `sim`.
-    pub fn new(sim: WorldSim) -> Self {
+    pub fn new(sim: WorldSim) -> Result<Self, SceneError> {
         let nav = &sim.scene.navigation;
         let span = if sim.plan.pulses() == 0 {
             0.0
@@ -557,8 +558,22 @@ impl WorldItems {
         } else {
             (span * nav.rate_hz - 1e-9).ceil().max(0.0) as u64 + 1
         };
-        WorldItems {
-            nav_rng: rng(sim.scene.seed, 4),
+        // Noise and dropouts only when their effects are named.
+        let mut config = nav.clone();
+        if !sim.scene.has(Effect::NavigationNoise) {
+            config.noise = None;
+        }
+        if !sim.scene.has(Effect::NavigationDropouts) {
+            config.dropouts.clear();
+            config.random_dropout_probability = 0.0;
+        }
+        let nav_stream = NavStream::new(config, sim.scene.seed ^ 0x4E41_5653)
+            .map_err(|e| SceneError::Invalid {
+                field: "navigation",
+                reason: e.to_string(),
+            })?;
+        Ok(WorldItems {
+            nav: nav_stream,
             nav_rate: nav.rate_hz,
             sim,
             next_nav: 0,
@@ -566,7 +581,7 @@ impl WorldItems {
             truth: ShotTruth::default(),
             lost: Vec::new(),
             pending: None,
-        }
+        })
     }
 
     /// The generator.
@@ -588,19 +603,12 @@ impl WorldItems {
         self.sim.scene.gps_time_start_s + j as f64 / self.nav_rate
     }
 
-    /// The navigation bytes of epoch `gps` (None inside a dropout).
+    /// The navigation bytes of epoch `gps` (None when the epoch is dropped).
     fn nav_bytes(&mut self, gps: f64) -> Option<Vec<u8>> {
         let s = &self.sim.scene;
-        let nav = &s.navigation;
-        let t = gps - s.gps_time_start_s;
-        if s.has(Effect::NavigationDropouts)
-            && nav.dropouts.iter().any(|d| t >= d[0] && t < d[0] + d[1])
-        {
-            return None;
-        }
-        let pose = self.sim.plan.pose(t);
-        let mut fix = NavFix {
-            utc_time_of_day_s: (gps - nav.gps_utc_offset_s).rem_euclid(86_400.0),
+        let pose = self.sim.plan.pose(gps - s.gps_time_start_s);
+        let fix = NavFix {
+            utc_time_of_day_s: (gps - s.navigation.gps_utc_offset_s).rem_euclid(86_400.0),
             lat_deg: pose.geodetic.lat_deg,
             lon_deg: pose.geodetic.lon_deg,
             altitude_m: pose.geodetic.height_m,
@@ -608,25 +616,8 @@ impl WorldItems {
             roll_deg: pose.attitude_deg[0],
             pitch_deg: pose.attitude_deg[1],
         };
-        if s.has(Effect::NavigationNoise) {
-            let (m, n) = crate::nav::trajectory::radii(fix.lat_deg.to_radians());
-            let sp = nav.position_noise_m;
-            let sa = nav.attitude_noise_deg;
-            let r = &mut self.nav_rng;
-            fix.lat_deg += (sp * normal(r) / m).to_degrees();
-            fix.lon_deg += (sp * normal(r) / (n * fix.lat_deg.to_radians().cos())).to_degrees();
-            fix.altitude_m += sp * normal(r);
-            fix.roll_deg += sa * normal(r);
-            fix.pitch_deg += sa * normal(r);
-            fix.heading_deg = (fix.heading_deg + sa * normal(r)).rem_euclid(360.0);
-        }
-        let mut text = gga(&fix);
-        text.push_str(&pashr(&fix));
-        let centis = (fix.utc_time_of_day_s * 100.0).round() as i64;
-        if centis % 100 == 0 {
-            text.push_str(&zda(nav.gps_week, gps, nav.gps_utc_offset_s));
-        }
-        Some(text.into_bytes())
+        let mut out = Vec::new();
+        self.nav.epoch_bytes(gps, &fix, &mut out).then_some(out)
     }
 }
 

@@ -33,6 +33,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::config::sensor::SensorProfile;
+use crate::sim::navstream::NavigationConfig;
 use crate::sim::scene::SceneError;
 
 /// A whole described scene file.
@@ -92,9 +93,11 @@ pub struct WorldScene {
     /// axis (1 ring = the axis ray only; 3 rings = 1 + 6 + 12 rays). Default 3.
     #[serde(default = "default_rings")]
     pub footprint_rings: u32,
-    /// The navigation stream. Default: NMEA (GGA, PASHR, ZDA) at 10 Hz.
+    /// The navigation stream ([`NavigationConfig`]: rate, NMEA and/or NovAtel binary, noise and
+    /// dropouts, which apply only with the `navigation_noise` / `navigation_dropouts` effects).
+    /// Default: NMEA (GGA, PASHR, ZDA) at 10 Hz.
     #[serde(default)]
-    pub navigation: NavigationPlan,
+    pub navigation: NavigationConfig,
 }
 
 /// The simulated effects. A scene lists those it wants; the cost of a run grows only with them.
@@ -115,9 +118,9 @@ pub enum Effect {
     OffNadir,
     /// Gaussian jitter of each pulse's reference time (`timing_jitter_ns`).
     TimingJitter,
-    /// Gaussian noise on the navigation solution (`[navigation] position_noise_m`, ...).
+    /// Gaussian noise on the navigation solution (`[navigation] noise`).
     NavigationNoise,
-    /// Navigation outages (`[navigation] dropouts`).
+    /// Navigation outages (`[navigation] dropouts`, `random_dropout_probability`).
     NavigationDropouts,
     /// Digitizer frames lost (`packet_loss`): absent from the capture, listed in the truth.
     PacketLoss,
@@ -559,43 +562,6 @@ impl Default for Ringing {
     }
 }
 
-/// The navigation stream of the scene.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct NavigationPlan {
-    /// Epochs per second. Default 10.
-    #[serde(default = "default_nav_rate")]
-    pub rate_hz: f64,
-    /// GPS week of the flight. Default 1690.
-    #[serde(default = "default_week")]
-    pub gps_week: u32,
-    /// GPS − UTC, seconds. Default 18.
-    #[serde(default = "default_leap")]
-    pub gps_utc_offset_s: f64,
-    /// 1-sigma position noise (each axis), metres (with `navigation_noise`). Default 0.05.
-    #[serde(default = "default_pos_noise")]
-    pub position_noise_m: f64,
-    /// 1-sigma roll/pitch/heading noise, degrees (with `navigation_noise`). Default 0.005.
-    #[serde(default = "default_att_noise")]
-    pub attitude_noise_deg: f64,
-    /// Outages `[start_s, duration_s]` from the first pulse (with `navigation_dropouts`).
-    #[serde(default)]
-    pub dropouts: Vec<[f64; 2]>,
-}
-
-impl Default for NavigationPlan {
-    fn default() -> Self {
-        NavigationPlan {
-            rate_hz: default_nav_rate(),
-            gps_week: default_week(),
-            gps_utc_offset_s: default_leap(),
-            position_noise_m: default_pos_noise(),
-            attitude_noise_deg: default_att_noise(),
-            dropouts: Vec::new(),
-        }
-    }
-}
-
 fn default_gps_start() -> f64 {
     345_600.0
 }
@@ -682,21 +648,6 @@ fn default_ring_period() -> f64 {
 }
 fn default_ring_decay() -> f64 {
     20.0
-}
-fn default_nav_rate() -> f64 {
-    10.0
-}
-fn default_week() -> u32 {
-    1690
-}
-fn default_leap() -> f64 {
-    18.0
-}
-fn default_pos_noise() -> f64 {
-    0.05
-}
-fn default_att_noise() -> f64 {
-    0.005
 }
 
 /// The default reflectances by material name.
@@ -1071,16 +1022,19 @@ impl WorldScene {
             || "amplitude >= 0, period_ns and decay_ns > 0".into(),
         )?;
         let n = &self.navigation;
+        n.validate().map_err(|e| invalid("navigation", e.to_string()))?;
         need(
-            pos(n.rate_hz) && n.rate_hz <= 1000.0,
-            "navigation.rate_hz",
-            || format!("must be in (0, 1000], got {}", n.rate_hz),
+            !self.has(Effect::NavigationNoise) || n.noise.is_some(),
+            "navigation.noise",
+            || "the `navigation_noise` effect needs [navigation.noise] (position_m, attitude_deg, heading_deg)".into(),
         )?;
-        for d in &n.dropouts {
-            need(nonneg(d[0]) && pos(d[1]), "navigation.dropouts", || {
-                format!("each is [start_s >= 0, duration_s > 0], got {d:?}")
-            })?;
-        }
+        need(
+            !self.has(Effect::NavigationDropouts)
+                || !n.dropouts.is_empty()
+                || n.random_dropout_probability > 0.0,
+            "navigation.dropouts",
+            || "the `navigation_dropouts` effect needs `dropouts` or `random_dropout_probability`".into(),
+        )?;
         Ok(())
     }
 }

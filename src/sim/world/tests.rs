@@ -382,7 +382,7 @@ fn packet_loss_drops_frames_and_lists_them() {
         "seed = 11\neffects = [\"packet_loss\"]\npacket_loss = 0.1\n[flight]\npulse_rate_hz = 20000.0\n\
          lines = [{{ start_m = [0.0, 0.0], end_m = [6.0, 0.0] }}]\n{SENSOR}"
     );
-    let items = WorldItems::new(world(&text));
+    let items = WorldItems::new(world(&text)).unwrap();
     let mut items = items;
     let mut seqs = Vec::new();
     for item in items.by_ref() {
