@@ -300,7 +300,7 @@ pub struct LiveReport {
 }
 
 impl LiveReport {
-    /// Items released (pulses sent and navigation records written or dropped).
+    /// Items delivered: pulses sent plus navigation records written (wholly or in part).
     pub fn items(&self) -> u64 {
         self.pulses_sent + self.nav_records
     }
