@@ -12,6 +12,9 @@
 #                   match), as u16 .pls length + .pls + .wvs.
 #   nav_decoder:    the real receiver logs of ../shared/fixtures/nav (gpsd NMEA logs, the NovAtel
 #                   SPAN capture, the SBET files), each behind a mode byte 0x07, when it exists.
+#   live_frames:    the first three digitizer frames of that capture as a live stream (28-byte
+#                   headers with sequence numbers and CRC-32C, docs/formats.md), behind a mode
+#                   byte 0x00 (pushed whole) and 0x05 (pushed in reads of 5 bytes).
 #   las_reader:     when ../shared/fixtures exists, the real RIEGL LAS 1.4 file cut to its first
 #                   20 points with the .wdp bytes they use (u32 LE .las length, .las, .wdp), and
 #                   the same with the packets internal (global encoding bit 1, appended EVLR).
@@ -21,7 +24,7 @@ root=$(dirname "$here")
 cap="$root/replay/two_layer.fwcap"
 mkdir -p "$here/corpus/capture_reader" "$here/corpus/frame_decode" "$here/corpus/config_load" \
     "$here/corpus/waveform_table" "$here/corpus/pulsewaves_reader" "$here/corpus/las_reader" \
-    "$here/corpus/nav_decoder"
+    "$here/corpus/nav_decoder" "$here/corpus/live_frames"
 
 # capture_reader
 { printf '\000'; head -c 8192 "$cap"; } > "$here/corpus/capture_reader/two_layer_8k_raw"
@@ -45,6 +48,39 @@ while at + 16 <= len(data) and n < 16:
         open(f"{out}/record{n:02}_kind{kind}", "wb").write(payload)
         n += 1
     at += 16 + length
+PY
+
+# live_frames: the first three frame payloads of the capture, each behind a live header.
+python3 - "$cap" "$here/corpus/live_frames" <<'PY'
+import struct, sys
+table = []
+for i in range(256):
+    c = i
+    for _ in range(8):
+        c = (c >> 1) ^ 0x82F63B78 if c & 1 else c >> 1
+    table.append(c)
+def crc32c(b):
+    c = 0xFFFFFFFF
+    for x in b:
+        c = table[(c ^ x) & 0xFF] ^ (c >> 8)
+    return c ^ 0xFFFFFFFF
+data = open(sys.argv[1], "rb").read(1 << 16)
+at, frames = 16, []
+while at + 16 <= len(data) and len(frames) < 3:
+    if data[at:at + 4] != b"\xf5WLR":
+        break
+    kind = data[at + 4]
+    (length,) = struct.unpack_from("<I", data, at + 8)
+    payload = data[at + 12:at + 12 + length]
+    if len(payload) < length:
+        break
+    if kind == 2:
+        head = b"\xf5WLD" + struct.pack("<BBHQII", 1, 2, 0, len(frames), length, crc32c(payload))
+        frames.append(head + struct.pack("<I", crc32c(head)) + payload)
+    at += 16 + length
+stream = b"".join(frames)
+open(f"{sys.argv[2]}/three_frames_whole", "wb").write(b"\x00" + stream)
+open(f"{sys.argv[2]}/three_frames_by5", "wb").write(b"\x05" + stream)
 PY
 
 # config_load

@@ -1,10 +1,13 @@
 //! `fwlidar simulate`: a scene file into a capture (digitizer frames and the navigation bytes a
-//! receiver would have sent), deterministic for a given seed. A described scene also writes its
+//! receiver would have sent), deterministic for a given seed (or, with `--live`, played in real
+//! time into the on-board daemon's inputs: [`crate::sim::live`]). A described scene also writes its
 //! truth beside the capture: the truth waveforms as a capture of their own (same shots and
 //! navigation, a 2 ns pulse), every scatterer met as CSV, and a JSON summary.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -22,9 +25,10 @@ pub struct SimulateArgs {
     /// Scene file (TOML with a `[scene]` table; see `config/scenes/`).
     #[arg(long)]
     pub scene: PathBuf,
-    /// Capture file to write (must not exist: captures are never overwritten).
-    #[arg(long, short)]
-    pub out: PathBuf,
+    /// Capture file to write (must not exist: captures are never overwritten). Exactly one of
+    /// `--out` and `--live`.
+    #[arg(long, short, required_unless_present = "live", conflicts_with = "live")]
+    pub out: Option<PathBuf>,
     /// Number of pulses (overrides the scene; for a described scene, the most to generate).
     #[arg(long)]
     pub pulses: Option<u64>,
@@ -41,6 +45,43 @@ pub struct SimulateArgs {
     /// Do not voxelise the truth (a described scene writes `<stem>.truth/voxels.zarr`).
     #[arg(long)]
     pub no_truth_voxels: bool,
+    /// Play the stream in real time into a daemon's inputs instead of writing a capture
+    /// (`--frames` and/or `--nav-tty` / `--nav-pty-link`).
+    #[arg(long)]
+    pub live: bool,
+    /// Live: where digitizer frames go, `udp:HOST:PORT` (one datagram per pulse to that
+    /// destination), `tcp-listen:HOST:PORT` (serve the daemon that connects; port 0 = any free
+    /// port, printed) or `tcp-connect:HOST:PORT` (connect to a listening daemon).
+    #[arg(long, requires = "live", value_name = "TARGET")]
+    pub frames: Option<String>,
+    /// Live: write navigation bytes into this existing terminal device (e.g. a socat pty).
+    #[arg(
+        long,
+        requires = "live",
+        conflicts_with = "nav_pty_link",
+        value_name = "PATH"
+    )]
+    pub nav_tty: Option<PathBuf>,
+    /// Live: create a pseudo-terminal pair and symlink its slave at PATH for the daemon to open
+    /// as its serial navigation device (an existing symlink there is replaced).
+    #[arg(long, requires = "live", value_name = "PATH")]
+    pub nav_pty_link: Option<PathBuf>,
+    /// Live: baud rate set on `--nav-tty`, bits per second.
+    #[arg(long, requires = "live", default_value_t = 115_200)]
+    pub nav_baud: u32,
+    /// Live: playback speed, a multiple of real time (1 = real time, 2 = twice as fast, 0 = as
+    /// fast as possible).
+    #[arg(long, requires = "live", default_value_t = 1.0, value_parser = parse_speed)]
+    pub speed: f64,
+}
+
+fn parse_speed(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!(
+            "{text:?} is not a speed: a finite number >= 0 (0 = as fast as possible)"
+        )),
+    }
 }
 
 /// Runs `fwlidar simulate`: an analytic scene (a `[scene]` table) or a described one (a
@@ -69,13 +110,17 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
     }
     scene.validate().map_err(Failure::usage)?;
     let items = SimItems::new(&scene, &sensor).map_err(Failure::usage)?;
+    let out = match (&args.out, args.live) {
+        (Some(out), false) => out.clone(),
+        _ => return run_live(&args, items),
+    };
     let scene_table = scene
         .to_toml_string()
         .ok()
         .and_then(|t| toml::from_str::<toml::Table>(&t).ok())
         .and_then(|t| t.get("scene").and_then(|s| s.as_table()).cloned());
     let header = capture_header(&sensor, scene_table, "simulated");
-    let mut writer = CaptureWriter::create(&args.out, &header.to_text(), FlushPolicy::default())
+    let mut writer = CaptureWriter::create(&out, &header.to_text(), FlushPolicy::default())
         .map_err(Failure::job)?;
     let bar = progress(args.no_progress, scene.pulses);
     let (mut pulses, mut nav) = (0u64, 0u64);
@@ -104,7 +149,7 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
     }
     println!(
         "wrote {}: {pulses} pulses, {nav} navigation records, {bytes} bytes (scene {}, seed {})",
-        args.out.display(),
+        out.display(),
         args.scene.display(),
         scene.seed
     );
@@ -182,8 +227,15 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
     }
     let base = args.scene.parent().unwrap_or(Path::new("."));
     let sim = WorldSim::new(&scene, &sensor, base).map_err(Failure::usage)?;
-    let [truth_path, csv_path, json_path, truth_dir] = truth_paths(&args.out);
-    for p in [&args.out, &truth_path, &csv_path, &json_path, &truth_dir] {
+    let out = match (&args.out, args.live) {
+        (Some(out), false) => out.clone(),
+        _ => {
+            let items = WorldItems::new(sim).map_err(Failure::usage)?;
+            return run_live(&args, items);
+        }
+    };
+    let [truth_path, csv_path, json_path, truth_dir] = truth_paths(&out);
+    for p in [&out, &truth_path, &csv_path, &json_path, &truth_dir] {
         if p.exists() {
             return Err(Failure::usage(format!(
                 "{} exists: simulated captures and their truth are never overwritten",
@@ -197,7 +249,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
         .ok()
         .and_then(|t| toml::from_str::<toml::Table>(&t).ok());
     let header = capture_header(&sensor, table.clone(), "simulated");
-    let mut writer = CaptureWriter::create(&args.out, &header.to_text(), FlushPolicy::default())
+    let mut writer = CaptureWriter::create(&out, &header.to_text(), FlushPolicy::default())
         .map_err(Failure::job)?;
     let truth_header = capture_header(&sensor, table, "simulated truth (2 ns pulse)");
     let mut truth_writer =
@@ -304,7 +356,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
     }
     println!(
         "wrote {}: {pulses} pulses ({} lost), {nav} navigation records, {bytes} bytes (scene {}, seed {}); truth in {} and {}",
-        args.out.display(),
+        out.display(),
         items.lost().len(),
         args.scene.display(),
         scene.seed,
@@ -377,4 +429,71 @@ fn voxelise_truth(truth: &Path, dir: &Path) -> Result<(), Failure> {
         workers: Some(1),
         no_progress: true,
     })
+}
+
+/// `fwlidar simulate --live`: opens the outputs (printing where they are), plays the stream,
+/// prints the report. Unreachable ports and missing terminals fail the job (exit 1).
+fn run_live(args: &SimulateArgs, items: impl Iterator<Item = SimItem>) -> Result<(), Failure> {
+    use crate::sim::live::{self, FrameListener, FrameOutput, FrameTarget, NavOutput};
+
+    let target = args
+        .frames
+        .as_deref()
+        .map(str::parse::<FrameTarget>)
+        .transpose()
+        .map_err(Failure::usage)?;
+    if target.is_none() && args.nav_tty.is_none() && args.nav_pty_link.is_none() {
+        return Err(Failure::usage(
+            "--live needs somewhere to send: --frames TARGET and/or --nav-tty PATH / --nav-pty-link PATH",
+        ));
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register_conditional_shutdown(sig, 130, stop.clone())
+            .and_then(|_| signal_hook::flag::register(sig, stop.clone()))
+            .map_err(|e| Failure::job(format!("cannot install signal handler: {e}")))?;
+    }
+    let mut nav = match (&args.nav_tty, &args.nav_pty_link) {
+        (Some(path), _) => Some(NavOutput::open_tty(path, args.nav_baud).map_err(Failure::job)?),
+        (None, Some(link)) => Some(NavOutput::create_pty_link(link).map_err(Failure::job)?),
+        (None, None) => None,
+    };
+    if let Some(n) = &nav {
+        println!("navigation: {}", n.describe());
+    }
+    let mut frames = match target {
+        None => None,
+        Some(FrameTarget::Udp(addr)) => Some(FrameOutput::udp(addr).map_err(Failure::job)?),
+        Some(FrameTarget::TcpConnect(addr)) => {
+            Some(FrameOutput::tcp_connect(addr).map_err(Failure::job)?)
+        }
+        Some(FrameTarget::TcpListen(addr)) => {
+            let listener = FrameListener::bind(addr).map_err(Failure::job)?;
+            println!(
+                "digitizer frames: listening on tcp {}, waiting for the daemon to connect",
+                listener.local_addr()
+            );
+            match listener.accept(&stop).map_err(Failure::job)? {
+                Some(out) => Some(out),
+                None => {
+                    println!("stopped before a daemon connected; nothing sent");
+                    return Ok(());
+                }
+            }
+        }
+    };
+    if let Some(f) = &frames {
+        println!("digitizer frames: sending to {}", f.target());
+    }
+    let report = live::play(
+        items,
+        frames.as_mut(),
+        nav.as_mut(),
+        args.speed,
+        &stop,
+        &mut |r| tracing::info!("live: {r}"),
+    )
+    .map_err(Failure::job)?;
+    println!("sent {report}");
+    Ok(())
 }

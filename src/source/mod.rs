@@ -3,6 +3,7 @@
 
 pub mod capture;
 pub mod las;
+pub mod live_frames;
 pub mod pulsewaves;
 pub mod serial;
 

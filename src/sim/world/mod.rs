@@ -567,11 +567,12 @@ impl WorldItems {
             config.dropouts.clear();
             config.random_dropout_probability = 0.0;
         }
-        let nav_stream = NavStream::new(config, sim.scene.seed ^ 0x4E41_5653)
-            .map_err(|e| SceneError::Invalid {
+        let nav_stream = NavStream::new(config, sim.scene.seed ^ 0x4E41_5653).map_err(|e| {
+            SceneError::Invalid {
                 field: "navigation",
                 reason: e.to_string(),
-            })?;
+            }
+        })?;
         Ok(WorldItems {
             nav: nav_stream,
             nav_rate: nav.rate_hz,

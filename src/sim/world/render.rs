@@ -42,7 +42,12 @@ pub fn add_ringing(out: &mut [f64], start: f64, dt: f64, t_e: f64, amp: f64, r: 
         return;
     }
     let w = std::f64::consts::TAU / r.period_ns;
-    for (i, v) in out.iter_mut().enumerate().take(i1 as usize + 1).skip(i0 as usize) {
+    for (i, v) in out
+        .iter_mut()
+        .enumerate()
+        .take(i1 as usize + 1)
+        .skip(i0 as usize)
+    {
         let tau = start + i as f64 * dt - t_e;
         if tau > 0.0 {
             *v += amp * r.amplitude * (-tau / r.decay_ns).exp() * (w * tau).sin();

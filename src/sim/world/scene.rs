@@ -1022,18 +1022,24 @@ impl WorldScene {
             || "amplitude >= 0, period_ns and decay_ns > 0".into(),
         )?;
         let n = &self.navigation;
-        n.validate().map_err(|e| invalid("navigation", e.to_string()))?;
+        n.validate()
+            .map_err(|e| invalid("navigation", e.to_string()))?;
         need(
             !self.has(Effect::NavigationNoise) || n.noise.is_some(),
             "navigation.noise",
-            || "the `navigation_noise` effect needs [navigation.noise] (position_m, attitude_deg, heading_deg)".into(),
+            || {
+                "the `navigation_noise` effect needs [navigation.noise] (position_m, attitude_deg, heading_deg)".into()
+            },
         )?;
         need(
             !self.has(Effect::NavigationDropouts)
                 || !n.dropouts.is_empty()
                 || n.random_dropout_probability > 0.0,
             "navigation.dropouts",
-            || "the `navigation_dropouts` effect needs `dropouts` or `random_dropout_probability`".into(),
+            || {
+                "the `navigation_dropouts` effect needs `dropouts` or `random_dropout_probability`"
+                    .into()
+            },
         )?;
         Ok(())
     }
