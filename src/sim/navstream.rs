@@ -441,6 +441,14 @@ impl NavStream {
         self.last.as_ref()
     }
 
+    /// Tells the stream where the aircraft was at `gps_s` before the first epoch, so that the
+    /// first epoch's INSPVAX velocity is the truth's too (sends nothing, draws nothing).
+    pub fn prime(&mut self, gps_s: f64, truth: &NavFix) {
+        if gps_s.is_finite() {
+            self.previous = Some((gps_s, *truth));
+        }
+    }
+
     /// Appends to `out` the bytes the receiver sends for the epoch at GPS time `gps_s` (seconds
     /// of `gps_week`; later weeks roll over) whose true state is `truth`, in the configured
     /// formats, with the configured errors; returns false and writes nothing when the epoch is
@@ -450,7 +458,7 @@ impl NavStream {
     /// `truth.utc_time_of_day_s` is not used: every record's time comes from `gps_s`,
     /// `gps_week` and `gps_utc_offset_s`, so the formats agree. Call it once per epoch, in time
     /// order; the first call's `gps_s` is the origin of `dropouts`. The INSPVAX velocity is the
-    /// truth's change since the previous call (0 at the first).
+    /// truth's change since the previous call (or [`NavStream::prime`]; 0 at the first without it).
     pub fn epoch_bytes(&mut self, gps_s: f64, truth: &NavFix, out: &mut Vec<u8>) -> bool {
         let index = self.next_index;
         self.next_index += 1;

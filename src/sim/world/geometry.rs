@@ -308,7 +308,12 @@ impl Scene {
             top_z: f64::NEG_INFINITY,
         };
         let mut objects = Vec::new();
-        for (i, t) in s.tree.iter().enumerate() {
+        // Listed trees first, then each forest's, numbered on.
+        let mut trees = s.tree.clone();
+        for (i, f) in s.forest.iter().enumerate() {
+            trees.extend(f.trees(s.seed, i));
+        }
+        for (i, t) in trees.iter().enumerate() {
             let i = i as u32;
             let [x, y] = t.position_m;
             let z0 = scene.ground_height(x, y).unwrap_or(0.0);

@@ -24,7 +24,7 @@ pub mod scene;
 
 use std::path::Path;
 
-use rand::{RngExt, SeedableRng};
+use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::config::sensor::SensorProfile;
@@ -114,24 +114,98 @@ pub struct WorldSim {
     steps_per_count: f64,
     max_raw: f64,
     bits: u8,
-    noise_rng: ChaCha8Rng,
+    noise: Normals,
     jitter_rng: ChaCha8Rng,
     loss_rng: ChaCha8Rng,
     next: u64,
     scratch: TraceScratch,
     rays: Vec<(V3, f64)>,
     fine: Vec<f64>,
+    kernels: Kernels,
+    outgoing: Vec<f64>,
 }
 
 fn rng(seed: u64, stream: u64) -> ChaCha8Rng {
     ChaCha8Rng::seed_from_u64(seed ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15))
 }
 
-/// A standard normal draw (Box-Muller).
+/// A uniform draw in [0, 1) from the generator's next 53 bits.
+#[inline]
+fn unit(rng: &mut ChaCha8Rng) -> f64 {
+    (rng.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+}
+
+/// A standard normal draw (Box-Muller, one of the pair).
 pub fn normal(rng: &mut ChaCha8Rng) -> f64 {
-    let u1: f64 = rng.random_range(f64::MIN_POSITIVE..1.0);
-    let u2: f64 = rng.random_range(0.0..1.0);
+    let u1 = 1.0 - unit(rng);
+    let u2 = unit(rng);
     (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// The standard normal quantile function Φ⁻¹(p) for 0 < p < 1, by P. J. Acklam's rational
+/// approximation (relative error below 1.2e-9): a rational function of `p − ½` in the centre,
+/// of `sqrt(−2 ln p)` in the tails.
+pub fn normal_quantile(p: f64) -> f64 {
+    const A: [f64; 6] = [
+        -3.969_683_028_665_376e1,
+        2.209_460_984_245_205e2,
+        -2.759_285_104_469_687e2,
+        1.383_577_518_672_69e2,
+        -3.066_479_806_614_716e1,
+        2.506_628_277_459_239,
+    ];
+    const B: [f64; 5] = [
+        -5.447_609_879_822_406e1,
+        1.615_858_368_580_409e2,
+        -1.556_989_798_598_866e2,
+        6.680_131_188_771_972e1,
+        -1.328_068_155_288_572e1,
+    ];
+    const C: [f64; 6] = [
+        -7.784_894_002_430_293e-3,
+        -3.223_964_580_411_365e-1,
+        -2.400_758_277_161_838,
+        -2.549_732_539_343_734,
+        4.374_664_141_464_968,
+        2.938_163_982_698_783,
+    ];
+    const D: [f64; 4] = [
+        7.784_695_709_041_462e-3,
+        3.224_671_290_700_398e-1,
+        2.445_134_137_142_996,
+        3.754_408_661_907_416,
+    ];
+    const LOW: f64 = 0.024_25;
+    let tail = |q: f64| {
+        (((((C[0] * q + C[1]) * q + C[2]) * q + C[3]) * q + C[4]) * q + C[5])
+            / ((((D[0] * q + D[1]) * q + D[2]) * q + D[3]) * q + 1.0)
+    };
+    if p < LOW {
+        tail((-2.0 * p.ln()).sqrt())
+    } else if p > 1.0 - LOW {
+        -tail((-2.0 * (1.0 - p).ln()).sqrt())
+    } else {
+        let q = p - 0.5;
+        let r = q * q;
+        (((((A[0] * r + A[1]) * r + A[2]) * r + A[3]) * r + A[4]) * r + A[5]) * q
+            / (((((B[0] * r + B[1]) * r + B[2]) * r + B[3]) * r + B[4]) * r + 1.0)
+    }
+}
+
+/// Standard normal draws for the per-sample noise: the quantile function of a uniform draw
+/// (one generator call and a rational function a sample, no logarithm in 95 % of draws).
+#[derive(Debug)]
+struct Normals {
+    rng: ChaCha8Rng,
+}
+
+impl Normals {
+    #[inline]
+    fn next(&mut self) -> f64 {
+        // (k + ½) / 2^53: strictly inside (0, 1).
+        let u = ((self.rng.next_u64() >> 11) as f64 + 0.5) * (1.0 / (1u64 << 53) as f64);
+        normal_quantile(u)
+    }
 }
 
 /// A Poisson draw of mean `lambda` (exact below 30, normal approximation above).
@@ -143,7 +217,7 @@ fn poisson(rng: &mut ChaCha8Rng, lambda: f64) -> f64 {
         let l = (-lambda).exp();
         let (mut k, mut p) = (0.0, 1.0);
         loop {
-            p *= rng.random_range(0.0..1.0f64);
+            p *= unit(rng);
             if p <= l {
                 return k;
             }
@@ -198,13 +272,20 @@ impl WorldSim {
             } else {
                 16
             },
-            noise_rng: rng(scene.seed, 1),
+            noise: Normals {
+                rng: rng(scene.seed, 1),
+            },
             jitter_rng: rng(scene.seed, 2),
             loss_rng: rng(scene.seed, 3),
             next: 0,
             scratch: TraceScratch::default(),
             rays: Vec::new(),
             fine: Vec::new(),
+            kernels: Kernels {
+                clean: PhaseKernel::new((sigma_out * sigma_out + sigma_rx * sigma_rx).sqrt(), dt),
+                truth: PhaseKernel::new(2.0 / FWHM_PER_SIGMA, dt),
+            },
+            outgoing: Vec::new(),
             geo,
             plan,
             scene: scene.clone(),
@@ -371,19 +452,32 @@ impl WorldSim {
                     let t_a = trans;
                     // Transmission at range r inside this stretch.
                     let t_at = |r: f64| t_a * (-k_tot * (r - a)).exp();
-                    // Quarter-sample bins: the energy intercepted in each, at its centre.
-                    let (ta, tb) = (a / mpn + jitter, b / mpn + jitter);
+                    // Quarter-sample bins (true time): the energy intercepted in each, at its
+                    // centre. Inside the stretch the transmission falls by a constant factor
+                    // per whole bin.
+                    let (ta, tb) = (a / mpn, b / mpn);
                     let f_lo = ((ta - fine_t0) / delta).floor().max(0.0) as usize;
                     let f_hi = (((tb - fine_t0) / delta).ceil().max(0.0) as usize).min(fine_n);
+                    let per_bin = (-k_tot * delta * mpn).exp();
                     let mut sum_amp = 0.0;
+                    let mut t_u = f64::NAN;
                     for f in f_lo..f_hi {
                         let u = (fine_t0 + f as f64 * delta).max(ta);
                         let v = (fine_t0 + (f + 1) as f64 * delta).min(tb);
                         if v <= u {
                             continue;
                         }
-                        let (ru, rv) = ((u - jitter) * mpn, (v - jitter) * mpn);
-                        let e = t_at(ru) - t_at(rv);
+                        let (ru, rv) = (u * mpn, v * mpn);
+                        if t_u.is_nan() {
+                            t_u = t_at(ru);
+                        }
+                        let t_v = if v < tb && u > ta {
+                            t_u * per_bin
+                        } else {
+                            t_at(rv)
+                        };
+                        let e = t_u - t_v;
+                        t_u = t_v;
                         let r_mid = 0.5 * (ru + rv);
                         let amp = peak * w * rho * e * (r_ref / r_mid).powi(2);
                         self.fine[f] += amp;
@@ -448,23 +542,29 @@ impl WorldSim {
                 }
             }
         }
+        // The media's bins: from the per-phase kernel tables (no exponential per bin), or
+        // one by one when jitter or ringing move or add to them.
+        let exact = jitter != 0.0 || ringing.is_some();
         for f in 0..fine_n {
             let amp = self.fine[f];
             if amp == 0.0 {
                 continue;
             }
-            let t = fine_t0 + (f as f64 + 0.5) * delta;
-            add_gaussian(&mut truth.clean, start, dt, t, amp * gain_k, sigma_k);
-            add_gaussian(
-                &mut truth.truth,
-                start,
-                dt,
-                t - jitter,
-                amp * gain_t,
-                self.sigma_truth,
-            );
-            if let Some(r) = &ringing {
-                add_ringing(&mut truth.clean, start, dt, t, amp, r);
+            let (q, phase) = (f / FINE, f % FINE);
+            // Sample i lies (i + margin − q)·dt − (phase + ½)·δ after the bin's centre.
+            self.kernels
+                .truth
+                .add(&mut truth.truth, margin, q, phase, amp * gain_t);
+            if exact {
+                let t = fine_t0 + (f as f64 + 0.5) * delta + jitter;
+                add_gaussian(&mut truth.clean, start, dt, t, amp * gain_k, sigma_k);
+                if let Some(r) = &ringing {
+                    add_ringing(&mut truth.clean, start, dt, t, amp, r);
+                }
+            } else {
+                self.kernels
+                    .clean
+                    .add(&mut truth.clean, margin, q, phase, amp * gain_k);
             }
         }
         // The pulse.
@@ -479,10 +579,21 @@ impl WorldSim {
         pulse.bits = self.bits;
         let first = pulse.raw.len();
         let out_peak = self.scene.sensor.outgoing_peak_dn * gain_k;
+        if self.outgoing.len() != self.outgoing_len {
+            self.outgoing = (0..self.outgoing_len)
+                .map(|i| {
+                    let z = (self.outgoing_start_ns + i as f64 * dt) / sigma_k;
+                    out_peak * (-0.5 * z * z).exp()
+                })
+                .collect();
+        }
         for i in 0..self.outgoing_len {
-            let t = self.outgoing_start_ns + i as f64 * dt - jitter;
-            let z = t / sigma_k;
-            let clean = out_peak * (-0.5 * z * z).exp();
+            let clean = if jitter == 0.0 {
+                self.outgoing[i]
+            } else {
+                let z = (self.outgoing_start_ns + i as f64 * dt - jitter) / sigma_k;
+                out_peak * (-0.5 * z * z).exp()
+            };
             let raw = self.digitize(clean);
             pulse.raw.push(raw);
         }
@@ -506,23 +617,84 @@ impl WorldSim {
         if s.has(Effect::Noise) {
             match s.noise {
                 Some(Noise::Uniform { amplitude_dn }) if amplitude_dn > 0.0 => {
-                    v += self.noise_rng.random_range(-amplitude_dn..=amplitude_dn)
+                    v += amplitude_dn * (2.0 * unit(&mut self.noise.rng) - 1.0)
                 }
-                Some(Noise::Gaussian { sigma_dn }) => v += sigma_dn * normal(&mut self.noise_rng),
+                Some(Noise::Gaussian { sigma_dn }) => v += sigma_dn * self.noise.next(),
                 Some(Noise::Poisson {
                     photons_per_dn,
                     dark_sigma_dn,
                 }) => {
-                    let photons = poisson(&mut self.noise_rng, clean.max(0.0) * photons_per_dn);
+                    let photons = poisson(&mut self.noise.rng, clean.max(0.0) * photons_per_dn);
                     v = s.sensor.baseline_dn
                         + photons / photons_per_dn
-                        + dark_sigma_dn * normal(&mut self.noise_rng);
+                        + dark_sigma_dn * self.noise.next();
                 }
                 _ => {}
             }
         }
-        (v * self.steps_per_count).round().clamp(0.0, self.max_raw) as u16
+        // Round half to even by the 1.5·2^52 trick (exact for |x| < 2^51; x is clamped to
+        // 0..=65535 first), a few instructions instead of a libm call.
+        const ROUND: f64 = 6_755_399_441_055_744.0;
+        let x = (v * self.steps_per_count).clamp(0.0, self.max_raw);
+        ((x + ROUND) - ROUND) as u16
     }
+}
+
+/// A Gaussian sampled at the sample interval for each of the [`FINE`] phases of a bin centre:
+/// `table[phase][m + half]` = `exp(−x²/2σ²)` at `x = m·dt − (phase + ½)·dt/FINE`,
+/// `m = −half..=half` (±7σ).
+#[derive(Debug, Default)]
+struct PhaseKernel {
+    half: usize,
+    table: Vec<Vec<f64>>,
+}
+
+impl PhaseKernel {
+    fn new(sigma: f64, dt: f64) -> Self {
+        let half = (7.0 * sigma / dt).ceil() as usize + 1;
+        let delta = dt / FINE as f64;
+        let table = (0..FINE)
+            .map(|p| {
+                (0..=2 * half)
+                    .map(|k| {
+                        let x = (k as f64 - half as f64) * dt - (p as f64 + 0.5) * delta;
+                        let z = x / sigma;
+                        if z.abs() <= 7.0 {
+                            (-0.5 * z * z).exp()
+                        } else {
+                            0.0
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        PhaseKernel { half, table }
+    }
+
+    /// Adds `amp ×` the kernel of fine bin (`q`, `phase`) to `out`, whose sample `i` is fine
+    /// sample `i + margin`.
+    #[inline]
+    fn add(&self, out: &mut [f64], margin: usize, q: usize, phase: usize, amp: f64) {
+        // m = i + margin − q, so i = m + q − margin for m in −half..=half.
+        let i_min = q as isize - margin as isize - self.half as isize;
+        let lo = i_min.max(0);
+        let hi = (i_min + 2 * self.half as isize + 1).min(out.len() as isize);
+        if lo >= hi {
+            return;
+        }
+        let first = (lo - i_min) as usize;
+        let k = &self.table[phase][first..first + (hi - lo) as usize];
+        for (o, &v) in out[lo as usize..hi as usize].iter_mut().zip(k) {
+            *o += amp * v;
+        }
+    }
+}
+
+/// The kernels of a simulator: the received echo's and the truth's.
+#[derive(Debug, Default)]
+struct Kernels {
+    clean: PhaseKernel,
+    truth: PhaseKernel,
 }
 
 fn at(o: V3, s: f64, d: V3) -> V3 {
@@ -573,7 +745,7 @@ impl WorldItems {
                 reason: e.to_string(),
             }
         })?;
-        Ok(WorldItems {
+        let mut items = WorldItems {
             nav: nav_stream,
             nav_rate: nav.rate_hz,
             sim,
@@ -582,7 +754,12 @@ impl WorldItems {
             truth: ShotTruth::default(),
             lost: Vec::new(),
             pending: None,
-        })
+        };
+        // The state one epoch before the first, for the first epoch's velocity.
+        let before = items.nav_time(0) - 1.0 / items.nav_rate;
+        let fix = items.fix_at(before);
+        items.nav.prime(before, &fix);
+        Ok(items)
     }
 
     /// The generator.
@@ -604,11 +781,11 @@ impl WorldItems {
         self.sim.scene.gps_time_start_s + j as f64 / self.nav_rate
     }
 
-    /// The navigation bytes of epoch `gps` (None when the epoch is dropped).
-    fn nav_bytes(&mut self, gps: f64) -> Option<Vec<u8>> {
+    /// The true navigation state at `gps`.
+    fn fix_at(&self, gps: f64) -> NavFix {
         let s = &self.sim.scene;
         let pose = self.sim.plan.pose(gps - s.gps_time_start_s);
-        let fix = NavFix {
+        NavFix {
             utc_time_of_day_s: (gps - s.navigation.gps_utc_offset_s).rem_euclid(86_400.0),
             lat_deg: pose.geodetic.lat_deg,
             lon_deg: pose.geodetic.lon_deg,
@@ -616,7 +793,12 @@ impl WorldItems {
             heading_deg: pose.attitude_deg[2],
             roll_deg: pose.attitude_deg[0],
             pitch_deg: pose.attitude_deg[1],
-        };
+        }
+    }
+
+    /// The navigation bytes of epoch `gps` (None when the epoch is dropped).
+    fn nav_bytes(&mut self, gps: f64) -> Option<Vec<u8>> {
+        let fix = self.fix_at(gps);
         let mut out = Vec::new();
         self.nav.epoch_bytes(gps, &fix, &mut out).then_some(out)
     }

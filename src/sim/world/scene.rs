@@ -63,6 +63,9 @@ pub struct WorldScene {
     /// Trees: a stem and branch cylinders, a crown envelope filled with leaves.
     #[serde(default)]
     pub tree: Vec<Tree>,
+    /// Forests: trees generated from the seed over a rectangle (expanded into `tree`s).
+    #[serde(default)]
+    pub forest: Vec<Forest>,
     /// Grass patches: a turbid layer of leaves from the terrain up to a height.
     #[serde(default)]
     pub grass: Vec<Grass>,
@@ -300,6 +303,77 @@ pub struct Tree {
     /// Material of the leaves. Default "leaf".
     #[serde(default = "leaf")]
     pub leaf: String,
+}
+
+/// A stand of trees generated from the scene's seed: positions uniform over the rectangle
+/// (at least a crown radius apart is not enforced: crowns may overlap, as in real stands),
+/// heights uniform in `height_range_m`, crowns and leaves in proportion.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Forest {
+    /// `[west, south, east, north]` edges, metres.
+    pub rectangle_m: [f64; 4],
+    /// Trees per hectare.
+    pub trees_per_ha: f64,
+    /// Tree heights `[lowest, highest]`, metres.
+    pub height_range_m: [f64; 2],
+    /// Crown radius as a fraction of the tree's height. Default 0.25.
+    #[serde(default = "default_crown_radius_fraction")]
+    pub crown_radius_fraction: f64,
+    /// Crown base as a fraction of the tree's height. Default 0.4.
+    #[serde(default = "default_crown_base_fraction")]
+    pub crown_base_fraction: f64,
+    /// Crown shape. Default ellipsoid.
+    #[serde(default = "default_shape")]
+    pub shape: CrownShape,
+    /// Leaf area density, m²/m³ (0: leaf-off). Default 0.8.
+    #[serde(default = "default_forest_lad")]
+    pub leaf_area_density: f64,
+    /// Branches per tree. Default 0.
+    #[serde(default)]
+    pub branch_count: u32,
+}
+
+impl Forest {
+    /// The trees of this stand (deterministic for `seed` and the stand's index `index`).
+    pub fn trees(&self, seed: u64, index: usize) -> Vec<Tree> {
+        let r = self.rectangle_m;
+        let area_ha = (r[2] - r[0]) * (r[3] - r[1]) / 10_000.0;
+        let n = (area_ha * self.trees_per_ha).round().max(0.0) as usize;
+        let mut state = seed ^ 0xF0_4E57u64.wrapping_mul(index as u64 + 1);
+        let mut next = || {
+            state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        };
+        (0..n)
+            .map(|_| {
+                let x = r[0] + next() * (r[2] - r[0]);
+                let y = r[1] + next() * (r[3] - r[1]);
+                let [lo, hi] = self.height_range_m;
+                let h = lo + next() * (hi - lo);
+                Tree {
+                    position_m: [x, y],
+                    height_m: h,
+                    stem_radius_m: 0.012 * h,
+                    crown: Crown {
+                        shape: self.shape,
+                        base_m: self.crown_base_fraction * h,
+                        radius_m: self.crown_radius_fraction * h,
+                    },
+                    leaf_area_density: self.leaf_area_density,
+                    g_function: default_g(),
+                    branches: Vec::new(),
+                    branch_count: self.branch_count,
+                    branch_radius_m: default_branch_radius(),
+                    bark: bark(),
+                    leaf: leaf(),
+                }
+            })
+            .collect()
+    }
 }
 
 /// A grass patch.
@@ -598,6 +672,15 @@ fn default_shape() -> CrownShape {
 fn default_ridge() -> Ridge {
     Ridge::EastWest
 }
+fn default_crown_radius_fraction() -> f64 {
+    0.25
+}
+fn default_crown_base_fraction() -> f64 {
+    0.4
+}
+fn default_forest_lad() -> f64 {
+    0.8
+}
 fn default_stem_radius() -> f64 {
     0.15
 }
@@ -830,6 +913,42 @@ impl WorldScene {
             }
             material(&t.bark, "tree.bark")?;
             material(&t.leaf, "tree.leaf")?;
+        }
+        for f in &self.forest {
+            rect(&f.rectangle_m, "forest.rectangle_m")?;
+            let [lo, hi] = f.height_range_m;
+            need(
+                pos(lo) && hi >= lo && hi.is_finite(),
+                "forest.height_range_m",
+                || {
+                    format!(
+                        "must be [lowest > 0, highest >= lowest], got {:?}",
+                        f.height_range_m
+                    )
+                },
+            )?;
+            need(
+                nonneg(f.trees_per_ha) && f.trees_per_ha <= 20_000.0,
+                "forest.trees_per_ha",
+                || format!("must be in 0..=20000, got {}", f.trees_per_ha),
+            )?;
+            let area =
+                (f.rectangle_m[2] - f.rectangle_m[0]) * (f.rectangle_m[3] - f.rectangle_m[1]);
+            need(
+                area / 10_000.0 * f.trees_per_ha <= 1e6,
+                "forest.trees_per_ha",
+                || "more than a million trees: use a smaller rectangle".into(),
+            )?;
+            need(
+                pos(f.crown_radius_fraction) && (0.0..1.0).contains(&f.crown_base_fraction),
+                "forest.crown_radius_fraction",
+                || "crown_radius_fraction must be > 0 and crown_base_fraction in 0..1".into(),
+            )?;
+            need(
+                nonneg(f.leaf_area_density),
+                "forest.leaf_area_density",
+                || format!("must be >= 0, got {}", f.leaf_area_density),
+            )?;
         }
         for g in &self.grass {
             rect(&g.rectangle_m, "grass.rectangle_m")?;

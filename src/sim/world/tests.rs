@@ -500,3 +500,57 @@ fn bad_scenes_name_the_field() {
     assert!(err(&format!("[flight]\nlines = []\n{SENSOR}")).contains("flight.lines"));
     assert!(err(&format!("{line}scan = {{ pattern = \"palmer\", half_angle_deg = 70.0, rate_hz = 10.0 }}\n{SENSOR}")).contains("half_angle_deg"));
 }
+
+#[test]
+fn the_normal_quantile_matches_known_values_and_draws_are_normal() {
+    for (p, z) in [
+        (0.5, 0.0),
+        (0.975, 1.959_963_984_540_054),
+        (0.841_344_746_068_543, 1.0),
+        (0.001, -3.090_232_306_167_813),
+        (1e-9, -5.997_807_015_007_686),
+        (0.02, -2.053_748_910_631_823),
+    ] {
+        let got = normal_quantile(p);
+        assert!(
+            (got - z).abs() < 1e-8 * z.abs().max(1.0),
+            "Φ⁻¹({p}) = {got}, want {z}"
+        );
+        assert!((normal_quantile(1.0 - p) + z).abs() < 1e-8 * z.abs().max(1.0));
+    }
+    let mut n = Normals { rng: rng(7, 1) };
+    let draws: Vec<f64> = (0..200_000).map(|_| n.next()).collect();
+    let mean = draws.iter().sum::<f64>() / draws.len() as f64;
+    let var = draws.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / draws.len() as f64;
+    let beyond3 = draws.iter().filter(|d| d.abs() > 3.0).count() as f64 / draws.len() as f64;
+    assert!(
+        mean.abs() < 0.01 && (var - 1.0).abs() < 0.01,
+        "{mean} {var}"
+    );
+    assert!((beyond3 / 0.0027 - 1.0).abs() < 0.15, "tails {beyond3}");
+}
+
+#[test]
+fn media_render_the_same_from_the_kernel_tables_and_one_by_one() {
+    // Ringing listed with a zero amplitude sends the media's bins through the exact path.
+    let scene = |effects: &str| {
+        format!(
+            "effects = [{effects}]\nringing = {{ amplitude = 0.0 }}\n\
+             [[tree]]\nposition_m = [0.3, 0.0]\nheight_m = 14.0\nleaf_area_density = 0.9\n\
+             crown = {{ shape = \"cone\", base_m = 4.0, radius_m = 3.0 }}\n\
+             [[grass]]\nrectangle_m = [-5.0, -5.0, 5.0, 5.0]\nheight_m = 0.7\nleaf_area_density = 1.5\n\
+             [flight]\npulse_rate_hz = 1000.0\nlines = [{{ start_m = [0.0, -1.0], end_m = [0.0, 1.0] }}]\n\
+             {SENSOR}receiver_fwhm_ns = 3.0\n"
+        )
+    };
+    let a = pulses(&mut world(&scene("")));
+    let b = pulses(&mut world(&scene("\"ringing\"")));
+    assert_eq!(a.len(), b.len());
+    for ((_, ta), (_, tb)) in a.iter().zip(&b) {
+        assert!(ta.scatterers.iter().any(|s| s.kind == ObjectKind::Crown));
+        let peak = ta.clean.iter().cloned().fold(0.0, f64::max);
+        for (x, y) in ta.clean.iter().zip(&tb.clean) {
+            assert!((x - y).abs() < 1e-9 * peak, "{x} vs {y}");
+        }
+    }
+}
