@@ -250,3 +250,38 @@ fn a_described_scene_writes_its_truth_and_truth_voxels() {
     );
     assert!(!dir.path().join("x.fwcap").exists());
 }
+
+#[test]
+fn the_described_replay_samples_are_reproducible() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, extra) in [
+        ("tree_plot", vec![]),
+        ("grass_patches", vec![]),
+        ("survey_line", vec!["--pulses", "6000"]),
+    ] {
+        let out = dir.path().join(format!("{name}.fwcap"));
+        let scene = Path::new(ROOT).join(format!("config/scenes/{name}.toml"));
+        let mut args = vec![
+            "simulate",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--no-progress",
+            "--no-truth-voxels",
+        ];
+        args.extend(extra);
+        let o = fwlidar(&args);
+        assert!(o.status.success(), "{}", text(&o.stderr));
+        for suffix in ["fwcap", "truth.fwcap"] {
+            let committed = Path::new(ROOT).join(format!("replay/{name}.{suffix}"));
+            let fresh = dir.path().join(format!("{name}.{suffix}"));
+            assert!(
+                std::fs::read(&fresh).unwrap() == std::fs::read(&committed).unwrap(),
+                "{} differs from a fresh simulation: regenerate it (bash replay/regenerate.sh)",
+                committed.display()
+            );
+            assert!(std::fs::metadata(&committed).unwrap().len() < 5_000_000);
+        }
+    }
+}
