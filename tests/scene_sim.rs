@@ -285,3 +285,68 @@ fn the_described_replay_samples_are_reproducible() {
         }
     }
 }
+
+#[test]
+fn tradeoff_scores_a_scene_step_by_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Path::new(ROOT).join("config/scenes/tree_plot.toml");
+    let o = fwlidar(&[
+        "tradeoff",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--pulses",
+        "400",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let csv = std::fs::read_to_string(dir.path().join("scene_steps.csv")).unwrap();
+    let rows: HashMap<String, Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (
+                f[0].to_string(),
+                f[1..].iter().map(|v| v.parse::<f64>().unwrap()).collect(),
+            )
+        })
+        .collect();
+    for step in [
+        "raw",
+        "denoise",
+        "rl iterations=20",
+        "gold iterations=20",
+        "wiener",
+        "nnls max_iterations=100",
+        "voxelise (rl 20 through 2 ns)",
+    ] {
+        let r = &rows[step];
+        assert_eq!(r[0], 400.0, "{step} scored");
+        assert!(r.iter().all(|v| v.is_finite()), "{step}: {r:?}");
+        assert!(r[6] > 0.0, "{step} timed");
+    }
+    // Columns: scored, rmse, rmse_2ns, detection, false, sam, median, p99.
+    let (raw, rl, den) = (&rows["raw"], &rows["rl iterations=20"], &rows["denoise"]);
+    assert!(
+        rl[1] < raw[1],
+        "deconvolution lowers the RMSE: {} vs {}",
+        rl[1],
+        raw[1]
+    );
+    assert!(rl[4] < raw[4] - 1.0, "fewer false peaks than raw");
+    assert!(rl[5] < raw[5], "a smaller spectral angle");
+    assert!(den[3] < raw[3], "denoise removes the noise peaks");
+    assert!(
+        std::fs::read_to_string(dir.path().join("scene_steps.md"))
+            .unwrap()
+            .contains("| rl iterations=20 |")
+    );
+    // Scratch voxels are gone.
+    assert!(std::fs::read_dir(dir.path()).unwrap().all(|e| {
+        !e.unwrap()
+            .file_name()
+            .to_string_lossy()
+            .starts_with(".scene")
+    }));
+}

@@ -46,10 +46,81 @@ pub struct TradeoffArgs {
     /// Seed of the simulated truth and noise.
     #[arg(long, default_value_t = 2012)]
     pub seed: u64,
+    /// A described scene (`config/scenes/*.toml` with `[flight]`): score its pulses step by
+    /// step (raw, denoise, each deconvolution, voxelised) against the scene's truth instead of
+    /// the sweep; writes `scene_steps.md` and `scene_steps.csv`. `--pulses` (default 1600) and
+    /// `--set` apply to it.
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    /// Scene override `KEY=VALUE` (with `--scene`), as `fwlidar simulate --set`.
+    #[arg(long = "set", value_name = "KEY=VALUE", requires = "scene")]
+    pub sets: Vec<String>,
+}
+
+/// `fwlidar tradeoff --scene`: the stepwise evaluation of one described scene.
+fn run_scene(args: &TradeoffArgs, scene_path: &std::path::Path) -> Result<(), Failure> {
+    use crate::eval::scene_steps;
+    use crate::sim::world::WorldSim;
+    use crate::sim::world::scene::WorldScene;
+    let (scene, sensor) = WorldScene::load_with(scene_path, &args.sets).map_err(Failure::usage)?;
+    let base = scene_path.parent().unwrap_or(std::path::Path::new("."));
+    let mut sim = WorldSim::new(&scene, &sensor, base).map_err(Failure::usage)?;
+    let pulses = args.pulses.unwrap_or(if args.quick { 200 } else { 1600 });
+    std::fs::create_dir_all(&args.out)
+        .map_err(|e| Failure::job(format!("cannot create {}: {e}", args.out.display())))?;
+    let scratch = tempfile_dir(&args.out)?;
+    let started = Instant::now();
+    let results = scene_steps::run_scene_steps(
+        &mut sim,
+        pulses,
+        args.peak_floor,
+        args.peak_tolerance_bins,
+        &scratch,
+    );
+    let _ = std::fs::remove_dir_all(&scratch);
+    let results = results.map_err(Failure::job)?;
+    let machine = Machine::detect();
+    let cpu = format!(
+        "{} ({} logical cores)",
+        machine.cpu.as_deref().unwrap_or("unknown CPU"),
+        machine.cores
+    );
+    let md = format!(
+        "# Stepwise evaluation of {} ({} pulses)\n\n{}\nMachine: {cpu}. Time per pulse: one thread, the step alone.\n",
+        scene_path.display(),
+        results.first().map_or(0, |r| r.scored),
+        scene_steps::markdown(&results),
+    );
+    for (name, body) in [
+        ("scene_steps.md", md.as_bytes()),
+        ("scene_steps.csv", scene_steps::csv(&results).as_bytes()),
+    ] {
+        let path = args.out.join(name);
+        write_atomic(&path, body).map_err(|e| Failure::job(format!("{}: {e}", path.display())))?;
+    }
+    print!("{}", scene_steps::markdown(&results));
+    println!(
+        "{} s; wrote {}/scene_steps.md and scene_steps.csv",
+        started.elapsed().as_secs(),
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// A fresh scratch folder inside `out` (removed by the caller).
+fn tempfile_dir(out: &std::path::Path) -> Result<PathBuf, Failure> {
+    let dir = out.join(format!(".scene_steps_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir)
+        .map_err(|e| Failure::job(format!("cannot create {}: {e}", dir.display())))?;
+    Ok(dir)
 }
 
 /// Runs the sweep and writes the three files.
 pub fn run(args: TradeoffArgs) -> Result<(), Failure> {
+    if let Some(scene) = args.scene.clone() {
+        return run_scene(&args, &scene);
+    }
     let pulses = args
         .pulses
         .unwrap_or(if args.quick { QUICK_PULSES } else { 1000 });

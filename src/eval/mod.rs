@@ -4,9 +4,12 @@
 //!   spectral angle);
 //! - [`tradeoff`]: the sweep of methods and settings over simulated pulses, timed per pulse;
 //! - [`report`]: its CSV and markdown;
-//! - [`plot`]: its SVG figure (error against time per pulse, Pareto front).
+//! - [`plot`]: its SVG figure (error against time per pulse, Pareto front);
+//! - [`scene_steps`]: the seed's stepwise evaluation on a described scene (raw, denoise,
+//!   deconvolution, voxelised), scored against the scene's truth.
 
 pub mod metrics;
 pub mod plot;
 pub mod report;
+pub mod scene_steps;
 pub mod tradeoff;
