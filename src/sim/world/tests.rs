@@ -554,3 +554,118 @@ fn media_render_the_same_from_the_kernel_tables_and_one_by_one() {
         }
     }
 }
+
+#[test]
+fn a_geotiff_terrain_is_hit_at_the_dem_height() {
+    // A real DEM (IGN LiDAR HD, 0.5 m cells), placed with its centre at the scene origin.
+    let tif = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/fixtures/dem/ign_lidarhd/DTM_test_data_77055_627760_LA93_IGN69_50CM.tif");
+    assert!(
+        tif.exists(),
+        "fixture missing: {} (see ../shared/fixtures/MANIFEST.md)",
+        tif.display()
+    );
+    let mut sim = world(&format!(
+        "effects = [\"off_nadir\"]\n[terrain]\nkind = \"geotiff\"\npath = \"{}\"\n\
+         [flight]\npulse_rate_hz = 2000.0\nlines = [{{ start_m = [-20.0, 0.0], end_m = [20.0, 0.0] }}]\n\
+         scan = {{ pattern = \"oscillating\", half_angle_deg = 1.0, rate_hz = 30.0 }}\n{SENSOR}",
+        tif.display()
+    ));
+    let ps = pulses(&mut sim);
+    assert!(ps.len() > 1000);
+    let geo = sim.geometry();
+    let mut heights = Vec::new();
+    for (_, t) in &ps {
+        let g = t.scatterers.last().unwrap();
+        assert_eq!(g.kind, ObjectKind::Terrain);
+        let want = geo.ground_height(g.position[0], g.position[1]).unwrap();
+        assert!(
+            (g.position[2] - want).abs() < 1e-3,
+            "{:?} vs {want}",
+            g.position
+        );
+        heights.push(want);
+    }
+    // Real relief: the heights vary along the swath.
+    let (lo, hi) = heights
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &h| {
+            (a.min(h), b.max(h))
+        });
+    assert!(hi - lo > 0.05, "{lo}..{hi}");
+}
+
+#[test]
+fn poisson_noise_grows_with_the_signal() {
+    let mut sim = world(&nadir_line(
+        "seed = 9\neffects = [\"noise\"]\n[noise]\nkind = \"poisson\"\nphotons_per_dn = 2.0\n",
+        "",
+    ));
+    let ps = pulses(&mut sim);
+    // Residuals where the echo is strong against where there is only the baseline.
+    let (mut strong, mut dark) = (Vec::new(), Vec::new());
+    for (p, t) in &ps {
+        for (i, &r) in p.raw_of(1).iter().enumerate() {
+            let d = r as f64 / 64.0 - (12.0 + t.clean[i]);
+            if t.clean[i] > 40.0 {
+                strong.push((d, t.clean[i]));
+            } else if t.clean[i] == 0.0 {
+                dark.push(d);
+            }
+        }
+    }
+    assert!(
+        dark.iter().all(|d| d.abs() < 1.0 / 64.0),
+        "no dark noise configured"
+    );
+    // Variance of counts = signal / photons_per_dn.
+    let var: f64 = strong.iter().map(|(d, c)| d * d / (c / 2.0)).sum::<f64>() / strong.len() as f64;
+    assert!(
+        (var - 1.0).abs() < 0.25,
+        "normalised variance {var} over {}",
+        strong.len()
+    );
+}
+
+#[test]
+fn navigation_effects_change_the_navigation_only_when_named() {
+    let run = |effects: &str| {
+        let text = format!(
+            "seed = 2\neffects = [{effects}]\n[flight]\npulse_rate_hz = 1000.0\n\
+             lines = [{{ start_m = [0.0, 0.0], end_m = [120.0, 0.0] }}]\n{SENSOR}\
+             [navigation]\nrate_hz = 20.0\nnoise = {{ position_m = 0.5, attitude_deg = 0.01 }}\n\
+             dropouts = [{{ start_s = 0.5, duration_s = 0.25 }}]\n"
+        );
+        let items = WorldItems::new(world(&text)).unwrap();
+        let mut nav = Vec::new();
+        let mut pulses = 0;
+        for item in items {
+            match item {
+                SimItem::Nav {
+                    receive_time_ns,
+                    bytes,
+                } => nav.push((receive_time_ns, bytes)),
+                SimItem::Pulse(_) => pulses += 1,
+            }
+        }
+        (nav, pulses)
+    };
+    let (plain, n0) = run("");
+    let (noisy, n1) = run("\"navigation_noise\"");
+    let (gappy, n2) = run("\"navigation_dropouts\"");
+    assert_eq!((n0, n1, n2), (2001, 2001, 2001), "pulses are not touched");
+    assert_eq!(plain.len(), noisy.len());
+    assert!(
+        plain
+            .iter()
+            .zip(&noisy)
+            .all(|(a, b)| a.0 == b.0 && a.1 != b.1)
+    );
+    // 0.5..0.75 s at 20 Hz: epochs 10..14 are not sent.
+    assert_eq!(gappy.len(), plain.len() - 5);
+    let t0 = plain[0].0;
+    assert!(gappy.iter().all(|(t, _)| {
+        let dt = (t - t0) as f64 * 1e-9;
+        !(0.5 - 1e-6..0.75 - 1e-6).contains(&dt)
+    }));
+}
