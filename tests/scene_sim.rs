@@ -350,3 +350,42 @@ fn tradeoff_scores_a_scene_step_by_step() {
             .starts_with(".scene")
     }));
 }
+
+#[test]
+fn the_experiment_matrix_runs_every_combination() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Path::new(ROOT).join("config/scenes/tree_plot.toml");
+    let o = fwlidar(&[
+        "tradeoff",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--matrix",
+        "--widths-ns",
+        "4,16",
+        "--zeniths-deg",
+        "0,20",
+        "--azimuths-deg",
+        "0,90",
+        "--pulses",
+        "200",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let csv = std::fs::read_to_string(dir.path().join("scene_matrix.csv")).unwrap();
+    // 2 widths × (nadir once + 20° at two azimuths) × 7 steps.
+    assert_eq!(csv.lines().count(), 1 + 2 * 3 * 7, "{csv}");
+    let rl_sam = |w: &str, z: &str, a: &str| -> f64 {
+        csv.lines()
+            .find(|l| l.starts_with(&format!("{w},{z},{a},rl ")))
+            .map(|l| l.split(',').nth(9).unwrap().parse().unwrap())
+            .unwrap()
+    };
+    // Deconvolution does better on the short pulse than on the long one.
+    assert!(rl_sam("4", "0", "0") < rl_sam("16", "0", "0"));
+    assert!(
+        std::fs::read_to_string(dir.path().join("scene_matrix.md"))
+            .unwrap()
+            .contains("| 16 | 20 | 90 |")
+    );
+}
