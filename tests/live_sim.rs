@@ -25,10 +25,15 @@ fn scene() -> PathBuf {
 
 /// What `fwlidar simulate --out` writes for the scene: frame payloads, navigation records.
 fn capture(dir: &Path, pulses: u64) -> (Vec<Vec<u8>>, Vec<Vec<u8>>) {
+    capture_of(&scene(), dir, pulses)
+}
+
+/// As [`capture`], for any scene.
+fn capture_of(scene: &Path, dir: &Path, pulses: u64) -> (Vec<Vec<u8>>, Vec<Vec<u8>>) {
     let path = dir.join("reference.fwcap");
     let out = Command::new(BIN)
-        .args(["simulate", "--no-progress", "--scene"])
-        .arg(scene())
+        .args(["simulate", "--no-progress", "--no-truth-voxels", "--scene"])
+        .arg(scene)
         .args(["--pulses", &pulses.to_string(), "--out"])
         .arg(&path)
         .output()
@@ -51,9 +56,19 @@ fn capture(dir: &Path, pulses: u64) -> (Vec<Vec<u8>>, Vec<Vec<u8>>) {
 
 /// Starts `fwlidar simulate --live` with `args`; its stdout lines arrive on the receiver.
 fn spawn_live(pulses: u64, speed: &str, args: &[&str]) -> (Child, Receiver<String>) {
+    spawn_live_of(&scene(), pulses, speed, args)
+}
+
+/// As [`spawn_live`], for any scene.
+fn spawn_live_of(
+    scene: &Path,
+    pulses: u64,
+    speed: &str,
+    args: &[&str],
+) -> (Child, Receiver<String>) {
     let mut child = Command::new(BIN)
         .args(["simulate", "--live", "--no-progress", "--scene"])
-        .arg(scene())
+        .arg(scene)
         .args(["--pulses", &pulses.to_string(), "--speed", speed])
         .args(args)
         .stdout(Stdio::piped())
@@ -411,4 +426,64 @@ fn unreachable_outputs_and_bad_arguments_are_named() {
         "{}",
         stderr(&o)
     );
+}
+
+#[test]
+fn a_described_scene_plays_live_like_its_capture() {
+    // The tree plot (NovAtel binary navigation) over TCP: frames and navigation bytes equal
+    // the capture `simulate --out` writes for the same scene.
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/scenes/tree_plot.toml");
+    let dir = tempfile::tempdir().unwrap();
+    let (want_frames, want_nav) = capture_of(&scene, dir.path(), 400);
+    let (mut master, slave) = TTYPort::pair().unwrap();
+    master.set_timeout(Duration::from_millis(100)).unwrap();
+    let slave_name = slave.name().unwrap();
+    let nav_len: usize = want_nav.iter().map(Vec::len).sum();
+    let nav_reader = std::thread::spawn(move || {
+        let (mut got, mut buf) = (Vec::new(), [0u8; 4096]);
+        let until = Instant::now() + Duration::from_secs(30);
+        while got.len() < nav_len && Instant::now() < until {
+            match master.read(&mut buf) {
+                Ok(n) => got.extend_from_slice(&buf[..n]),
+                Err(e) if e.kind() == ErrorKind::TimedOut => {}
+                Err(e) => panic!("reading the terminal: {e}"),
+            }
+        }
+        got
+    });
+    let (child, lines) = spawn_live_of(
+        &scene,
+        400,
+        "0",
+        &[
+            "--frames",
+            "tcp-listen:127.0.0.1:0",
+            "--nav-tty",
+            &slave_name,
+        ],
+    );
+    let _nav_line = next_line(&lines);
+    let listen_line = next_line(&lines);
+    let addr: SocketAddr = listen_line
+        .strip_prefix("digitizer frames: listening on tcp ")
+        .and_then(|s| s.split(',').next())
+        .unwrap_or_else(|| panic!("{listen_line}"))
+        .parse()
+        .unwrap();
+    let mut stream = TcpStream::connect(addr).unwrap();
+    let mut decoder = StreamDecoder::new();
+    let mut got = Vec::new();
+    while decoder.read_from(&mut stream).unwrap() > 0 {
+        while let Some(item) = decoder.next_item() {
+            match item {
+                StreamItem::Frame(f) => got.push((f.sequence, f.payload.to_vec())),
+                StreamItem::Skipped { bytes, reason } => panic!("{bytes} bytes skipped: {reason}"),
+            }
+        }
+    }
+    let (status, out, err) = finish(child, lines);
+    assert!(status.success(), "{status:?}\n{out}\n{err}");
+    check_frames(&got, &want_frames);
+    assert_eq!(nav_reader.join().unwrap(), want_nav.concat());
+    drop(slave);
 }
