@@ -261,7 +261,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
     let io = |e: std::io::Error| Failure::job(format!("{}: {e}", csv_path.display()));
     writeln!(
         csv,
-        "seq,gps_time_s,kind,object,range_m,range_end_m,east_m,north_m,up_m,fraction,reflectance,amplitude_dn"
+        "seq,gps_time_s,kind,object,range_m,range_end_m,east_m,north_m,up_m,fraction,reflectance,amplitude_dn,ray"
     )
     .map_err(io)?;
     let bar = progress(args.no_progress, total);
@@ -270,7 +270,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
     let truth_steps = truth_steps_per_count(sensor.bits_per_sample);
     while let Some(item) = items.next() {
         for &seq in &items.lost()[lost_written..] {
-            writeln!(csv, "{seq},,lost,,,,,,,,,").map_err(io)?;
+            writeln!(csv, "{seq},,lost,,,,,,,,,,").map_err(io)?;
         }
         lost_written = items.lost().len();
         match item {
@@ -284,7 +284,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
                 for s in &t.scatterers {
                     writeln!(
                         csv,
-                        "{},{:.9},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.6},{:.4},{:.4}",
+                        "{},{:.9},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.6},{:.4},{:.4},{}",
                         t.seq,
                         t.gps_time,
                         s.kind.name(),
@@ -296,7 +296,8 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
                         s.position[2],
                         s.fraction,
                         s.reflectance,
-                        s.amplitude_dn
+                        s.amplitude_dn,
+                        s.ray
                     )
                     .map_err(io)?;
                 }
@@ -318,7 +319,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
         }
     }
     for &seq in &items.lost()[lost_written..] {
-        writeln!(csv, "{seq},,lost,,,,,,,,,").map_err(io)?;
+        writeln!(csv, "{seq},,lost,,,,,,,,,,").map_err(io)?;
     }
     csv.flush().map_err(io)?;
     let bytes = writer.bytes_written();

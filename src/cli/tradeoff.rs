@@ -112,10 +112,11 @@ fn run_matrix(args: &TradeoffArgs, scene_path: &std::path::Path) -> Result<(), F
                         .push(crate::sim::world::scene::Effect::OffNadir);
                 }
                 let base = scene_path.parent().unwrap_or(std::path::Path::new("."));
-                let mut sim = WorldSim::new(&scene, &sensor, base).map_err(Failure::usage)?;
+                let sim = WorldSim::new(&scene, &sensor, base).map_err(Failure::usage)?;
+                let items = crate::sim::world::WorldItems::new(sim).map_err(Failure::usage)?;
                 let scratch = tempfile_dir(&args.out)?;
                 let r = scene_steps::run_scene_steps(
-                    &mut sim,
+                    items,
                     pulses,
                     args.peak_floor,
                     args.peak_tolerance_bins,
@@ -171,14 +172,15 @@ fn run_scene(args: &TradeoffArgs, scene_path: &std::path::Path) -> Result<(), Fa
     use crate::sim::world::scene::WorldScene;
     let (scene, sensor) = WorldScene::load_with(scene_path, &args.sets).map_err(Failure::usage)?;
     let base = scene_path.parent().unwrap_or(std::path::Path::new("."));
-    let mut sim = WorldSim::new(&scene, &sensor, base).map_err(Failure::usage)?;
+    let sim = WorldSim::new(&scene, &sensor, base).map_err(Failure::usage)?;
+    let items = crate::sim::world::WorldItems::new(sim).map_err(Failure::usage)?;
     let pulses = args.pulses.unwrap_or(if args.quick { 200 } else { 1600 });
     std::fs::create_dir_all(&args.out)
         .map_err(|e| Failure::job(format!("cannot create {}: {e}", args.out.display())))?;
     let scratch = tempfile_dir(&args.out)?;
     let started = Instant::now();
     let results = scene_steps::run_scene_steps(
-        &mut sim,
+        items,
         pulses,
         args.peak_floor,
         args.peak_tolerance_bins,

@@ -8,10 +8,11 @@
 //! cross-section in the same counts (area preserving). Deconvolved outputs are cross-section
 //! estimates; `rmse_2ns` sees them through the truth's 2 ns pulse (as the sweep does).
 //!
-//! Georeferencing is not a step here: the pulses are placed with their **true** geometry (the
-//! scene frame) so that the voxel step measures what the signal chain does to the voxels; the
-//! georeference's own error through the navigation stream is measured end to end in
-//! `tests/scene_sim.rs` (millimetres).
+//! The georeference step writes the simulated stream as a capture and georeferences it as a
+//! replay does (navigation decoded, trajectory, lever arm, boresight, scan angles, UTM), scores
+//! every surface echo's position against the truth, and times the georeference per pulse (the
+//! replay of the capture with it, minus without). The voxel step then deposits the deconvolved
+//! waveforms where the georeference put them and the truth where it is, in the same map grid.
 
 use std::time::Instant;
 
@@ -19,14 +20,21 @@ use crate::eval::metrics::{
     PeakMatch, RmseAccumulator, local_peaks, match_peaks, spectral_angle_deg,
 };
 use crate::eval::tradeoff::percentile;
+use crate::format::{CaptureHeader, CaptureMeta, CaptureWriter, FlushPolicy};
+use crate::geo::crs::OutputCrs;
+use crate::geo::georeference::{GeoreferenceConfig, GeoreferencingSource};
 use crate::pulse::{Pulse, PulseGeometry, SegmentKind};
 use crate::signal::deconvolve::{
     Deconvolver, GoldConfig, MethodConfig, NnlsConfig, RlConfig, WienerConfig,
 };
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::kernel::{Kernel, convolve_same, remove_baseline};
+use crate::sim::SimItem;
 use crate::sim::truth::gaussian_pulse;
-use crate::sim::world::{ShotTruth, WorldSim};
+use crate::sim::world::WorldItems;
+use crate::sim::world::flight::Frames;
+use crate::sim::world::scene::Origin;
+use crate::source::SourceEvent;
 use crate::voxel::grid::{Grid, Placer, VoxelConfig};
 use crate::voxel::tiles::TileSet;
 use crate::voxel::voxelise::{DepositParams, DepositStats, deposit_pulse};
@@ -53,6 +61,11 @@ pub struct StepResult {
     pub median_ns: f64,
     /// 99th percentile, ns.
     pub p99_ns: f64,
+    /// Georeference step: RMS of the 3D position error of every surface echo, metres (NaN for
+    /// the other steps).
+    pub position_rms_m: f64,
+    /// Georeference step: largest position error, metres.
+    pub position_max_m: f64,
 }
 
 /// Why the evaluation failed.
@@ -77,6 +90,10 @@ fn err(step: &str, e: impl std::fmt::Display) -> StepsError {
 
 /// One simulated pulse as the steps see it.
 struct Shot {
+    /// The pulse's id in the capture.
+    id: u64,
+    /// Ranges (m) and scene-frame positions of the surfaces the beam met.
+    surfaces: Vec<(f64, [f64; 3])>,
     received: Vec<f32>,
     outgoing: Vec<f32>,
     truth: Vec<f32>,
@@ -87,25 +104,59 @@ struct Shot {
 /// Scores `pulses` pulses of `sim` after every step. `peak_floor`, `tolerance_bins`: as the
 /// sweep's. Voxels go to a temporary store under `scratch_dir`.
 pub fn run_scene_steps(
-    sim: &mut WorldSim,
+    mut items: WorldItems,
     pulses: usize,
     peak_floor: f32,
     tolerance_bins: usize,
     scratch_dir: &std::path::Path,
 ) -> Result<Vec<StepResult>, StepsError> {
-    let baseline = sim.scene().sensor.baseline_dn as f32;
-    let mpn = sim.metres_per_ns();
-    let mut shots = Vec::with_capacity(pulses);
-    let (mut p, mut t) = (Pulse::default(), ShotTruth::default());
+    let baseline = items.sim().scene().sensor.baseline_dn as f32;
+    let mpn = items.sim().metres_per_ns();
+    let sensor = items.sim().sensor().clone();
+    // The stream is also written as a capture, for the georeference step.
+    let capture = scratch_dir.join("scene.fwcap");
+    let header = CaptureHeader {
+        capture: CaptureMeta {
+            software: format!("fwlidar {}", env!("CARGO_PKG_VERSION")),
+            created_unix_s: 0,
+            time_base: "gps_seconds_of_week".into(),
+            origin: "simulated".into(),
+            crs: None,
+            source_file: None,
+        },
+        sensor: sensor.clone(),
+        scene: None,
+    };
+    let mut writer = CaptureWriter::create(&capture, &header.to_text(), FlushPolicy::default())
+        .map_err(|e| err("capture", e))?;
+    let mut shots: Vec<Shot> = Vec::with_capacity(pulses);
     let mut sample_ns = 1.0;
-    while shots.len() < pulses {
-        match sim.fill_next(&mut p, &mut t) {
-            None => break,
-            Some(false) => continue,
-            Some(true) => {}
+    let mut last_time = f64::NEG_INFINITY;
+    while let Some(item) = items.next() {
+        let p = match item {
+            SimItem::Nav {
+                receive_time_ns,
+                bytes,
+            } => {
+                writer
+                    .write_nav(0, receive_time_ns, &bytes)
+                    .map_err(|e| err("capture", e))?;
+                // Once the pulses are in, one epoch at or after the last brackets them all.
+                if shots.len() >= pulses && receive_time_ns as f64 * 1e-9 >= last_time {
+                    break;
+                }
+                continue;
+            }
+            SimItem::Pulse(p) => p,
+        };
+        if shots.len() >= pulses {
+            continue;
         }
+        last_time = p.gps_time;
+        writer.write_pulse(&p).map_err(|e| err("capture", e))?;
+        let t = items.last_truth();
         sample_ns = p.sample_ns;
-        let steps_per_count = 1.0 / (p.gain_v_per_dn as f64 / sim.sensor().digitizer_gain_v_per_dn);
+        let steps_per_count = sensor.digitizer_gain_v_per_dn / p.gain_v_per_dn as f64;
         let counts = |seg: usize| -> Vec<f32> {
             p.raw_of(seg)
                 .iter()
@@ -124,6 +175,14 @@ pub fn run_scene_steps(
             continue;
         };
         shots.push(Shot {
+            id: p.pulse_id,
+            surfaces: t
+                .scatterers
+                .iter()
+                // Surfaces on the beam's axis (the georeference places the axis).
+                .filter(|s| s.range_m == s.range_end_m && s.ray == 0)
+                .map(|s| (s.range_m, s.position))
+                .collect(),
             received: counts(ret),
             outgoing: counts(out),
             truth: t.truth.iter().map(|&v| v as f32).collect(),
@@ -134,9 +193,11 @@ pub fn run_scene_steps(
             start_ns: p.segments[ret].start_ns,
         });
     }
+    writer.finish().map_err(|e| err("capture", e))?;
     if shots.is_empty() {
         return Err(err("scene", "the scene has no pulses"));
     }
+    let origin = items.sim().scene().origin.clone();
     let bins = shots.iter().map(|s| s.received.len()).max().unwrap_or(0);
     let taps = shots.iter().map(|s| s.outgoing.len()).max().unwrap_or(1);
     let truth_kernel = gaussian_pulse(2.0, sample_ns).map_err(|e| err("truth kernel", e))?;
@@ -241,10 +302,17 @@ pub fn run_scene_steps(
             sam_deg: sam / shots.len() as f64,
             median_ns: percentile(&times, 0.5),
             p99_ns: percentile(&times, 0.99),
+            position_rms_m: f64::NAN,
+            position_max_m: f64::NAN,
         });
     }
+    let placed = georeference_step(&origin, mpn, &shots, &results[2], &capture)?;
+    let georef = placed.result;
+    results.push(georef);
     results.push(voxel_step(
         &shots,
+        &placed.map_geometry,
+        &placed.true_map_geometry,
         &rl_outputs,
         sample_ns,
         peak_floor,
@@ -254,24 +322,146 @@ pub fn run_scene_steps(
     Ok(results)
 }
 
+/// The georeference step's outcome: its scores and both geometries of every shot in the map.
+struct Placed {
+    result: StepResult,
+    /// Each shot's geometry from the navigation stream (replay's georeference).
+    map_geometry: Vec<PulseGeometry>,
+    /// Each shot's true geometry, in the same map CRS.
+    true_map_geometry: Vec<PulseGeometry>,
+}
+
+/// Georeferences the capture of the scene as a replay does (navigation decoded, trajectory,
+/// lever arm, boresight, scan angles, UTM of the scene's origin) and scores every surface echo's
+/// position against the truth. The waveform scores are those of `after` (placing bins moves
+/// them, it does not change their values).
+fn georeference_step(
+    origin: &Origin,
+    mpn: f64,
+    shots: &[Shot],
+    after: &StepResult,
+    capture: &std::path::Path,
+) -> Result<Placed, StepsError> {
+    let name = "georeference";
+    let frames = Frames::new(origin.lat_deg, origin.lon_deg, origin.height_m);
+    let crs = OutputCrs::utm_at(origin.lat_deg, origin.lon_deg).map_err(|e| err(name, e))?;
+    let cfg = GeoreferenceConfig {
+        enabled: true,
+        output_epsg: Some(crs.epsg()),
+        ..GeoreferenceConfig::default()
+    };
+    let pool = crate::pulse::PulsePool::new(64);
+    // Decoding alone, then decoding and georeferencing: the difference is the step's cost.
+    let pass = |georef: bool| -> Result<(Vec<Option<PulseGeometry>>, f64), StepsError> {
+        let inner = crate::source::open_file(capture).map_err(|e| err(name, e))?;
+        let mut source: Box<dyn crate::source::Source> = if georef {
+            Box::new(GeoreferencingSource::new(inner, cfg.clone()).map_err(|e| err(name, e))?)
+        } else {
+            inner
+        };
+        let index: std::collections::HashMap<u64, usize> =
+            shots.iter().enumerate().map(|(k, s)| (s.id, k)).collect();
+        let mut out = vec![None; shots.len()];
+        let t0 = Instant::now();
+        loop {
+            match source.next(&pool).map_err(|e| err(name, e))? {
+                SourceEvent::Pulse(p) => {
+                    if let Some(&k) = index.get(&p.pulse_id) {
+                        out[k] = p.geometry;
+                    }
+                    pool.give(p);
+                }
+                SourceEvent::Nav(_) => {}
+                SourceEvent::End => break,
+            }
+        }
+        Ok((out, t0.elapsed().as_secs_f64() * 1e9 / shots.len() as f64))
+    };
+    let (_, read_ns) = pass(false)?;
+    let (placed, all_ns) = pass(true)?;
+    let to_map = |p: [f64; 3]| -> Result<[f64; 3], StepsError> {
+        let g = frames.geodetic(p);
+        crs.project(g.lat_deg, g.lon_deg, g.height_m)
+            .map_err(|e| err(name, e))
+    };
+    let (mut sum_sq, mut n, mut worst) = (0.0f64, 0u64, 0.0f64);
+    let mut map_geometry = Vec::with_capacity(shots.len());
+    let mut true_map_geometry = Vec::with_capacity(shots.len());
+    for (k, s) in shots.iter().enumerate() {
+        let Some(g) = placed[k] else {
+            return Err(err(name, format!("pulse {} was not georeferenced", s.id)));
+        };
+        for &(range, pos) in &s.surfaces {
+            let t = range / mpn;
+            let got = [
+                g.anchor[0] + t * g.direction[0],
+                g.anchor[1] + t * g.direction[1],
+                g.anchor[2] + t * g.direction[2],
+            ];
+            let want = to_map(pos)?;
+            let e2 = (0..3).map(|i| (got[i] - want[i]).powi(2)).sum::<f64>();
+            sum_sq += e2;
+            n += 1;
+            worst = worst.max(e2.sqrt());
+        }
+        // The true chord through the recorded window, in the map.
+        let (ta, tb) = (s.start_ns, s.start_ns + s.received.len().max(2) as f64);
+        let at = |t: f64| {
+            let a = s.geometry.anchor;
+            let d = s.geometry.direction;
+            [a[0] + t * d[0], a[1] + t * d[1], a[2] + t * d[2]]
+        };
+        let (pa, pb) = (to_map(at(ta))?, to_map(at(tb))?);
+        let dir = [
+            (pb[0] - pa[0]) / (tb - ta),
+            (pb[1] - pa[1]) / (tb - ta),
+            (pb[2] - pa[2]) / (tb - ta),
+        ];
+        true_map_geometry.push(PulseGeometry {
+            anchor: [
+                pa[0] - ta * dir[0],
+                pa[1] - ta * dir[1],
+                pa[2] - ta * dir[2],
+            ],
+            direction: dir,
+        });
+        map_geometry.push(g);
+    }
+    Ok(Placed {
+        result: StepResult {
+            step: name.into(),
+            median_ns: (all_ns - read_ns).max(0.0),
+            p99_ns: f64::NAN,
+            position_rms_m: (sum_sq / n.max(1) as f64).sqrt(),
+            position_max_m: worst,
+            ..after.clone()
+        },
+        map_geometry,
+        true_map_geometry,
+    })
+}
+
 /// Voxelises the RL outputs (through the 2 ns pulse) and the truth with the real depositor and
 /// compares the grids: RMSE over the voxels (fraction of the largest truth voxel), and per
 /// column (its vertical profile as the waveform) the spectral angle and the peaks.
+#[allow(clippy::too_many_arguments)]
 fn voxel_step(
     shots: &[Shot],
+    placed: &[PulseGeometry],
+    truth_placed: &[PulseGeometry],
     processed: &[Vec<f32>],
     sample_ns: f64,
     peak_floor: f32,
     tolerance_bins: usize,
     scratch_dir: &std::path::Path,
 ) -> Result<StepResult, StepsError> {
-    let name = "voxelise (rl 20 through 2 ns)";
+    let name = "voxelise (rl 20 through 2 ns; georeferenced)";
     let cfg = VoxelConfig {
         enabled: true,
         z_range_m: [-5.0, 40.0],
         ..VoxelConfig::default()
     };
-    let first = shots[0].geometry;
+    let first = truth_placed[0];
     let ground_xy = [first.anchor[0], first.anchor[1]];
     let grid = Grid::new(&cfg, ground_xy);
     let info = StoreInfo {
@@ -302,7 +492,8 @@ fn voxel_step(
             pulse.seq = k as u64;
             pulse.gps_time = k as f64 * 1e-6;
             pulse.sample_ns = sample_ns;
-            pulse.geometry = Some(s.geometry);
+            // The processed waveform where the georeference put it; the truth where it is.
+            pulse.geometry = Some(if values { placed[k] } else { truth_placed[k] });
             let sig: &[f32] = if values { &processed[k] } else { &s.truth };
             let first = pulse.raw.len();
             pulse.raw.extend(std::iter::repeat_n(0u16, sig.len()));
@@ -376,17 +567,19 @@ fn voxel_step(
         sam_deg: sam / cols.max(1) as f64,
         median_ns: percentile(&times, 0.5),
         p99_ns: percentile(&times, 0.99),
+        position_rms_m: f64::NAN,
+        position_max_m: f64::NAN,
     })
 }
 
 /// The results as a Markdown table.
 pub fn markdown(results: &[StepResult]) -> String {
     let mut s = String::from(
-        "| step | scored | RMSE | RMSE through 2 ns | peaks found | false peaks / waveform | SAM (deg) | median time / pulse (µs) | p99 (µs) |\n|---|---|---|---|---|---|---|---|---|\n",
+        "| step | scored | RMSE | RMSE through 2 ns | peaks found | false peaks / waveform | SAM (deg) | position error RMS / max (mm) | median time / pulse (µs) | p99 (µs) |\n|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in results {
         s.push_str(&format!(
-            "| {} | {} | {:.4} | {:.4} | {:.1} % | {:.2} | {:.2} | {:.2} | {:.2} |\n",
+            "| {} | {} | {:.4} | {:.4} | {:.1} % | {:.2} | {:.2} | {} | {:.2} | {} |\n",
             r.step,
             r.scored,
             r.rmse,
@@ -394,8 +587,21 @@ pub fn markdown(results: &[StepResult]) -> String {
             100.0 * r.detection_rate,
             r.false_per_pulse,
             r.sam_deg,
+            if r.position_rms_m.is_nan() {
+                "—".to_string()
+            } else {
+                format!(
+                    "{:.3} / {:.3}",
+                    1e3 * r.position_rms_m,
+                    1e3 * r.position_max_m
+                )
+            },
             r.median_ns / 1e3,
-            r.p99_ns / 1e3
+            if r.p99_ns.is_nan() {
+                "—".to_string()
+            } else {
+                format!("{:.2}", r.p99_ns / 1e3)
+            }
         ));
     }
     s
@@ -404,11 +610,11 @@ pub fn markdown(results: &[StepResult]) -> String {
 /// The results as CSV.
 pub fn csv(results: &[StepResult]) -> String {
     let mut s = String::from(
-        "step,scored,rmse,rmse_2ns,detection_rate,false_per_waveform,sam_deg,median_ns,p99_ns\n",
+        "step,scored,rmse,rmse_2ns,detection_rate,false_per_waveform,sam_deg,median_ns,p99_ns,position_rms_m,position_max_m\n",
     );
     for r in results {
         s.push_str(&format!(
-            "{},{},{:.6},{:.6},{:.6},{:.6},{:.4},{:.1},{:.1}\n",
+            "{},{},{:.6},{:.6},{:.6},{:.6},{:.4},{:.1},{:.1},{:.7},{:.7}\n",
             r.step,
             r.scored,
             r.rmse,
@@ -417,7 +623,9 @@ pub fn csv(results: &[StepResult]) -> String {
             r.false_per_pulse,
             r.sam_deg,
             r.median_ns,
-            r.p99_ns
+            r.p99_ns,
+            r.position_rms_m,
+            r.position_max_m
         ));
     }
     s

@@ -66,6 +66,8 @@ pub struct Scatterer {
     /// Echo amplitude it contributes (surfaces: peak above the baseline with an ideal
     /// receiver; media: the sum over the stretch), counts.
     pub amplitude_dn: f64,
+    /// The sub-ray that met it (0: the beam's axis; others with the `footprint` effect).
+    pub ray: u32,
 }
 
 /// The truth of one pulse.
@@ -498,6 +500,7 @@ impl WorldSim {
                                 fraction: w * (t_a - whole) * share,
                                 reflectance: m.reflectance,
                                 amplitude_dn: sum_amp * share * m.reflectance / rho.max(1e-300),
+                                ray: ri as u32,
                             });
                         }
                     }
@@ -520,6 +523,7 @@ impl WorldSim {
                     fraction: w * trans,
                     reflectance: h.reflectance,
                     amplitude_dn: amp,
+                    ray: ri as u32,
                 });
                 add_gaussian(
                     &mut truth.clean,
