@@ -72,7 +72,6 @@ pub struct TradeoffArgs {
 /// and azimuth (the seed's experiments), one CSV row per (combination, step).
 fn run_matrix(args: &TradeoffArgs, scene_path: &std::path::Path) -> Result<(), Failure> {
     use crate::eval::scene_steps;
-    use crate::sim::world::WorldSim;
     use crate::sim::world::scene::WorldScene;
     let pulses = args.pulses.unwrap_or(if args.quick { 200 } else { 1600 });
     std::fs::create_dir_all(&args.out)
@@ -111,19 +110,7 @@ fn run_matrix(args: &TradeoffArgs, scene_path: &std::path::Path) -> Result<(), F
                         .effects
                         .push(crate::sim::world::scene::Effect::OffNadir);
                 }
-                let base = scene_path.parent().unwrap_or(std::path::Path::new("."));
-                let sim = WorldSim::new(&scene, &sensor, base).map_err(Failure::usage)?;
-                let items = crate::sim::world::WorldItems::new(sim).map_err(Failure::usage)?;
-                let scratch = tempfile_dir(&args.out)?;
-                let r = scene_steps::run_scene_steps(
-                    items,
-                    pulses,
-                    args.peak_floor,
-                    args.peak_tolerance_bins,
-                    &scratch,
-                );
-                let _ = std::fs::remove_dir_all(&scratch);
-                let r = r.map_err(Failure::job)?;
+                let r = steps_of(args, scene_path, &scene, &sensor, pulses)?;
                 for line in scene_steps::csv(&r).lines().skip(1) {
                     csv.push_str(&format!("{w},{z},{a},{line}\n"));
                 }
@@ -168,26 +155,13 @@ fn run_matrix(args: &TradeoffArgs, scene_path: &std::path::Path) -> Result<(), F
 /// `fwlidar tradeoff --scene`: the stepwise evaluation of one described scene.
 fn run_scene(args: &TradeoffArgs, scene_path: &std::path::Path) -> Result<(), Failure> {
     use crate::eval::scene_steps;
-    use crate::sim::world::WorldSim;
     use crate::sim::world::scene::WorldScene;
     let (scene, sensor) = WorldScene::load_with(scene_path, &args.sets).map_err(Failure::usage)?;
-    let base = scene_path.parent().unwrap_or(std::path::Path::new("."));
-    let sim = WorldSim::new(&scene, &sensor, base).map_err(Failure::usage)?;
-    let items = crate::sim::world::WorldItems::new(sim).map_err(Failure::usage)?;
     let pulses = args.pulses.unwrap_or(if args.quick { 200 } else { 1600 });
     std::fs::create_dir_all(&args.out)
         .map_err(|e| Failure::job(format!("cannot create {}: {e}", args.out.display())))?;
-    let scratch = tempfile_dir(&args.out)?;
     let started = Instant::now();
-    let results = scene_steps::run_scene_steps(
-        items,
-        pulses,
-        args.peak_floor,
-        args.peak_tolerance_bins,
-        &scratch,
-    );
-    let _ = std::fs::remove_dir_all(&scratch);
-    let results = results.map_err(Failure::job)?;
+    let results = steps_of(args, scene_path, &scene, &sensor, pulses)?;
     let machine = Machine::detect();
     let cpu = format!(
         "{} ({} logical cores)",
@@ -214,6 +188,30 @@ fn run_scene(args: &TradeoffArgs, scene_path: &std::path::Path) -> Result<(), Fa
         args.out.display()
     );
     Ok(())
+}
+
+/// The stepwise evaluation of `scene` (from the file `scene_path`) on `pulses` pulses, with a
+/// scratch folder in the output folder for its capture and voxel stores (removed after).
+fn steps_of(
+    args: &TradeoffArgs,
+    scene_path: &std::path::Path,
+    scene: &crate::sim::world::scene::WorldScene,
+    sensor: &crate::config::sensor::SensorProfile,
+    pulses: usize,
+) -> Result<Vec<crate::eval::scene_steps::StepResult>, Failure> {
+    let base = scene_path.parent().unwrap_or(std::path::Path::new("."));
+    let sim = crate::sim::world::WorldSim::new(scene, sensor, base).map_err(Failure::usage)?;
+    let items = crate::sim::world::WorldItems::new(sim).map_err(Failure::usage)?;
+    let scratch = tempfile_dir(&args.out)?;
+    let r = crate::eval::scene_steps::run_scene_steps(
+        items,
+        pulses,
+        args.peak_floor,
+        args.peak_tolerance_bins,
+        &scratch,
+    );
+    let _ = std::fs::remove_dir_all(&scratch);
+    r.map_err(Failure::job)
 }
 
 /// A fresh scratch folder inside `out` (removed by the caller).
