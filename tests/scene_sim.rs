@@ -204,6 +204,23 @@ fn a_described_scene_writes_its_truth_and_truth_voxels() {
     let tiles = store.read_all().unwrap();
     let total: i64 = tiles.iter().flat_map(|(_, d)| d.sum_q.iter()).sum();
     assert!(total > 0);
+    // A real client reads it: the ground at 0 m, the crowns' tops up to the tallest tree in
+    // these rows (trees 1, 2 and 5: 14, 11 and 12 m; the footprint and the 2 ns pulse add a
+    // little above).
+    let o = std::process::Command::new(common::python())
+        .arg(Path::new(ROOT).join("tests/python/check_truth_voxels.py"))
+        .arg(dir.path().join("plot.truth/voxels.zarr"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    eprintln!("truth voxels: {v}");
+    let (ground, top) = (
+        v["ground_m"].as_f64().unwrap(),
+        v["top_m"].as_f64().unwrap(),
+    );
+    assert!(ground.abs() <= 0.3, "ground level {ground} m");
+    assert!((13.0..=15.5).contains(&top), "canopy top {top} m");
     // Rerunning into the same files is refused, nothing is overwritten.
     let before = std::fs::read(&cap).unwrap();
     let o = fwlidar(&[
