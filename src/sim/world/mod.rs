@@ -37,8 +37,8 @@ use crate::sim::scene::SceneError;
 
 use flight::{FlightPlan, Shot, footprint_rays};
 use geometry::{ObjectKind, TraceScratch, V3};
-use render::{add_gaussian, add_ringing};
-use scene::{Effect, Noise, WorldScene};
+use render::{EchoShape, add_gaussian, add_ringing};
+use scene::{Effect, Noise, PulseShape, WorldScene};
 
 /// Speed of light in vacuum, metres per nanosecond.
 const C_M_PER_NS: f64 = 0.299_792_458;
@@ -109,6 +109,10 @@ pub struct WorldSim {
     dt: f64,
     sigma_out: f64,
     sigma_rx: f64,
+    /// The received echo of a unit point target.
+    echo: EchoShape,
+    /// Area of the outgoing pulse (peak 1), ns.
+    outgoing_area_ns: f64,
     sigma_truth: f64,
     outgoing_len: usize,
     outgoing_start_ns: f64,
@@ -246,7 +250,62 @@ impl WorldSim {
             .unwrap_or(sensor.pulse_fwhm_ns);
         let sigma_out = fwhm / FWHM_PER_SIGMA;
         let sigma_rx = scene.sensor.receiver_fwhm_ns / FWHM_PER_SIGMA;
-        let outgoing_len = ((10.0 * sigma_out / dt).ceil() as usize).max(1);
+        let sigma_k = (sigma_out * sigma_out + sigma_rx * sigma_rx).sqrt();
+        let (echo, outgoing_area_ns, reach) = match &scene.sensor.pulse_shape {
+            PulseShape::Gaussian => (
+                EchoShape::Gaussian {
+                    sigma: sigma_k,
+                    gain: sigma_out / sigma_k,
+                },
+                sigma_out * (2.0 * std::f64::consts::PI).sqrt(),
+                5.0 * sigma_out,
+            ),
+            PulseShape::Bigaussian { rise_ns, fall_ns } => {
+                let (sr, sf) = (
+                    rise_ns * 2.0 / FWHM_PER_SIGMA,
+                    fall_ns * 2.0 / FWHM_PER_SIGMA,
+                );
+                let shape = move |t: f64| {
+                    let z = if t < 0.0 { t / sr } else { t / sf };
+                    if z.abs() <= 7.0 {
+                        (-0.5 * z * z).exp()
+                    } else {
+                        0.0
+                    }
+                };
+                (
+                    EchoShape::tabulate(shape, (-7.0 * sr, 7.0 * sf), sigma_rx, dt / 64.0),
+                    (sr + sf) / 2.0 * (2.0 * std::f64::consts::PI).sqrt(),
+                    5.0 * sr.max(sf),
+                )
+            }
+            PulseShape::Measured { samples, sample_ns } => {
+                let (k, peak) = samples
+                    .iter()
+                    .enumerate()
+                    .fold((0, f64::MIN), |m, (i, &v)| if v > m.1 { (i, v) } else { m });
+                let norm: Vec<f64> = samples.iter().map(|v| v / peak).collect();
+                let step = *sample_ns;
+                let first = -(k as f64) * step;
+                let last = first + (norm.len() - 1) as f64 * step;
+                let shape = move |t: f64| {
+                    let f = (t - first) / step;
+                    if !(f >= 0.0 && f <= (norm.len() - 1) as f64) {
+                        return 0.0;
+                    }
+                    let i = (f as usize).min(norm.len() - 2);
+                    let w = f - i as f64;
+                    norm[i] * (1.0 - w) + norm[i + 1] * w
+                };
+                let area = samples.iter().sum::<f64>() / peak * step;
+                (
+                    EchoShape::tabulate(shape, (first, last), sigma_rx, dt / 64.0),
+                    area,
+                    first.abs().max(last),
+                )
+            }
+        };
+        let outgoing_len = ((2.0 * reach / dt).ceil() as usize).max(1);
         let bits = sensor.bits_per_sample;
         let steps_per_count = if scene.has(Effect::Quantisation) {
             1.0
@@ -264,6 +323,7 @@ impl WorldSim {
             dt,
             sigma_out,
             sigma_rx,
+            outgoing_area_ns,
             sigma_truth: 2.0 / FWHM_PER_SIGMA,
             outgoing_len,
             outgoing_start_ns: -((outgoing_len / 2) as f64) * dt,
@@ -284,10 +344,17 @@ impl WorldSim {
             rays: Vec::new(),
             fine: Vec::new(),
             kernels: Kernels {
-                clean: PhaseKernel::new((sigma_out * sigma_out + sigma_rx * sigma_rx).sqrt(), dt),
-                truth: PhaseKernel::new(2.0 / FWHM_PER_SIGMA, dt),
+                clean: PhaseKernel::from_shape(&echo, dt),
+                truth: PhaseKernel::from_shape(
+                    &EchoShape::Gaussian {
+                        sigma: 2.0 / FWHM_PER_SIGMA,
+                        gain: 1.0,
+                    },
+                    dt,
+                ),
             },
             outgoing: Vec::new(),
+            echo,
             geo,
             plan,
             scene: scene.clone(),
@@ -388,11 +455,12 @@ impl WorldSim {
         truth.truth.clear();
         truth.truth.resize(n, 0.0);
         let sigma_k = self.echo_sigma_ns();
-        let gain_k = self.sigma_out / sigma_k;
-        let gain_t = self.sigma_out / self.sigma_truth;
+        // Area preserving: the truth's 2 ns pulse carries the outgoing pulse's energy.
+        let gain_t =
+            self.outgoing_area_ns / (self.sigma_truth * (2.0 * std::f64::consts::PI).sqrt());
         let ringing = s.has(Effect::Ringing).then(|| s.ringing.clone());
         // Fine bins over the window and a margin of 6σ each side.
-        let margin = (6.0 * sigma_k / dt).ceil() as usize + 1;
+        let margin = (self.echo.reach().max(6.0 * sigma_k) / dt).ceil() as usize + 1;
         let fine_t0 = start - margin as f64 * dt;
         let fine_n = (n + 2 * margin) * FINE;
         let delta = dt / FINE as f64;
@@ -525,14 +593,7 @@ impl WorldSim {
                     amplitude_dn: amp,
                     ray: ri as u32,
                 });
-                add_gaussian(
-                    &mut truth.clean,
-                    start,
-                    dt,
-                    t + jitter,
-                    amp * gain_k,
-                    sigma_k,
-                );
+                self.echo.add(&mut truth.clean, start, dt, t + jitter, amp);
                 add_gaussian(
                     &mut truth.truth,
                     start,
@@ -561,14 +622,14 @@ impl WorldSim {
                 .add(&mut truth.truth, margin, q, phase, amp * gain_t);
             if exact {
                 let t = fine_t0 + (f as f64 + 0.5) * delta + jitter;
-                add_gaussian(&mut truth.clean, start, dt, t, amp * gain_k, sigma_k);
+                self.echo.add(&mut truth.clean, start, dt, t, amp);
                 if let Some(r) = &ringing {
                     add_ringing(&mut truth.clean, start, dt, t, amp, r);
                 }
             } else {
                 self.kernels
                     .clean
-                    .add(&mut truth.clean, margin, q, phase, amp * gain_k);
+                    .add(&mut truth.clean, margin, q, phase, amp);
             }
         }
         // The pulse.
@@ -582,21 +643,20 @@ impl WorldSim {
         pulse.offset_v = self.sensor.digitizer_offset_v as f32;
         pulse.bits = self.bits;
         let first = pulse.raw.len();
-        let out_peak = self.scene.sensor.outgoing_peak_dn * gain_k;
+        let out_peak = self.scene.sensor.outgoing_peak_dn;
         if self.outgoing.len() != self.outgoing_len {
             self.outgoing = (0..self.outgoing_len)
-                .map(|i| {
-                    let z = (self.outgoing_start_ns + i as f64 * dt) / sigma_k;
-                    out_peak * (-0.5 * z * z).exp()
-                })
+                .map(|i| out_peak * self.echo.value(self.outgoing_start_ns + i as f64 * dt))
                 .collect();
         }
         for i in 0..self.outgoing_len {
             let clean = if jitter == 0.0 {
                 self.outgoing[i]
             } else {
-                let z = (self.outgoing_start_ns + i as f64 * dt - jitter) / sigma_k;
-                out_peak * (-0.5 * z * z).exp()
+                out_peak
+                    * self
+                        .echo
+                        .value(self.outgoing_start_ns + i as f64 * dt - jitter)
             };
             let raw = self.digitize(clean);
             pulse.raw.push(raw);
@@ -644,9 +704,9 @@ impl WorldSim {
     }
 }
 
-/// A Gaussian sampled at the sample interval for each of the [`FINE`] phases of a bin centre:
-/// `table[phase][m + half]` = `exp(−x²/2σ²)` at `x = m·dt − (phase + ½)·dt/FINE`,
-/// `m = −half..=half` (±7σ).
+/// An echo shape sampled at the sample interval for each of the [`FINE`] phases of a bin
+/// centre: `table[phase][m + half]` = the unit echo at `x = m·dt − (phase + ½)·dt/FINE`,
+/// `m = −half..=half` (its reach).
 #[derive(Debug, Default)]
 struct PhaseKernel {
     half: usize,
@@ -654,21 +714,13 @@ struct PhaseKernel {
 }
 
 impl PhaseKernel {
-    fn new(sigma: f64, dt: f64) -> Self {
-        let half = (7.0 * sigma / dt).ceil() as usize + 1;
+    fn from_shape(shape: &EchoShape, dt: f64) -> Self {
+        let half = (shape.reach() / dt).ceil() as usize + 1;
         let delta = dt / FINE as f64;
         let table = (0..FINE)
             .map(|p| {
                 (0..=2 * half)
-                    .map(|k| {
-                        let x = (k as f64 - half as f64) * dt - (p as f64 + 0.5) * delta;
-                        let z = x / sigma;
-                        if z.abs() <= 7.0 {
-                            (-0.5 * z * z).exp()
-                        } else {
-                            0.0
-                        }
-                    })
+                    .map(|k| shape.value((k as f64 - half as f64) * dt - (p as f64 + 0.5) * delta))
                     .collect()
             })
             .collect();

@@ -98,3 +98,129 @@ mod tests {
         assert!(out[180..].iter().all(|v| v.abs() < 0.01));
     }
 }
+
+/// The received echo of a point target of unit amplitude: the outgoing pulse (peak 1) seen
+/// through the receiver's impulse response (a Gaussian of unit area).
+#[derive(Clone, Debug)]
+pub enum EchoShape {
+    /// Both Gaussians: a Gaussian of `sigma` and peak `gain` (`σ_out / σ`, area preserved).
+    Gaussian {
+        /// Standard deviation, ns.
+        sigma: f64,
+        /// Peak of the unit echo.
+        gain: f64,
+    },
+    /// Any other outgoing pulse: the convolution tabulated every `step` ns from `first` ns
+    /// (linear interpolation between entries).
+    Table {
+        /// Values.
+        table: Vec<f64>,
+        /// Time of `table[0]` relative to the echo's reference, ns.
+        first: f64,
+        /// Spacing, ns.
+        step: f64,
+    },
+}
+
+impl EchoShape {
+    /// The shape for an outgoing pulse `outgoing(t)` (peak 1 at t = 0) over `support` ns and a
+    /// receiver Gaussian of `sigma_rx` ns (0: ideal), tabulated every `step` ns.
+    pub fn tabulate(
+        outgoing: impl Fn(f64) -> f64,
+        support: (f64, f64),
+        sigma_rx: f64,
+        step: f64,
+    ) -> EchoShape {
+        let pad = 7.0 * sigma_rx;
+        let first = support.0 - pad;
+        let n = ((support.1 + pad - first) / step).ceil() as usize + 1;
+        let o: Vec<f64> = (0..n).map(|i| outgoing(first + i as f64 * step)).collect();
+        let table = if sigma_rx <= 0.0 {
+            o
+        } else {
+            // Unit-area Gaussian taps at the table's step.
+            let m = (pad / step).ceil() as isize;
+            let taps: Vec<f64> = (-m..=m)
+                .map(|k| {
+                    let z = k as f64 * step / sigma_rx;
+                    (-0.5 * z * z).exp()
+                })
+                .collect();
+            let sum: f64 = taps.iter().sum();
+            (0..n as isize)
+                .map(|i| {
+                    taps.iter()
+                        .enumerate()
+                        .map(|(j, w)| {
+                            let src = i - (j as isize - m);
+                            if src >= 0 && (src as usize) < n {
+                                o[src as usize] * w
+                            } else {
+                                0.0
+                            }
+                        })
+                        .sum::<f64>()
+                        / sum
+                })
+                .collect()
+        };
+        EchoShape::Table { table, first, step }
+    }
+
+    /// The unit echo `x` ns after its reference time.
+    #[inline]
+    pub fn value(&self, x: f64) -> f64 {
+        match self {
+            EchoShape::Gaussian { sigma, gain } => {
+                let z = x / sigma;
+                if z.abs() <= 7.0 {
+                    gain * (-0.5 * z * z).exp()
+                } else {
+                    0.0
+                }
+            }
+            EchoShape::Table { table, first, step } => {
+                let f = (x - first) / step;
+                if !(f >= 0.0 && f < (table.len() - 1) as f64) {
+                    return 0.0;
+                }
+                let i = f as usize;
+                let w = f - i as f64;
+                table[i] * (1.0 - w) + table[i + 1] * w
+            }
+        }
+    }
+
+    /// How far the echo reaches on either side of its reference, ns.
+    pub fn reach(&self) -> f64 {
+        match self {
+            EchoShape::Gaussian { sigma, .. } => 7.0 * sigma,
+            EchoShape::Table { table, first, step } => {
+                first.abs().max(first + step * table.len() as f64)
+            }
+        }
+    }
+
+    /// Adds `amp ×` the unit echo at `t_e` to the samples `out[i]` at `start + i·dt`.
+    pub fn add(&self, out: &mut [f64], start: f64, dt: f64, t_e: f64, amp: f64) {
+        match self {
+            EchoShape::Gaussian { sigma, gain } => {
+                add_gaussian(out, start, dt, t_e, amp * gain, *sigma)
+            }
+            EchoShape::Table { .. } => {
+                if amp == 0.0 || out.is_empty() {
+                    return;
+                }
+                let r = self.reach();
+                let i0 = ((t_e - r - start) / dt).ceil().max(0.0);
+                let i1 = ((t_e + r - start) / dt).floor().min(out.len() as f64 - 1.0);
+                if i0.is_nan() || i1.is_nan() || i0 > i1 {
+                    return;
+                }
+                for i in i0 as usize..=i1 as usize {
+                    out[i] += amp * self.value(start + i as f64 * dt - t_e);
+                }
+            }
+        }
+    }
+}

@@ -557,6 +557,9 @@ pub struct SceneSensor {
     /// Outgoing pulse FWHM, ns. Default: the profile's `pulse_fwhm_ns`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub outgoing_fwhm_ns: Option<f64>,
+    /// Shape of the outgoing pulse. Default a Gaussian of `outgoing_fwhm_ns`.
+    #[serde(default)]
+    pub pulse_shape: PulseShape,
     /// Receiver impulse response, a Gaussian of this FWHM, ns (0: ideal). Default 0.
     #[serde(default)]
     pub receiver_fwhm_ns: f64,
@@ -584,6 +587,31 @@ pub struct SceneSensor {
     /// 1.00027.
     #[serde(default = "default_n")]
     pub refractive_index: f64,
+}
+
+/// Shape of the outgoing laser pulse (its peak is the pulse's reference time t0).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum PulseShape {
+    /// A Gaussian of the sensor's (or `outgoing_fwhm_ns`) full width at half maximum.
+    #[default]
+    Gaussian,
+    /// Two half-Gaussians joined at the peak: a fast rise and a slower fall, as Q-switched
+    /// lasers emit. Half widths at half maximum, ns (FWHM = rise + fall).
+    Bigaussian {
+        /// Rise, peak to half maximum before it, ns.
+        rise_ns: f64,
+        /// Fall, peak to half maximum after it, ns.
+        fall_ns: f64,
+    },
+    /// A measured pulse: samples every `sample_ns` (any scale; normalised to peak 1 at the
+    /// largest sample, which becomes t0), linearly interpolated.
+    Measured {
+        /// The samples.
+        samples: Vec<f64>,
+        /// Their spacing, ns.
+        sample_ns: f64,
+    },
 }
 
 /// Digitizer noise.
@@ -1072,6 +1100,27 @@ impl WorldScene {
         need(nonneg(s.baseline_dn), "sensor.baseline_dn", || {
             format!("must be >= 0, got {}", s.baseline_dn)
         })?;
+        match &s.pulse_shape {
+            PulseShape::Gaussian => {}
+            PulseShape::Bigaussian { rise_ns, fall_ns } => need(
+                pos(*rise_ns) && pos(*fall_ns) && rise_ns + fall_ns <= 1000.0,
+                "sensor.pulse_shape",
+                || format!("rise_ns and fall_ns must be > 0, got {rise_ns} and {fall_ns}"),
+            )?,
+            PulseShape::Measured { samples, sample_ns } => need(
+                pos(*sample_ns)
+                    && samples.len() >= 3
+                    && samples.len() <= 100_000
+                    && samples.iter().all(|v| v.is_finite() && *v >= 0.0)
+                    && samples.iter().any(|v| *v > 0.0),
+                "sensor.pulse_shape",
+                || {
+                    "a measured pulse needs sample_ns > 0 and 3 to 100000 finite, non-negative \
+                     samples, not all zero"
+                        .into()
+                },
+            )?,
+        }
         need(
             nonneg(s.receiver_fwhm_ns),
             "sensor.receiver_fwhm_ns",

@@ -669,3 +669,94 @@ fn navigation_effects_change_the_navigation_only_when_named() {
         !(0.5 - 1e-6..0.75 - 1e-6).contains(&dt)
     }));
 }
+
+#[test]
+fn other_pulse_shapes_keep_their_energy_and_their_peak_at_t0() {
+    let run = |shape: &str, rx: f64| {
+        let mut sim = world(&nadir_line(
+            "",
+            &format!("outgoing_fwhm_ns = 8.0\nreceiver_fwhm_ns = {rx}\npulse_shape = {shape}\n"),
+        ));
+        let mpn = sim.metres_per_ns();
+        let (p, t) = pulses(&mut sim).remove(0);
+        let start = p.segments[1].start_ns;
+        let te = t.origin[2] / mpn;
+        (t, start, te, p)
+    };
+    let s8 = sigma(8.0);
+    // A bi-Gaussian with equal halves is the Gaussian, and a measured Gaussian too.
+    let (g, start, te, _) = run("{ kind = \"gaussian\" }", 3.0);
+    let (b, _, _, _) = run(
+        "{ kind = \"bigaussian\", rise_ns = 4.0, fall_ns = 4.0 }",
+        3.0,
+    );
+    let measured: Vec<String> = (-100..=100)
+        .map(|k| {
+            let z = k as f64 * 0.25 / s8;
+            format!("{:.12}", 7.0 * (-0.5 * z * z).exp())
+        })
+        .collect();
+    let (m, _, _, _) = run(
+        &format!(
+            "{{ kind = \"measured\", sample_ns = 0.25, samples = [{}] }}",
+            measured.join(", ")
+        ),
+        3.0,
+    );
+    let peak = g.clean.iter().cloned().fold(0.0, f64::max);
+    for i in 0..g.clean.len() {
+        assert!(
+            (g.clean[i] - b.clean[i]).abs() < 1e-4 * peak,
+            "bi-Gaussian bin {i}"
+        );
+        assert!(
+            (g.clean[i] - m.clean[i]).abs() < 2e-3 * peak,
+            "measured bin {i}"
+        );
+    }
+    // An asymmetric pulse (1.5 ns rise, 6 ns fall): its echo peaks at 2R/c (no receiver
+    // blur), trails behind, and carries the area √(2π)(σr + σf)/2 times the amplitude.
+    let (a, start_a, te_a, p) = run(
+        "{ kind = \"bigaussian\", rise_ns = 1.5, fall_ns = 6.0 }",
+        0.0,
+    );
+    let k = (0..a.clean.len())
+        .max_by(|&i, &j| a.clean[i].total_cmp(&a.clean[j]))
+        .unwrap();
+    assert!(
+        (start_a + k as f64 - te_a).abs() <= 0.5,
+        "peak at {}",
+        start_a + k as f64
+    );
+    let (area, mean, _) = moments(&a.clean, start_a, 1.0);
+    assert!(mean > te_a + 1.0, "the fall trails: mean {mean} vs {te_a}");
+    let amp = a.scatterers[0].amplitude_dn;
+    let want = amp * (2.0 * std::f64::consts::PI).sqrt() * (1.5 + 6.0) / FWHM_PER_SIGMA;
+    assert!((area / want - 1.0).abs() < 1e-3, "area {area} vs {want}");
+    // The truth keeps that energy in its 2 ns pulse.
+    let (area_t, _, _) = moments(&a.truth, start_a, 1.0);
+    assert!((area_t / area - 1.0).abs() < 1e-3);
+    // The recorded outgoing pulse has the same shape, peak at t0.
+    let out = p.raw_of(0);
+    let k0 = (0..out.len()).max_by_key(|&i| out[i]).unwrap();
+    assert!((p.segments[0].start_ns + k0 as f64).abs() <= 0.5);
+    let _ = (start, te);
+    // Bad shapes name the field.
+    let scene: WorldScene = parse_toml(
+        &nadir_line(
+            "",
+            "pulse_shape = { kind = \"bigaussian\", rise_ns = 0.0, fall_ns = 3.0 }\n",
+        ),
+        "s",
+    )
+    .unwrap();
+    let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/scenes");
+    let sensor = scene.resolve_sensor(&base).unwrap();
+    assert!(
+        scene
+            .validate(&sensor)
+            .unwrap_err()
+            .to_string()
+            .contains("sensor.pulse_shape")
+    );
+}
