@@ -217,8 +217,13 @@ impl EchoShape {
                 if i0.is_nan() || i1.is_nan() || i0 > i1 {
                     return;
                 }
-                for i in i0 as usize..=i1 as usize {
-                    out[i] += amp * self.value(start + i as f64 * dt - t_e);
+                for (i, v) in out
+                    .iter_mut()
+                    .enumerate()
+                    .take(i1 as usize + 1)
+                    .skip(i0 as usize)
+                {
+                    *v += amp * self.value(start + i as f64 * dt - t_e);
                 }
             }
         }
