@@ -119,6 +119,39 @@ fn check_frames(got: &[(u64, Vec<u8>)], want: &[Vec<u8>]) {
     }
 }
 
+/// Reads the master side of a terminal pair on its own thread until `len` bytes came (or 30 s).
+fn read_terminal(mut master: TTYPort, len: usize) -> std::thread::JoinHandle<Vec<u8>> {
+    master.set_timeout(Duration::from_millis(100)).unwrap();
+    std::thread::spawn(move || {
+        let (mut got, mut buf) = (Vec::new(), [0u8; 4096]);
+        let until = Instant::now() + Duration::from_secs(30);
+        while got.len() < len && Instant::now() < until {
+            match master.read(&mut buf) {
+                Ok(n) => got.extend_from_slice(&buf[..n]),
+                Err(e) if e.kind() == ErrorKind::TimedOut => {}
+                Err(e) => panic!("reading the terminal: {e}"),
+            }
+        }
+        got
+    })
+}
+
+/// Every frame of a live TCP stream until the emulator closes it, as (sequence, payload);
+/// skipped bytes fail the test.
+fn read_frames(stream: &mut TcpStream) -> (Vec<(u64, Vec<u8>)>, StreamDecoder) {
+    let mut decoder = StreamDecoder::new();
+    let mut got = Vec::new();
+    while decoder.read_from(stream).unwrap() > 0 {
+        while let Some(item) = decoder.next_item() {
+            match item {
+                StreamItem::Frame(f) => got.push((f.sequence, f.payload.to_vec())),
+                StreamItem::Skipped { bytes, reason } => panic!("{bytes} bytes skipped: {reason}"),
+            }
+        }
+    }
+    (got, decoder)
+}
+
 /// A UDP receiver with a receive buffer large enough for a burst sent as fast as possible.
 fn udp_receiver() -> UdpSocket {
     use std::os::fd::AsRawFd;
@@ -149,22 +182,9 @@ fn udp_frames_and_tty_navigation_match_the_capture() {
     let port = socket.local_addr().unwrap().port();
     // The terminal pair a `socat` would make: the emulator writes the slave, we read the master
     // (and hold the slave too, so the terminal stays up when the emulator closes it).
-    let (mut master, slave) = TTYPort::pair().unwrap();
-    master.set_timeout(Duration::from_millis(100)).unwrap();
+    let (master, slave) = TTYPort::pair().unwrap();
     let slave_name = slave.name().unwrap();
-    let nav_len: usize = want_nav.iter().map(Vec::len).sum();
-    let nav_reader = std::thread::spawn(move || {
-        let (mut got, mut buf) = (Vec::new(), [0u8; 4096]);
-        let until = Instant::now() + Duration::from_secs(30);
-        while got.len() < nav_len && Instant::now() < until {
-            match master.read(&mut buf) {
-                Ok(n) => got.extend_from_slice(&buf[..n]),
-                Err(e) if e.kind() == ErrorKind::TimedOut => {}
-                Err(e) => panic!("reading the terminal: {e}"),
-            }
-        }
-        got
-    });
+    let nav_reader = read_terminal(master, want_nav.iter().map(Vec::len).sum());
 
     let target = format!("udp:127.0.0.1:{port}");
     let (child, lines) = spawn_live(300, "0", &["--frames", &target, "--nav-tty", &slave_name]);
@@ -241,18 +261,7 @@ fn tcp_stream_and_created_pty_match_the_capture() {
         got
     });
     let mut stream = TcpStream::connect(addr).unwrap();
-    let mut decoder = StreamDecoder::new();
-    let mut got = Vec::new();
-    while decoder.read_from(&mut stream).unwrap() > 0 {
-        while let Some(item) = decoder.next_item() {
-            match item {
-                StreamItem::Frame(f) => got.push((f.sequence, f.payload.to_vec())),
-                StreamItem::Skipped { bytes, reason } => {
-                    panic!("{bytes} bytes skipped: {reason}")
-                }
-            }
-        }
-    }
+    let (got, mut decoder) = read_frames(&mut stream);
     assert_eq!(decoder.finish(), None);
     assert_eq!(decoder.skipped_bytes(), 0);
     let (status, out, err) = finish(child, lines);
@@ -435,22 +444,9 @@ fn a_described_scene_plays_live_like_its_capture() {
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/scenes/tree_plot.toml");
     let dir = tempfile::tempdir().unwrap();
     let (want_frames, want_nav) = capture_of(&scene, dir.path(), 400);
-    let (mut master, slave) = TTYPort::pair().unwrap();
-    master.set_timeout(Duration::from_millis(100)).unwrap();
+    let (master, slave) = TTYPort::pair().unwrap();
     let slave_name = slave.name().unwrap();
-    let nav_len: usize = want_nav.iter().map(Vec::len).sum();
-    let nav_reader = std::thread::spawn(move || {
-        let (mut got, mut buf) = (Vec::new(), [0u8; 4096]);
-        let until = Instant::now() + Duration::from_secs(30);
-        while got.len() < nav_len && Instant::now() < until {
-            match master.read(&mut buf) {
-                Ok(n) => got.extend_from_slice(&buf[..n]),
-                Err(e) if e.kind() == ErrorKind::TimedOut => {}
-                Err(e) => panic!("reading the terminal: {e}"),
-            }
-        }
-        got
-    });
+    let nav_reader = read_terminal(master, want_nav.iter().map(Vec::len).sum());
     let (child, lines) = spawn_live_of(
         &scene,
         400,
@@ -471,16 +467,7 @@ fn a_described_scene_plays_live_like_its_capture() {
         .parse()
         .unwrap();
     let mut stream = TcpStream::connect(addr).unwrap();
-    let mut decoder = StreamDecoder::new();
-    let mut got = Vec::new();
-    while decoder.read_from(&mut stream).unwrap() > 0 {
-        while let Some(item) = decoder.next_item() {
-            match item {
-                StreamItem::Frame(f) => got.push((f.sequence, f.payload.to_vec())),
-                StreamItem::Skipped { bytes, reason } => panic!("{bytes} bytes skipped: {reason}"),
-            }
-        }
-    }
+    let (got, _) = read_frames(&mut stream);
     let (status, out, err) = finish(child, lines);
     assert!(status.success(), "{status:?}\n{out}\n{err}");
     check_frames(&got, &want_frames);

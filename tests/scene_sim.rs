@@ -61,6 +61,20 @@ formats = ["{nav_format}"]
     path
 }
 
+/// `fwlidar simulate --scene SCENE --out OUT --no-progress` with `extra` arguments.
+fn simulate(scene: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "simulate",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ];
+    args.extend_from_slice(extra);
+    fwlidar(&args)
+}
+
 /// Ground truth per pulse: the terrain point of its (single, axis) ray, scene frame.
 fn truth_points(csv: &Path) -> HashMap<u64, [f64; 3]> {
     let body = std::fs::read_to_string(csv).unwrap();
@@ -111,15 +125,7 @@ fn a_simulated_scan_georeferences_onto_its_truth() {
         let dir = tempfile::tempdir().unwrap();
         let scene = bare_scene(dir.path(), nav);
         let cap = dir.path().join("bare.fwcap");
-        let o = fwlidar(&[
-            "simulate",
-            "--scene",
-            scene.to_str().unwrap(),
-            "--out",
-            cap.to_str().unwrap(),
-            "--no-progress",
-            "--no-truth-voxels",
-        ]);
+        let o = simulate(&scene, &cap, &["--no-truth-voxels"]);
         assert!(o.status.success(), "{}", text(&o.stderr));
         let out = dir.path().join("out");
         let o = fwlidar(&[
@@ -173,16 +179,7 @@ fn a_described_scene_writes_its_truth_and_truth_voxels() {
     let dir = tempfile::tempdir().unwrap();
     let cap = dir.path().join("plot.fwcap");
     let scene = Path::new(ROOT).join("config/scenes/tree_plot.toml");
-    let o = fwlidar(&[
-        "simulate",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        cap.to_str().unwrap(),
-        "--no-progress",
-        "--set",
-        "flight.grid.rows=10",
-    ]);
+    let o = simulate(&scene, &cap, &["--set", "flight.grid.rows=10"]);
     assert!(o.status.success(), "{}", text(&o.stderr));
     for f in [
         "plot.fwcap",
@@ -223,42 +220,25 @@ fn a_described_scene_writes_its_truth_and_truth_voxels() {
     assert!((13.0..=15.5).contains(&top), "canopy top {top} m");
     // Rerunning into the same files is refused, nothing is overwritten.
     let before = std::fs::read(&cap).unwrap();
-    let o = fwlidar(&[
-        "simulate",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        cap.to_str().unwrap(),
-        "--no-progress",
-    ]);
+    let o = simulate(&scene, &cap, &[]);
     assert_eq!(o.status.code(), Some(2), "{}", text(&o.stderr));
     assert!(text(&o.stderr).contains("never overwritten"));
     assert_eq!(std::fs::read(&cap).unwrap(), before);
     // The same scene and seed give the same bytes.
     let again = dir.path().join("again.fwcap");
-    let o = fwlidar(&[
-        "simulate",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        again.to_str().unwrap(),
-        "--no-progress",
-        "--no-truth-voxels",
-        "--set",
-        "flight.grid.rows=10",
-    ]);
+    let o = simulate(
+        &scene,
+        &again,
+        &["--no-truth-voxels", "--set", "flight.grid.rows=10"],
+    );
     assert!(o.status.success());
     assert_eq!(std::fs::read(&again).unwrap(), before);
     // A bad override names the key.
-    let o = fwlidar(&[
-        "simulate",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        dir.path().join("x.fwcap").to_str().unwrap(),
-        "--set",
-        "flight.scan.zenith_deg=75",
-    ]);
+    let o = simulate(
+        &scene,
+        &dir.path().join("x.fwcap"),
+        &["--set", "flight.scan.zenith_deg=75"],
+    );
     assert_eq!(o.status.code(), Some(2));
     assert!(
         text(&o.stderr).contains("zenith_deg"),
@@ -278,17 +258,9 @@ fn the_described_replay_samples_are_reproducible() {
     ] {
         let out = dir.path().join(format!("{name}.fwcap"));
         let scene = Path::new(ROOT).join(format!("config/scenes/{name}.toml"));
-        let mut args = vec![
-            "simulate",
-            "--scene",
-            scene.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--no-progress",
-            "--no-truth-voxels",
-        ];
+        let mut args = vec!["--no-truth-voxels"];
         args.extend(extra);
-        let o = fwlidar(&args);
+        let o = simulate(&scene, &out, &args);
         assert!(o.status.success(), "{}", text(&o.stderr));
         for suffix in ["fwcap", "truth.fwcap"] {
             let committed = Path::new(ROOT).join(format!("replay/{name}.{suffix}"));

@@ -12,7 +12,7 @@ use std::sync::atomic::AtomicBool;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
-use crate::format::{CaptureHeader, CaptureMeta, CaptureWriter, FlushPolicy};
+use crate::format::{CaptureHeader, CaptureWriter, FlushPolicy};
 use crate::pulse::{Pulse, SegmentKind};
 use crate::sim::scene::Scene;
 use crate::sim::world::scene::WorldScene;
@@ -119,7 +119,7 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         .ok()
         .and_then(|t| toml::from_str::<toml::Table>(&t).ok())
         .and_then(|t| t.get("scene").and_then(|s| s.as_table()).cloned());
-    let header = capture_header(&sensor, scene_table, "simulated");
+    let header = CaptureHeader::simulated(&sensor, scene_table, "simulated");
     let mut writer = CaptureWriter::create(&out, &header.to_text(), FlushPolicy::default())
         .map_err(Failure::job)?;
     let bar = progress(args.no_progress, scene.pulses);
@@ -154,27 +154,6 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         scene.seed
     );
     Ok(())
-}
-
-fn capture_header(
-    sensor: &crate::config::sensor::SensorProfile,
-    scene: Option<toml::Table>,
-    origin: &str,
-) -> CaptureHeader {
-    CaptureHeader {
-        capture: CaptureMeta {
-            software: format!("fwlidar {}", env!("CARGO_PKG_VERSION")),
-            // Deterministic output: a simulated capture's creation time is not the wall
-            // clock, so the same scene and seed give identical bytes.
-            created_unix_s: 0,
-            time_base: "gps_seconds_of_week".into(),
-            origin: origin.into(),
-            crs: None,
-            source_file: None,
-        },
-        sensor: sensor.clone(),
-        scene,
-    }
 }
 
 fn progress(hidden: bool, len: u64) -> Option<ProgressBar> {
@@ -248,10 +227,10 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
     let table = toml::to_string(&scene)
         .ok()
         .and_then(|t| toml::from_str::<toml::Table>(&t).ok());
-    let header = capture_header(&sensor, table.clone(), "simulated");
+    let header = CaptureHeader::simulated(&sensor, table.clone(), "simulated");
     let mut writer = CaptureWriter::create(&out, &header.to_text(), FlushPolicy::default())
         .map_err(Failure::job)?;
-    let truth_header = capture_header(&sensor, table, "simulated truth (2 ns pulse)");
+    let truth_header = CaptureHeader::simulated(&sensor, table, "simulated truth (2 ns pulse)");
     let mut truth_writer =
         CaptureWriter::create(&truth_path, &truth_header.to_text(), FlushPolicy::default())
             .map_err(Failure::job)?;

@@ -20,7 +20,7 @@ use crate::eval::metrics::{
     PeakMatch, RmseAccumulator, local_peaks, match_peaks, spectral_angle_deg,
 };
 use crate::eval::tradeoff::percentile;
-use crate::format::{CaptureHeader, CaptureMeta, CaptureWriter, FlushPolicy};
+use crate::format::{CaptureHeader, CaptureWriter, FlushPolicy};
 use crate::geo::crs::OutputCrs;
 use crate::geo::georeference::{GeoreferenceConfig, GeoreferencingSource};
 use crate::pulse::{Pulse, PulseGeometry, SegmentKind};
@@ -115,18 +115,7 @@ pub fn run_scene_steps(
     let sensor = items.sim().sensor().clone();
     // The stream is also written as a capture, for the georeference step.
     let capture = scratch_dir.join("scene.fwcap");
-    let header = CaptureHeader {
-        capture: CaptureMeta {
-            software: format!("fwlidar {}", env!("CARGO_PKG_VERSION")),
-            created_unix_s: 0,
-            time_base: "gps_seconds_of_week".into(),
-            origin: "simulated".into(),
-            crs: None,
-            source_file: None,
-        },
-        sensor: sensor.clone(),
-        scene: None,
-    };
+    let header = CaptureHeader::simulated(&sensor, None, "simulated");
     let mut writer = CaptureWriter::create(&capture, &header.to_text(), FlushPolicy::default())
         .map_err(|e| err("capture", e))?;
     let mut shots: Vec<Shot> = Vec::with_capacity(pulses);

@@ -50,6 +50,24 @@ impl CaptureHeader {
         toml::from_str(text)
     }
 
+    /// The header of a simulated capture: made by this fwlidar, GPS seconds of week, no CRS,
+    /// `origin` (e.g. `simulated`), the scene that made it. Its creation time is 0, not the
+    /// wall clock, so the same scene and seed give identical bytes.
+    pub fn simulated(sensor: &SensorProfile, scene: Option<toml::Table>, origin: &str) -> Self {
+        CaptureHeader {
+            capture: CaptureMeta {
+                software: format!("fwlidar {}", env!("CARGO_PKG_VERSION")),
+                created_unix_s: 0,
+                time_base: "gps_seconds_of_week".into(),
+                origin: origin.into(),
+                crs: None,
+                source_file: None,
+            },
+            sensor: sensor.clone(),
+            scene,
+        }
+    }
+
     /// The header as TOML text.
     pub fn to_text(&self) -> String {
         toml::to_string(self).unwrap_or_default()

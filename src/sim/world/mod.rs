@@ -121,6 +121,8 @@ pub struct WorldSim {
     max_raw: f64,
     bits: u8,
     noise: Normals,
+    /// The noise to add: the scene's `[noise]` when it names the `noise` effect.
+    noise_model: Option<Noise>,
     jitter_rng: ChaCha8Rng,
     loss_rng: ChaCha8Rng,
     next: u64,
@@ -333,6 +335,11 @@ impl WorldSim {
                 bits
             } else {
                 16
+            },
+            noise_model: if scene.has(Effect::Noise) {
+                scene.noise.clone()
+            } else {
+                None
             },
             noise: Normals {
                 rng: rng(scene.seed, 1),
@@ -676,25 +683,21 @@ impl WorldSim {
 
     /// Noise, quantisation and saturation of one sample `clean` counts above the baseline.
     fn digitize(&mut self, clean: f64) -> u16 {
-        let s = &self.scene;
-        let mut v = s.sensor.baseline_dn + clean;
-        if s.has(Effect::Noise) {
-            match s.noise {
-                Some(Noise::Uniform { amplitude_dn }) if amplitude_dn > 0.0 => {
-                    v += amplitude_dn * (2.0 * unit(&mut self.noise.rng) - 1.0)
-                }
-                Some(Noise::Gaussian { sigma_dn }) => v += sigma_dn * self.noise.next(),
-                Some(Noise::Poisson {
-                    photons_per_dn,
-                    dark_sigma_dn,
-                }) => {
-                    let photons = poisson(&mut self.noise.rng, clean.max(0.0) * photons_per_dn);
-                    v = s.sensor.baseline_dn
-                        + photons / photons_per_dn
-                        + dark_sigma_dn * self.noise.next();
-                }
-                _ => {}
+        let baseline = self.scene.sensor.baseline_dn;
+        let mut v = baseline + clean;
+        match self.noise_model {
+            Some(Noise::Uniform { amplitude_dn }) if amplitude_dn > 0.0 => {
+                v += amplitude_dn * (2.0 * unit(&mut self.noise.rng) - 1.0)
             }
+            Some(Noise::Gaussian { sigma_dn }) => v += sigma_dn * self.noise.next(),
+            Some(Noise::Poisson {
+                photons_per_dn,
+                dark_sigma_dn,
+            }) => {
+                let photons = poisson(&mut self.noise.rng, clean.max(0.0) * photons_per_dn);
+                v = baseline + photons / photons_per_dn + dark_sigma_dn * self.noise.next();
+            }
+            _ => {}
         }
         // Round half to even by the 1.5·2^52 trick (exact for |x| < 2^51; x is clamped to
         // 0..=65535 first), a few instructions instead of a libm call.
