@@ -558,11 +558,15 @@ fn media_render_the_same_from_the_kernel_tables_and_one_by_one() {
 #[test]
 fn a_geotiff_terrain_is_hit_at_the_dem_height() {
     // A real DEM (IGN LiDAR HD, 0.5 m cells), placed with its centre at the scene origin.
-    let tif = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/fixtures/dem/ign_lidarhd/DTM_test_data_77055_627760_LA93_IGN69_50CM.tif");
+    // As the integration tests find fixtures: $FWLIDAR_FIXTURES, else ../shared/fixtures.
+    let base = std::env::var_os("FWLIDAR_FIXTURES")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"));
+    let tif = base.join("dem/ign_lidarhd/DTM_test_data_77055_627760_LA93_IGN69_50CM.tif");
     assert!(
         tif.exists(),
-        "fixture missing: {} (see ../shared/fixtures/MANIFEST.md)",
+        "missing real-data fixture {} (set FWLIDAR_FIXTURES to the shared fixtures folder; see \
+         its MANIFEST.md)",
         tif.display()
     );
     let mut sim = world(&format!(
