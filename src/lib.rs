@@ -23,6 +23,7 @@ pub mod geo;
 pub mod nav;
 pub mod pipeline;
 pub mod pulse;
+pub mod qc;
 pub mod signal;
 pub mod sim;
 pub mod sink;
