@@ -171,7 +171,7 @@ impl Calibration {
 }
 
 /// One laser shot and everything the chain has learnt about it so far.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub struct Pulse {
     /// Order of arrival assigned by the source (0, 1, 2, ...); used to restore order after
     /// parallel workers.
@@ -234,6 +234,27 @@ impl Default for Pulse {
 }
 
 impl Pulse {
+    /// Makes `self` a copy of `other`, reusing `self`'s buffers (no allocation once they are
+    /// large enough).
+    pub fn copy_from(&mut self, other: &Pulse) {
+        self.seq = other.seq;
+        self.pulse_id = other.pulse_id;
+        self.gps_time = other.gps_time;
+        self.scan_angle_deg = other.scan_angle_deg;
+        self.sample_ns = other.sample_ns;
+        self.gain_v_per_dn = other.gain_v_per_dn;
+        self.offset_v = other.offset_v;
+        self.bits = other.bits;
+        self.geometry = other.geometry;
+        self.segments.clone_from(&other.segments);
+        self.raw.clone_from(&other.raw);
+        self.signal.clone_from(&other.signal);
+        self.noise = other.noise;
+        self.returns.clone_from(&other.returns);
+        self.calibration = other.calibration;
+        self.arrived = other.arrived;
+    }
+
     /// Clears the pulse for reuse, keeping the buffers' capacity.
     pub fn reset(&mut self) {
         self.seq = 0;

@@ -11,6 +11,7 @@ pub mod merge;
 pub mod process;
 pub mod repair;
 pub mod replay;
+pub mod run;
 pub mod simulate;
 pub mod tradeoff;
 pub mod validate;
@@ -42,6 +43,9 @@ pub enum LogFormat {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// The on-board daemon: record digitizer frames (network) and navigation (serial ports),
+    /// process them live into voxel tiles, serve QC; SIGTERM stops it.
+    Run(run::RunArgs),
     /// Replay a recorded capture (or a LAS / PulseWaves waveform file) through the processing
     /// chain into an output folder.
     Replay(replay::ReplayArgs),
@@ -122,6 +126,7 @@ pub fn main() -> i32 {
     };
     init_logging(cli.log_format, cli.verbose);
     let result = match cli.command {
+        Command::Run(a) => run::run(a),
         Command::Replay(a) => replay::run(a),
         Command::Repair(a) => repair::run(a),
         Command::Simulate(a) => simulate::run(a),

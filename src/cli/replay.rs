@@ -238,7 +238,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     // The run's own failure comes first: a full disk usually stops an output and then the
     // summary too.
     let summary_written = write_atomic(&summary_path, &json);
-    print_summary(&report, &args.input, &out_dir);
+    print_summary(&report, &args.input, &out_dir, &summary_path);
     if let Some(f) = &report.fatal {
         return Err(Failure::job(format!(
             "replay of {} failed: {f}{}",
@@ -315,7 +315,7 @@ fn us(ns: u64) -> f64 {
 }
 
 /// Prints the one-screen summary of a run to stdout.
-pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
+pub fn print_summary(r: &RunReport, input: &Path, out: &Path, summary: &Path) {
     println!();
     println!("fwlidar replay  {}  ->  {}", input.display(), out.display());
     println!(
@@ -511,6 +511,6 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path) {
         r.wall_time_s,
         r.pulses_per_s,
         r.workers,
-        out.join("summary.json").display()
+        summary.display()
     );
 }

@@ -48,6 +48,10 @@ pub struct RunConfig {
     /// Voxel tiles (`src/voxel/`).
     #[serde(default)]
     pub voxels: crate::voxel::grid::VoxelConfig,
+    /// The on-board daemon (`fwlidar run`): frame input, survey, recording, QC server, alarms
+    /// (`src/daemon/config.rs`). Ignored by replay.
+    #[serde(default)]
+    pub daemon: crate::daemon::DaemonConfig,
 }
 
 /// `[navigation]`: the receivers' serial ports (live input) and date handling.
@@ -279,6 +283,7 @@ impl Validate for RunConfig {
         self.georeference.validate(&field(path, "georeference"), v);
         self.navigation.validate(&field(path, "navigation"), v);
         self.voxels.validate(&field(path, "voxels"), v);
+        self.daemon.validate(&field(path, "daemon"), v);
         if self.voxels.enabled
             && self.voxels.height == crate::voxel::grid::HeightMode::AboveDem
             && self.georeference.dem.is_none()

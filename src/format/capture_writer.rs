@@ -222,6 +222,14 @@ impl<W: Write> CaptureWriter<W> {
         self.end_record()
     }
 
+    /// Writes a digitizer frame record holding `payload` exactly as received (the on-board
+    /// recorder keeps the digitizer's bytes, whether or not they decode).
+    pub fn write_frame_payload(&mut self, payload: &[u8]) -> Result<(), CaptureError> {
+        self.begin_record(RecordKind::DigitizerFrame);
+        self.scratch.extend_from_slice(payload);
+        self.end_record()
+    }
+
     /// Writes navigation bytes as they came off `port`, received at `receive_time_ns` (host clock,
     /// nanoseconds since the Unix epoch).
     pub fn write_nav(

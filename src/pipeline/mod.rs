@@ -7,5 +7,5 @@ pub mod stage;
 pub mod telemetry;
 pub mod testing;
 
-pub use runner::{NavConsumer, PipelineSpec, RunControl, RunReport, run};
+pub use runner::{LivePublish, NavConsumer, PipelineSpec, RunControl, RunReport, run};
 pub use stage::{DropCounts, Emitter, Passthrough, Stage, StageError};

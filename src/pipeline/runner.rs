@@ -116,6 +116,43 @@ pub struct RunControl {
     pub stop: Arc<AtomicBool>,
     /// Live counters.
     pub live: Arc<LiveCounters>,
+    /// Number of the run's first pulse (`Pulse::seq`): 0 for a replay; the daemon continues a
+    /// survey's numbering across restarts so that a resumed voxel store takes the new pulses.
+    pub seq_base: u64,
+    /// When set, every thread publishes its telemetry and report here about four times a
+    /// second (the daemon's QC); `None` costs nothing.
+    pub publish: Option<Arc<LivePublish>>,
+}
+
+/// How often each thread publishes into [`LivePublish`].
+pub const PUBLISH_EVERY: Duration = Duration::from_millis(250);
+
+/// What the threads of a running pipeline publish for live monitoring (QC), each part under its
+/// own lock, written about four times a second by its one thread (a copy: no allocation per
+/// pulse, one per publication).
+#[derive(Default)]
+pub struct LivePublish {
+    /// Each worker's stage telemetry, by worker index.
+    pub workers: Mutex<Vec<Vec<StageTelemetry>>>,
+    /// Arrival-to-sink latency of every pulse so far, ns.
+    pub end_to_end: Mutex<LatencyHistogram>,
+    /// The source's report (e.g. the recorder's counts, the georeference's misses).
+    pub source: Mutex<serde_json::Value>,
+    /// The sinks' report (e.g. voxel tiles).
+    pub sink: Mutex<serde_json::Value>,
+    /// The navigation consumer's report.
+    pub nav: Mutex<serde_json::Value>,
+    /// Pulses waiting in each worker's input edge, and the edges' capacity.
+    pub input_queues: Mutex<Vec<(u64, u64)>>,
+    /// Pulses waiting in each worker's output edge (to the sink).
+    pub output_queues: Mutex<Vec<u64>>,
+    /// A copy of a recent pulse as it left the sink (for the waveform viewer), with the time it
+    /// was taken.
+    pub sampled_pulse: Mutex<Option<(Instant, Box<Pulse>)>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Everything a run did, as written to `summary.json`.
@@ -217,12 +254,26 @@ pub fn run(
         // Navigation consumer.
         let nav_thread = thread::Builder::new()
             .name("nav".into())
-            .spawn_scoped(scope, move || {
-                for chunk in nav_rx.iter() {
-                    nav.consume(chunk);
+            .spawn_scoped(scope, {
+                let publish = control.publish.clone();
+                move || {
+                    let mut last = Instant::now();
+                    for chunk in nav_rx.iter() {
+                        nav.consume(chunk);
+                        if let Some(p) = &publish
+                            && last.elapsed() >= PUBLISH_EVERY
+                        {
+                            last = Instant::now();
+                            *lock(&p.nav) = nav.report();
+                        }
+                    }
+                    nav.finish();
+                    let report = nav.report();
+                    if let Some(p) = &publish {
+                        *lock(&p.nav) = report.clone();
+                    }
+                    report
                 }
-                nav.finish();
-                nav.report()
             })
             .expect("spawn nav thread");
 
@@ -232,10 +283,13 @@ pub fn run(
             let stages = (spec.stages)();
             let pool = pool.clone();
             let set_fatal = set_fatal.clone();
+            let publish = control.publish.clone().map(|p| (i, p));
             worker_threads.push(
                 thread::Builder::new()
                     .name(format!("worker-{i}"))
-                    .spawn_scoped(scope, move || worker(rx, tx, stages, &pool, &set_fatal))
+                    .spawn_scoped(scope, move || {
+                        worker(rx, tx, stages, &pool, &set_fatal, publish.as_ref())
+                    })
                     .expect("spawn worker thread"),
             );
         }
@@ -244,12 +298,14 @@ pub fn run(
         let sink_thread = {
             let pool = pool.clone();
             let live = control.live.clone();
+            let publish = control.publish.clone();
             let set_fatal = set_fatal.clone();
             thread::Builder::new()
                 .name("sink".into())
                 .spawn_scoped(scope, move || {
                     let _alive = sink_alive_tx;
                     let mut e2e = LatencyHistogram::default();
+                    let mut last_publish = Instant::now();
                     let mut finished = vec![false; out_rxs.len()];
                     let mut k = 0usize;
                     let mut failed = false;
@@ -281,6 +337,23 @@ pub fn run(
                                 live.pulses_out.store(n + 1, Ordering::Relaxed);
                             }
                         }
+                        if let Some(pb) = &publish
+                            && last_publish.elapsed() >= PUBLISH_EVERY
+                        {
+                            last_publish = Instant::now();
+                            *lock(&pb.end_to_end) = e2e.clone();
+                            *lock(&pb.sink) = sink.report();
+                            *lock(&pb.output_queues) =
+                                out_rxs.iter().map(|rx| rx.len() as u64).collect();
+                            let mut slot = lock(&pb.sampled_pulse);
+                            match slot.as_mut() {
+                                Some((t, q)) => {
+                                    *t = last_publish;
+                                    q.copy_from(&p);
+                                }
+                                None => *slot = Some((last_publish, p.clone())),
+                            }
+                        }
                         pool.give(p);
                         if last {
                             k = (k + 1) % out_rxs.len();
@@ -288,6 +361,10 @@ pub fn run(
                     }
                     if let Err(e) = sink.finish() {
                         set_fatal(format!("sink `{}`: {e}", sink.name()));
+                    }
+                    if let Some(pb) = &publish {
+                        *lock(&pb.end_to_end) = e2e.clone();
+                        *lock(&pb.sink) = sink.report();
                     }
                     (e2e, sink.report())
                 })
@@ -306,7 +383,18 @@ pub fn run(
                     let mut stopped_early = false;
                     let mut k = 0usize;
                     let mut in_txs = in_txs;
+                    let mut last_publish = Instant::now();
                     loop {
+                        if let Some(pb) = &control.publish
+                            && last_publish.elapsed() >= PUBLISH_EVERY
+                        {
+                            last_publish = Instant::now();
+                            *lock(&pb.source) = source.report();
+                            *lock(&pb.input_queues) = in_txs
+                                .iter()
+                                .map(|tx| (tx.len() as u64, tx.stats().capacity() as u64))
+                                .collect();
+                        }
                         if control.stop.load(Ordering::Relaxed) {
                             stopped_early = true;
                             break;
@@ -318,8 +406,9 @@ pub fn run(
                         }
                         match ev {
                             Ok(SourceEvent::Pulse(mut p)) => {
-                                p.seq = live.pulses_in.load(Ordering::Relaxed);
-                                live.pulses_in.store(p.seq + 1, Ordering::Relaxed);
+                                let n = live.pulses_in.load(Ordering::Relaxed);
+                                p.seq = control.seq_base + n;
+                                live.pulses_in.store(n + 1, Ordering::Relaxed);
                                 match in_txs[k].send(p) {
                                     Sent::Queued => k = (k + 1) % in_txs.len(),
                                     Sent::Dropped(p) => {
@@ -346,6 +435,9 @@ pub fn run(
                     }
                     in_txs.clear();
                     drop(nav_tx);
+                    if let Some(pb) = &control.publish {
+                        *lock(&pb.source) = source.report();
+                    }
                     (stopped_early, source.report())
                 })
                 .expect("spawn source thread")
@@ -423,6 +515,7 @@ fn worker(
     mut stages: Vec<Box<dyn Stage>>,
     pool: &PulsePool,
     set_fatal: &dyn Fn(String),
+    publish: Option<&(usize, Arc<LivePublish>)>,
 ) -> Vec<StageTelemetry> {
     let mut tel: Vec<StageTelemetry> = stages
         .iter()
@@ -431,7 +524,21 @@ fn worker(
     let mut cur: Vec<Box<Pulse>> = Vec::with_capacity(16);
     let mut next: Vec<Box<Pulse>> = Vec::with_capacity(16);
     let mut ok = true;
+    let mut last_publish = Instant::now();
+    let publish_tel = |tel: &[StageTelemetry]| {
+        if let Some((i, pb)) = publish {
+            let mut w = lock(&pb.workers);
+            if w.len() <= *i {
+                w.resize_with(*i + 1, Vec::new);
+            }
+            w[*i] = tel.to_vec();
+        }
+    };
     while let Some(p) = rx.recv() {
+        if publish.is_some() && last_publish.elapsed() >= PUBLISH_EVERY {
+            last_publish = Instant::now();
+            publish_tel(&tel);
+        }
         cur.push(p);
         if let Err(e) = run_chain(&mut stages, &mut tel, &mut cur, &mut next, pool, 0) {
             set_fatal(e.to_string());
@@ -463,6 +570,7 @@ fn worker(
     }
     // Anything still queued for us goes back to the pool.
     drop(rx);
+    publish_tel(&tel);
     tel
 }
 

@@ -36,6 +36,23 @@ impl LatencyHistogram {
         let _ = self.0.add(&other.0);
     }
 
+    /// The samples recorded since `earlier`, a copy of this histogram taken before (for rates
+    /// and percentiles over an interval).
+    pub fn since(&self, earlier: &LatencyHistogram) -> LatencyHistogram {
+        let mut h = self.clone();
+        // `earlier` is a past state of `self`: its counts are never larger.
+        let _ = h.0.subtract(&earlier.0);
+        h
+    }
+
+    /// Samples at or below `ns` nanoseconds (for cumulative histogram buckets).
+    pub fn count_at_or_below(&self, ns: u64) -> u64 {
+        if self.0.is_empty() {
+            return 0;
+        }
+        self.0.count_between(0, ns.min(MAX_TRACKABLE_NS))
+    }
+
     /// Number of samples.
     pub fn count(&self) -> u64 {
         self.0.len()

@@ -18,6 +18,21 @@ struct Port {
     decoder: NavDecoder,
     first: Option<GpsTime>,
     last: Option<GpsTime>,
+    state: LatestState,
+}
+
+/// The latest navigation state a port reported (for live QC): each field as last stated by any
+/// record that carries it.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+struct LatestState {
+    /// Host receive time of the chunk holding the last decoded record, ns since the epoch.
+    last_record_receive_ns: Option<u64>,
+    fix: Option<u32>,
+    fix_kind: Option<String>,
+    satellites: Option<u32>,
+    ins_status: Option<u32>,
+    /// Latitude, longitude (degrees), ellipsoidal height (m).
+    position: Option<[f64; 3]>,
 }
 
 /// Decodes every port's navigation bytes and reports per port.
@@ -60,10 +75,29 @@ impl NavConsumer for NavDecode {
             decoder: NavDecoder::new(leap, MAX_UNDATED, earliest),
             first: None,
             last: None,
+            state: LatestState::default(),
         });
         port.chunks += 1;
         let mut times = Vec::new();
-        port.decoder.push(&chunk.bytes, &mut |_, t| times.push(t));
+        let state = &mut port.state;
+        let received = chunk.receive_time_ns;
+        port.decoder.push(&chunk.bytes, &mut |s, t| {
+            times.push(t);
+            state.last_record_receive_ns = Some(received);
+            if s.fix.is_some() {
+                state.fix = s.fix;
+                state.fix_kind = Some(format!("{:?}", s.kind));
+            }
+            if s.satellites.is_some() {
+                state.satellites = s.satellites;
+            }
+            if s.ins_status.is_some() {
+                state.ins_status = s.ins_status;
+            }
+            if let (Some(la), Some(lo), Some(h)) = (s.lat, s.lon, s.height) {
+                state.position = Some([la, lo, h]);
+            }
+        });
         for t in times {
             note(port, t);
         }
@@ -98,6 +132,7 @@ impl NavConsumer for NavDecode {
                         "unframed_bytes": s.unframed_bytes,
                         "first_gps_time": p.first,
                         "last_gps_time": p.last,
+                        "latest": p.state,
                     }),
                 )
             })

@@ -52,6 +52,10 @@ pub struct VoxelTilesSink {
     stats: DepositStats,
     next_seq: u64,
     finished: bool,
+    /// Take the grid of a store already there (a survey continued by the daemon).
+    continue_store: bool,
+    /// Pulses per tile by footprint centre (the QC coverage map), when tracked.
+    coverage: Option<std::collections::HashMap<[i64; 2], u64>>,
 }
 
 fn store_err(e: StoreError) -> SinkError {
@@ -83,7 +87,24 @@ impl VoxelTilesSink {
             stats: DepositStats::default(),
             next_seq: 0,
             finished: false,
+            continue_store: false,
+            coverage: None,
         })
+    }
+
+    /// Continues a store left by an earlier run of the same survey: its grid is taken as it is
+    /// (the automatic extent was centred on that run's first pulse) and the run must be the
+    /// same (`StoreInfo::run_key`). For the daemon, whose restarts continue one survey; the
+    /// pulses' `seq` must continue too (`RunControl::seq_base`).
+    pub fn continuing(mut self) -> Self {
+        self.continue_store = true;
+        self
+    }
+
+    /// Counts pulses per tile (footprint centre) for the report's `coverage` (the QC map).
+    pub fn with_coverage(mut self) -> Self {
+        self.coverage = Some(std::collections::HashMap::new());
+        self
     }
 
     /// What was deposited and skipped so far.
@@ -121,7 +142,16 @@ impl VoxelTilesSink {
         let mut info = self.info.clone();
         info.epsg = crs.as_deref().and_then(epsg_of);
         info.crs_wkt = crs.filter(|c| !c.starts_with("EPSG:"));
-        let grid = Grid::new(&self.cfg, first);
+        let mut grid = Grid::new(&self.cfg, first);
+        if self.continue_store && self.root.join("zarr.json").exists() {
+            let existing = ZarrStore::open(&self.root).map_err(store_err)?;
+            grid = existing.grid().clone();
+            tracing::info!(
+                store = %self.root.display(),
+                tiles = existing.tiles().len(),
+                "continuing the survey's voxel store on its grid"
+            );
+        }
         if self.cfg.extent_m.is_none() {
             tracing::info!(
                 centre = ?first,
@@ -187,6 +217,17 @@ impl PulseSink for VoxelTilesSink {
         tiles
             .close_idle(pulse.seq, pulse.gps_time)
             .map_err(store_err)?;
+        if let Some(cov) = self.coverage.as_mut()
+            && let Some(c) = footprint_centre(pulse)
+        {
+            let g = tiles.grid();
+            let tm = g.tile_m();
+            let t = [
+                ((c[0] - g.origin_m[0]) / tm[0]).floor() as i64,
+                ((c[1] - g.origin_m[1]) / tm[1]).floor() as i64,
+            ];
+            *cov.entry(t).or_insert(0) += 1;
+        }
         deposit_pulse(pulse, tiles, params, &mut self.stats).map_err(store_err)
     }
 
@@ -228,9 +269,38 @@ impl PulseSink for VoxelTilesSink {
                 "height": g.height.name(),
                 "intensity_units": s.info().intensity_units,
             });
+            if let Some(cov) = &self.coverage {
+                let open: std::collections::HashSet<[i64; 2]> =
+                    t.open_tiles().into_iter().collect();
+                let mut cells: Vec<[i64; 4]> = cov
+                    .iter()
+                    .map(|(k, n)| [k[0], k[1], *n as i64, open.contains(k) as i64])
+                    .collect();
+                cells.sort_unstable();
+                v["coverage"] = serde_json::json!({
+                    "tile_m": g.tile_m(),
+                    "origin_m": g.origin_m,
+                    "cells": cells,
+                });
+            }
         }
         v
     }
+}
+
+/// Where the pulse's first return segment is halfway through, `[x, y]` in the output CRS.
+fn footprint_centre(pulse: &Pulse) -> Option<[f64; 2]> {
+    let g = pulse.geometry?;
+    let t = pulse
+        .segments
+        .iter()
+        .find(|s| s.kind == SegmentKind::Return)
+        .map(|s| s.start_ns + s.len as f64 * pulse.sample_ns / 2.0)?;
+    let c = [
+        g.anchor[0] + t * g.direction[0],
+        g.anchor[1] + t * g.direction[1],
+    ];
+    c.iter().all(|v| v.is_finite()).then_some(c)
 }
 
 /// Counts a pulse seen before the store exists (it had no usable geometry).

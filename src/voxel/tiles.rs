@@ -110,6 +110,11 @@ impl TileSet {
         &self.stats
     }
 
+    /// The tiles open now (global numbering), in no particular order.
+    pub fn open_tiles(&self) -> Vec<[i64; 2]> {
+        self.open.keys().copied().collect()
+    }
+
     /// Tiles open now.
     pub fn open_count(&self) -> usize {
         self.open.len()

@@ -1,0 +1,300 @@
+//! The frame receiver: digitizer frames from the network (UDP datagrams, or a TCP stream the
+//! daemon listens for or connects to), checked (`source::live_frames`) and handed to the
+//! recorder over a bounded channel that **blocks** when full — the recording never drops a
+//! frame it received; a sender outrunning the disk is slowed by TCP, or overflows the kernel's
+//! UDP buffer, and the sequence numbers count what was lost.
+//!
+//! An input that is not there (nothing listening yet, address in use, peer gone) is reported
+//! down and retried every `retry_ms`, forever: on an aircraft, devices power up in any order.
+//! Payload buffers come back from the recorder on a free list, so a running receiver does not
+//! allocate per frame.
+
+use std::io::ErrorKind;
+use std::net::{TcpListener, TcpStream, UdpSocket};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::{Receiver, Sender, bounded};
+
+use super::{FrameInput, InputState, now_ns};
+use crate::source::live_frames::{
+    LiveFrameError, SequenceTracker, StreamDecoder, StreamItem, UDP_MAX_DATAGRAM, parse_datagram,
+};
+
+/// One received frame: the digitizer frame payload (header stripped, CRCs checked).
+pub struct FrameMsg {
+    /// The capture DigitizerFrame payload (`crate::format::frame`).
+    pub payload: Vec<u8>,
+    /// When it was received (the start of its end-to-end latency).
+    pub received: Instant,
+    /// Host receive time, ns since the Unix epoch.
+    pub receive_ns: u64,
+    /// The sender's sequence number.
+    pub sequence: u64,
+}
+
+/// How long a blocked wait lasts before the stop flag is looked at again.
+const POLL: Duration = Duration::from_millis(100);
+
+/// The running receiver.
+pub struct FrameReceiver {
+    thread: Option<JoinHandle<()>>,
+    stop: Arc<AtomicBool>,
+}
+
+impl FrameReceiver {
+    /// Starts receiving from `input` on a new thread; frames go to `tx`, used payload buffers
+    /// come back on `free`.
+    pub fn spawn(
+        input: FrameInput,
+        retry: Duration,
+        tx: Sender<FrameMsg>,
+        free: Receiver<Vec<u8>>,
+        state: Arc<InputState>,
+    ) -> std::io::Result<FrameReceiver> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut rx = Receiver_ {
+            tx,
+            free,
+            state,
+            stop: stop.clone(),
+            seq: SequenceTracker::new(),
+            retry,
+        };
+        let thread = std::thread::Builder::new()
+            .name("frames".into())
+            .spawn(move || rx.run(input))?;
+        Ok(FrameReceiver {
+            thread: Some(thread),
+            stop,
+        })
+    }
+
+    /// Stops receiving (within about 100 ms).
+    pub fn stop(mut self) {
+        self.halt();
+    }
+
+    fn halt(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for FrameReceiver {
+    fn drop(&mut self) {
+        self.halt();
+    }
+}
+
+/// A pair of bounded channels for frames and their recycled buffers, `capacity` frames.
+pub fn channels(
+    capacity: usize,
+) -> (
+    (Sender<FrameMsg>, Receiver<FrameMsg>),
+    (Sender<Vec<u8>>, Receiver<Vec<u8>>),
+) {
+    (bounded(capacity), bounded(capacity))
+}
+
+#[allow(non_camel_case_types)]
+struct Receiver_ {
+    tx: Sender<FrameMsg>,
+    free: Receiver<Vec<u8>>,
+    state: Arc<InputState>,
+    stop: Arc<AtomicBool>,
+    seq: SequenceTracker,
+    retry: Duration,
+}
+
+impl Receiver_ {
+    fn stopped(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+
+    fn run(&mut self, input: FrameInput) {
+        while !self.stopped() {
+            let result = match input {
+                FrameInput::Udp(addr) => self.udp(addr),
+                FrameInput::TcpListen(addr) => self.tcp_listen(addr),
+                FrameInput::TcpConnect(addr) => self.tcp_connect(addr),
+            };
+            self.state.up.store(false, Ordering::Relaxed);
+            if let Err(e) = result {
+                self.state.failed.fetch_add(1, Ordering::Relaxed);
+                self.state.error(format!("frame input {input}: {e}"));
+                self.sleep(self.retry);
+            }
+        }
+    }
+
+    fn sleep(&self, d: Duration) {
+        let until = Instant::now() + d;
+        while !self.stopped() && Instant::now() < until {
+            std::thread::sleep(POLL.min(until.saturating_duration_since(Instant::now())));
+        }
+    }
+
+    fn udp(&mut self, addr: std::net::SocketAddr) -> std::io::Result<()> {
+        let sock = UdpSocket::bind(addr)?;
+        sock.set_read_timeout(Some(POLL))?;
+        self.state.connects.fetch_add(1, Ordering::Relaxed);
+        self.state.up.store(true, Ordering::Relaxed);
+        tracing::info!(%addr, "receiving digitizer frames (UDP)");
+        let mut buf = vec![0u8; UDP_MAX_DATAGRAM];
+        while !self.stopped() {
+            let n = match sock.recv(&mut buf) {
+                Ok(n) => n,
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
+                    continue;
+                }
+                Err(e) if e.kind() == ErrorKind::Interrupted => continue,
+                Err(e) => return Err(e),
+            };
+            let received = Instant::now();
+            self.state.data(n);
+            match parse_datagram(&buf[..n]) {
+                Ok(f) => {
+                    let payload = recycled(&self.free, f.payload);
+                    if !self.deliver(f.sequence, payload, received) {
+                        return Ok(());
+                    }
+                }
+                Err(e) => {
+                    self.state
+                        .skipped_bytes
+                        .fetch_add(n as u64, Ordering::Relaxed);
+                    self.state
+                        .error(format!("frame input udp {addr}: datagram rejected: {e}"));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Hands one frame to the recorder, waiting for room (never dropping). False when stopped.
+    fn deliver(&mut self, sequence: u64, payload: Vec<u8>, received: Instant) -> bool {
+        self.seq.observe(sequence);
+        self.state.lost.store(self.seq.lost, Ordering::Relaxed);
+        self.state.frames.fetch_add(1, Ordering::Relaxed);
+        let mut msg = FrameMsg {
+            payload,
+            received,
+            receive_ns: now_ns(),
+            sequence,
+        };
+        loop {
+            match self.tx.send_timeout(msg, POLL) {
+                Ok(()) => return true,
+                Err(crossbeam_channel::SendTimeoutError::Timeout(m)) => {
+                    if self.stopped() {
+                        return false;
+                    }
+                    msg = m;
+                }
+                Err(crossbeam_channel::SendTimeoutError::Disconnected(_)) => return false,
+            }
+        }
+    }
+
+    fn tcp_listen(&mut self, addr: std::net::SocketAddr) -> std::io::Result<()> {
+        let listener = TcpListener::bind(addr)?;
+        listener.set_nonblocking(true)?;
+        tracing::info!(%addr, "waiting for the digitizer's TCP connection");
+        while !self.stopped() {
+            match listener.accept() {
+                Ok((stream, peer)) => {
+                    tracing::info!(%peer, "digitizer connected");
+                    let r = self.stream(stream, &format!("tcp-listen {addr} (peer {peer})"));
+                    self.state.up.store(false, Ordering::Relaxed);
+                    if let Err(e) = r {
+                        self.state
+                            .error(format!("frame input tcp-listen {addr}: peer {peer}: {e}"));
+                    }
+                }
+                Err(e) if e.kind() == ErrorKind::WouldBlock => std::thread::sleep(POLL),
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(())
+    }
+
+    fn tcp_connect(&mut self, addr: std::net::SocketAddr) -> std::io::Result<()> {
+        let stream = TcpStream::connect_timeout(&addr, self.retry.max(POLL))?;
+        tracing::info!(%addr, "connected to the digitizer");
+        let r = self.stream(stream, &format!("tcp-connect {addr}"));
+        self.state.up.store(false, Ordering::Relaxed);
+        r?;
+        // The digitizer closed the stream: try again after the retry interval.
+        if !self.stopped() {
+            self.state.error(format!(
+                "frame input tcp-connect {addr}: the digitizer closed the stream"
+            ));
+            self.sleep(self.retry);
+        }
+        Ok(())
+    }
+
+    /// Reads frames from one TCP stream until it ends, fails or the receiver is stopped.
+    fn stream(&mut self, mut s: TcpStream, what: &str) -> std::io::Result<()> {
+        s.set_nonblocking(false)?;
+        s.set_read_timeout(Some(POLL))?;
+        let _ = s.set_nodelay(true);
+        self.state.connects.fetch_add(1, Ordering::Relaxed);
+        self.state.up.store(true, Ordering::Relaxed);
+        let mut dec = StreamDecoder::new();
+        while !self.stopped() {
+            let n = match dec.read_from(&mut s) {
+                Ok(0) => {
+                    if let Some(e) = dec.finish() {
+                        self.note_skip(e, what);
+                    }
+                    return Ok(());
+                }
+                Ok(n) => n,
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
+                    continue;
+                }
+                Err(e) if e.kind() == ErrorKind::Interrupted => continue,
+                Err(e) => return Err(e),
+            };
+            let received = Instant::now();
+            self.state.data(n);
+            loop {
+                let (seq, buf) = match dec.next_item() {
+                    None => break,
+                    Some(StreamItem::Frame(f)) => (f.sequence, recycled(&self.free, f.payload)),
+                    Some(StreamItem::Skipped { bytes, reason }) => {
+                        self.state
+                            .skipped_bytes
+                            .fetch_add(bytes as u64, Ordering::Relaxed);
+                        self.note_skip(reason, what);
+                        continue;
+                    }
+                };
+                if !self.deliver(seq, buf, received) {
+                    return Ok(());
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn note_skip(&self, e: LiveFrameError, what: &str) {
+        self.state
+            .error(format!("frame input {what}: bytes skipped: {e}"));
+    }
+}
+
+/// `bytes` in a buffer from the free list (allocated only while the list is empty).
+fn recycled(free: &Receiver<Vec<u8>>, bytes: &[u8]) -> Vec<u8> {
+    let mut buf = free.try_recv().unwrap_or_default();
+    buf.clear();
+    buf.extend_from_slice(bytes);
+    buf
+}
