@@ -116,15 +116,22 @@
     return String(Number(v.toPrecision(3)));
   }
 
-  function legend(ctx, items, x, y) {
+  /** Lays the legend out in rows from (x0, 10) within maxX; returns the rows' height. */
+  function legend(ctx, items, x0, maxX, draw) {
+    let x = x0, y = 10;
     ctx.textAlign = "left";
     for (const it of items) {
-      ctx.fillStyle = it.color;
-      ctx.fillRect(x, y - 5, 12, it.dash ? 3 : 10);
-      ctx.fillStyle = "#e6edf3";
-      ctx.fillText(it.label, x + 16, y);
-      x += 24 + ctx.measureText(it.label).width;
+      const wi = 24 + ctx.measureText(it.label).width;
+      if (x > x0 && x + wi > maxX) { x = x0; y += 15; }
+      if (draw) {
+        ctx.fillStyle = it.color;
+        ctx.fillRect(x, y - (it.dash ? 1 : 5), 12, it.dash ? 3 : 10);
+        ctx.fillStyle = "#e6edf3";
+        ctx.fillText(it.label, x + 16, y);
+      }
+      x += wi;
     }
+    return y + 8;
   }
 
   // ---- time-series chart ---------------------------------------------------------------------
@@ -135,14 +142,15 @@
    */
   function lineChart(canvas, opts) {
     const [ctx, w, h] = prepare(canvas);
-    const L = 54, R = 10, T = 24, B = 22;
+    const L = 54, R = 10, B = 22;
+    const T = legend(ctx, opts.series, L + 40, w - R, false) + 6;
     const pw = w - L - R, ph = h - T - B;
     const t = opts.t;
+    legend(ctx, opts.series, L + 40, w - R, true);
     if (t.length < 2) {
       ctx.fillStyle = AXIS;
       ctx.textAlign = "center";
       ctx.fillText("collecting history…", w / 2, h / 2);
-      legend(ctx, opts.series, L, 10);
       return;
     }
     const t1 = t[t.length - 1];
@@ -217,7 +225,6 @@
     }
     ctx.restore();
     ctx.setLineDash([]);
-    legend(ctx, opts.series, L + 40, 10);
   }
 
   function drawCharts() {
@@ -417,7 +424,7 @@
     canvas.dataset.cells = String(cells.length);
     let dmax = 0;
     for (const c of cells) dmax = Math.max(dmax, c.density_per_m2 || 0);
-    setText("density-max", dmax >= 10 ? dmax.toFixed(0) : dmax.toPrecision(2));
+    setText("density-max", dmax >= 10 ? dmax.toFixed(0) : dmax > 0 ? dmax.toPrecision(2) : "0");
     if (cells.length === 0) {
       ctx.fillStyle = AXIS;
       ctx.textAlign = "center";
@@ -513,7 +520,12 @@
       lo = Math.min(lo, v); hi = Math.max(hi, v);
     }
     if (hi - lo < 1e-12) hi = lo + 1;
-    const L = 54, R = 10, T = 24, B = 30;
+    const legendItems = series.slice();
+    if (wave.returns.length > 0) {
+      legendItems.push({ label: "fitted Gaussians (" + wave.returns.length + ")", color: "#ffffff", dash: true });
+    }
+    const L = 54, R = 10, B = 30;
+    const T = legend(ctx, legendItems, L + 70, w - R, true) + 6;
     const pw = w - L - R, ph = h - T - B;
     const step = niceStep(hi - lo, 5);
     lo = Math.floor(lo / step) * step; hi = Math.ceil(hi / step) * step;
@@ -546,7 +558,6 @@
       });
       ctx.stroke();
     }
-    const legendItems = series.slice();
     if (wave.returns.length > 0) {
       ctx.strokeStyle = "#ffffff"; ctx.lineWidth = 1.4; ctx.setLineDash([5, 4]);
       ctx.beginPath();
@@ -558,11 +569,9 @@
         const x = X(r.time_ns);
         ctx.beginPath(); ctx.moveTo(x, Y(r.amplitude * lastScale)); ctx.lineTo(x, Y(0)); ctx.stroke();
       }
-      legendItems.push({ label: "fitted Gaussians (" + wave.returns.length + ")", color: "#ffffff", dash: true });
     }
     ctx.restore();
     ctx.setLineDash([]);
-    legend(ctx, legendItems, L + 70, 10);
     setText("wave-info", "pulse " + wave.pulse_id + " · GPS " + wave.gps_time.toFixed(6) + " s · " +
       dt + " ns/sample · " + wave.returns.length + " returns");
   }
