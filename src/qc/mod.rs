@@ -2,6 +2,8 @@
 //! that holds it for readers ([`QcHub`]), its Prometheus rendering ([`metrics`]) and the
 //! read-only HTTP server with the operator's page ([`server`]).
 
+pub mod metrics;
+pub mod server;
 pub mod snapshot;
 
 use std::collections::VecDeque;
