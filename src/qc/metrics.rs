@@ -726,7 +726,7 @@ pub(crate) mod tests {
 
     /// One parsed sample line.
     #[derive(Debug)]
-    struct Sample {
+    pub(crate) struct Sample {
         name: String,
         labels: Vec<(String, String)>,
         value: f64,
@@ -823,7 +823,7 @@ pub(crate) mod tests {
     /// Checks the whole text per the format and the rules Prometheus applies: every sample
     /// belongs to a family declared once by `# TYPE` before it, histograms have increasing
     /// `le` ending at +Inf with `_count` equal to it, no series twice. Returns the samples.
-    fn check_exposition(text: &str) -> Vec<Sample> {
+    pub(crate) fn check_exposition(text: &str) -> Vec<Sample> {
         assert!(text.ends_with('\n'), "no final line feed");
         let mut types: HashMap<String, String> = HashMap::new();
         let mut helps: HashMap<String, usize> = HashMap::new();

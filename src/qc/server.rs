@@ -263,11 +263,11 @@ async fn history(State(st): State<AppState>) -> Response {
 async fn waveform(State(st): State<AppState>) -> Response {
     match st.hub.waveform() {
         Some(w) => json(&*w),
-        None => {
-            let mut r = reply("application/json", "");
-            *r.status_mut() = StatusCode::NO_CONTENT;
-            r
-        }
+        None => (
+            StatusCode::NO_CONTENT,
+            [(header::CACHE_CONTROL, "no-store")],
+        )
+            .into_response(),
     }
 }
 
@@ -553,6 +553,7 @@ mod tests {
             "{ct}"
         );
         assert!(m.text().contains("fwlidar_snapshot_sequence 2\n"));
+        crate::qc::metrics::tests::check_exposition(m.text());
         assert!(m.text().contains("fwlidar_pulses_processed_total 12345\n"));
 
         let s = get(addr, "/api/status");
@@ -988,6 +989,17 @@ mod demo {
                     sigma_ns: 1.8,
                 },
             ],
+        }
+    }
+
+    #[test]
+    fn demo_snapshots_render_valid_metrics_and_json() {
+        for k in [0, 1, 31, 100] {
+            let (snap, point) = demo_snapshot(k, 1.79e9);
+            crate::qc::metrics::tests::check_exposition(&crate::qc::metrics::render(&snap));
+            serde_json::to_string(&snap).unwrap();
+            serde_json::to_string(&point).unwrap();
+            serde_json::to_string(&demo_waveform(k)).unwrap();
         }
     }
 
