@@ -48,6 +48,8 @@ struct Setup {
     frames: String,
     nav_device: PathBuf,
     qc_port: u16,
+    /// More `[daemon]` keys, as TOML lines.
+    daemon_extra: &'static str,
 }
 
 fn config_text(s: &Setup) -> String {
@@ -84,6 +86,7 @@ survey = "{survey}"
 qc = "127.0.0.1:{qc}"
 retry_ms = 100
 flush_ms = 100
+{extra}
 "#,
         sensor = sensor.display(),
         workers = s.workers,
@@ -94,6 +97,7 @@ flush_ms = 100
         frames = s.frames,
         survey = s.survey,
         qc = s.qc_port,
+        extra = s.daemon_extra,
     )
 }
 
@@ -384,6 +388,7 @@ fn records_every_frame_processes_live_and_stops_cleanly() {
             frames: format!("tcp-connect:127.0.0.1:{port}"),
             nav_device: nav.clone(),
             qc_port: qc,
+            daemon_extra: "",
         },
     );
     let sent = sent_pulses(sim);
@@ -475,6 +480,8 @@ fn starts_and_serves_qc_with_every_input_absent_then_picks_them_up() {
             frames: format!("tcp-connect:127.0.0.1:{frames_port}"),
             nav_device: nav.clone(),
             qc_port: qc,
+            // A disk alarm threshold above any disk's free space: the alarm must show.
+            daemon_extra: "disk_alarm_free_gb = 1000000000.0",
         },
     );
     let s = wait_status(qc, Duration::from_secs(20), "inputs reported down", |s| {
@@ -484,6 +491,9 @@ fn starts_and_serves_qc_with_every_input_absent_then_picks_them_up() {
             && inputs
                 .iter()
                 .all(|i| u(&i["failed_attempts"]) > 0 || i["last_error"].is_string())
+            && s["alerts"]
+                .as_array()
+                .is_some_and(|a| a.iter().any(|x| x["kind"] == "navigation_gap"))
     });
     let kinds: Vec<&str> = s["alerts"]
         .as_array()
@@ -493,6 +503,10 @@ fn starts_and_serves_qc_with_every_input_absent_then_picks_them_up() {
         .collect();
     assert!(kinds.contains(&"input_down"), "{s:#}");
     assert!(kinds.contains(&"navigation_gap"), "{s:#}");
+    assert!(kinds.contains(&"disk"), "{s:#}");
+    assert_eq!(s["disk"]["alarm"], true);
+    let (_, metrics) = get(qc, "/metrics");
+    assert!(metrics.contains("fwlidar_disk_alarm 1"), "{metrics}");
     // The page is served meanwhile.
     let (code, page) = get(qc, "/");
     assert_eq!(code, 200);
@@ -542,6 +556,7 @@ fn kill_9_keeps_the_capture_up_to_the_last_flush_and_a_restart_continues_the_sur
         frames,
         nav_device: nav.clone(),
         qc_port: qc,
+        daemon_extra: "",
     };
     // First run: killed with SIGKILL in the middle of the stream.
     let (sim, port) = start_simulator(&two_layer(), 400_000, "1", &[], &nav);
@@ -690,6 +705,7 @@ fn the_qc_page_shows_live_numbers_that_change_in_a_real_browser() {
             frames: format!("tcp-connect:127.0.0.1:{port}"),
             nav_device: nav.clone(),
             qc_port: qc,
+            daemon_extra: "",
         },
     );
     wait_status(qc, Duration::from_secs(30), "pulses processed", |s| {
@@ -766,6 +782,7 @@ fn overload_at_twice_the_capacity_records_everything_and_counts_every_drop() {
         frames: format!("tcp-connect:127.0.0.1:{port}"),
         nav_device: nav.clone(),
         qc_port: qc,
+        daemon_extra: "",
     };
     // 1. Measure the capacity: overload for 8 s (50 kHz), read the processed rate.
     let (sim, port) = start_simulator(&two_layer(), 400_000, "1", &[], &nav);
@@ -831,9 +848,9 @@ fn overload_at_twice_the_capacity_records_everything_and_counts_every_drop() {
             u(&s["pulses"]["frames_recorded"]) == sent
                 && u(&s["pulses"]["pulses_processed"]) + u(&s["pulses"]["dropped_total"])
                     == u(&s["pulses"]["pulses_in"])
-                        + u(&s["georeference"]["missed"]
+                        + s["georeference"]["missed"]
                             .as_object()
-                            .map_or(0, |m| m.values().map(u).sum::<u64>()))
+                            .map_or(0, |m| m.values().map(u).sum::<u64>())
         },
     );
     // The page shows the drops (the number the QC counted), in a real browser.
@@ -914,6 +931,7 @@ fn a_ten_second_navigation_loss_drops_the_gap_and_processing_resumes_by_itself()
             frames: format!("tcp-connect:127.0.0.1:{port}"),
             nav_device: nav.clone(),
             qc_port: qc,
+            daemon_extra: "",
         },
     );
     let has_gap_alert = |s: &serde_json::Value| {

@@ -367,9 +367,10 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     println!(
         "fwlidar run: recording {}{}",
         segment.display(),
-        server
-            .as_ref()
-            .map_or(String::new(), |s| format!(", QC at http://{}/", s.0))
+        server.as_ref().map_or(String::new(), |s| format!(
+            ", QC at http://{}/",
+            s.local_addr()
+        ))
     );
 
     let mut last_sample = Instant::now() - Duration::from_secs(1);
@@ -424,9 +425,16 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     Ok(())
 }
 
-/// A running QC server: its address (and the server, stopped on drop).
-pub struct QcRunning(pub std::net::SocketAddr);
-
-fn start_qc(addr: std::net::SocketAddr, _hub: Arc<QcHub>) -> Result<QcRunning, Failure> {
-    Ok(QcRunning(addr))
+/// Starts the QC server; an address that cannot be bound is a configuration error.
+fn start_qc(
+    addr: std::net::SocketAddr,
+    hub: Arc<QcHub>,
+) -> Result<crate::qc::server::QcServer, Failure> {
+    let server = crate::qc::server::spawn(addr, hub).map_err(|e| {
+        Failure::usage(format!(
+            "[daemon] qc = \"{addr}\": {e} (name another address, or \"off\")"
+        ))
+    })?;
+    tracing::info!(addr = %server.local_addr(), "QC server listening (read-only)");
+    Ok(server)
 }

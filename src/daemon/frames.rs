@@ -55,7 +55,7 @@ impl FrameReceiver {
         state: Arc<InputState>,
     ) -> std::io::Result<FrameReceiver> {
         let stop = Arc::new(AtomicBool::new(false));
-        let mut rx = Receiver_ {
+        let mut rx = Reader {
             tx,
             free,
             state,
@@ -91,18 +91,15 @@ impl Drop for FrameReceiver {
     }
 }
 
+/// Both ends of a bounded channel.
+pub type Channel<T> = (Sender<T>, Receiver<T>);
+
 /// A pair of bounded channels for frames and their recycled buffers, `capacity` frames.
-pub fn channels(
-    capacity: usize,
-) -> (
-    (Sender<FrameMsg>, Receiver<FrameMsg>),
-    (Sender<Vec<u8>>, Receiver<Vec<u8>>),
-) {
+pub fn channels(capacity: usize) -> (Channel<FrameMsg>, Channel<Vec<u8>>) {
     (bounded(capacity), bounded(capacity))
 }
 
-#[allow(non_camel_case_types)]
-struct Receiver_ {
+struct Reader {
     tx: Sender<FrameMsg>,
     free: Receiver<Vec<u8>>,
     state: Arc<InputState>,
@@ -111,7 +108,7 @@ struct Receiver_ {
     retry: Duration,
 }
 
-impl Receiver_ {
+impl Reader {
     fn stopped(&self) -> bool {
         self.stop.load(Ordering::Relaxed)
     }

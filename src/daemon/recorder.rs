@@ -182,6 +182,7 @@ impl LiveSource {
                 if let Some(s) = self.serial_states.get(&port) {
                     s.up.store(true, Ordering::Relaxed);
                     s.connects.fetch_add(1, Ordering::Relaxed);
+                    *s.last_error.lock().unwrap_or_else(|e| e.into_inner()) = None;
                 }
                 tracing::info!(port, gap_ms, "navigation port connected");
                 None

@@ -321,13 +321,14 @@ impl Sampler {
                 let fix = l["fix"].as_u64().map(|x| x as u32);
                 let ins = l["ins_status"].as_u64().map(|x| x as u32);
                 let kind = l["fix_kind"].as_str().unwrap_or("");
+                let ins_kind = l["ins_kind"].as_str().unwrap_or("");
                 NavStatus {
                     port: *p,
                     fix,
                     fix_name: fix.map_or("no record yet".into(), |f| fix_name(kind, f)),
                     satellites: l["satellites"].as_u64().map(|x| x as u32),
                     ins_status: ins,
-                    ins_name: ins.map_or("—".into(), |s| ins_name(kind, s)),
+                    ins_name: ins.map_or("—".into(), |s| ins_name(ins_kind, s)),
                     last_packet_age_s: l["last_record_receive_ns"].as_u64().and_then(age),
                     last_gps_sow: v["last_gps_time"]["sow"].as_f64(),
                     position: l["position"].as_array().and_then(|a| {
@@ -572,7 +573,8 @@ fn latency(name: &str, h: &LatencyHistogram) -> StageLatency {
     }
 }
 
-/// The fix in words: GGA quality for NMEA records, the position type for NovAtel ones.
+/// The fix in words: GGA quality for NMEA records, the aiding flag for PASHR, the position
+/// type for NovAtel ones (the code itself is beside it in the snapshot).
 pub fn fix_name(kind: &str, fix: u32) -> String {
     let nmea = matches!(kind, "Gga" | "Rmc" | "Gst" | "Vtg" | "Zda" | "Hdt");
     let name = if nmea {
@@ -603,8 +605,8 @@ pub fn fix_name(kind: &str, fix: u32) -> String {
             16 => "single point",
             17 => "pseudorange differential",
             18 => "SBAS",
-            32 | 33 | 34 => "RTK float",
-            48 | 49 | 50 => "RTK fixed",
+            32..=34 => "RTK float",
+            48..=50 => "RTK fixed",
             51 => "INS + RTK (wide lane)",
             52 => "INS",
             53 => "INS + single point",
@@ -616,15 +618,16 @@ pub fn fix_name(kind: &str, fix: u32) -> String {
             _ => "other",
         }
     };
-    format!("{name} ({fix})")
+    name.into()
 }
 
-/// The INS status in words (NovAtel INS status; PASHR IMU status).
+/// The INS status in words (NovAtel INS status; PASHR IMU status: 0 out, 1 satisfactory).
 pub fn ins_name(kind: &str, status: u32) -> String {
     let name = if kind == "Pashr" {
         match status {
-            0 => "IMU ok",
-            _ => "IMU fault",
+            0 => "IMU out",
+            1 => "IMU satisfactory",
+            _ => "other",
         }
     } else {
         match status {
@@ -642,7 +645,7 @@ pub fn ins_name(kind: &str, status: u32) -> String {
             _ => "other",
         }
     };
-    format!("{name} ({status})")
+    name.into()
 }
 
 /// Reruns a sampled pulse through the stages one at a time (see the module documentation).
@@ -708,8 +711,10 @@ impl WaveformViewer {
             }
             if let Some(p) = &current
                 && p.signal.len() == p.raw.len()
-                && *name != "decompose"
-                && *name != "passthrough"
+                && view
+                    .steps
+                    .last()
+                    .is_none_or(|l| l.values != p.signal_of(seg))
             {
                 view.steps.push(WaveformStep {
                     name: (*name).into(),

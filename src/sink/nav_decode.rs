@@ -31,6 +31,7 @@ struct LatestState {
     fix_kind: Option<String>,
     satellites: Option<u32>,
     ins_status: Option<u32>,
+    ins_kind: Option<String>,
     /// Latitude, longitude (degrees), ellipsoidal height (m).
     position: Option<[f64; 3]>,
 }
@@ -93,6 +94,7 @@ impl NavConsumer for NavDecode {
             }
             if s.ins_status.is_some() {
                 state.ins_status = s.ins_status;
+                state.ins_kind = Some(format!("{:?}", s.kind));
             }
             if let (Some(la), Some(lo), Some(h)) = (s.lat, s.lon, s.height) {
                 state.position = Some([la, lo, h]);
