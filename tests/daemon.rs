@@ -76,6 +76,7 @@ enabled = true
 on_missing = "{on_missing}"
 [voxels]
 enabled = true
+voxel_size_m = [1.0, 1.0, 0.5]
 [[navigation.serial]]
 device = "{nav}"
 baud = 115200
@@ -784,10 +785,20 @@ fn overload_at_twice_the_capacity_records_everything_and_counts_every_drop() {
         qc_port: qc,
         daemon_extra: "",
     };
-    // 1. Measure the capacity: overload for 8 s (50 kHz), read the processed rate.
-    let (sim, port) = start_simulator(&two_layer(), 400_000, "1", &[], &nav);
+    // The survey line in real time: oscillating mirror, NovAtel INSPVAX at 100 Hz, a line long
+    // enough for both phases.
+    let scene = Path::new(ROOT).join("config/scenes/survey_line.toml");
+    let line = "flight.lines=[{ start_m = [-2700.0, 0.0], end_m = [2700.0, 0.0] }]";
+    // 1. Measure the capacity: 10 s at 30 kHz, far above it; read the processed rate.
+    let (sim, port) = start_simulator(
+        &scene,
+        300_000,
+        "1",
+        &["flight.pulse_rate_hz=30000.0", line],
+        &nav,
+    );
     let d = start_daemon(dir.path(), &setup(port));
-    let s0 = wait_status(qc, Duration::from_secs(30), "processing under way", |s| {
+    wait_status(qc, Duration::from_secs(30), "processing under way", |s| {
         u(&s["pulses"]["pulses_processed"]) > 0
     });
     std::thread::sleep(Duration::from_secs(2));
@@ -798,24 +809,19 @@ fn overload_at_twice_the_capacity_records_everything_and_counts_every_drop() {
     let capacity = (u(&b["pulses"]["pulses_processed"]) - u(&a["pulses"]["pulses_processed"]))
         as f64
         / t_a.elapsed().as_secs_f64();
-    let _ = s0;
     let sent_1 = sent_pulses(sim);
     assert!(capacity > 100.0, "capacity {capacity} pulses/s");
 
     // 2. Twice the capacity for 60 s.
     let rate = 2.0 * capacity;
-    let speed = rate / 50_000.0;
     let pulses = (rate * 60.0) as u64;
+    let rate_set = format!("flight.pulse_rate_hz={rate:.1}");
     let (sim, _) = {
         let mut cmd = Command::new(BIN);
         cmd.args(["simulate", "--live", "--no-progress", "--scene"])
-            .arg(two_layer())
-            .args([
-                "--pulses",
-                &pulses.to_string(),
-                "--speed",
-                &format!("{speed:.4}"),
-            ])
+            .arg(&scene)
+            .args(["--pulses", &pulses.to_string(), "--speed", "1"])
+            .args(["--set", &rate_set, "--set", line])
             .args(["--frames", &format!("tcp-listen:127.0.0.1:{port}")])
             .arg("--nav-pty-link")
             .arg(&nav)

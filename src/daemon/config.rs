@@ -26,17 +26,20 @@ impl FrameInput {
                 "expected udp:HOST:PORT, tcp-listen:HOST:PORT or tcp-connect:HOST:PORT, got {s:?}"
             )
         })?;
+        let make: fn(SocketAddr) -> FrameInput = match kind {
+            "udp" => FrameInput::Udp,
+            "tcp-listen" => FrameInput::TcpListen,
+            "tcp-connect" => FrameInput::TcpConnect,
+            _ => {
+                return Err(format!(
+                    "unknown frame input kind {kind:?}: udp, tcp-listen or tcp-connect"
+                ));
+            }
+        };
         let addr: SocketAddr = addr
             .parse()
             .map_err(|e| format!("{addr:?} is not an IP address and port ({e})"))?;
-        match kind {
-            "udp" => Ok(FrameInput::Udp(addr)),
-            "tcp-listen" => Ok(FrameInput::TcpListen(addr)),
-            "tcp-connect" => Ok(FrameInput::TcpConnect(addr)),
-            _ => Err(format!(
-                "unknown frame input kind {kind:?}: udp, tcp-listen or tcp-connect"
-            )),
-        }
+        Ok(make(addr))
     }
 }
 

@@ -1,0 +1,226 @@
+//! End-to-end latency of the on-board daemon, frame arrival to voxel deposit, at steady pulse
+//! rates: the real `fwlidar run` fed in real time by `fwlidar simulate --live` (the survey-line
+//! scene: oscillating mirror, NovAtel INSPVAX at 100 Hz) over loopback TCP and a
+//! pseudo-terminal, with the on-board chain (denoise, Richardson-Lucy 20 iterations by the
+//! outgoing pulse, Gaussian decomposition, calibration, georeferencing, voxel tiles). The
+//! latencies are the daemon's own HDR histogram (every pulse, 3 significant digits), read from
+//! its summary; this harness only sets the rate and prints the table for docs/performance.md.
+//!
+//! `cargo bench --bench daemon_latency` (quiet machine; about 20 s per rate).
+//! `FWLIDAR_LATENCY_FULL_RATES=2000,5000` and `FWLIDAR_LATENCY_LIGHT_RATES=20000` pick the
+//! rates (pulses per second) of the full chain and of a light one (denoise, calibrate),
+//! `FWLIDAR_LATENCY_SECONDS=15` the length of each run.
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+/// The stages of the full on-board chain (`config/onboard.toml`).
+const FULL: &str = r#"[[pipeline.stages]]
+type = "denoise"
+[[pipeline.stages]]
+type = "deconvolve"
+method = { method = "richardson_lucy", iterations = 20 }
+kernel = "outgoing"
+missing_outgoing = "pass"
+[[pipeline.stages]]
+type = "decompose"
+[[pipeline.stages]]
+type = "calibrate"
+"#;
+
+/// A light chain: the FFT low-pass and the calibration (the voxels get the denoised waveform).
+const LIGHT: &str = r#"[[pipeline.stages]]
+type = "denoise"
+[[pipeline.stages]]
+type = "calibrate"
+"#;
+
+fn config(
+    dir: &Path,
+    stages: &str,
+    frames_port: u16,
+    nav: &Path,
+    qc_port: u16,
+    voxel_m: [f64; 2],
+) -> std::path::PathBuf {
+    let text = format!(
+        r#"sensor_profile = "{root}/config/sensors/optech_altm3100ea_cao.toml"
+[pipeline]
+workers = 0
+queue_capacity = 8192
+input_edge = "drop_newest"
+{stages}
+[georeference]
+enabled = true
+[voxels]
+enabled = true
+voxel_size_m = [{voxel}, {voxel}, {voxel_z}]
+[[navigation.serial]]
+device = "{nav}"
+baud = 115200
+reconnect_ms = 50
+[daemon]
+frames = "tcp-connect:127.0.0.1:{frames_port}"
+survey = "latency"
+qc = "127.0.0.1:{qc_port}"
+retry_ms = 50
+"#,
+        root = ROOT,
+        nav = nav.display(),
+        voxel = voxel_m[0],
+        voxel_z = voxel_m[1],
+    );
+    let p = dir.join("latency.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+/// Voxel size (horizontal, vertical), metres: `FWLIDAR_LATENCY_VOXEL=1.0,0.5` (default, the
+/// on-board profile's) or the replay default `0.5,0.15`.
+fn voxel_m() -> [f64; 2] {
+    let v: Vec<f64> = std::env::var("FWLIDAR_LATENCY_VOXEL")
+        .unwrap_or_else(|_| "1.0,0.5".into())
+        .split(',')
+        .filter_map(|x| x.trim().parse().ok())
+        .collect();
+    [
+        v.first().copied().unwrap_or(1.0),
+        v.get(1).copied().unwrap_or(0.5),
+    ]
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+struct Row {
+    chain: &'static str,
+    rate: f64,
+    processed: u64,
+    dropped: u64,
+    p50: f64,
+    p99: f64,
+    p999: f64,
+    max: f64,
+}
+
+fn measure(chain: &'static str, rate: f64, seconds: f64) -> Row {
+    let dir = tempfile::tempdir().unwrap();
+    let nav = dir.path().join("gnss0");
+    let pulses = (rate * seconds) as u64;
+    let mut sim = Command::new(BIN)
+        .args(["simulate", "--live", "--no-progress", "--scene"])
+        .arg(Path::new(ROOT).join("config/scenes/survey_line.toml"))
+        .args(["--pulses", &pulses.to_string(), "--speed", "1"])
+        .args(["--set", &format!("flight.pulse_rate_hz={rate:.1}")])
+        .args([
+            "--set",
+            &format!(
+                "flight.lines=[{{ start_m = [-{half:.0}, 0.0], end_m = [{half:.0}, 0.0] }}]",
+                half = 60.0 * (seconds + 2.0) / 2.0
+            ),
+        ])
+        .args(["--frames", "tcp-listen:127.0.0.1:0", "--nav-pty-link"])
+        .arg(&nav)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(sim.stdout.take().unwrap()).lines();
+    let port = loop {
+        let line = lines.next().expect("simulator output").unwrap();
+        if line.contains("listening on tcp") {
+            break line
+                .split_whitespace()
+                .find_map(|w| w.trim_end_matches(',').parse::<SocketAddr>().ok())
+                .unwrap()
+                .port();
+        }
+    };
+    let stages = if chain == "full" { FULL } else { LIGHT };
+    let cfg = config(dir.path(), stages, port, &nav, free_port(), voxel_m());
+    let out = dir.path().join("out");
+    let mut daemon = Command::new(BIN)
+        .args(["run", "--config"])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    for line in lines.map_while(Result::ok) {
+        if line.starts_with("sent ") {
+            break;
+        }
+    }
+    sim.wait().unwrap();
+    // Let the last pulses through, then stop the daemon cleanly.
+    std::thread::sleep(Duration::from_secs(2));
+    // SAFETY: kill(2) on our own child.
+    unsafe { libc::kill(daemon.id() as i32, libc::SIGTERM) };
+    daemon.wait().unwrap();
+    let summary: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("latency_0000.summary.json")).unwrap(),
+    )
+    .unwrap();
+    let e = &summary["end_to_end"];
+    let us = |k: &str| e[k].as_f64().unwrap_or(f64::NAN) / 1e3;
+    Row {
+        chain,
+        rate,
+        processed: summary["pulses_out"].as_u64().unwrap_or(0),
+        dropped: summary["dropped_total"].as_u64().unwrap_or(0),
+        p50: us("p50_ns"),
+        p99: us("p99_ns"),
+        p999: us("p999_ns"),
+        max: us("max_ns"),
+    }
+}
+
+fn main() {
+    // `cargo test --benches` runs benches with `--bench` absent: do nothing then.
+    if !std::env::args().any(|a| a == "--bench") {
+        return;
+    }
+    let rates = |var: &str, default: &str| -> Vec<f64> {
+        std::env::var(var)
+            .unwrap_or_else(|_| default.into())
+            .split(',')
+            .filter_map(|r| r.trim().parse().ok())
+            .collect()
+    };
+    let seconds: f64 = std::env::var("FWLIDAR_LATENCY_SECONDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(15.0);
+    println!(
+        "| chain | pulse rate (/s) | pulses processed | dropped | p50 (µs) | p99 (µs) | p99.9 (µs) | max (µs) |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
+    let runs = rates("FWLIDAR_LATENCY_FULL_RATES", "2000,5000,8000")
+        .into_iter()
+        .map(|r| ("full", r))
+        .chain(
+            rates("FWLIDAR_LATENCY_LIGHT_RATES", "20000,50000,100000")
+                .into_iter()
+                .map(|r| ("light", r)),
+        );
+    for (chain, rate) in runs {
+        let r = measure(chain, rate, seconds);
+        println!(
+            "| {} | {:.0} | {} | {} | {:.0} | {:.0} | {:.0} | {:.0} |",
+            r.chain, r.rate, r.processed, r.dropped, r.p50, r.p99, r.p999, r.max
+        );
+    }
+}
