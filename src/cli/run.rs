@@ -128,6 +128,12 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     create_dir(&out_dir, "output folder")?;
     let capture_dir = out_dir.join(&d.capture_dir);
     create_dir(&capture_dir, "capture folder")?;
+    // The QC server first: an address in use is reported before anything is recorded.
+    let hub = Arc::new(QcHub::default());
+    let server = match d.qc_address() {
+        Some(addr) => Some(start_qc(addr, hub.clone())?),
+        None => None,
+    };
     let (segment_no, segment) = next_segment(&capture_dir, &d.survey)?;
     let segment_stem = format!("{}_{segment_no:04}", d.survey);
 
@@ -330,7 +336,6 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     }
 
     // QC.
-    let hub = Arc::new(QcHub::default());
     let mut sampler = Sampler::new(
         hub.clone(),
         control.clone(),
@@ -351,10 +356,6 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
             stages,
         },
     );
-    let server = match d.qc_address() {
-        Some(addr) => Some(start_qc(addr, hub.clone())?),
-        None => None,
-    };
     tracing::info!(
         survey = %d.survey,
         segment = %segment.display(),

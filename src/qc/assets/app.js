@@ -110,7 +110,14 @@
   function tickLabel(v) {
     const a = Math.abs(v);
     if (a >= 1e6) return (v / 1e6).toFixed(a >= 1e7 ? 0 : 1) + "M";
-    if (a >= 1e3) return (v / 1e3).toFixed(a >= 1e4 ? 0 : 1) + "k";
+    if (a >= 1e3) {
+      // "12k" or "2.5k" when that is the exact tick; otherwise the whole number (6420, 6440).
+      const k = v / 1e3;
+      if (Math.abs(k * 10 - Math.round(k * 10)) < 1e-9) {
+        return (Number.isInteger(k) ? String(k) : k.toFixed(1)) + "k";
+      }
+      return String(Math.round(v));
+    }
     if (a === 0) return "0";
     if (a < 0.01) return v.toExponential(0);
     return String(Number(v.toPrecision(3)));
