@@ -52,6 +52,23 @@ struct Setup {
     daemon_extra: &'static str,
 }
 
+impl Setup {
+    /// One worker, Richardson-Lucy 20 iterations, 1024-pulse queues, missed pulses dropped.
+    fn new(survey: &'static str, frames: String, nav_device: &Path, qc_port: u16) -> Self {
+        Setup {
+            survey,
+            workers: 1,
+            rl_iterations: 20,
+            queue_capacity: 1024,
+            on_missing: "drop",
+            frames,
+            nav_device: nav_device.to_path_buf(),
+            qc_port,
+            daemon_extra: "",
+        }
+    }
+}
+
 fn config_text(s: &Setup) -> String {
     let sensor = Path::new(ROOT).join("config/sensors/optech_altm3100ea_cao.toml");
     format!(
@@ -210,11 +227,24 @@ fn start_simulator(
     sets: &[&str],
     nav_link: &Path,
 ) -> (Proc, u16) {
+    start_simulator_on(scene, pulses, speed, sets, nav_link, 0)
+}
+
+/// As [`start_simulator`], serving frames on `port` (0: any free port).
+fn start_simulator_on(
+    scene: &Path,
+    pulses: u64,
+    speed: &str,
+    sets: &[&str],
+    nav_link: &Path,
+    port: u16,
+) -> (Proc, u16) {
     let mut cmd = Command::new(BIN);
     cmd.args(["simulate", "--live", "--no-progress", "--scene"])
         .arg(scene)
         .args(["--pulses", &pulses.to_string(), "--speed", speed])
-        .args(["--frames", "tcp-listen:127.0.0.1:0", "--nav-pty-link"])
+        .args(["--frames", &format!("tcp-listen:127.0.0.1:{port}")])
+        .arg("--nav-pty-link")
         .arg(nav_link);
     for s in sets {
         cmd.args(["--set", s]);
@@ -380,17 +410,7 @@ fn records_every_frame_processes_live_and_stops_cleanly() {
     let qc = free_port();
     let d = start_daemon(
         dir.path(),
-        &Setup {
-            survey: "line",
-            workers: 1,
-            rl_iterations: 20,
-            queue_capacity: 1024,
-            on_missing: "drop",
-            frames: format!("tcp-connect:127.0.0.1:{port}"),
-            nav_device: nav.clone(),
-            qc_port: qc,
-            daemon_extra: "",
-        },
+        &Setup::new("line", format!("tcp-connect:127.0.0.1:{port}"), &nav, qc),
     );
     let sent = sent_pulses(sim);
     assert_eq!(sent, pulses);
@@ -473,16 +493,16 @@ fn starts_and_serves_qc_with_every_input_absent_then_picks_them_up() {
     let d = start_daemon(
         dir.path(),
         &Setup {
-            survey: "absent",
-            workers: 1,
             rl_iterations: 5,
             queue_capacity: 256,
-            on_missing: "drop",
-            frames: format!("tcp-connect:127.0.0.1:{frames_port}"),
-            nav_device: nav.clone(),
-            qc_port: qc,
             // A disk alarm threshold above any disk's free space: the alarm must show.
             daemon_extra: "disk_alarm_free_gb = 1000000000.0",
+            ..Setup::new(
+                "absent",
+                format!("tcp-connect:127.0.0.1:{frames_port}"),
+                &nav,
+                qc,
+            )
         },
     );
     let s = wait_status(qc, Duration::from_secs(20), "inputs reported down", |s| {
@@ -514,21 +534,8 @@ fn starts_and_serves_qc_with_every_input_absent_then_picks_them_up() {
     assert!(page.contains("<html") || page.contains("<!DOCTYPE") || page.contains("<!doctype"));
 
     // The instruments power up late, in any order: the daemon keeps retrying and picks them up.
-    let listener = TcpListener::bind(("127.0.0.1", frames_port)).unwrap();
-    drop(listener);
-    let (sim, port) = {
-        // The simulator serves frames on the port the daemon keeps trying.
-        let mut cmd = Command::new(BIN);
-        cmd.args(["simulate", "--live", "--no-progress", "--scene"])
-            .arg(two_layer())
-            .args(["--pulses", "10000", "--speed", "1"])
-            .args(["--frames", &format!("tcp-listen:127.0.0.1:{frames_port}")])
-            .arg("--nav-pty-link")
-            .arg(&nav)
-            .current_dir(ROOT);
-        (spawn(&mut cmd), frames_port)
-    };
-    let _ = port;
+    // The simulator serves frames on the port the daemon keeps trying.
+    let (sim, _) = start_simulator_on(&two_layer(), 10_000, "1", &[], &nav, frames_port);
     let sent = sent_pulses(sim);
     let s = wait_status(
         qc,
@@ -697,17 +704,7 @@ fn the_qc_page_shows_live_numbers_that_change_in_a_real_browser() {
     let (sim, port) = start_simulator(&two_layer(), 300_000, "0.5", &[], &nav);
     let d = start_daemon(
         dir.path(),
-        &Setup {
-            survey: "qc",
-            workers: 1,
-            rl_iterations: 20,
-            queue_capacity: 1024,
-            on_missing: "drop",
-            frames: format!("tcp-connect:127.0.0.1:{port}"),
-            nav_device: nav.clone(),
-            qc_port: qc,
-            daemon_extra: "",
-        },
+        &Setup::new("qc", format!("tcp-connect:127.0.0.1:{port}"), &nav, qc),
     );
     wait_status(qc, Duration::from_secs(30), "pulses processed", |s| {
         u(&s["pulses"]["pulses_processed"]) > 0
@@ -775,15 +772,13 @@ fn overload_at_twice_the_capacity_records_everything_and_counts_every_drop() {
     // A chain made expensive on purpose (200 Richardson-Lucy iterations, one worker) so that
     // the processing capacity is well below what the simulator and recorder sustain.
     let setup = |port: u16| Setup {
-        survey: "overload",
-        workers: 1,
         rl_iterations: 200,
-        queue_capacity: 1024,
-        on_missing: "drop",
-        frames: format!("tcp-connect:127.0.0.1:{port}"),
-        nav_device: nav.clone(),
-        qc_port: qc,
-        daemon_extra: "",
+        ..Setup::new(
+            "overload",
+            format!("tcp-connect:127.0.0.1:{port}"),
+            &nav,
+            qc,
+        )
     };
     // The survey line in real time: oscillating mirror, NovAtel INSPVAX at 100 Hz, a line long
     // enough for both phases.
@@ -816,18 +811,7 @@ fn overload_at_twice_the_capacity_records_everything_and_counts_every_drop() {
     let rate = 2.0 * capacity;
     let pulses = (rate * 60.0) as u64;
     let rate_set = format!("flight.pulse_rate_hz={rate:.1}");
-    let (sim, _) = {
-        let mut cmd = Command::new(BIN);
-        cmd.args(["simulate", "--live", "--no-progress", "--scene"])
-            .arg(&scene)
-            .args(["--pulses", &pulses.to_string(), "--speed", "1"])
-            .args(["--set", &rate_set, "--set", line])
-            .args(["--frames", &format!("tcp-listen:127.0.0.1:{port}")])
-            .arg("--nav-pty-link")
-            .arg(&nav)
-            .current_dir(ROOT);
-        (spawn(&mut cmd), port)
-    };
+    let (sim, _) = start_simulator_on(&scene, pulses, "1", &[&rate_set, line], &nav, port);
     let start = Instant::now();
     let mut rss = Vec::new();
     let mut first_processed = None;
@@ -929,15 +913,8 @@ fn a_ten_second_navigation_loss_drops_the_gap_and_processing_resumes_by_itself()
     let d = start_daemon(
         dir.path(),
         &Setup {
-            survey: "navgap",
-            workers: 1,
             rl_iterations: 10,
-            queue_capacity: 1024,
-            on_missing: "drop",
-            frames: format!("tcp-connect:127.0.0.1:{port}"),
-            nav_device: nav.clone(),
-            qc_port: qc,
-            daemon_extra: "",
+            ..Setup::new("navgap", format!("tcp-connect:127.0.0.1:{port}"), &nav, qc)
         },
     );
     let has_gap_alert = |s: &serde_json::Value| {

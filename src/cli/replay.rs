@@ -64,32 +64,8 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from(&config.output.dir));
-    let mut source = crate::source::open_file(&args.input).map_err(Failure::job)?;
-    let dem = match &config.georeference.dem {
-        Some(path) => Some(std::sync::Arc::new(
-            crate::geo::dem::Dem::open(Path::new(path)).map_err(Failure::job)?,
-        )),
-        None => None,
-    };
-    let mut decided_crs = None;
-    if config.georeference.enabled {
-        let mut geo_cfg = config.georeference.clone();
-        // Register to the ground in the DEM's own CRS unless an output CRS is named (a named
-        // one that differs from the DEM's was refused when the configuration was loaded).
-        if geo_cfg.output_epsg.is_none()
-            && let Some(code) = dem.as_ref().and_then(|d| d.epsg)
-        {
-            geo_cfg.output_epsg = Some(code);
-        }
-        let mut g = crate::geo::georeference::GeoreferencingSource::new(source, geo_cfg)
-            .map_err(Failure::usage)?
-            .with_earliest_date(config.navigation.earliest_days());
-        if let (Some(d), Some(path)) = (&dem, &config.georeference.dem) {
-            g = g.with_dem(d.clone(), path.clone());
-        }
-        decided_crs = Some(g.decided_crs());
-        source = Box::new(g);
-    }
+    let source = crate::source::open_file(&args.input).map_err(Failure::job)?;
+    let (source, dem, decided_crs) = georeferenced(source, &config)?;
     prepare_out_dir(&out_dir)?;
 
     let p = &config.pipeline;
@@ -254,6 +230,48 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         tracing::warn!("replay stopped by signal; outputs hold what was processed until then");
     }
     Ok(())
+}
+
+/// What [`georeferenced`] gives: the source (wrapped when `[georeference] enabled`), the DEM
+/// when one is configured, and the cell where the georeferencing will put the output CRS it
+/// decides (the UTM zone of the first fix) when it was wrapped.
+pub type Georeferenced = (
+    Box<dyn crate::source::Source>,
+    Option<std::sync::Arc<crate::geo::dem::Dem>>,
+    Option<std::sync::Arc<std::sync::OnceLock<String>>>,
+);
+
+/// Opens the DEM and wraps `source` in the georeferencing per `[georeference]` (replay and the
+/// daemon alike). The output CRS is the DEM's own unless the configuration names one.
+pub fn georeferenced(
+    source: Box<dyn crate::source::Source>,
+    config: &RunConfig,
+) -> Result<Georeferenced, Failure> {
+    let dem = match &config.georeference.dem {
+        Some(path) => Some(std::sync::Arc::new(
+            crate::geo::dem::Dem::open(Path::new(path)).map_err(Failure::job)?,
+        )),
+        None => None,
+    };
+    if !config.georeference.enabled {
+        return Ok((source, dem, None));
+    }
+    let mut geo_cfg = config.georeference.clone();
+    // Register to the ground in the DEM's own CRS unless an output CRS is named (a named one
+    // that differs from the DEM's was refused when the configuration was loaded).
+    if geo_cfg.output_epsg.is_none()
+        && let Some(code) = dem.as_ref().and_then(|d| d.epsg)
+    {
+        geo_cfg.output_epsg = Some(code);
+    }
+    let mut g = crate::geo::georeference::GeoreferencingSource::new(source, geo_cfg)
+        .map_err(Failure::usage)?
+        .with_earliest_date(config.navigation.earliest_days());
+    if let (Some(d), Some(path)) = (&dem, &config.georeference.dem) {
+        g = g.with_dem(d.clone(), path.clone());
+    }
+    let decided = g.decided_crs();
+    Ok((Box::new(g), dem, Some(decided)))
 }
 
 /// The LAS output's CRS and time base from what the input states: its WKT when it gave one (an

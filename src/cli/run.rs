@@ -215,7 +215,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
         crs: None,
         t0_is_emission: Some(true),
     };
-    let mut source: Box<dyn Source> = Box::new(LiveSource::new(
+    let source: Box<dyn Source> = Box::new(LiveSource::new(
         LiveInputs {
             frames,
             serial: serial_rx,
@@ -229,29 +229,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
         facts,
     ));
 
-    let dem = match &config.georeference.dem {
-        Some(path) => Some(Arc::new(
-            crate::geo::dem::Dem::open(Path::new(path)).map_err(Failure::job)?,
-        )),
-        None => None,
-    };
-    let mut decided_crs = None;
-    if config.georeference.enabled {
-        let mut geo_cfg = config.georeference.clone();
-        if geo_cfg.output_epsg.is_none()
-            && let Some(code) = dem.as_ref().and_then(|d| d.epsg)
-        {
-            geo_cfg.output_epsg = Some(code);
-        }
-        let mut g = crate::geo::georeference::GeoreferencingSource::new(source, geo_cfg)
-            .map_err(Failure::usage)?
-            .with_earliest_date(config.navigation.earliest_days());
-        if let (Some(dm), Some(path)) = (&dem, &config.georeference.dem) {
-            g = g.with_dem(dm.clone(), path.clone());
-        }
-        decided_crs = Some(g.decided_crs());
-        source = Box::new(g);
-    }
+    let (source, dem, decided_crs) = crate::cli::replay::georeferenced(source, &config)?;
 
     let p = &config.pipeline;
     if p.input_edge != crate::config::FullPolicy::DropNewest {

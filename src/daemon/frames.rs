@@ -146,11 +146,10 @@ impl Reader {
         while !self.stopped() {
             let n = match sock.recv(&mut buf) {
                 Ok(n) => n,
-                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
+                Err(e) => {
+                    retryable(e)?;
                     continue;
                 }
-                Err(e) if e.kind() == ErrorKind::Interrupted => continue,
-                Err(e) => return Err(e),
             };
             let received = Instant::now();
             self.state.data(n);
@@ -254,11 +253,10 @@ impl Reader {
                     return Ok(());
                 }
                 Ok(n) => n,
-                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
+                Err(e) => {
+                    retryable(e)?;
                     continue;
                 }
-                Err(e) if e.kind() == ErrorKind::Interrupted => continue,
-                Err(e) => return Err(e),
             };
             let received = Instant::now();
             self.state.data(n);
@@ -285,6 +283,15 @@ impl Reader {
     fn note_skip(&self, e: LiveFrameError, what: &str) {
         self.state
             .error(format!("frame input {what}: bytes skipped: {e}"));
+    }
+}
+
+/// What a read that failed means: `Ok(())` to read again (timeout, interruption), the error
+/// otherwise.
+fn retryable(e: std::io::Error) -> std::io::Result<()> {
+    match e.kind() {
+        ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted => Ok(()),
+        _ => Err(e),
     }
 }
 
