@@ -965,3 +965,122 @@ fn a_ten_second_navigation_loss_drops_the_gap_and_processing_resumes_by_itself()
     assert_eq!(frames.len() as u64, sent);
     assert!(u(&sm["pulses_out"]) > 0);
 }
+
+#[test]
+fn frames_over_udp_are_recorded_and_lost_ones_counted() {
+    let _one = one_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+    let nav = dir.path().join("gnss0");
+    let qc = free_port();
+    let udp = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let d = start_daemon(
+        dir.path(),
+        &Setup::new("udp", format!("udp:127.0.0.1:{udp}"), &nav, qc),
+    );
+    wait_status(qc, Duration::from_secs(20), "UDP input bound", |s| {
+        s["inputs"][0]["up"] == true
+    });
+    let mut cmd = Command::new(BIN);
+    cmd.args(["simulate", "--live", "--no-progress", "--scene"])
+        .arg(two_layer())
+        .args(["--pulses", "20000", "--speed", "0.5"])
+        .args(["--frames", &format!("udp:127.0.0.1:{udp}")])
+        .arg("--nav-pty-link")
+        .arg(&nav)
+        .current_dir(ROOT);
+    let sent = sent_pulses(spawn(&mut cmd));
+    let s = wait_status(
+        qc,
+        Duration::from_secs(30),
+        "every datagram accounted for",
+        |s| u(&s["pulses"]["frames_recorded"]) + u(&s["pulses"]["frames_lost"]) == sent,
+    );
+    // Loopback at 25 kHz loses nothing in practice; whatever it lost is counted, not hidden.
+    assert!(u(&s["pulses"]["frames_recorded"]) > sent * 9 / 10, "{s:#}");
+    d.signal(libc::SIGTERM);
+    let (code, _, err) = d.wait(Duration::from_secs(60));
+    assert_eq!(code, Some(0), "{err}");
+    let (frames, _, clean) = read_segment(&dir.path().join("out/capture/udp_0000.fwcap"));
+    assert!(clean);
+    assert_eq!(frames.len() as u64, u(&s["pulses"]["frames_recorded"]));
+}
+
+#[test]
+fn bad_configurations_are_refused_naming_the_field_and_nothing_is_recorded() {
+    let dir = tempfile::tempdir().unwrap();
+    let nav = dir.path().join("gnss0");
+    let out = dir.path().join("out");
+    let run = |config: &Path| {
+        Command::new(BIN)
+            .args(["run", "--config"])
+            .arg(config)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap()
+    };
+    // A misspelt frame input and an unknown key in [daemon].
+    let base = config_text(&Setup::new(
+        "bad",
+        "tcp-listen:127.0.0.1:1".into(),
+        &nav,
+        free_port(),
+    ));
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(
+        &bad,
+        base.replace("tcp-listen:127.0.0.1:1", "tcp-lisen:127.0.0.1:1")
+            .replace("retry_ms = 100", "retry_ms = 100\nflush_every = 3"),
+    )
+    .unwrap();
+    let o = run(&bad);
+    let err = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("daemon.frames") && err.contains("tcp-lisen"),
+        "{err}"
+    );
+    assert!(err.contains("daemon.flush_every"), "{err}");
+    assert!(!out.join("capture").exists(), "nothing may be recorded");
+    // The QC address already taken: refused before anything is recorded, naming the address.
+    let taken = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port();
+    let busy = dir.path().join("busy.toml");
+    std::fs::write(
+        &busy,
+        config_text(&Setup::new(
+            "busy",
+            "tcp-listen:127.0.0.1:1".into(),
+            &nav,
+            port,
+        )),
+    )
+    .unwrap();
+    let o = run(&busy);
+    let err = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains(&format!("127.0.0.1:{port}")), "{err}");
+    let segments = std::fs::read_dir(out.join("capture"))
+        .map(|d| d.count())
+        .unwrap_or(0);
+    assert_eq!(
+        segments, 0,
+        "no segment is created when the QC address is taken"
+    );
+    // No sensor profile: live frames do not describe their sensor.
+    let nosensor = dir.path().join("nosensor.toml");
+    let text = base
+        .lines()
+        .filter(|l| !l.starts_with("sensor_profile"))
+        .collect::<Vec<_>>()
+        .join("\n");
+    std::fs::write(&nosensor, text).unwrap();
+    let o = run(&nosensor);
+    let err = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("sensor_profile"), "{err}");
+}
