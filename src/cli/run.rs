@@ -30,6 +30,9 @@ use crate::source::serial::SerialReader;
 use crate::source::{Source, SourceFacts};
 use crate::voxel::zarr::StoreInfo;
 
+/// Closed voxel tiles waiting for the tile writer thread at most (then the sink waits).
+const TILE_WRITER_QUEUE: usize = 32;
+
 /// Arguments of `fwlidar run`.
 #[derive(Debug, clap::Args)]
 pub struct RunArgs {
@@ -289,7 +292,8 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
             )
             .map_err(Failure::job)?
             .continuing()
-            .with_coverage(),
+            .with_coverage()
+            .with_tile_writer(TILE_WRITER_QUEUE),
         ));
     }
     if config.output.las && spec.stage_names.contains(&"decompose") {

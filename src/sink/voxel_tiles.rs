@@ -56,6 +56,8 @@ pub struct VoxelTilesSink {
     continue_store: bool,
     /// Pulses per tile by footprint centre (the QC coverage map), when tracked.
     coverage: Option<std::collections::HashMap<[i64; 2], u64>>,
+    /// Write closed tiles on a writer thread, this many waiting at most (0: on this thread).
+    writer_queue: usize,
 }
 
 fn store_err(e: StoreError) -> SinkError {
@@ -89,7 +91,16 @@ impl VoxelTilesSink {
             finished: false,
             continue_store: false,
             coverage: None,
+            writer_queue: 0,
         })
+    }
+
+    /// Writes closed tiles on a thread of their own, at most `queue` waiting, so that the
+    /// deposits do not wait for compression and fsyncs (the daemon's latency; the store ends up
+    /// the same).
+    pub fn with_tile_writer(mut self, queue: usize) -> Self {
+        self.writer_queue = queue;
+        self
     }
 
     /// Continues a store left by an earlier run of the same survey: its grid is taken as it is
@@ -182,6 +193,9 @@ impl VoxelTilesSink {
         });
         let wkt = store.info().crs_wkt.clone();
         let mut tiles = TileSet::new(store, self.cfg.max_open_tiles, self.cfg.close_after_s);
+        if self.writer_queue > 0 {
+            tiles = tiles.with_writer_thread(self.writer_queue);
+        }
         if self.cfg.las {
             let dir = self
                 .root
@@ -436,6 +450,37 @@ mod tests {
         assert_eq!(d.pulses[at(19)], 2);
         let next_column = (2 * 8 + 4) * 20 + 5;
         assert!(d.max[next_column].is_nan() && d.samples[next_column] == 0);
+    }
+
+    #[test]
+    fn a_tile_writer_thread_writes_the_same_store() {
+        let inline = tempfile::tempdir().unwrap();
+        let a = run(inline.path(), cfg(), flight());
+        let threaded = tempfile::tempdir().unwrap();
+        let mut b = VoxelTilesSink::create(
+            threaded.path(),
+            cfg(),
+            CrsSource::Known(Some("EPSG:32736".into())),
+            info(),
+            None,
+            None,
+        )
+        .unwrap()
+        .with_tile_writer(1);
+        for p in flight() {
+            b.write(&p).unwrap();
+        }
+        b.finish().unwrap();
+        // The same lifecycle (the return line reopens tiles, some still being written) and the
+        // same store, bit for bit.
+        let (sa, sb) = (a.tiles().unwrap(), b.tiles().unwrap());
+        assert_eq!(
+            (sa.stats().opened, sa.stats().closed, sa.stats().merged),
+            (sb.stats().opened, sb.stats().closed, sb.stats().merged)
+        );
+        assert_eq!(sa.store().tiles_written, sb.store().tiles_written);
+        assert_eq!(sa.store().tiles(), sb.store().tiles());
+        assert_same_tiles(inline.path(), threaded.path());
     }
 
     #[test]

@@ -44,6 +44,38 @@ struct Slot {
     last_seq: u64,
 }
 
+/// A tile handed to the writer thread.
+struct WriteJob {
+    tile: [i64; 2],
+    data: TileData,
+    watermark: u64,
+}
+
+/// What the writer thread hands back: the tile, its watermark, its buffer (for reuse), and
+/// whether the write succeeded.
+type WriteDone = ([i64; 2], u64, TileData, Result<(), StoreError>);
+
+/// The writer thread: tiles closed on the sink thread are written (compressed, fsynced,
+/// committed) here, so that a row of tiles closing at once does not stall the deposits.
+struct Writer {
+    jobs: Option<crossbeam_channel::Sender<WriteJob>>,
+    done: crossbeam_channel::Receiver<WriteDone>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    /// Tiles handed over and not yet reported back.
+    in_flight: std::collections::HashSet<[i64; 2]>,
+    /// Buffers of written tiles, for the next tile that closes.
+    spare: Vec<TileData>,
+}
+
+impl Drop for Writer {
+    fn drop(&mut self) {
+        self.jobs.take();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
 /// Open tiles over a store.
 pub struct TileSet {
     store: ZarrStore,
@@ -61,6 +93,8 @@ pub struct TileSet {
     idle: Vec<usize>,
     /// Write each closed tile's occupied voxels as LAS into this folder (with this CRS WKT).
     las: Option<(std::path::PathBuf, Option<String>)>,
+    /// Writes closed tiles on a thread of its own (`with_writer_thread`); `None`: here.
+    writer: Option<Writer>,
 }
 
 const EMPTY_BOX: [i64; 4] = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
@@ -85,7 +119,80 @@ impl TileSet {
             },
             idle: Vec::with_capacity(max_open + 1),
             las: None,
+            writer: None,
         }
+    }
+
+    /// Writes closed tiles on a thread of its own, at most `queue` waiting (then closing waits
+    /// for the writer: memory stays bounded by `max_open_tiles + queue + 1` tiles). The store
+    /// ends up the same (each tile's commit is atomic and independent of the others); a tile
+    /// reopened while its write is under way waits for it before it is read back.
+    pub fn with_writer_thread(mut self, queue: usize) -> Self {
+        let (jobs_tx, jobs_rx) = crossbeam_channel::bounded::<WriteJob>(queue.max(1));
+        let (done_tx, done_rx) = crossbeam_channel::unbounded::<WriteDone>();
+        let mut store = self.store.tile_writer();
+        let thread = std::thread::Builder::new()
+            .name("tile-writer".into())
+            .spawn(move || {
+                for job in jobs_rx.iter() {
+                    let r = store.write_tile(job.tile, &job.data, job.watermark);
+                    if done_tx
+                        .send((job.tile, job.watermark, job.data, r))
+                        .is_err()
+                    {
+                        break;
+                    }
+                }
+            });
+        match thread {
+            Ok(t) => {
+                self.writer = Some(Writer {
+                    jobs: Some(jobs_tx),
+                    done: done_rx,
+                    thread: Some(t),
+                    in_flight: std::collections::HashSet::new(),
+                    spare: Vec::new(),
+                });
+            }
+            Err(e) => tracing::warn!("no tile writer thread ({e}); tiles are written inline"),
+        }
+        self
+    }
+
+    /// Takes the writer's reports: commits recorded in the store, buffers kept for reuse. With
+    /// `until`, waits until that tile is no longer being written; with `all`, until none is.
+    fn collect_writes(&mut self, until: Option<[i64; 2]>, all: bool) -> Result<(), StoreError> {
+        let Some(w) = self.writer.as_mut() else {
+            return Ok(());
+        };
+        let mut result = Ok(());
+        loop {
+            let must_wait =
+                all && !w.in_flight.is_empty() || until.is_some_and(|t| w.in_flight.contains(&t));
+            let next = if must_wait {
+                match w.done.recv() {
+                    Ok(d) => d,
+                    Err(_) => break,
+                }
+            } else {
+                match w.done.try_recv() {
+                    Ok(d) => d,
+                    Err(_) => break,
+                }
+            };
+            let (tile, watermark, data, r) = next;
+            w.in_flight.remove(&tile);
+            w.spare.push(data);
+            match r {
+                Ok(()) => self.store.note_committed(tile, watermark),
+                Err(e) => {
+                    if result.is_ok() {
+                        result = Err(e);
+                    }
+                }
+            }
+        }
+        result
     }
 
     /// Also writes every closed tile's occupied voxels as `DIR/tile_<tx>_<ty>.las` (rewritten,
@@ -152,6 +259,8 @@ impl TileSet {
                 self.stats.closed_early += 1;
             }
         }
+        // A tile whose write is under way is read back only once it is committed.
+        self.collect_writes(Some(tile), false)?;
         let s = match self.free.pop() {
             Some(s) => s,
             None => {
@@ -203,7 +312,9 @@ impl TileSet {
         let slot = &self.slots[s];
         let tile = slot.tile;
         let w = watermark.max(slot.skip_below);
-        self.store.write_tile(tile, &slot.data, w)?;
+        if self.writer.is_none() {
+            self.store.write_tile(tile, &slot.data, w)?;
+        }
         if let Some((dir, wkt)) = &self.las {
             let path = dir.join(format!("tile_{}_{}.las", tile[0], tile[1]));
             tile_las(&path, wkt.as_deref(), self.store.grid(), tile, &slot.data).map_err(|e| {
@@ -213,6 +324,28 @@ impl TileSet {
                 }
             })?;
             self.stats.las_files += 1;
+        }
+        if self.writer.is_some() {
+            self.collect_writes(None, false)?;
+            let n = self.store.grid().tile_voxels();
+            if let Some(wr) = self.writer.as_mut() {
+                let fresh = wr.spare.pop().unwrap_or_else(|| TileData::new(n));
+                let data = std::mem::replace(&mut self.slots[s].data, fresh);
+                wr.in_flight.insert(tile);
+                let sent = wr.jobs.as_ref().map(|j| {
+                    j.send(WriteJob {
+                        tile,
+                        data,
+                        watermark: w,
+                    })
+                });
+                if !matches!(sent, Some(Ok(()))) {
+                    return Err(StoreError::Io {
+                        path: self.store.root().display().to_string(),
+                        source: std::io::Error::other("the tile writer thread has stopped"),
+                    });
+                }
+            }
         }
         self.open.remove(&tile);
         self.free.push(s);
@@ -273,7 +406,7 @@ impl TileSet {
         for s in all {
             self.close_slot(s, next_seq)?;
         }
-        Ok(())
+        self.collect_writes(None, true)
     }
 
     /// Takes the store back (after `close_all`).

@@ -438,6 +438,20 @@ impl ZarrStore {
         Ok(true)
     }
 
+    /// A second handle on the same store for a writer thread: it writes tiles with
+    /// [`write_tile`](Self::write_tile) exactly as this one would; this one learns of each commit
+    /// through [`note_committed`](Self::note_committed). Its own records are not consulted.
+    pub fn tile_writer(&self) -> ZarrStore {
+        ZarrStore::at(&self.root, self.grid.clone(), self.info.clone())
+    }
+
+    /// Records a tile committed by a [`tile_writer`](Self::tile_writer) handle.
+    pub fn note_committed(&mut self, tile: [i64; 2], watermark: u64) {
+        self.records.insert(tile, watermark);
+        self.tiles_written += 1;
+        self.bytes_written += self.grid.tile_voxels() as u64 * 20;
+    }
+
     /// Writes a tile with its watermark (see the module documentation for the protocol).
     pub fn write_tile(
         &mut self,
