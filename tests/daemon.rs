@@ -20,6 +20,7 @@ use std::time::{Duration, Instant};
 
 use common::{BIN, ROOT};
 use fwlidar::format::{CaptureReader, Record};
+use serialport::SerialPort;
 
 /// One daemon test at a time: they measure rates on a shared two-core machine.
 static SERIAL: Mutex<()> = Mutex::new(());
@@ -1083,4 +1084,120 @@ fn bad_configurations_are_refused_naming_the_field_and_nothing_is_recorded() {
     let err = common::text(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("sensor_profile"), "{err}");
+}
+
+/// A pseudo-terminal pair whose slave is reachable as `link`; returns the master.
+fn plug(link: &Path) -> serialport::TTYPort {
+    let (master, slave) = serialport::TTYPort::pair().expect("a pseudo-terminal pair");
+    let name = slave.name().expect("slave name");
+    drop(slave);
+    let _ = std::fs::remove_file(link);
+    std::os::unix::fs::symlink(&name, link).unwrap();
+    master
+}
+
+fn nmea(body: &str) -> String {
+    let x = body.bytes().fold(0u8, |a, b| a ^ b);
+    format!("${body}*{x:02X}\r\n")
+}
+
+#[test]
+fn two_receivers_on_two_serial_ports_are_recorded_byte_for_byte_and_shown_apart() {
+    let _one = one_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+    let (gnss, ins) = (dir.path().join("gnss0"), dir.path().join("ins1"));
+    let qc = free_port();
+    // No digitizer (its input stays down); georeferencing off: the two receivers here are not
+    // one aircraft (port 1 plays a real NovAtel SPAN recording from another place and year).
+    let mut text = config_text(&Setup::new(
+        "ports",
+        format!("tcp-connect:127.0.0.1:{}", free_port()),
+        &gnss,
+        qc,
+    ))
+    .replace(
+        "[georeference]\nenabled = true",
+        "[georeference]\nenabled = false",
+    );
+    text.push_str(&format!(
+        "\n[[navigation.serial]]\ndevice = \"{}\"\nbaud = 115200\nport = 1\nreconnect_ms = 100\n",
+        ins.display()
+    ));
+    let config = dir.path().join("ports.toml");
+    std::fs::write(&config, text).unwrap();
+    let mut port0 = plug(&gnss);
+    let mut port1 = plug(&ins);
+    let mut cmd = Command::new(BIN);
+    cmd.args(["run", "--config"])
+        .arg(&config)
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .current_dir(ROOT);
+    let d = spawn(&mut cmd);
+    d.line_with("fwlidar run: recording", Duration::from_secs(30));
+    wait_status(qc, Duration::from_secs(20), "both ports open", |s| {
+        s["inputs"]
+            .as_array()
+            .is_some_and(|i| i.iter().filter(|x| x["up"] == true).count() == 2)
+    });
+    // Port 0: NMEA, RTK fixed with 14 satellites. Port 1: the real SPAN byte stream.
+    let mut sent0 = Vec::new();
+    for k in 0..20 {
+        let t = format!("1234{:02}.{:02}", 5 + k / 10, (k % 10) * 10);
+        for body in [
+            format!("GPGGA,{t},4324.2460,N,08028.2120,W,4,14,0.8,326.2,M,-36.0,M,1.0,0000"),
+            format!("GPZDA,{t},24,11,2026,00,00"),
+        ] {
+            sent0.extend_from_slice(nmea(&body).as_bytes());
+        }
+    }
+    let span = std::fs::read(common::fixture("nav/novatel/corrimudata.pcap.payload.bin")).unwrap();
+    for (a, b) in sent0
+        .chunks(200)
+        .zip(span.chunks(span.len().div_ceil(sent0.len().div_ceil(200))))
+    {
+        port0.write_all(a).unwrap();
+        port1.write_all(b).unwrap();
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let s = wait_status(qc, Duration::from_secs(20), "both receivers decoded", |s| {
+        let n = s["nav"].as_array().cloned().unwrap_or_default();
+        n.len() == 2 && n.iter().all(|p| p["fix"].is_u64() && u(&p["samples"]) > 0)
+    });
+    let nav = s["nav"].as_array().unwrap();
+    let by_port = |p: u64| nav.iter().find(|n| n["port"] == p).unwrap();
+    assert_eq!(by_port(0)["fix_name"], "RTK fixed", "{s:#}");
+    assert_eq!(by_port(0)["satellites"], 14, "{s:#}");
+    assert!(
+        by_port(1)["ins_status"].is_u64(),
+        "INS status from INSPVAX: {s:#}"
+    );
+    assert!(by_port(0)["position"][0].as_f64().unwrap() > 43.0);
+    d.signal(libc::SIGTERM);
+    let (code, _, err) = d.wait(Duration::from_secs(60));
+    assert_eq!(code, Some(0), "{err}");
+    // Each port's bytes are in the segment, in order, exactly as written.
+    let mut r = CaptureReader::open(dir.path().join("out/capture/ports_0000.fwcap")).unwrap();
+    let (mut got0, mut got1) = (Vec::new(), Vec::new());
+    while let Some(rec) = r.next_record() {
+        if let Record::Nav { port, bytes, .. } = rec.unwrap() {
+            match port {
+                0 => got0.extend_from_slice(bytes),
+                1 => got1.extend_from_slice(bytes),
+                p => panic!("navigation from port {p}"),
+            }
+        }
+    }
+    assert!(
+        got0 == sent0,
+        "port 0: {} bytes recorded of {}",
+        got0.len(),
+        sent0.len()
+    );
+    assert!(
+        got1 == span,
+        "port 1: {} bytes recorded of {}",
+        got1.len(),
+        span.len()
+    );
 }

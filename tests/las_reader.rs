@@ -278,6 +278,7 @@ fn real_file_as_a_source_states_its_crs_and_time_base() {
             }
             SourceEvent::End => break,
             SourceEvent::Nav(_) => panic!("a LAS file has no navigation"),
+            SourceEvent::Idle => panic!("a file source is never idle"),
         }
     }
     assert_eq!(n, 2376);

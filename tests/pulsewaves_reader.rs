@@ -446,6 +446,7 @@ fn source_streams_every_pulse_and_reports() {
             }
             SourceEvent::End => break,
             SourceEvent::Nav(_) => panic!("no navigation in PulseWaves"),
+            SourceEvent::Idle => panic!("a file source is never idle"),
         }
     }
     assert_eq!(n, 1000);

@@ -55,7 +55,7 @@ fn read_all(path: &Path) -> Vec<Shot> {
                 out.push(shot_of(&p));
                 pool.give(p);
             }
-            SourceEvent::Nav(_) => {}
+            SourceEvent::Nav(_) | SourceEvent::Idle => {}
             SourceEvent::End => break,
         }
     }

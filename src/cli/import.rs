@@ -148,6 +148,7 @@ pub fn import(
         };
         match event {
             SourceEvent::End => break,
+            SourceEvent::Idle => {}
             SourceEvent::Nav(chunk) => {
                 w.write_nav(chunk.port, chunk.receive_time_ns, &chunk.bytes)
                     .map_err(job)?;

@@ -125,6 +125,7 @@ fn inspect_source(args: InspectArgs) -> Result<(), Failure> {
             .map_err(|e| Failure::job(e.to_string()))?
         {
             SourceEvent::End => break,
+            SourceEvent::Idle => {}
             SourceEvent::Nav(chunk) => {
                 ov.nav_records += 1;
                 ov.nav_bytes += chunk.bytes.len() as u64;

@@ -292,6 +292,7 @@ impl Source for LiveSource {
                     {
                         self.write_failed(e);
                     }
+                    return Ok(SourceEvent::Idle);
                 }
             }
         }

@@ -360,7 +360,7 @@ fn georeference_step(
                     }
                     pool.give(p);
                 }
-                SourceEvent::Nav(_) => {}
+                SourceEvent::Nav(_) | SourceEvent::Idle => {}
                 SourceEvent::End => break,
             }
         }

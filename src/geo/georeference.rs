@@ -477,6 +477,7 @@ impl Source for GeoreferencingSource {
                     self.drain(pool);
                     return Ok(SourceEvent::Nav(chunk));
                 }
+                SourceEvent::Idle => return Ok(SourceEvent::Idle),
                 SourceEvent::End => {
                     for dec in self.decoders.values_mut() {
                         let samples = &mut self.samples;
@@ -599,7 +600,7 @@ mod tests {
         loop {
             match src.next(&pool).unwrap() {
                 SourceEvent::Pulse(p) => out.push((p.gps_time, p.geometry.is_some())),
-                SourceEvent::Nav(_) => {}
+                SourceEvent::Nav(_) | SourceEvent::Idle => {}
                 SourceEvent::End => break,
             }
         }

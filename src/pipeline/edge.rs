@@ -59,6 +59,10 @@ fn wait(spins: &mut u32, waiting: &AtomicBool, still_blocked: impl Fn() -> bool)
     waiting.store(false, Ordering::SeqCst);
 }
 
+/// [`EdgeRx::recv_deadline`] found nothing before its deadline.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TimedOut;
+
 /// Live counters of an edge, readable from any thread.
 #[derive(Clone)]
 pub struct EdgeStats(Arc<Shared>);
@@ -232,6 +236,33 @@ impl<T> EdgeRx<T> {
         }
     }
 
+    /// As [`recv`](Self::recv), but gives up at `deadline` (to within the 50 ms park):
+    /// `Err(TimedOut)` when it passed with nothing to take.
+    pub fn recv_deadline(&mut self, deadline: std::time::Instant) -> Result<Option<T>, TimedOut> {
+        let _ = self.shared.rx_thread.set(thread::current());
+        let mut spins = 0u32;
+        loop {
+            if let Some(item) = self.cons.try_pop() {
+                self.after_pop();
+                return Ok(Some(item));
+            }
+            if self.shared.tx_closed.load(Ordering::SeqCst) {
+                let last = self.cons.try_pop();
+                if last.is_some() {
+                    self.after_pop();
+                }
+                return Ok(last);
+            }
+            if std::time::Instant::now() >= deadline {
+                return Err(TimedOut);
+            }
+            let (cons, shared) = (&self.cons, &self.shared);
+            wait(&mut spins, &shared.rx_waiting, || {
+                cons.is_empty() && !shared.tx_closed.load(Ordering::SeqCst)
+            });
+        }
+    }
+
     fn after_pop(&mut self) {
         fence(Ordering::SeqCst);
         if self.shared.tx_waiting.load(Ordering::SeqCst)
@@ -254,6 +285,25 @@ impl<T> Drop for EdgeRx<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn recv_deadline_times_out_when_quiet_and_still_sees_items_and_the_end() {
+        use std::time::{Duration, Instant};
+        let (mut tx, mut rx) = edge::<u64>(4, FullPolicy::Block);
+        let t0 = Instant::now();
+        assert_eq!(
+            rx.recv_deadline(t0 + Duration::from_millis(20)),
+            Err(TimedOut)
+        );
+        assert!(t0.elapsed() >= Duration::from_millis(20));
+        assert!(matches!(tx.send(7), Sent::Queued));
+        assert_eq!(rx.recv_deadline(Instant::now()), Ok(Some(7)));
+        drop(tx);
+        assert_eq!(
+            rx.recv_deadline(Instant::now() + Duration::from_secs(5)),
+            Ok(None)
+        );
+    }
 
     #[test]
     fn blocking_edge_delivers_everything_in_order() {

@@ -258,8 +258,22 @@ pub fn run(
                 let publish = control.publish.clone();
                 move || {
                     let mut last = Instant::now();
-                    for chunk in nav_rx.iter() {
-                        nav.consume(chunk);
+                    loop {
+                        // With live publishing, wake up when quiet too, so the latest state
+                        // is published even when the bytes stop.
+                        let chunk = match &publish {
+                            None => nav_rx.recv().ok(),
+                            Some(_) => match nav_rx.recv_timeout(PUBLISH_EVERY) {
+                                Ok(c) => Some(c),
+                                Err(crossbeam_channel::RecvTimeoutError::Timeout) => None,
+                                Err(crossbeam_channel::RecvTimeoutError::Disconnected) => break,
+                            },
+                        };
+                        match (chunk, &publish) {
+                            (Some(c), _) => nav.consume(c),
+                            (None, None) => break,
+                            (None, Some(_)) => {}
+                        }
                         if let Some(p) = &publish
                             && last.elapsed() >= PUBLISH_EVERY
                         {
@@ -314,7 +328,25 @@ pub fn run(
                             k = (k + 1) % out_rxs.len();
                             continue;
                         }
-                        let (p, last) = match out_rxs[k].recv() {
+                        let got = match &publish {
+                            None => Ok(out_rxs[k].recv()),
+                            Some(_) => out_rxs[k].recv_deadline(last_publish + PUBLISH_EVERY),
+                        };
+                        let got = match got {
+                            Ok(g) => g,
+                            Err(_) => {
+                                // Quiet: publish what the last pulses changed.
+                                if let Some(pb) = &publish {
+                                    last_publish = Instant::now();
+                                    *lock(&pb.end_to_end) = e2e.clone();
+                                    *lock(&pb.sink) = sink.report();
+                                    *lock(&pb.output_queues) =
+                                        out_rxs.iter().map(|rx| rx.len() as u64).collect();
+                                }
+                                continue;
+                            }
+                        };
+                        let (p, last) = match got {
                             Some(WorkerOut::Pulse(p)) => (p, false),
                             Some(WorkerOut::Last(p)) => (p, true),
                             Some(WorkerOut::Done) => {
@@ -426,6 +458,7 @@ pub fn run(
                                     break;
                                 }
                             }
+                            Ok(SourceEvent::Idle) => {}
                             Ok(SourceEvent::End) => break,
                             Err(e) => {
                                 set_fatal(format!("source `{}`: {e}", source.name()));
@@ -534,7 +567,20 @@ fn worker(
             w[*i] = tel.to_vec();
         }
     };
-    while let Some(p) = rx.recv() {
+    loop {
+        let p = match publish {
+            None => rx.recv(),
+            Some(_) => match rx.recv_deadline(last_publish + PUBLISH_EVERY) {
+                Ok(p) => p,
+                Err(_) => {
+                    // Quiet: publish what the last pulses changed.
+                    last_publish = Instant::now();
+                    publish_tel(&tel);
+                    continue;
+                }
+            },
+        };
+        let Some(p) = p else { break };
         if publish.is_some() && last_publish.elapsed() >= PUBLISH_EVERY {
             last_publish = Instant::now();
             publish_tel(&tel);

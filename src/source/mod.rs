@@ -30,6 +30,9 @@ pub enum SourceEvent {
     Pulse(Box<Pulse>),
     /// Navigation bytes.
     Nav(NavChunk),
+    /// Nothing came for a while (live sources only); ask again. Lets the source's thread look
+    /// at its stop flag and publish its telemetry while the input is quiet.
+    Idle,
     /// Nothing more will come.
     End,
 }
