@@ -436,6 +436,35 @@ fn records_every_frame_processes_live_and_stops_cleanly() {
         metrics.contains(&format!("fwlidar_frames_recorded_total {sent}")),
         "{metrics}"
     );
+    // ...and the Prometheus project's own parser reads it (types, cumulative histograms).
+    let mut py = Command::new(common::python())
+        .arg(Path::new(ROOT).join("tests/python/check_metrics.py"))
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    py.stdin
+        .take()
+        .unwrap()
+        .write_all(metrics.as_bytes())
+        .unwrap();
+    let o = py.wait_with_output().unwrap();
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let parsed: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(
+        parsed["families"]["fwlidar_stage_latency_seconds"],
+        "histogram"
+    );
+    assert_eq!(
+        parsed["families"]["fwlidar_end_to_end_latency_seconds"],
+        "histogram"
+    );
+    assert_eq!(parsed["families"]["fwlidar_frames_recorded"], "counter");
+    assert_eq!(
+        parsed["values"]["fwlidar_frames_recorded_total"].as_f64(),
+        Some(sent as f64)
+    );
 
     d.signal(libc::SIGTERM);
     let (code, out, err) = d.wait(Duration::from_secs(60));
