@@ -118,26 +118,22 @@ pub fn render(s: &QcSnapshot) -> String {
     );
 
     // Queues.
-    w.family(
+    w.per(
         "fwlidar_queue_length",
         "gauge",
         "Items in a bounded queue now.",
+        "queue",
+        &s.queues,
+        |q| (q.name.to_string(), q.len as f64),
     );
-    for q in &s.queues {
-        w.sample("fwlidar_queue_length", &[("queue", &q.name)], q.len as f64);
-    }
-    w.family(
+    w.per(
         "fwlidar_queue_capacity",
         "gauge",
         "Capacity of a bounded queue, items.",
+        "queue",
+        &s.queues,
+        |q| (q.name.to_string(), q.capacity as f64),
     );
-    for q in &s.queues {
-        w.sample(
-            "fwlidar_queue_capacity",
-            &[("queue", &q.name)],
-            q.capacity as f64,
-        );
-    }
 
     // Latency.
     w.family(
@@ -164,14 +160,14 @@ pub fn render(s: &QcSnapshot) -> String {
     w.histogram("fwlidar_end_to_end_latency_seconds", None, &s.end_to_end);
 
     // Inputs.
-    w.family(
+    w.per(
         "fwlidar_input_up",
         "gauge",
         "1 when the input is connected and delivering, else 0.",
+        "input",
+        &s.inputs,
+        |i| (i.name.to_string(), bool01(i.up)),
     );
-    for i in &s.inputs {
-        w.sample("fwlidar_input_up", &[("input", &i.name)], bool01(i.up));
-    }
     w.family(
         "fwlidar_input_last_data_age_seconds",
         "gauge",
@@ -186,42 +182,30 @@ pub fn render(s: &QcSnapshot) -> String {
             );
         }
     }
-    w.family(
+    w.per(
         "fwlidar_input_received_bytes_total",
         "counter",
         "Bytes received on the input.",
+        "input",
+        &s.inputs,
+        |i| (i.name.to_string(), i.bytes as f64),
     );
-    for i in &s.inputs {
-        w.sample(
-            "fwlidar_input_received_bytes_total",
-            &[("input", &i.name)],
-            i.bytes as f64,
-        );
-    }
-    w.family(
+    w.per(
         "fwlidar_input_connects_total",
         "counter",
         "Connections made on the input (TCP peers accepted, serial device opens).",
+        "input",
+        &s.inputs,
+        |i| (i.name.to_string(), i.connects as f64),
     );
-    for i in &s.inputs {
-        w.sample(
-            "fwlidar_input_connects_total",
-            &[("input", &i.name)],
-            i.connects as f64,
-        );
-    }
-    w.family(
+    w.per(
         "fwlidar_input_failed_attempts_total",
         "counter",
         "Connection or open attempts on the input that failed.",
+        "input",
+        &s.inputs,
+        |i| (i.name.to_string(), i.failed_attempts as f64),
     );
-    for i in &s.inputs {
-        w.sample(
-            "fwlidar_input_failed_attempts_total",
-            &[("input", &i.name)],
-            i.failed_attempts as f64,
-        );
-    }
 
     // Navigation.
     let port = |n: &super::snapshot::NavStatus| n.port.to_string();
@@ -465,6 +449,23 @@ impl Writer {
     fn family(&mut self, name: &str, kind: &str, help: &str) {
         let _ = writeln!(self.out, "# HELP {name} {}", escape_help(help));
         let _ = writeln!(self.out, "# TYPE {name} {kind}");
+    }
+
+    /// A family with one sample per item, labelled `label` = the item's name.
+    fn per<T>(
+        &mut self,
+        name: &str,
+        kind: &str,
+        help: &str,
+        label: &str,
+        items: &[T],
+        sample: impl Fn(&T) -> (String, f64),
+    ) {
+        self.family(name, kind, help);
+        for item in items {
+            let (key, value) = sample(item);
+            self.sample(name, &[(label, &key)], value);
+        }
     }
 
     /// A family with one unlabelled sample.
