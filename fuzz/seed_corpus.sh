@@ -6,17 +6,17 @@
 #   frame_decode:   the payloads of the first frame and nav records of that capture.
 #   config_load:    every file of config/.
 #   waveform_table: a small CSV and NPY written here (mode byte 0x00 CSV, 0x01 NPY), plus the
-#                   first lines of the NEON return.csv and imp.csv when ../shared/fixtures exists.
-#   pulsewaves_reader: the PulseWaves pairs of ../shared/fixtures/waveform (when it exists), each
+#                   first lines of the NEON return.csv and imp.csv. Real files come from
+#                   tests/data, or $FWLIDAR_FIXTURES when set.
+#   pulsewaves_reader: the PulseWaves pairs of tests/data/waveform (when it exists), each
 #                   cut to its header, records and first pulses (number_of_pulses patched to
 #                   match), as u16 .pls length + .pls + .wvs.
-#   nav_decoder:    the real receiver logs of ../shared/fixtures/nav (gpsd NMEA logs, the NovAtel
+#   nav_decoder:    the real receiver logs of tests/data/nav (gpsd NMEA logs, the NovAtel
 #                   SPAN capture, the SBET files), each behind a mode byte 0x07, when it exists.
 #   live_frames:    the first three digitizer frames of that capture as a live stream (28-byte
 #                   headers with sequence numbers and CRC-32C, docs/formats.md), behind a mode
 #                   byte 0x00 (pushed whole) and 0x05 (pushed in reads of 5 bytes).
-#   las_reader:     when ../shared/fixtures exists, the real RIEGL LAS 1.4 file cut to its first
-#                   20 points with the .wdp bytes they use (u32 LE .las length, .las, .wdp), and
+#   las_reader:     the real RIEGL LAS 1.4 file cut to its first 20 points with the .wdp bytes they use (u32 LE .las length, .las, .wdp), and
 #                   the same with the packets internal (global encoding bit 1, appended EVLR).
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
@@ -98,14 +98,14 @@ data = struct.pack("<6f", 1.0, 2.0, float("nan"), 4.0, 5.0, 6.0)
 blob = b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header.encode() + data
 open(sys.argv[1], "wb").write(b"\x01" + blob)
 PY
-fx="$root/../shared/fixtures/waveform/neon_harv"
+fx="${FWLIDAR_FIXTURES:-$root/tests/data}/waveform/neon_harv"
 if [ -d "$fx" ]; then
     { printf '\000'; head -n 4 "$fx/return.csv"; } > "$wt/neon_return_head"
     { printf '\000'; cat "$fx/imp.csv"; } > "$wt/neon_imp"
 fi
 
 # pulsewaves_reader
-wf="$root/../shared/fixtures/waveform"
+wf="${FWLIDAR_FIXTURES:-$root/tests/data}/waveform"
 if [ -d "$wf" ]; then
     python3 - "$here/corpus/pulsewaves_reader" "$wf/pulsewaves/test" "$wf/pulsewaves/lvis_example1" \
         "$wf/pulsewaves/las13fwf_example1" "$wf/riegl_q680i/100429_152240_2535pt_UTM" <<'PY'
@@ -131,7 +131,7 @@ PY
 fi
 
 # las_reader
-fl="$root/../shared/fixtures/waveform/riegl_q680i/100429_152240_2535pt_UTM"
+fl="${FWLIDAR_FIXTURES:-$root/tests/data}/waveform/riegl_q680i/100429_152240_2535pt_UTM"
 if [ -f "$fl.las" ]; then
     python3 - "$fl" "$here/corpus/las_reader" <<'PY'
 import struct, sys
@@ -157,7 +157,7 @@ PY
 fi
 
 # nav_decoder
-nv="$root/../shared/fixtures/nav"
+nv="${FWLIDAR_FIXTURES:-$root/tests/data}/nav"
 if [ -d "$nv" ]; then
     for f in "$nv"/gpsd/*.log "$nv"/novatel/*.bin "$nv"/sbet/*.sbet; do
         { printf '\007'; cat "$f"; } > "$here/corpus/nav_decoder/$(basename "$f")"

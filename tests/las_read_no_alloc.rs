@@ -43,12 +43,7 @@ static GLOBAL: Counting = Counting;
 
 #[test]
 fn reading_pulses_does_not_allocate_per_pulse() {
-    let root = match std::env::var_os("FWLIDAR_FIXTURES") {
-        Some(p) => PathBuf::from(p),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"),
-    };
-    let las = root.join("waveform/riegl_q680i/100429_152240_2535pt_UTM.las");
-    assert!(las.is_file(), "fixture missing: {}", las.display());
+    let las = fwlidar::fixtures::path("waveform/riegl_q680i/100429_152240_2535pt_UTM.las");
     let mut r = LasReader::open(&las).unwrap();
     let mut p = Pulse::default();
     assert!(r.next_pulse(&mut p).unwrap());

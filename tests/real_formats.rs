@@ -3,7 +3,7 @@
 //! PulseWaves pins the LAS parametric-line sign convention (every LAS point lies on its
 //! PulseWaves pulse's ray), and `replay` / `import` accept both formats directly.
 //!
-//! Needs `../shared/fixtures/waveform/` (see its MANIFEST.md); fails naming what is missing.
+//! Reads `tests/data/waveform/` (see tests/data/MANIFEST.md); fails naming what is missing.
 
 use std::path::Path;
 

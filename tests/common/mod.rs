@@ -23,20 +23,11 @@ pub fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()
 }
 
-/// A real-data fixture file: `$FWLIDAR_FIXTURES/<rel>`, else `<root>/../shared/fixtures/<rel>`.
-/// Panics naming the missing file (CI has the folder; a fresh clone may not).
+/// A real-data fixture file: `$FWLIDAR_FIXTURES/<rel>`, else `<root>/tests/data/<rel>` (the
+/// repository carries every file its tests read; `tests/data/MANIFEST.md`). Panics naming the
+/// missing file.
 pub fn fixture(rel: &str) -> PathBuf {
-    let base = std::env::var_os("FWLIDAR_FIXTURES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(ROOT).join("../shared/fixtures"));
-    let p = base.join(rel);
-    assert!(
-        p.is_file(),
-        "missing real-data fixture {} (set FWLIDAR_FIXTURES to the shared fixtures folder; see \
-         its MANIFEST.md)",
-        p.display()
-    );
-    p
+    fwlidar::fixtures::path(rel)
 }
 
 /// The Python with the real readers of our outputs (numpy, laspy, lazrs): `$FWLIDAR_PYTHON`,
