@@ -8,7 +8,7 @@ use std::time::Duration;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
-use crate::config::RunConfig;
+use crate::config::{RunConfig, WaveformFormat};
 use crate::pipeline::runner::{LiveCounters, PipelineSpec};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
 use crate::sink::atomic_file::write_atomic;
@@ -18,6 +18,7 @@ use crate::sink::nav_decode::NavDecode;
 use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::voxel_tiles::{CrsSource, VoxelTilesSink};
 use crate::sink::waveform_csv::WaveformCsvSink;
+use crate::sink::waveform_npy::WaveformNpySink;
 use crate::sink::{FanOut, PulseSink};
 use crate::voxel::zarr::StoreInfo;
 
@@ -91,9 +92,14 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     );
     let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
     if config.output.waveforms {
-        sinks.push(Box::new(
-            WaveformCsvSink::create(&out_dir).map_err(Failure::job)?,
-        ));
+        sinks.push(match config.output.waveform_format {
+            WaveformFormat::Npy => {
+                Box::new(WaveformNpySink::create(&out_dir).map_err(Failure::job)?)
+            }
+            WaveformFormat::Csv => {
+                Box::new(WaveformCsvSink::create(&out_dir).map_err(Failure::job)?)
+            }
+        });
     }
     let decomposes = spec.stage_names.contains(&"decompose");
     if config.output.returns && decomposes {
@@ -102,7 +108,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         ));
     }
     if config.output.las && decomposes {
-        if source.facts().crs.is_none() {
+        if source.facts().crs.is_none() && decided_crs.is_none() {
             tracing::warn!(
                 "returns.las will have no CRS record: the input states none before it is read \
                  (georeferencing into the UTM zone of the first fix decides it too late; set \
@@ -116,6 +122,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
                     point_format: config.output.las_point_format,
                     rotate_s: config.output.las_rotate_s,
                     flush_s: config.output.las_flush_s,
+                    crs_decided: decided_crs.clone(),
                     ..las_options(&source.facts())
                 },
             )

@@ -257,7 +257,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     // Outputs: the survey's voxel store (continued across restarts) and the segment's LAS.
     let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
     if config.voxels.enabled {
-        let crs = match (facts.crs.clone(), decided_crs) {
+        let crs = match (facts.crs.clone(), decided_crs.clone()) {
             (Some(c), _) => CrsSource::Known(Some(c)),
             (None, Some(cell)) => CrsSource::Decided(cell),
             (None, None) => CrsSource::Known(None),
@@ -310,6 +310,8 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
                         60.0
                     },
                     flush_s: config.output.las_flush_s,
+                    crs_wkt: facts.crs.clone().filter(|c| !c.starts_with("EPSG:")),
+                    crs_decided: decided_crs.clone(),
                     ..LasWaveOptions::default()
                 },
             )

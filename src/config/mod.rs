@@ -13,7 +13,7 @@ mod stages;
 
 pub use error::{ConfigErrors, ConfigIssue, IssueKind, Location};
 pub use load::{Validate, Validated, Validator, load_file, load_str, validate_any};
-pub use run::{FullPolicy, OutputConfig, PipelineConfig, RunConfig};
+pub use run::{FullPolicy, OutputConfig, PipelineConfig, RunConfig, WaveformFormat};
 pub use sensor::{SensorFile, SensorProfile};
 
 /// The default run configuration for `fwlidar replay`, embedded in the binary
