@@ -50,7 +50,13 @@ fn numpy_reads_replay_outputs() {
     std::fs::write(&config, text).unwrap();
     let csv = dir.path().join("csv");
     let o = Command::new(BIN)
-        .args(["replay", "--out", csv.to_str().unwrap(), "--no-progress", "--config"])
+        .args([
+            "replay",
+            "--out",
+            csv.to_str().unwrap(),
+            "--no-progress",
+            "--config",
+        ])
         .arg(&config)
         .current_dir(ROOT)
         .output()

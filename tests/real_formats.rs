@@ -407,6 +407,8 @@ fn replay_of_las_and_pulsewaves_writes_located_returns() {
             "--out",
             out.to_str().unwrap(),
             "--no-progress",
+            "--set",
+            "output.returns=true",
         ]);
         assert!(o.status.success(), "{name}: {}", text(&o.stderr));
         let csv = std::fs::read_to_string(out.join("returns.csv")).unwrap();

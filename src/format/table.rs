@@ -576,7 +576,11 @@ pub fn npy_preamble(descr: &str, shape: &[u64], min_len: usize) -> Option<Vec<u8
         [n] => format!("({n},)"),
         _ => format!(
             "({})",
-            shape.iter().map(u64::to_string).collect::<Vec<_>>().join(", ")
+            shape
+                .iter()
+                .map(u64::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
         ),
     };
     let mut header = format!("{{'descr': {descr}, 'fortran_order': False, 'shape': {dims}, }}");

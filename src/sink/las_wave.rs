@@ -712,7 +712,13 @@ impl LasWaveSink {
         if self.options.crs_wkt.is_some() {
             return Ok(());
         }
-        let Some(crs) = self.options.crs_decided.as_ref().and_then(|c| c.get()).cloned() else {
+        let Some(crs) = self
+            .options
+            .crs_decided
+            .as_ref()
+            .and_then(|c| c.get())
+            .cloned()
+        else {
             return Ok(());
         };
         let f = self.file.as_mut().expect("a file is open");
@@ -735,7 +741,11 @@ impl LasWaveSink {
         evlr.push(0);
         let start = HEADER_SIZE as u64
             + self.fixed_vlrs.len() as u64
-            + if self.options.point_format == 9 { DESCRIPTOR_ROOM as u64 } else { 0 }
+            + if self.options.point_format == 9 {
+                DESCRIPTOR_ROOM as u64
+            } else {
+                0
+            }
             + f.points * self.record_len as u64;
         let path = f.las_path.clone();
         f.las

@@ -9,6 +9,15 @@ pub const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
 /// The repository root.
 pub const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
+/// The `replay` flags that ask for the text outputs (`pulses.csv` + `waveforms.csv`,
+/// `returns.csv`) beside the default binary ones, for tests that read them.
+pub const CSV_OUTPUTS: [&str; 4] = [
+    "--set",
+    "output.waveform_format=csv",
+    "--set",
+    "output.returns=true",
+];
+
 /// Runs `fwlidar` with `args` from the repository root.
 pub fn fwlidar(args: &[&str]) -> Output {
     Command::new(BIN)
