@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use fwlidar::geo::OutputCrs;
-use fwlidar::geo::georef::{Mounting, georeference};
+use fwlidar::geo::direct_georeference::{Mounting, georeference};
 use fwlidar::nav::dating::GpsTime;
 use fwlidar::nav::decoder::NavDecoder;
 use fwlidar::nav::trajectory::{Trajectory, TrajectoryConfig};

@@ -271,7 +271,7 @@ pub fn georeferenced(
     {
         geo_cfg.output_epsg = Some(code);
     }
-    let mut g = crate::geo::georeference::GeoreferencingSource::new(source, geo_cfg)
+    let mut g = crate::geo::georeferencing_source::GeoreferencingSource::new(source, geo_cfg)
         .map_err(Failure::usage)?
         .with_earliest_date(config.navigation.earliest_days());
     if let (Some(d), Some(path)) = (&dem, &config.georeference.dem) {

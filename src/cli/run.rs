@@ -336,7 +336,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
                 .unwrap_or_default(),
             georeference: config.georeference.enabled,
             drop_missed: config.georeference.on_missing
-                == crate::geo::georeference::OnMissing::Drop,
+                == crate::geo::georeferencing_source::OnMissing::Drop,
             stages,
         },
     );

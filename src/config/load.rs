@@ -24,7 +24,6 @@ use toml::de::{DeTable, DeValue};
 use toml::{Spanned, Table, Value};
 
 use super::error::{ConfigErrors, ConfigIssue, IssueKind, Location};
-use super::{RunConfig, SensorFile};
 
 /// Bound on the repair rounds of one file (each round finds at most one schema error).
 const MAX_ROUNDS: usize = 200;
@@ -132,19 +131,6 @@ pub fn index(path: &str, i: usize) -> String {
     format!("{path}[{i}]")
 }
 
-/// A configuration file, validated, as recognised by [`validate_any`].
-#[derive(Clone, Debug, PartialEq)]
-pub enum Validated {
-    /// A sensor profile (a `[sensor]` table).
-    Sensor(SensorFile),
-    /// A run configuration (`sensor_profile`, `[pipeline]`, `[output]`).
-    Run(Box<RunConfig>),
-    /// A simulator scene (a `[scene]` table).
-    Scene(Box<crate::sim::SceneFile>),
-    /// A described simulator scene (a `[flight]` table: terrain, objects, flight plan).
-    World(Box<crate::sim::world::scene::WorldScene>),
-}
-
 /// Reads, parses, deserializes and validates the file at `path` as a `T`, reporting every
 /// problem found (see the module documentation). Never panics.
 pub fn load_file<T: DeserializeOwned + Validate>(
@@ -166,24 +152,15 @@ pub fn load_str<T: DeserializeOwned + Validate>(
     Loader::new(text, origin, &doc.spans).run(doc.table)
 }
 
-/// Validates the file at `path` as whichever kind it is, decided by its top-level tables: a
-/// `[flight]` table makes it a described simulator scene, a `[sensor]` table a sensor profile,
-/// a `[scene]` table an analytic simulator scene (schema, values and its sensor profile),
-/// anything else a run configuration.
-pub fn validate_any(path: impl AsRef<Path>) -> Result<Validated, ConfigErrors> {
+/// Reads the file at `path` and parses it as TOML: its text and the names of its top-level
+/// keys and tables, for a caller that decides the kind of a file by what it holds (`fwlidar
+/// validate`, `cli/validate.rs`) and then loads the text with [`load_str`]. Errors (unreadable,
+/// not UTF-8, invalid TOML) are reported as by [`load_file`].
+pub fn read_top_level_keys(path: impl AsRef<Path>) -> Result<(String, Vec<String>), ConfigErrors> {
     let path = path.as_ref();
     let text = read_text(path)?;
-    let doc = parse(&text, path)?;
-    let loader = Loader::new(&text, path, &doc.spans);
-    if doc.table.contains_key("flight") {
-        loader.run(doc.table).map(|f| Validated::World(Box::new(f)))
-    } else if doc.table.contains_key("sensor") {
-        loader.run(doc.table).map(Validated::Sensor)
-    } else if doc.table.contains_key("scene") {
-        loader.run(doc.table).map(|f| Validated::Scene(Box::new(f)))
-    } else {
-        loader.run(doc.table).map(|r| Validated::Run(Box::new(r)))
-    }
+    let keys = parse(&text, path)?.table.keys().cloned().collect();
+    Ok((text, keys))
 }
 
 /// Reads a configuration file as UTF-8 text, naming the file in every error.
@@ -740,6 +717,7 @@ fn dotted_to_segs(path: &str) -> Vec<Seg> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::{RunConfig, SensorFile};
 
     fn run(text: &str) -> Result<RunConfig, ConfigErrors> {
         load_str(text, "run.toml")
@@ -994,7 +972,7 @@ waveforms = "yes"
         assert!(e.to_string().starts_with(&dir.path().display().to_string()));
         let binary = dir.path().join("bin.toml");
         std::fs::write(&binary, b"a = 1\nb = \"\xff\xfe\"\n").unwrap();
-        let e = validate_any(&binary).unwrap_err();
+        let e = read_top_level_keys(&binary).unwrap_err();
         assert_eq!(e.issues[0].kind, IssueKind::Io);
         assert_eq!(e.issues[0].location, Some(Location { line: 2, column: 6 }));
         assert!(e.to_string().contains("not UTF-8"), "{e}");
@@ -1021,35 +999,6 @@ waveforms = "yes"
             e.to_string(),
             "run.toml:2:18: pipeline.queue_capacity: must be in 2..=1048576 pulses, got 1"
         );
-    }
-
-    #[test]
-    fn config_validate_any_decides_by_top_level_tables() {
-        let dir = tempfile::tempdir().unwrap();
-        let write = |name: &str, text: &str| {
-            let p = dir.path().join(name);
-            std::fs::write(&p, text).unwrap();
-            p
-        };
-        let s = write("s.toml", GOOD_SENSOR);
-        assert!(matches!(validate_any(&s), Ok(Validated::Sensor(_))));
-        let r = write("r.toml", "[pipeline]\nworkers = 2\n");
-        assert!(matches!(validate_any(&r), Ok(Validated::Run(_))));
-        let c = write("c.toml", "[scene]\ntrees = 6\n");
-        let e = validate_any(&c).unwrap_err();
-        assert!(
-            e.issues
-                .iter()
-                .any(|i| i.kind == IssueKind::Schema && i.path == "scene.trees"),
-            "{e}"
-        );
-        // A file that mixes kinds is checked against the first kind found.
-        let m = write(
-            "m.toml",
-            &format!("{GOOD_SENSOR}\n[pipeline]\nworkers = 2\n"),
-        );
-        let e = validate_any(&m).unwrap_err();
-        assert_eq!(paths(&e), ["pipeline"], "{e}");
     }
 
     #[test]

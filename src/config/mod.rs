@@ -1,8 +1,11 @@
 //! Configuration: what the user wrote (TOML, `deny_unknown_fields`, documented defaults), loaded
 //! with every error reported by the field's path, then validated into runtime objects.
 //!
-//! Entry points: [`load_file`] for a file of a known kind, [`validate_any`] for any file of
-//! `config/` (the kind decided by its top-level tables). Errors are [`ConfigErrors`]: the file
+//! Entry points: [`load_file`] / [`load_str`] for a file of a known kind;
+//! [`read_top_level_keys`] for a caller that decides the kind by what a file holds (`fwlidar
+//! validate` does, in `cli/validate.rs`, which knows the simulator's scene kinds: this module
+//! does not depend on them). `load` and `error` are a leaf: generic loading and validation
+//! helpers that name no configuration kind. Errors are [`ConfigErrors`]: the file
 //! and every [`ConfigIssue`] found, printed one per line as `FILE:LINE:COL: field.path: reason`.
 
 pub mod error;
@@ -12,7 +15,7 @@ pub mod sensor;
 mod stages;
 
 pub use error::{ConfigErrors, ConfigIssue, IssueKind, Location};
-pub use load::{Validate, Validated, Validator, load_file, load_str, validate_any};
+pub use load::{Validate, Validator, load_file, load_str, read_top_level_keys};
 pub use run::{FullPolicy, OutputConfig, PipelineConfig, RunConfig, WaveformFormat};
 pub use sensor::{SensorFile, SensorProfile};
 

@@ -39,9 +39,9 @@ pub struct RunConfig {
     /// Outputs.
     #[serde(default)]
     pub output: OutputConfig,
-    /// Georeferencing from the navigation stream (`src/geo/georeference.rs`).
+    /// Georeferencing from the navigation stream (`src/geo/georeferencing_source.rs`).
     #[serde(default)]
-    pub georeference: crate::geo::georeference::GeoreferenceConfig,
+    pub georeference: crate::geo::georeferencing_source::GeoreferenceConfig,
     /// Navigation inputs and their time handling.
     #[serde(default)]
     pub navigation: NavigationConfig,

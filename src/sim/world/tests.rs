@@ -419,7 +419,7 @@ fn scan_patterns_sweep_as_designed() {
     let palmer = ScanPatternFixture::Palmer.pattern();
     for i in 0..50 {
         let [th, ph] = scan_angles(&palmer, i as f64 * 0.0013);
-        let b = crate::geo::georef::beam_in_scanner(th, ph);
+        let b = crate::geo::direct_georeference::beam_in_scanner(th, ph);
         assert!((b.z.acos().to_degrees() - 12.0).abs() < 1e-9, "on the cone");
     }
 }
