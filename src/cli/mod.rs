@@ -4,9 +4,11 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 
+pub mod completions;
 pub mod import;
 pub mod inspect;
 pub mod inspect_nav;
+pub mod man;
 pub mod merge;
 pub mod process;
 pub mod repair;
@@ -69,6 +71,10 @@ pub enum Command {
     /// Combine voxel stores (voxels.zarr) of several flights or replays into one, independent
     /// of order.
     Merge(merge::MergeArgs),
+    /// Print the shell completion script (bash, zsh, fish, elvish, powershell).
+    Completions(completions::CompletionsArgs),
+    /// Write the manual pages (fwlidar.1 and one per command) into a folder.
+    Man(man::ManArgs),
 }
 
 /// A failure to report: the message and the exit code.
@@ -136,6 +142,8 @@ pub fn main() -> i32 {
         Command::Process(a) => process::run(a),
         Command::Tradeoff(a) => tradeoff::run(a),
         Command::Merge(a) => merge::run(a),
+        Command::Completions(a) => completions::run(a),
+        Command::Man(a) => man::run(a),
     };
     match result {
         Ok(()) => 0,

@@ -43,6 +43,11 @@ pub struct ReplayArgs {
     /// Do not draw a progress bar.
     #[arg(long)]
     pub no_progress: bool,
+    /// Override a key of the run configuration, `KEY=VALUE` (dotted key with list indices,
+    /// TOML value), checked like the file, e.g. `--set output.las=true --set
+    /// 'pipeline.stages[1].max_taps=128'`. Repeatable; a later one wins.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub sets: Vec<String>,
 }
 
 /// Registers SIGINT and SIGTERM: the first sets `control.stop` (clean shutdown, every sink
@@ -59,8 +64,8 @@ pub fn install_signal_handlers(control: &RunControl) -> Result<(), Failure> {
 
 /// Runs `fwlidar replay`.
 pub fn run(args: ReplayArgs) -> Result<(), Failure> {
-    let config: RunConfig =
-        crate::config::load_run_config(args.config.as_deref()).map_err(Failure::usage)?;
+    let config: RunConfig = crate::config::load_run_config_with(args.config.as_deref(), &args.sets)
+        .map_err(Failure::usage)?;
     let out_dir = args
         .out
         .clone()

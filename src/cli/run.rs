@@ -56,6 +56,11 @@ pub struct RunArgs {
     /// Worker threads (overrides `[pipeline] workers`; 0 = automatic).
     #[arg(long)]
     pub workers: Option<usize>,
+    /// Override a key of the run configuration, `KEY=VALUE` (dotted key with list indices,
+    /// TOML value), checked like the file, e.g. `--set voxels.enabled=false`. Repeatable; a
+    /// later one wins; the options above win over it.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub sets: Vec<String>,
 }
 
 /// The next free segment `<survey>_NNNN.fwcap` in `dir`.
@@ -84,8 +89,8 @@ fn create_dir(dir: &Path, what: &str) -> Result<(), Failure> {
 
 /// Runs the daemon until SIGINT/SIGTERM.
 pub fn run(args: RunArgs) -> Result<(), Failure> {
-    let mut config: RunConfig =
-        crate::config::load_run_config(Some(&args.config)).map_err(Failure::usage)?;
+    let mut config: RunConfig = crate::config::load_run_config_with(Some(&args.config), &args.sets)
+        .map_err(Failure::usage)?;
     if let Some(f) = &args.frames {
         crate::daemon::FrameInput::parse(f)
             .map_err(|e| Failure::usage(format!("--frames: {e}")))?;

@@ -10,12 +10,15 @@
 
 pub mod error;
 pub mod load;
+pub mod overrides;
 pub mod run;
 pub mod sensor;
 mod stages;
 
 pub use error::{ConfigErrors, ConfigIssue, IssueKind, Location};
-pub use load::{Validate, Validator, load_file, load_str, read_top_level_keys};
+pub use load::{
+    Validate, Validator, load_file, load_file_with, load_str, load_str_with, read_top_level_keys,
+};
 pub use run::{FullPolicy, OutputConfig, PipelineConfig, RunConfig, WaveformFormat};
 pub use sensor::{SensorFile, SensorProfile};
 
@@ -25,8 +28,17 @@ pub const DEFAULT_REPLAY_CONFIG: &str = include_str!("../../config/replay.toml")
 
 /// Loads the run configuration at `path`, or the embedded default when `None`.
 pub fn load_run_config(path: Option<&std::path::Path>) -> Result<RunConfig, ConfigErrors> {
+    load_run_config_with(path, &[] as &[&str])
+}
+
+/// As [`load_run_config`], with `--set KEY=VALUE` overrides ([`overrides`]) applied before the
+/// configuration is checked: a misspelt key or a bad value is refused like one in the file.
+pub fn load_run_config_with(
+    path: Option<&std::path::Path>,
+    sets: &[impl AsRef<str>],
+) -> Result<RunConfig, ConfigErrors> {
     match path {
-        Some(p) => load_file(p),
-        None => load_str(DEFAULT_REPLAY_CONFIG, "config/replay.toml (embedded)"),
+        Some(p) => load_file_with(p, sets),
+        None => load_str_with(DEFAULT_REPLAY_CONFIG, "config/replay.toml (embedded)", sets),
     }
 }

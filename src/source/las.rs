@@ -69,6 +69,28 @@ impl Source for LasSource {
                 "descriptors".into(),
                 (info.descriptors_defined() as u64).into(),
             );
+            let defined = info
+                .descriptors
+                .iter()
+                .enumerate()
+                .filter_map(|(index, d)| {
+                    let d = d.as_ref()?;
+                    let w = &d.descriptor;
+                    Some(serde_json::json!({
+                        "index": index,
+                        "bits_per_sample": w.bits_per_sample,
+                        "compression": w.compression,
+                        "samples": w.number_of_samples,
+                        "temporal_spacing_ps": w.temporal_spacing_ps,
+                        "digitizer_gain": w.digitizer_gain,
+                        "digitizer_offset": w.digitizer_offset,
+                        "payload_bytes": d.payload_len,
+                    }))
+                });
+            o.insert(
+                "wave_packet_descriptors".into(),
+                defined.collect::<Vec<_>>().into(),
+            );
             let location = match info.waveform {
                 WaveformLocation::External => "external",
                 WaveformLocation::Internal { .. } => "internal",

@@ -15,12 +15,6 @@ use crate::format::las_write::{
 
 /// Record id of the GeoTIFF GeoKeyDirectoryTag VLR (`LASF_Projection`).
 pub const GEO_KEY_DIRECTORY_RECORD_ID: u16 = 34735;
-/// GeoTIFF ProjectedCSTypeGeoKey.
-const PROJECTED_CS_KEY: u16 = 3072;
-/// GeoTIFF GeographicTypeGeoKey.
-const GEOGRAPHIC_TYPE_KEY: u16 = 2048;
-/// GeoTIFF "user-defined" code: no EPSG code.
-const GEOKEY_USER_DEFINED: u16 = 32767;
 /// Record id of the last possible waveform packet descriptor (index 255).
 const DESCRIPTOR_RECORD_ID_LAST: u16 = DESCRIPTOR_RECORD_ID_BASE + MAX_DESCRIPTORS as u16;
 
@@ -70,8 +64,7 @@ pub struct LasInfo {
     /// OGC WKT of the coordinate reference system (VLR or EVLR `LASF_Projection` / 2112), NULs
     /// trimmed.
     pub wkt: Option<String>,
-    /// EPSG code from the GeoKey directory (`LASF_Projection` / 34735), when it holds a plain
-    /// projected or geographic code.
+    /// EPSG code from the GeoKey directory (`LASF_Projection` / 34735): [`epsg_of_geokeys`].
     pub epsg: Option<u16>,
     /// Where the waveform packets are.
     pub waveform: WaveformLocation,
@@ -261,28 +254,11 @@ pub(super) fn stream_len<R: Seek>(r: &mut R, file: &str) -> Result<u64, LasReadE
         .map_err(|e| io_err(file, "its length", e))
 }
 
-/// EPSG code of a GeoKey directory payload, when it names a plain projected (3072) or
-/// geographic (2048) code stored in the key itself.
+/// EPSG code of a GeoKey directory payload, by the precedence of [`crate::format::geokeys`]:
+/// a projected code (3072), else EPSG:4978 for a geocentric model (1024 = 3; another datum when
+/// 2048 names one), else a geographic code (2048) unless the model is projected.
 pub fn epsg_of_geokeys(b: &[u8]) -> Option<u16> {
-    let n = usize::from(u16_at(b, 6));
-    let key = |id: u16| {
-        (0..n).find_map(|k| {
-            let at = 8 + 8 * k;
-            if at + 8 > b.len() {
-                return None;
-            }
-            let (key_id, location, count, value) = (
-                u16_at(b, at),
-                u16_at(b, at + 2),
-                u16_at(b, at + 4),
-                u16_at(b, at + 6),
-            );
-            (key_id == id && location == 0 && count == 1 && value != 0)
-                .then_some(value)
-                .filter(|&v| v != GEOKEY_USER_DEFINED)
-        })
-    };
-    key(PROJECTED_CS_KEY).or_else(|| key(GEOGRAPHIC_TYPE_KEY))
+    crate::format::geokeys::GeoKeyDirectory::parse(b).epsg()
 }
 
 /// Indices set in `d`, runs of three or more written `a-b`: `1, 2`, `1-100`, `none`.
@@ -668,12 +644,27 @@ mod tests {
             b.extend_from_slice(&v.to_le_bytes());
         }
         assert_eq!(epsg_of_geokeys(&b), Some(32633));
-        // User-defined projected CS: fall back to the geographic code.
-        b[26..28].copy_from_slice(&GEOKEY_USER_DEFINED.to_le_bytes());
+        // Bytes 14..16 hold the model type (key 1024), 30..32 the projected code (key 3072).
+        // User-defined projected CS of a projected model: the geographic code names only the
+        // projection's datum, so no code.
+        b[30..32].copy_from_slice(&32767u16.to_le_bytes());
+        assert_eq!(epsg_of_geokeys(&b), None);
+        // A geographic model: still user-defined.
+        b[14..16].copy_from_slice(&2u16.to_le_bytes());
+        assert_eq!(epsg_of_geokeys(&b), None, "3072 = 32767 is user-defined");
+        // Without a projected code, a geographic model's geographic code.
+        b[30..32].copy_from_slice(&0u16.to_le_bytes());
         assert_eq!(epsg_of_geokeys(&b), Some(4326));
+        // A projected code stored elsewhere (TIFF tag location not 0) is not read as a code.
+        b[30..32].copy_from_slice(&32633u16.to_le_bytes());
+        b[26..28].copy_from_slice(&34736u16.to_le_bytes());
+        assert_eq!(epsg_of_geokeys(&b), Some(4326));
+        // A geocentric model on WGS 84: EPSG:4978.
+        b[14..16].copy_from_slice(&3u16.to_le_bytes());
+        assert_eq!(epsg_of_geokeys(&b), Some(4978));
         // A key count larger than the payload reads no further than the payload.
         b[6..8].copy_from_slice(&1000u16.to_le_bytes());
-        assert_eq!(epsg_of_geokeys(&b), Some(4326));
+        assert_eq!(epsg_of_geokeys(&b), Some(4978));
         assert_eq!(epsg_of_geokeys(&b[..7]), None);
     }
 
