@@ -1132,9 +1132,9 @@ dir = "out"
             [(
                 "output.lass".to_string(),
                 None,
-                "unknown key `lass`, expected one of `dir`, `waveforms`, `returns`, `las`, \
-                 `las_point_format`, `las_rotate_s`, `las_flush_s`, `hyper_points`, \
-                 `hyper_threshold_v` (from --set output.lass=true)"
+                "unknown key `lass`, expected one of `dir`, `waveforms`, `waveform_format`, \
+                 `returns`, `las`, `las_point_format`, `las_rotate_s`, `las_flush_s`, \
+                 `hyper_points`, `hyper_threshold_v` (from --set output.lass=true)"
                     .to_string()
             )],
             "{e}"
