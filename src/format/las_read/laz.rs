@@ -618,6 +618,8 @@ impl<R: Read + Seek> LazPoints<R> {
         };
         self.current = c;
         self.read_in_chunk = 0;
+        // Cleared once the chunk is ready: an error below leaves the decompressor unusable.
+        self.failed = true;
         let end = k.start + k.bytes;
         let what = || format!("LAZ chunk {c}");
         let w = self.decoder.window();
@@ -647,7 +649,6 @@ impl<R: Read + Seek> LazPoints<R> {
                 .map(|s| u64::from(u32::from_le_bytes([s[0], s[1], s[2], s[3]])))
                 .sum();
             if head + layer_bytes > k.bytes {
-                self.failed = true;
                 return Err(invalid(
                     &self.file,
                     self.where_(n, c),
@@ -663,11 +664,9 @@ impl<R: Read + Seek> LazPoints<R> {
         match guarded(|| self.decoder.start_chunk(&self.items)) {
             Ok(Ok(())) => {}
             Ok(Err(e)) => {
-                self.failed = true;
                 return Err(invalid(&self.file, self.where_(n, c), e.to_string()));
             }
             Err(p) => {
-                self.failed = true;
                 return Err(invalid(
                     &self.file,
                     self.where_(n, c),
@@ -675,6 +674,7 @@ impl<R: Read + Seek> LazPoints<R> {
                 ));
             }
         }
+        self.failed = false;
         self.chunks_started += 1;
         Ok(())
     }

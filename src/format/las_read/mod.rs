@@ -212,7 +212,8 @@ pub fn wdz_paths(las: &Path) -> (PathBuf, PathBuf) {
 
 /// The LAStools command that decompresses `las` (LAS or LAZ) and its `.wdz` packets: laszip's
 /// `-waveform` option reads the `.wdz` and, for LAS output, writes the packets uncompressed to a
-/// `.wdp` beside the output (descriptors' compression type set back to 0).
+/// `.wdp` beside the output (descriptors' compression type set back to 0). Paths with spaces or
+/// shell characters are single-quoted.
 pub fn laszip_decompress_command(las: &Path) -> String {
     let is_laz = las
         .extension()
@@ -223,7 +224,15 @@ pub fn laszip_decompress_command(las: &Path) -> String {
         let stem = las.file_stem().unwrap_or_default().to_string_lossy();
         las.with_file_name(format!("{stem}_wdp.las"))
     };
-    format!("laszip -i {} -o {} -waveform", las.display(), out.display())
+    let arg = |p: &Path| {
+        let t = p.display().to_string();
+        if t.contains(|c: char| c.is_whitespace() || "'\"$`\\".contains(c)) {
+            format!("'{}'", t.replace('\'', "'\\''"))
+        } else {
+            t
+        }
+    };
+    format!("laszip -i {} -o {} -waveform", arg(las), arg(&out))
 }
 
 fn is_zero(v: &u64) -> bool {
@@ -680,4 +689,30 @@ fn geometry(h: &Header, p: &PointRecord9) -> Option<PulseGeometry> {
     let direction = v.map(|x| -1000.0 * x);
     let finite = anchor.iter().chain(&direction).all(|x| x.is_finite());
     (finite && direction.iter().any(|&x| x != 0.0)).then_some(PulseGeometry { anchor, direction })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn laszip_command_names_the_las_it_writes() {
+        assert_eq!(
+            laszip_decompress_command(Path::new("d/x.laz")),
+            "laszip -i d/x.laz -o d/x.las -waveform"
+        );
+        assert_eq!(
+            laszip_decompress_command(Path::new("d/X.LAZ")),
+            "laszip -i d/X.LAZ -o d/X.las -waveform"
+        );
+        // A LAS input is not overwritten.
+        assert_eq!(
+            laszip_decompress_command(Path::new("x.las")),
+            "laszip -i x.las -o x_wdp.las -waveform"
+        );
+        assert_eq!(
+            laszip_decompress_command(Path::new("my dir/it's.laz")),
+            "laszip -i 'my dir/it'\\''s.laz' -o 'my dir/it'\\''s.las' -waveform"
+        );
+    }
 }
