@@ -16,8 +16,11 @@
 #   live_frames:    the first three digitizer frames of that capture as a live stream (28-byte
 #                   headers with sequence numbers and CRC-32C, docs/formats.md), behind a mode
 #                   byte 0x00 (pushed whole) and 0x05 (pushed in reads of 5 bytes).
-#   las_reader:     the real RIEGL LAS 1.4 file cut to its first 20 points with the .wdp bytes they use (u32 LE .las length, .las, .wdp), and
-#                   the same with the packets internal (global encoding bit 1, appended EVLR).
+#   las_reader:     the real RIEGL LAS 1.4 file cut to its first 20 points with the .wdp bytes
+#                   they use (u32 LE .las length, .las, .wdp), and the same with the packets
+#                   internal (global encoding bit 1, appended EVLR); with a Python holding laspy
+#                   and lazrs, also that cut as LAZ (only the descriptors used): format 9 (one
+#                   chunk), format 9 in chunks of 5 points (lazrs), and format 4 (LAS 1.3).
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(dirname "$here")
@@ -154,6 +157,49 @@ struct.pack_into("<QQI", inner, 227, len(inner), len(inner), 1)
 inner += wave
 open(out + "/riegl_20_points_internal", "wb").write(struct.pack("<I", len(inner)) + inner)
 PY
+    # LAZ seeds need laspy and lazrs (the venv of .ci/run, or $FWLIDAR_PYTHON).
+    py="${FWLIDAR_PYTHON:-$root/.venv/bin/python}"
+    if [ -x "$py" ] && "$py" -c "import laspy, lazrs" 2>/dev/null; then
+        "$py" - "$fl" "$here/corpus/las_reader" <<'PY'
+import io, struct, sys
+import laspy, lazrs
+stem, out = sys.argv[1], sys.argv[2]
+n = 20
+las = laspy.read(stem + ".las")
+wdp = open(stem + ".wdp", "rb").read()
+cut = laspy.LasData(las.header, las.points[:n].copy())
+used = set(int(i) for i in cut.wavepacket_index)
+# Only the descriptors the points use: the fuzzer's mutations land in the compressed points.
+cut.header.vlrs = [v for v in las.header.vlrs
+                   if not (99 < v.record_id < 355) or v.record_id - 99 in used]
+cut.update_header()
+end = int(max(cut.wavepacket_offset + cut.wavepacket_size))
+wave = bytearray(wdp[:end])
+struct.pack_into("<Q", wave, 20, len(wave) - 60)
+def seed(name, laz):
+    open(f"{out}/{name}", "wb").write(struct.pack("<I", len(laz)) + laz + bytes(wave))
+b = io.BytesIO(); cut.write(b, do_compress=True); seed("riegl_20_points_laz9", b.getvalue())
+f4 = laspy.convert(cut, point_format_id=4, file_version="1.3")
+b = io.BytesIO(); f4.write(b, do_compress=True); seed("riegl_20_points_laz4", b.getvalue())
+# Variable-size chunks of 5 points (lazrs), so the chunk table holds point counts.
+b = io.BytesIO(); cut.write(b, do_compress=True); fixed = b.getvalue()
+off, = struct.unpack_from("<I", fixed, 96)
+rl, = struct.unpack_from("<H", fixed, 105)
+head = bytearray(fixed[:off])
+vlr = lazrs.LazVlr.new_for_compression(9, rl - 59, True)
+at = head.find(b"laszip encoded") - 2
+head[at + 54:at + 54 + len(vlr.record_data())] = vlr.record_data()
+raw = io.BytesIO(); cut.write(raw, do_compress=False); raw = raw.getvalue()
+roff, = struct.unpack_from("<I", raw, 96)
+dest = io.BytesIO(); dest.write(bytes(head))
+comp = lazrs.LasZipCompressor(dest, vlr)
+for s in range(0, n, 5):
+    comp.compress_many(raw[roff + s * rl:roff + (s + 5) * rl])
+    comp.finish_current_chunk()
+comp.done()
+seed("riegl_20_points_laz9_chunks", dest.getvalue())
+PY
+    fi
 fi
 
 # nav_decoder

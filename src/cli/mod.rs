@@ -48,7 +48,7 @@ pub enum Command {
     /// The on-board daemon: record digitizer frames (network) and navigation (serial ports),
     /// process them live into voxel tiles, serve QC; SIGTERM stops it.
     Run(run::RunArgs),
-    /// Replay a recorded capture (or a LAS / PulseWaves waveform file) through the processing
+    /// Replay a recorded capture (or a LAS/LAZ / PulseWaves waveform file) through the processing
     /// chain into an output folder.
     Replay(replay::ReplayArgs),
     /// Rebuild the header of a LAS 1.4 file cut off by a crash (point count, bounds, per-return
@@ -58,10 +58,10 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Check configuration files (run configs, sensor profiles, scenes); report every error.
     Validate(validate::ValidateArgs),
-    /// Describe a capture, LAS or PulseWaves file: header, record counts, damage; optionally
+    /// Describe a capture, LAS/LAZ or PulseWaves file: header, record counts, damage; optionally
     /// every pulse as JSON.
     Inspect(inspect::InspectArgs),
-    /// Convert a LAS or PulseWaves waveform file (or a capture) into a capture.
+    /// Convert a LAS/LAZ or PulseWaves waveform file (or a capture) into a capture.
     Import(import::ImportArgs),
     /// Denoise, deconvolve (and optionally decompose) a table of waveforms (CSV or .npy).
     Process(process::ProcessArgs),

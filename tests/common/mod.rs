@@ -54,3 +54,36 @@ pub fn python() -> PathBuf {
     );
     venv
 }
+
+/// The real RIEGL waveform LAS fixture (LAS 1.4, point format 9, packets in the `.wdp`).
+pub const RIEGL_LAS: &str = "waveform/riegl_q680i/100429_152240_2535pt_UTM.las";
+
+/// LAZ copies of the real RIEGL fixture written by the real LAZ writers
+/// (`tests/python/write_laz.py`: laspy and lazrs), each with the fixture's `.wdp` beside it, in
+/// `dir` (made anew): `r9.laz` (format 9, one fixed-size chunk), `r9v.laz` (format 9,
+/// variable-size chunks of 500 points), `r4.las` and `r4.laz` (LAS 1.3 format 4, converted by
+/// laspy). Returns the script's JSON line (`{"r9.laz": [point format byte, chunk size,
+/// variable], ...}`).
+pub fn write_laz_copies(dir: &Path) -> serde_json::Value {
+    let las = fixture(RIEGL_LAS);
+    let wdp = las.with_extension("wdp");
+    let _ = std::fs::remove_dir_all(dir);
+    std::fs::create_dir_all(dir).unwrap();
+    let o = Command::new(python())
+        .arg(Path::new(ROOT).join("tests/python/write_laz.py"))
+        .arg(&las)
+        .arg(dir)
+        .output()
+        .expect("run python");
+    assert!(
+        o.status.success(),
+        "write_laz.py failed: {}{}",
+        text(&o.stdout),
+        text(&o.stderr)
+    );
+    for stem in ["r9", "r9v", "r4"] {
+        let to = dir.join(format!("{stem}.wdp"));
+        std::fs::write(&to, std::fs::read(&wdp).unwrap()).unwrap();
+    }
+    serde_json::from_slice(&o.stdout).expect("write_laz.py prints one JSON line")
+}

@@ -3,6 +3,7 @@
 
 use std::io::{BufReader, Read, Seek, SeekFrom};
 
+use super::laz::{LASZIP_RECORD_ID, LASZIP_USER_ID};
 use super::{
     GLOBAL_WAVEFORM_INTERNAL, HEADER_SIZE_13, LasReadError, MAX_WKT_BYTES, invalid, io_err,
 };
@@ -68,6 +69,10 @@ pub struct LasInfo {
     pub epsg: Option<u16>,
     /// Where the waveform packets are.
     pub waveform: WaveformLocation,
+    /// The payload of the LASzip VLR (`laszip encoded` 22204) when the point records are
+    /// LAZ-compressed (point data record format with bit 7 set, e.g. 137 for format 9;
+    /// `header.point_format` holds the format without it); `None` for plain LAS.
+    pub laz: Option<Vec<u8>>,
 }
 
 /// Byte layout of the point formats that carry waveforms.
@@ -323,6 +328,12 @@ fn take_record<R: Read + Seek>(
         if !wkt.trim().is_empty() {
             info.wkt = Some(wkt);
         }
+    } else if user == LASZIP_USER_ID && record_id == LASZIP_RECORD_ID && info.laz.is_none() {
+        // At most 65535 bytes (a VLR), and read_at checks it lies in the file first.
+        let n = payload_len.min(u64::from(u16::MAX)) as usize;
+        let mut b = vec![0u8; n.min(info.file_len as usize)];
+        read_at(r, &file, info.file_len, payload_at, &mut b, label)?;
+        info.laz = Some(b);
     } else if user == LASF_PROJECTION && record_id == GEO_KEY_DIRECTORY_RECORD_ID {
         let n = payload_len.min(u64::from(u16::MAX)) as usize;
         let mut b = vec![0u8; n.min(info.file_len as usize)];
@@ -397,7 +408,20 @@ impl LasInfo {
         let global_encoding = u16_at(&h, 6);
         let offset_to_point_data = u32_at(&h, 96);
         let number_of_vlrs = u32_at(&h, 100);
-        let point_format = h[104];
+        let raw_format = h[104];
+        // LASzip marks compressed point records by setting bit 7.
+        let compressed = raw_format & 0x80 != 0;
+        let point_format = raw_format & 0x7f;
+        if point_format & 0x40 != 0 {
+            return Err(LasReadError::Unsupported {
+                file: file.into(),
+                field: "header: point data record format".into(),
+                what: format!(
+                    "{raw_format} (bit 6 set: no LAS format; early experimental LASzip versions \
+                     marked their files so)"
+                ),
+            });
+        }
         let point_record_length = u16_at(&h, 105);
         if u64::from(offset_to_point_data) < u64::from(header_size) {
             return Err(invalid(
@@ -406,20 +430,18 @@ impl LasInfo {
                 format!("{offset_to_point_data}, inside the {header_size}-byte header"),
             ));
         }
-        if point_format & 0xc0 != 0 {
-            return Err(LasReadError::Unsupported {
-                file: file.into(),
-                field: "header: point data record format".into(),
-                what: format!("{point_format} (bits 6-7 set: a compressed, LAZ, point format)"),
-            });
-        }
         let Some(layout) = PointLayout::of(point_format) else {
+            let laz = if compressed {
+                format!(" (LAZ-compressed, stored as {raw_format})")
+            } else {
+                String::new()
+            };
             return Err(LasReadError::Unsupported {
                 file: file.into(),
                 field: "header: point data record format".into(),
                 what: format!(
-                    "point format {point_format}, which carries no waveform packets (formats 4, \
-                     5, 9 and 10 do)"
+                    "point format {point_format}{laz}, which carries no waveform packets \
+                     (formats 4, 5, 9 and 10 do)"
                 ),
             });
         };
@@ -475,11 +497,12 @@ impl LasInfo {
             number_of_points,
             points_by_return,
         };
-        // The point records must lie in the file.
+        // The point records must lie in the file (LAZ: checked against the chunk table when the
+        // points are opened, `laz.rs`).
         let points_end = number_of_points
             .checked_mul(u64::from(point_record_length))
             .and_then(|b| b.checked_add(u64::from(offset_to_point_data)));
-        if points_end.is_none_or(|e| e > file_len) {
+        if !compressed && points_end.is_none_or(|e| e > file_len) {
             return Err(LasReadError::Truncated {
                 file: file.into(),
                 what: format!(
@@ -501,6 +524,7 @@ impl LasInfo {
             wkt: None,
             epsg: None,
             waveform: WaveformLocation::Absent,
+            laz: None,
         };
 
         // VLRs: between the header and the points.
@@ -536,6 +560,22 @@ impl LasInfo {
             }
             take_record(r, &mut info, &user, record_id, payload_at, len, &label)?;
             at = payload_at + len;
+        }
+
+        if compressed && info.laz.is_none() {
+            return Err(invalid(
+                file,
+                "header: point data record format",
+                format!(
+                    "{raw_format} says the point records are LAZ-compressed (format \
+                     {point_format} with bit 7 set), but no LASzip VLR (\"{LASZIP_USER_ID}\" \
+                     {LASZIP_RECORD_ID}) describes how"
+                ),
+            ));
+        }
+        if !compressed {
+            // A plain LAS file that kept the VLR of the LAZ it was decompressed from.
+            info.laz = None;
         }
 
         // EVLRs (LAS 1.4): after the points.
