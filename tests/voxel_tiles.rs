@@ -1,6 +1,7 @@
 //! Voxel tiles end to end: replay writes `voxels.zarr`, read by zarr-python and xarray (real
-//! clients) with values checked; kill -9 and a rerun give the uninterrupted run's store, bit
-//! for bit; `fwlidar merge` adds stores exactly; bad outputs are refused clearly.
+//! clients) with values checked, opened as the README says with no warning and arrays fitted
+//! to the tiles written; kill -9 and a rerun give the uninterrupted run's store, bit for bit;
+//! `fwlidar merge` adds stores exactly; bad outputs are refused clearly.
 
 mod common;
 
@@ -49,6 +50,132 @@ fn volts_config(dir: &Path) -> PathBuf {
     assert!(text.contains("[output]") && text.matches("\nlas = true").count() == 2);
     std::fs::write(&p, text).unwrap();
     p
+}
+
+/// `tests/python/check_fitted_store.py` on a finished store: opened by `xr.open_zarr(store)`
+/// with warnings as errors, arrays spanning exactly the recorded tiles; its figures.
+fn check_fitted(store: &Path) -> serde_json::Value {
+    let o = Command::new(python())
+        .arg(Path::new(ROOT).join("tests/python/check_fitted_store.py"))
+        .arg(store)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "fitted-store check of {} failed:\n{}\n{}",
+        store.display(),
+        text(&o.stdout),
+        text(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+fn summary_of(out: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap()
+}
+
+/// The README's main job, then exactly what a user types: `xr.open_zarr(store)` with no
+/// argument and `.sample_count.sum()`. It must open without a warning (consolidated metadata),
+/// hold arrays no larger than the tiles written, and sum to the bins the summary reports.
+#[test]
+fn the_readme_replay_opens_in_xarray_and_sums_without_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    // `cargo run --release -- replay replay/two_layer.fwcap --out out`, from the repository.
+    let o = fwlidar(&[
+        "replay",
+        "replay/two_layer.fwcap",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let store = out.join("voxels.zarr");
+    let o = Command::new(python())
+        .args(["-W", "error", "-c"])
+        .arg(
+            "import sys, json\n\
+             import xarray as xr\n\
+             ds = xr.open_zarr(sys.argv[1])\n\
+             total = ds.sample_count.sum()\n\
+             print(json.dumps({'sum': int(total), 'shape': list(ds.sample_count.shape),\n\
+                               'x': [float(v) for v in ds.x.values],\n\
+                               'y': [float(v) for v in ds.y.values]}))\n",
+        )
+        .arg(&store)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert_eq!(text(&o.stderr), "", "python wrote to stderr (a warning?)");
+    let got: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let summary = summary_of(&out);
+    let vox = &summary["sinks"]["voxels"];
+    let deposited = vox["deposits"]["bins_deposited"].as_u64().unwrap();
+    assert!(deposited > 0);
+    assert_eq!(got["sum"].as_u64(), Some(deposited), "{got}");
+    // The tiles written: the store's records, on the grid anchored at the CRS origin.
+    let records: Vec<[i64; 2]> = std::fs::read_dir(store.join("fwlidar_state/tiles"))
+        .unwrap()
+        .map(|e| {
+            let n = e.unwrap().file_name().to_string_lossy().to_string();
+            let (a, b) = n.split_once('_').unwrap();
+            [a.parse().unwrap(), b.parse().unwrap()]
+        })
+        .collect();
+    assert_eq!(
+        records.len() as u64,
+        vox["tiles"]["in_store"].as_u64().unwrap()
+    );
+    let lo = |a: usize| records.iter().map(|t| t[a]).min().unwrap();
+    let hi = |a: usize| records.iter().map(|t| t[a]).max().unwrap();
+    let (nx, ny) = ((hi(0) - lo(0) + 1) as u64, (hi(1) - lo(1) + 1) as u64);
+    let levels = vox["grid"]["levels"].as_u64().unwrap();
+    assert_eq!(
+        got["shape"],
+        serde_json::json!([levels, ny * 32, nx * 32]),
+        "{got}"
+    );
+    assert!(nx * ny <= 4, "a small store: {nx} × {ny} tiles");
+    // Coordinates: the voxel centres of those tiles (16 m tiles of 0.5 m voxels).
+    let xs: Vec<f64> = serde_json::from_value(got["x"].clone()).unwrap();
+    let ys: Vec<f64> = serde_json::from_value(got["y"].clone()).unwrap();
+    for (i, x) in xs.iter().enumerate() {
+        assert_eq!(*x, lo(0) as f64 * 16.0 + 0.25 + i as f64 * 0.5);
+    }
+    for (j, y) in ys.iter().enumerate() {
+        assert_eq!(*y, lo(1) as f64 * 16.0 + 0.25 + j as f64 * 0.5);
+    }
+    assert_eq!(vox["arrays"]["tile_min"], serde_json::json!([lo(0), lo(1)]));
+    assert_eq!(vox["arrays"]["fitted"], true);
+    // The whole check: every recorded tile where the arrays say, nothing elsewhere.
+    let fitted = check_fitted(&store);
+    assert_eq!(fitted["samples"].as_u64(), Some(deposited));
+}
+
+/// A run that deposits nothing (the configured extent lies elsewhere) leaves a store with
+/// empty arrays that xarray opens, without a warning, and sums to 0.
+#[test]
+fn a_run_that_deposits_nothing_leaves_empty_arrays_xarray_opens() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("elsewhere.toml");
+    let text_cfg = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml")).unwrap();
+    assert!(text_cfg.contains("\n[voxels]\n"));
+    std::fs::write(
+        &cfg,
+        text_cfg.replace(
+            "\n[voxels]\n",
+            "\n[voxels]\nextent_m = [0.0, 0.0, 16.0, 16.0]\n",
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let o = replay(&sample(), &out, Some(&cfg));
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let vox = &summary_of(&out)["sinks"]["voxels"];
+    assert_eq!(vox["deposits"]["bins_deposited"], 0);
+    assert!(vox["deposits"]["bins_outside_extent"].as_u64().unwrap() > 0);
+    let fitted = check_fitted(&out.join("voxels.zarr"));
+    assert_eq!(fitted["samples"], 0);
+    assert_eq!(fitted["shape"], serde_json::json!([234, 0, 0]));
 }
 
 fn check_with_xarray(out: &Path, mode: &str) -> serde_json::Value {
@@ -248,11 +375,11 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
     let read: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert!(read["tiles"].as_u64().unwrap() >= 3, "{read}");
 
-    // The rerun resumes and ends with the same files, byte for byte.
+    // The rerun resumes and ends with the same files, byte for byte: chunks (at the keys of
+    // the fitted arrays), coordinates, metadata and tile records (watermarks).
     let o = replay(&cap, &cut, Some(&cfg));
     assert!(o.status.success(), "{}", text(&o.stderr));
-    let summary: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(cut.join("summary.json")).unwrap()).unwrap();
+    let summary = summary_of(&cut);
     let resumed = summary["sinks"]["voxels"]["deposits"]["bins_resumed"]
         .as_u64()
         .unwrap();
@@ -261,30 +388,25 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
         store_files(&whole.join("voxels.zarr")),
         store_files(&cut.join("voxels.zarr")),
     );
-    let data = |m: &BTreeMap<String, Vec<u8>>| {
-        m.iter()
-            .filter(|(k, _)| k.contains("/c/") && !k.starts_with("x/") && !k.starts_with("y/"))
-            .map(|(k, v)| (k.clone(), v.clone()))
-            .collect::<BTreeMap<_, _>>()
-    };
-    let (da, db) = (data(&a), data(&b));
-    assert!(da.len() > 20, "{} chunk files", da.len());
-    assert_eq!(da.keys().collect::<Vec<_>>(), db.keys().collect::<Vec<_>>());
-    for (k, v) in &da {
-        assert!(db[k] == *v, "chunk {k} differs after kill -9 and rerun");
+    let chunks = a.keys().filter(|k| k.contains("/c/0/")).count();
+    assert!(chunks > 20, "{chunks} chunk files");
+    assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
+    for (k, v) in &a {
+        assert!(b[k] == *v, "{k} differs after kill -9 and rerun");
     }
-    // The tile records (watermarks) match too.
-    for (k, v) in a
-        .iter()
-        .filter(|(k, _)| k.starts_with("fwlidar_state/tiles/"))
-    {
-        assert_eq!(b.get(k), Some(v), "{k}");
-    }
+    // Both fitted to their tiles, which xarray reads without a warning.
+    let fa = check_fitted(&whole.join("voxels.zarr"));
+    let fb = check_fitted(&cut.join("voxels.zarr"));
+    assert_eq!(fa, fb);
+    assert_eq!(
+        fa["samples"],
+        summary_of(&whole)["sinks"]["voxels"]["deposits"]["bins_deposited"]
+    );
 
     // A rerun of a complete store changes nothing.
     let o = replay(&cap, &cut, Some(&cfg));
     assert!(o.status.success(), "{}", text(&o.stderr));
-    assert_eq!(data(&store_files(&cut.join("voxels.zarr"))), da);
+    assert_eq!(store_files(&cut.join("voxels.zarr")), a);
 }
 
 fn read_all(root: &Path) -> BTreeMap<[i64; 2], TileData> {
@@ -333,14 +455,22 @@ fn merge_adds_stores_exactly_and_refuses_what_does_not_fit() {
         "--no-progress",
     ]);
     assert!(o.status.success(), "{}", text(&o.stderr));
-    // Same bytes whatever the order.
-    let data = |p: &Path| {
-        store_files(p)
-            .into_iter()
-            .filter(|(k, _)| k.contains("/c/"))
-            .collect::<BTreeMap<_, _>>()
-    };
-    assert_eq!(data(&m1), data(&m2));
+    // Same bytes whatever the order: chunks, coordinates, metadata, records.
+    assert_eq!(store_files(&m1), store_files(&m2));
+    // The merged arrays span the tiles of both flights (not the union of their 8 km extents),
+    // and hold all their samples.
+    let (f0, f1, fm) = (
+        check_fitted(&roots[0]),
+        check_fitted(&roots[1]),
+        check_fitted(&m1),
+    );
+    let n = |v: &serde_json::Value, k: &str| v[k].as_u64().unwrap();
+    assert_eq!(n(&fm, "samples"), n(&f0, "samples") + n(&f1, "samples"));
+    assert_eq!(n(&fm, "pulses"), n(&f0, "pulses") + n(&f1, "pulses"));
+    assert!(
+        n(&fm, "tiles") < n(&f0, "tiles") + n(&f1, "tiles"),
+        "shared tiles"
+    );
     // Element-wise: sums and counts add, maxima take the larger.
     let (a, b, m) = (read_all(&roots[0]), read_all(&roots[1]), read_all(&m1));
     assert!(!m.is_empty());

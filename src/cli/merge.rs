@@ -4,7 +4,8 @@
 //! size, intensity quantum), CRS and intensity units; their extents may differ and the result
 //! covers them all. A tile present in several stores is the sum of their counts and intensity
 //! sums (integers of the quantum, so exact) and the larger of their maxima: the result does not
-//! depend on the order the stores are named in, bit for bit. The output must not exist.
+//! depend on the order the stores are named in, bit for bit. The result's arrays span the
+//! bounding box of its tiles (`ZarrStore::fit`). The output must not exist.
 
 use std::path::PathBuf;
 
@@ -125,15 +126,18 @@ pub fn run(args: MergeArgs) -> Result<(), Failure> {
     if let Some(b) = bar {
         b.finish_and_clear();
     }
+    // The arrays span the bounding box of the tiles, whatever the inputs' extents.
+    out.fit().map_err(Failure::job)?;
+    let span = *out.span();
     println!(
-        "merged {} stores into {}: {} tiles ({} present in more than one), {} × {} tiles of {} \
-         columns × {} levels",
+        "merged {} stores into {}: {} tiles ({} present in more than one), arrays of {} × {} \
+         tiles of {} columns × {} levels",
         stores.len(),
         args.out.display(),
         tiles.len(),
         merged_from_several,
-        grid.tiles[0],
-        grid.tiles[1],
+        span.tiles[0],
+        span.tiles[1],
         grid.tile_columns,
         grid.levels
     );

@@ -5,7 +5,8 @@
 //! The store is created at the first pulse with geometry: that is when the output CRS is known
 //! for a capture georeferenced into the UTM zone of its first fix, and where the automatic
 //! extent is centred. Rerunning with the same output resumes a store the same run left behind
-//! (killed, or complete): tile by tile, deposits already in it are skipped.
+//! (killed, or complete): tile by tile, deposits already in it are skipped. While the run writes,
+//! the store's arrays span the whole extent; `finish` fits them to the tiles written.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
@@ -282,6 +283,16 @@ impl PulseSink for VoxelTilesSink {
                 "tiles": g.tiles,
                 "height": g.height.name(),
                 "intensity_units": s.info().intensity_units,
+            });
+            // What the store's arrays span: the bounding box of the tiles written once the run
+            // ended (`fitted`), the whole extent while it writes.
+            let span = s.span();
+            v["arrays"] = serde_json::json!({
+                "tile_min": span.tile_min,
+                "tiles": span.tiles,
+                "fitted": span.fitted,
+                "shape": span.shape(g),
+                "origin_m": span.origin_m(g),
             });
             if let Some(cov) = &self.coverage {
                 let open: std::collections::HashSet<[i64; 2]> =
@@ -629,5 +640,82 @@ mod tests {
         // 38 bins of 1 V and 2 of 5 V in range: 48 V, up to rounding of the shares.
         assert!((total_q - 48_000_000).abs() < 1000, "{total_q}");
         assert_eq!(s.stats().bins_deposited, 40);
+    }
+
+    /// Every file of a store except the tile records (watermarks depend on when tiles closed).
+    fn store_files(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+        fn walk(base: &Path, d: &Path, out: &mut std::collections::BTreeMap<String, Vec<u8>>) {
+            for e in std::fs::read_dir(d).unwrap() {
+                let p = e.unwrap().path();
+                let rel = p.strip_prefix(base).unwrap().display().to_string();
+                if p.is_dir() {
+                    walk(base, &p, out);
+                } else if !rel.starts_with("fwlidar_state/tiles/") {
+                    out.insert(rel, std::fs::read(&p).unwrap());
+                }
+            }
+        }
+        let root = dir.join("voxels.zarr");
+        let mut m = Default::default();
+        walk(&root, &root, &mut m);
+        m
+    }
+
+    #[test]
+    fn a_continued_store_grows_beyond_its_fitted_arrays_and_ends_as_one_run() {
+        // The daemon's survey across a restart: a first run over the middle of the extent, a
+        // second (continuing the store and the pulse numbers, writing on a writer thread) that
+        // flies south-west and north-east of it.
+        let first = || (0..300).map(|i| pulse(i, i as f64 * 0.01, 30.05 + i as f64 * 0.03, 35.0));
+        let second = || {
+            (0..300).map(|i| {
+                let (x, y) = if i < 150 { (3.0, 2.0) } else { (60.0, 61.0) };
+                pulse(
+                    300 + i,
+                    10.0 + i as f64 * 0.01,
+                    x + (i % 10) as f64 * 0.2,
+                    y,
+                )
+            })
+        };
+        let survey = tempfile::tempdir().unwrap();
+        let continuing = |pulses: &mut dyn Iterator<Item = Pulse>| {
+            let mut s = VoxelTilesSink::create(
+                survey.path(),
+                cfg(),
+                CrsSource::Known(Some("EPSG:32736".into())),
+                info(),
+                None,
+                None,
+            )
+            .unwrap()
+            .continuing()
+            .with_tile_writer(1);
+            for p in pulses {
+                s.write(&p).unwrap();
+            }
+            s.finish().unwrap();
+            s
+        };
+        let s = continuing(&mut first());
+        let span = *s.tiles().unwrap().store().span();
+        // x 30..39 m, y 35 m: tiles (3..=4, 4) of 8 m.
+        assert_eq!(
+            (span.tile_min, span.tiles, span.fitted),
+            ([3, 4], [2, 1], true)
+        );
+        assert_eq!(
+            s.report()["arrays"]["shape"],
+            serde_json::json!([20, 8, 16])
+        );
+        let s = continuing(&mut second());
+        let span = *s.tiles().unwrap().store().span();
+        assert_eq!((span.tile_min, span.tiles), ([0, 0], [8, 8]));
+        // The same store, bit for bit, as one run of every pulse.
+        let once = tempfile::tempdir().unwrap();
+        let one = run(once.path(), cfg(), first().chain(second()));
+        assert_eq!(one.tiles().unwrap().store().span(), &span);
+        assert_same_tiles(once.path(), survey.path());
+        assert_eq!(store_files(once.path()), store_files(survey.path()));
     }
 }

@@ -294,7 +294,8 @@ impl Grid {
         [s * self.voxel_size_m[0], s * self.voxel_size_m[1]]
     }
 
-    /// The store's whole array shape `[levels, rows (y), columns (x)]`.
+    /// Shape `[levels, rows (y), columns (x)]` of voxels over the whole extent (the store's
+    /// arrays while a run writes; `zarr::Span` says what they span).
     pub fn shape(&self) -> [u64; 3] {
         let t = self.tile_columns as u64;
         [
@@ -304,7 +305,7 @@ impl Grid {
         ]
     }
 
-    /// West and south edges of the store's extent, metres.
+    /// West and south edges of the extent, metres.
     pub fn extent_origin(&self) -> [f64; 2] {
         let tm = self.tile_m();
         [
@@ -318,14 +319,6 @@ impl Grid {
         (0..2).all(|a| {
             tile[a] >= self.tile_min[a] && tile[a] < self.tile_min[a] + self.tiles[a] as i64
         })
-    }
-
-    /// Chunk indices `[row, column]` of a tile in the store's arrays.
-    pub fn chunk_of(&self, tile: [i64; 2]) -> [u64; 2] {
-        [
-            (tile[1] - self.tile_min[1]) as u64,
-            (tile[0] - self.tile_min[0]) as u64,
-        ]
     }
 
     /// Whether `other` places every voxel where this grid does (extents may differ).

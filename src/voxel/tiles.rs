@@ -399,14 +399,16 @@ impl TileSet {
         result
     }
 
-    /// Closes every open tile (end of the run); `next_seq` is one past the last pulse.
+    /// Closes every open tile and fits the store's arrays to the tiles written (end of the
+    /// run: nothing may be deposited afterwards); `next_seq` is one past the last pulse.
     pub fn close_all(&mut self, next_seq: u64) -> Result<(), StoreError> {
         let mut all: Vec<usize> = self.open.values().copied().collect();
         all.sort_by_key(|s| self.slots[*s].tile);
         for s in all {
             self.close_slot(s, next_seq)?;
         }
-        self.collect_writes(None, true)
+        self.collect_writes(None, true)?;
+        self.store.fit()
     }
 
     /// Takes the store back (after `close_all`).

@@ -1,11 +1,13 @@
 //! Voxel tiles as a Zarr v3 store (`voxels.zarr`), one chunk per tile, written atomically.
 //!
 //! Layout (Zarr v3 core specification; CF conventions so that `xarray.open_zarr` gives named
-//! dimensions, coordinates and the CRS):
+//! dimensions, coordinates and the CRS; the root's `consolidated_metadata` as zarr-python 3
+//! writes it, so that readers find every array in one document):
 //!
 //! ```text
 //! voxels.zarr/zarr.json                 group: CRS (crs_wkt, epsg), origin, voxel size, units,
-//!                                       the processing configuration, the grid (attributes)
+//!                                       the processing configuration, the grid (attributes);
+//!                                       consolidated metadata of every node below
 //! voxels.zarr/intensity_sum/            int64 [z, y, x], CF scale_factor = intensity quantum
 //! voxels.zarr/sample_count/             uint32: bins deposited
 //! voxels.zarr/intensity_max/            float32: largest bin (NaN: none)
@@ -16,8 +18,16 @@
 //! ```
 //!
 //! Every data array has chunk shape `[levels, T, T]`: a chunk is a tile, chunk key
-//! `c/0/ROW/COL` (`ROW`, `COL` counted from the store's south-west tile). Codecs: `bytes`
-//! (little endian) then `gzip` (level 1): a tile is mostly empty air.
+//! `c/0/ROW/COL`. Codecs: `bytes` (little endian) then `gzip` (level 1): a tile is mostly air.
+//!
+//! **The arrays' span** ([`Span`]): chunk `(ROW, COL)` is tile `span.tile_min + (COL, ROW)`.
+//! While a run writes, the span is the grid's whole extent (fixed, so a tile's chunk key never
+//! changes under the writer); when the run ends, [`ZarrStore::fit`] shrinks it to the bounding
+//! box of the tiles written, which is what a reader sees of a finished store. Reopening a store
+//! to write puts it back on the extent. A change of span moves every tile's chunks: first into
+//! `fwlidar_state/staging/` (named by tile, so nothing is ambiguous), then the metadata is
+//! rewritten, then the chunks go to their new keys; a journal (`fwlidar_state/relayout`, the
+//! target span) written before the first move lets the next open finish a move cut short.
 //!
 //! **Crash safety.** A tile's four chunks are written under `KEY.pending` and synced; then its
 //! record `fwlidar_state/tiles/TX_TY` is replaced atomically by `{watermark, pending: true}`
@@ -29,6 +39,7 @@
 //! reach the voxeliser in order), so a rerun of the same input skips, tile by tile, what is
 //! already there, and ends with the same bits as an uninterrupted run.
 
+use std::collections::{BTreeSet, HashMap};
 use std::fs::{self, File, OpenOptions};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
@@ -110,6 +121,95 @@ pub struct StoreInfo {
     pub configuration: String,
 }
 
+/// The tiles the data arrays span: chunk `(row, col)` of every data array holds tile
+/// `(tile_min[0] + col, tile_min[1] + row)`; the arrays are `tiles[1]·T` rows (y) by
+/// `tiles[0]·T` columns (x) of voxels. Recorded in the root's attributes as `fwlidar.arrays`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Span {
+    /// The tile `[tx, ty]` (global numbering) in chunk `(0, 0)`.
+    pub tile_min: [i64; 2],
+    /// Tiles along `[x, y]` (0 when the store holds none).
+    pub tiles: [u32; 2],
+    /// The span is the bounding box of the tiles written (a run or a merge ended), not the
+    /// grid's whole extent (a run is writing, or was killed).
+    pub fitted: bool,
+}
+
+impl Span {
+    /// The grid's whole extent: the span while a run writes.
+    pub fn extent(grid: &Grid) -> Span {
+        Span {
+            tile_min: grid.tile_min,
+            tiles: grid.tiles,
+            fitted: false,
+        }
+    }
+
+    /// The bounding box of `tiles` (none: an empty span at the extent's corner).
+    pub fn around(grid: &Grid, tiles: impl IntoIterator<Item = [i64; 2]>) -> Span {
+        let mut b = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
+        for t in tiles {
+            b = [
+                b[0].min(t[0]),
+                b[1].min(t[1]),
+                b[2].max(t[0]),
+                b[3].max(t[1]),
+            ];
+        }
+        if b[0] > b[2] {
+            return Span {
+                tile_min: grid.tile_min,
+                tiles: [0, 0],
+                fitted: true,
+            };
+        }
+        let n = |lo: i64, hi: i64| (hi as i128 - lo as i128 + 1).clamp(0, u32::MAX as i128) as u32;
+        Span {
+            tile_min: [b[0], b[1]],
+            tiles: [n(b[0], b[2]), n(b[1], b[3])],
+            fitted: true,
+        }
+    }
+
+    /// Whether the arrays cover the same tiles (fitted or not).
+    pub fn same_tiles(&self, other: &Span) -> bool {
+        self.tile_min == other.tile_min && self.tiles == other.tiles
+    }
+
+    /// Chunk indices `[row, column]` of a tile, if the span holds it.
+    pub fn chunk_of(&self, tile: [i64; 2]) -> Option<[u64; 2]> {
+        let off = |a: usize| {
+            let d = tile[a] as i128 - self.tile_min[a] as i128;
+            (0..self.tiles[a] as i128).contains(&d).then_some(d as u64)
+        };
+        Some([off(1)?, off(0)?])
+    }
+
+    /// Whether the span holds `tile`.
+    pub fn contains(&self, tile: [i64; 2]) -> bool {
+        self.chunk_of(tile).is_some()
+    }
+
+    /// The data arrays' shape `[levels, rows (y), columns (x)]`.
+    pub fn shape(&self, grid: &Grid) -> [u64; 3] {
+        let t = grid.tile_columns as u64;
+        [
+            grid.levels as u64,
+            self.tiles[1] as u64 * t,
+            self.tiles[0] as u64 * t,
+        ]
+    }
+
+    /// West and south edges of the arrays (of chunk `(0, 0)`), metres.
+    pub fn origin_m(&self, grid: &Grid) -> [f64; 2] {
+        let tm = grid.tile_m();
+        [
+            grid.origin_m[0] + self.tile_min[0] as f64 * tm[0],
+            grid.origin_m[1] + self.tile_min[1] as f64 * tm[1],
+        ]
+    }
+}
+
 /// Per tile: the watermark and whether a commit is incomplete.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TileRecord {
@@ -127,8 +227,10 @@ pub struct ZarrStore {
     /// Reused encode/decode buffers.
     raw: Vec<u8>,
     packed: Vec<u8>,
+    /// The tiles the data arrays span.
+    span: Span,
     /// Committed tiles and their watermarks.
-    records: std::collections::HashMap<[i64; 2], u64>,
+    records: HashMap<[i64; 2], u64>,
     /// Tiles written (for the summary).
     pub tiles_written: u64,
     /// Bytes of uncompressed tile data written.
@@ -174,6 +276,27 @@ fn sync_dir(path: &Path) {
     }
 }
 
+/// Makes the renames in `dirs` (folders of the store at `root`) durable. On Linux one
+/// `syncfs` of the store's file system does it for all of them at once (a directory fsync costs
+/// milliseconds however little changed, and a change of span touches a folder per row of tiles
+/// per array); elsewhere, or if that fails, each folder is synced.
+fn sync_dirs(root: &Path, dirs: &BTreeSet<PathBuf>) {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        if let Ok(d) = File::open(root) {
+            // SAFETY: `syncfs` only reads the descriptor, which `d` keeps open for the call.
+            if unsafe { libc::syncfs(d.as_raw_fd()) } == 0 {
+                return;
+            }
+        }
+    }
+    let _ = root;
+    for d in dirs {
+        sync_dir(d);
+    }
+}
+
 impl ZarrStore {
     /// The store's folder.
     pub fn root(&self) -> &Path {
@@ -190,12 +313,18 @@ impl ZarrStore {
         &self.info
     }
 
-    /// A store at `root` with nothing read or written yet.
-    fn at(root: &Path, grid: Grid, info: StoreInfo) -> Self {
+    /// The tiles the data arrays span now.
+    pub fn span(&self) -> &Span {
+        &self.span
+    }
+
+    /// A store at `root` with nothing read or written yet, its arrays spanning `span`.
+    fn at(root: &Path, grid: Grid, info: StoreInfo, span: Span) -> Self {
         ZarrStore {
             root: root.to_path_buf(),
             grid,
             info,
+            span,
             raw: Vec::new(),
             packed: Vec::new(),
             records: Default::default(),
@@ -222,6 +351,7 @@ impl ZarrStore {
     /// Creates the store at `root`, or opens the one there when it was written by the same run
     /// on the same grid (a resumed run): committed but unfinished tiles are completed and
     /// uncommitted chunks removed. Another grid or run is refused without changing anything.
+    /// Either way the arrays span the grid's whole extent until [`fit`](Self::fit).
     pub fn create_or_open(root: &Path, grid: Grid, info: StoreInfo) -> Result<Self, StoreError> {
         let meta = root.join("zarr.json");
         if meta.exists() {
@@ -251,6 +381,7 @@ impl ZarrStore {
                 });
             }
             s.info = info;
+            s.relayout(Span::extent(&grid))?;
             return Ok(s);
         }
         if root.exists() && fs::read_dir(root).map_err(io(root))?.next().is_some() {
@@ -259,12 +390,14 @@ impl ZarrStore {
                 what: "the folder exists, is not empty and is not a voxel store".into(),
             });
         }
-        let s = ZarrStore::at(root, grid, info);
+        let span = Span::extent(&grid);
+        let s = ZarrStore::at(root, grid, info, span);
         s.write_metadata()?;
         Ok(s)
     }
 
-    /// Opens an existing store (for `merge`, reading, resuming), finishing interrupted commits.
+    /// Opens an existing store (for `merge`, reading, resuming), finishing interrupted commits
+    /// and an interrupted change of span. Its arrays keep their span.
     pub fn open(root: &Path) -> Result<Self, StoreError> {
         let meta = root.join("zarr.json");
         let text = fs::read(&meta).map_err(io(&meta))?;
@@ -293,7 +426,22 @@ impl ZarrStore {
                 .to_string(),
             configuration: s("configuration").unwrap_or_default(),
         };
-        let mut store = ZarrStore::at(root, grid, info);
+        // Stores written before the span was recorded span the extent.
+        let span = match fw.get("arrays") {
+            None => Span::extent(&grid),
+            Some(a) => serde_json::from_value::<Span>(a.clone())
+                .map_err(|e| invalid(&meta, format!("attributes.fwlidar.arrays: {e}")))?,
+        };
+        if !within(&span, &grid) {
+            return Err(invalid(
+                &meta,
+                format!(
+                    "attributes.fwlidar.arrays: tiles {:?} + {:?} lie outside the grid's extent",
+                    span.tile_min, span.tiles
+                ),
+            ));
+        }
+        let mut store = ZarrStore::at(root, grid, info, span);
         store.recover()?;
         Ok(store)
     }
@@ -302,25 +450,45 @@ impl ZarrStore {
         self.root.join("fwlidar_state").join("tiles")
     }
 
+    /// Where a change of span keeps the chunks it is moving, named `<array>.<tx>_<ty>`.
+    fn staging_dir(&self) -> PathBuf {
+        self.root.join("fwlidar_state").join("staging")
+    }
+
+    /// The journal of a change of span: the target span, present while the chunks move.
+    fn journal_path(&self) -> PathBuf {
+        self.root.join("fwlidar_state").join("relayout")
+    }
+
     fn record_path(&self, tile: [i64; 2]) -> PathBuf {
         self.state_dir().join(format!("{}_{}", tile[0], tile[1]))
     }
 
-    /// Path of a tile's chunk of `array`.
-    pub fn chunk_path(&self, array: &str, tile: [i64; 2]) -> PathBuf {
-        let [row, col] = self.grid.chunk_of(tile);
-        self.root
+    /// Path of a tile's chunk of `array` under the current span; an error naming the store
+    /// when the span does not hold the tile.
+    pub fn chunk_path(&self, array: &str, tile: [i64; 2]) -> Result<PathBuf, StoreError> {
+        let [row, col] = self.span.chunk_of(tile).ok_or_else(|| {
+            invalid(
+                &self.root,
+                format!(
+                    "tile {tile:?} lies outside the arrays (tiles {:?} + {:?})",
+                    self.span.tile_min, self.span.tiles
+                ),
+            )
+        })?;
+        Ok(self
+            .root
             .join(array)
             .join("c")
             .join("0")
             .join(row.to_string())
-            .join(col.to_string())
+            .join(col.to_string()))
     }
 
-    fn pending_path(&self, array: &str, tile: [i64; 2]) -> PathBuf {
-        let mut p = self.chunk_path(array, tile).into_os_string();
+    fn pending_path(&self, array: &str, tile: [i64; 2]) -> Result<PathBuf, StoreError> {
+        let mut p = self.chunk_path(array, tile)?.into_os_string();
         p.push(".pending");
-        PathBuf::from(p)
+        Ok(PathBuf::from(p))
     }
 
     fn read_record(path: &Path) -> Result<TileRecord, StoreError> {
@@ -358,9 +526,9 @@ impl ZarrStore {
                 let rec = Self::read_record(&entry.path())?;
                 if rec.pending {
                     for a in ARRAYS {
-                        let p = self.pending_path(a, tile);
+                        let p = self.pending_path(a, tile)?;
                         if p.exists() {
-                            let c = self.chunk_path(a, tile);
+                            let c = self.chunk_path(a, tile)?;
                             fs::rename(&p, &c).map_err(io(&c))?;
                         }
                     }
@@ -382,6 +550,125 @@ impl ZarrStore {
                 self.discarded_pending += remove_pending(&base)?;
             }
         }
+        // A change of span cut short: finish it (the journal names the target).
+        let journal = self.journal_path();
+        if journal.exists() {
+            let text = fs::read(&journal).map_err(io(&journal))?;
+            let target: Span = serde_json::from_slice(&text)
+                .map_err(|e| invalid(&journal, format!("not a span: {e}")))?;
+            if !within(&target, &self.grid) {
+                return Err(invalid(&journal, "the span lies outside the grid's extent"));
+            }
+            self.finish_relayout(target)?;
+        }
+        Ok(())
+    }
+
+    /// Shrinks the arrays to the bounding box of the tiles in the store (the end of a run or a
+    /// merge): what a reader sees of a finished store. Writing again needs
+    /// [`create_or_open`](Self::create_or_open), which puts the arrays back on the extent.
+    pub fn fit(&mut self) -> Result<(), StoreError> {
+        let span = Span::around(&self.grid, self.records.keys().copied());
+        self.relayout(span)
+    }
+
+    /// Puts the data arrays on `span`, moving every tile's chunks to its key there (through the
+    /// staging folder, under a journal: see the module documentation) and rewriting the
+    /// metadata. Only between tile writes (no tile is pending).
+    fn relayout(&mut self, span: Span) -> Result<(), StoreError> {
+        if let Some(t) = self.records.keys().find(|t| !span.contains(**t)) {
+            return Err(invalid(
+                &self.root,
+                format!(
+                    "tile {t:?} lies outside the span {:?} + {:?} the arrays are to take",
+                    span.tile_min, span.tiles
+                ),
+            ));
+        }
+        if self.span.same_tiles(&span) {
+            self.span = span;
+            return self.write_metadata();
+        }
+        let state = self.root.join("fwlidar_state");
+        fs::create_dir_all(&state).map_err(io(&state))?;
+        let journal = self.journal_path();
+        let text = serde_json::to_vec(&span).map_err(|e| invalid(&journal, e.to_string()))?;
+        write_atomic(&journal, &text)?;
+        sync_dir(&state);
+        self.finish_relayout(span)
+    }
+
+    /// Moves the chunks to `target` (the journal's span) from wherever the last attempt left
+    /// them, rewrites the metadata, removes the journal. Idempotent.
+    fn finish_relayout(&mut self, target: Span) -> Result<(), StoreError> {
+        let staging = self.staging_dir();
+        let mut touched = BTreeSet::new();
+        if !self.span.same_tiles(&target) {
+            // The metadata still names the old span: every chunk still at its old key goes to
+            // staging, then the old chunk trees (nothing else is in them) are removed.
+            fs::create_dir_all(&staging).map_err(io(&staging))?;
+            let mut tiles: Vec<[i64; 2]> = self.records.keys().copied().collect();
+            tiles.sort_unstable();
+            for t in tiles {
+                for a in ARRAYS {
+                    let from = self.chunk_path(a, t)?;
+                    let to = staging.join(format!("{a}.{}_{}", t[0], t[1]));
+                    match fs::rename(&from, &to) {
+                        Ok(()) => {
+                            if let Some(d) = from.parent() {
+                                touched.insert(d.to_path_buf());
+                            }
+                        }
+                        // Already staged by an attempt cut short, or an all-fill chunk.
+                        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                        Err(e) => return Err(io(&from)(e)),
+                    }
+                }
+            }
+            touched.insert(staging.clone());
+            sync_dirs(&self.root, &std::mem::take(&mut touched));
+            for a in ARRAYS {
+                let c = self.root.join(a).join("c");
+                if c.exists() {
+                    fs::remove_dir_all(&c).map_err(io(&c))?;
+                }
+            }
+        }
+        // The new span's metadata (the root document last) is the point after which the
+        // chunks belong at their new keys.
+        self.span = target;
+        self.write_metadata()?;
+        if staging.exists() {
+            for entry in fs::read_dir(&staging).map_err(io(&staging))? {
+                let entry = entry.map_err(io(&staging))?;
+                let from = entry.path();
+                let name = entry.file_name().to_string_lossy().to_string();
+                let place = name.split_once('.').and_then(|(a, t)| {
+                    let tile = Self::parse_tile_name(t)?;
+                    let a = ARRAYS.iter().find(|x| **x == a)?;
+                    (self.records.contains_key(&tile) && self.span.contains(tile))
+                        .then_some((a, tile))
+                });
+                let Some((a, tile)) = place else {
+                    fs::remove_file(&from).map_err(io(&from))?;
+                    continue;
+                };
+                let to = self.chunk_path(a, tile)?;
+                let dir = to.parent().unwrap_or(&self.root).to_path_buf();
+                if !touched.contains(&dir) {
+                    fs::create_dir_all(&dir).map_err(io(&dir))?;
+                    touched.insert(dir);
+                }
+                fs::rename(&from, &to).map_err(io(&to))?;
+            }
+            sync_dirs(&self.root, &touched);
+            fs::remove_dir(&staging).map_err(io(&staging))?;
+        }
+        let journal = self.journal_path();
+        if journal.exists() {
+            fs::remove_file(&journal).map_err(io(&journal))?;
+        }
+        sync_dir(&self.root.join("fwlidar_state"));
         Ok(())
     }
 
@@ -406,7 +693,7 @@ impl ZarrStore {
         }
         let n = self.grid.tile_voxels();
         for a in ARRAYS {
-            let path = self.chunk_path(a, tile);
+            let path = self.chunk_path(a, tile)?;
             if !path.exists() {
                 continue; // all fill value
             }
@@ -441,8 +728,9 @@ impl ZarrStore {
     /// A second handle on the same store for a writer thread: it writes tiles with
     /// [`write_tile`](Self::write_tile) exactly as this one would; this one learns of each commit
     /// through [`note_committed`](Self::note_committed). Its own records are not consulted.
+    /// The span must not change while it writes (it does not: a run's span is the extent).
     pub fn tile_writer(&self) -> ZarrStore {
-        ZarrStore::at(&self.root, self.grid.clone(), self.info.clone())
+        ZarrStore::at(&self.root, self.grid.clone(), self.info.clone(), self.span)
     }
 
     /// Records a tile committed by a [`tile_writer`](Self::tile_writer) handle.
@@ -452,13 +740,15 @@ impl ZarrStore {
         self.bytes_written += self.grid.tile_voxels() as u64 * 20;
     }
 
-    /// Writes a tile with its watermark (see the module documentation for the protocol).
+    /// Writes a tile with its watermark (see the module documentation for the protocol). The
+    /// arrays' span must hold the tile (a run's span is the whole extent).
     pub fn write_tile(
         &mut self,
         tile: [i64; 2],
         data: &TileData,
         watermark: u64,
     ) -> Result<(), StoreError> {
+        self.chunk_path(ARRAYS[0], tile)?;
         for a in ARRAYS {
             self.raw.clear();
             let order = DiskOrder::of(&self.grid);
@@ -471,7 +761,7 @@ impl ZarrStore {
             self.bytes_written += self.raw.len() as u64;
             self.packed.clear();
             let mut enc = GzEncoder::new(std::mem::take(&mut self.packed), Compression::new(1));
-            let path = self.pending_path(a, tile);
+            let path = self.pending_path(a, tile)?;
             enc.write_all(&self.raw).map_err(io(&path))?;
             self.packed = enc.finish().map_err(io(&path))?;
             let dir = path.parent().unwrap_or(&self.root).to_path_buf();
@@ -488,7 +778,7 @@ impl ZarrStore {
                 .as_bytes(),
         )?;
         for a in ARRAYS {
-            let (p, c) = (self.pending_path(a, tile), self.chunk_path(a, tile));
+            let (p, c) = (self.pending_path(a, tile)?, self.chunk_path(a, tile)?);
             fs::rename(&p, &c).map_err(io(&c))?;
         }
         write_atomic(
@@ -503,52 +793,35 @@ impl ZarrStore {
         Ok(())
     }
 
-    /// Rewrites the metadata documents (group, arrays, coordinates).
+    /// Rewrites the metadata documents (arrays, coordinates, then the root group with the
+    /// consolidated metadata of them all) for the current span; the root document is synced.
     fn write_metadata(&self) -> Result<(), StoreError> {
         let g = &self.grid;
         fs::create_dir_all(&self.root).map_err(io(&self.root))?;
-        let shape = g.shape();
+        let span = &self.span;
+        let shape = span.shape(g);
         let t = g.tile_columns as u64;
+        let corner = span.origin_m(g);
         let extent = g.extent_origin();
         let tm = g.tile_m();
-        let group = json!({
-            "zarr_format": 3,
-            "node_type": "group",
-            "attributes": {
-                "Conventions": "CF-1.10",
-                "title": "fwlidar voxel tiles: calibrated full-waveform intensity per voxel",
-                "crs_wkt": self.info.crs_wkt,
-                "epsg": self.info.epsg,
-                "origin_m": [extent[0], extent[1], g.z_bottom_m],
-                "tile_grid_origin_m": g.origin_m,
-                "voxel_size_m": g.voxel_size_m,
-                "tile_size_m": tm,
-                "tile_columns": g.tile_columns,
-                "height": g.height.name(),
-                "intensity_units": self.info.intensity_units,
-                "intensity_quantum": g.intensity_quantum,
-                "configuration": self.info.configuration,
-                "fwlidar": {
-                    "version": env!("CARGO_PKG_VERSION"),
-                    "grid": g,
-                    "run_key": self.info.run_key,
-                },
-            },
-        });
-        write_atomic(&self.root.join("zarr.json"), group.to_string().as_bytes())?;
+        // Every node below the root, as its own `zarr.json` says, for the consolidated metadata.
+        let mut nodes = serde_json::Map::new();
         // The resume records live in a group of their own so that Zarr readers see a node.
         let state = self.root.join("fwlidar_state");
         fs::create_dir_all(&state).map_err(io(&state))?;
-        write_atomic(
-            &state.join("zarr.json"),
-            json!({
-                "zarr_format": 3,
-                "node_type": "group",
-                "attributes": {"description": "fwlidar resume records: tiles/TX_TY holds the watermark of each tile (first pulse sequence number not in it)"},
-            })
-            .to_string()
-            .as_bytes(),
-        )?;
+        let state_meta = json!({
+            "zarr_format": 3,
+            "node_type": "group",
+            "attributes": {"description": "fwlidar resume records: tiles/TX_TY holds the watermark of each tile (first pulse sequence number not in it)"},
+        });
+        write_atomic(&state.join("zarr.json"), state_meta.to_string().as_bytes())?;
+        let mut consolidated_state = state_meta;
+        consolidated_state["consolidated_metadata"] = json!({
+            "kind": "inline",
+            "must_understand": false,
+            "metadata": {},
+        });
+        nodes.insert("fwlidar_state".into(), consolidated_state);
         let (height_name, height_long) = match g.height {
             super::grid::HeightMode::Absolute => ("height", "height of the voxel centre (CRS z)"),
             super::grid::HeightMode::AboveDem => (
@@ -586,7 +859,7 @@ impl ZarrStore {
                     m.insert("units".into(), json!("1"));
                 }
             }
-            self.write_array_meta(
+            let meta = self.write_array_meta(
                 a,
                 json!(shape),
                 dt,
@@ -595,14 +868,14 @@ impl ZarrStore {
                 json!(["z", "y", "x"]),
                 attrs,
             )?;
+            nodes.insert(a.into(), meta);
         }
         // Coordinates: voxel centres.
-        let e = g.extent_origin();
         let xs: Vec<f64> = (0..shape[2])
-            .map(|i| e[0] + (i as f64 + 0.5) * g.voxel_size_m[0])
+            .map(|i| corner[0] + (i as f64 + 0.5) * g.voxel_size_m[0])
             .collect();
         let ys: Vec<f64> = (0..shape[1])
-            .map(|j| e[1] + (j as f64 + 0.5) * g.voxel_size_m[1])
+            .map(|j| corner[1] + (j as f64 + 0.5) * g.voxel_size_m[1])
             .collect();
         let zs: Vec<f64> = (0..shape[0])
             .map(|k| g.z_bottom_m + (k as f64 + 0.5) * g.voxel_size_m[2])
@@ -624,7 +897,7 @@ impl ZarrStore {
                 json!({"standard_name": height_name, "long_name": height_long, "units": "m", "axis": "Z", "positive": "up"}),
             ),
         ] {
-            self.write_array_meta(
+            let meta = self.write_array_meta(
                 name,
                 json!([vals.len()]),
                 "float64",
@@ -633,12 +906,20 @@ impl ZarrStore {
                 json!([name]),
                 attrs,
             )?;
+            nodes.insert(name.into(), meta);
+            let path = self.root.join(name).join("c").join("0");
+            if vals.is_empty() {
+                // An empty coordinate (a store with no tile) has no chunk.
+                if path.exists() {
+                    fs::remove_file(&path).map_err(io(&path))?;
+                }
+                continue;
+            }
             let mut raw = Vec::with_capacity(vals.len() * 8);
             for v in &vals {
                 raw.extend_from_slice(&v.to_le_bytes());
             }
             let mut enc = GzEncoder::new(Vec::new(), Compression::new(1));
-            let path = self.root.join(name).join("c").join("0");
             enc.write_all(&raw).map_err(io(&path))?;
             let packed = enc.finish().map_err(io(&path))?;
             fs::create_dir_all(path.parent().unwrap_or(&self.root)).map_err(io(&path))?;
@@ -653,7 +934,7 @@ impl ZarrStore {
         if let Some(code) = self.info.epsg {
             sr["epsg_code"] = json!(format!("EPSG:{code}"));
         }
-        self.write_array_meta(
+        let meta = self.write_array_meta(
             "spatial_ref",
             json!([]),
             "int32",
@@ -662,6 +943,47 @@ impl ZarrStore {
             json!([]),
             sr,
         )?;
+        nodes.insert("spatial_ref".into(), meta);
+        // The root last: its attributes name the span the chunks are keyed on.
+        let group = json!({
+            "zarr_format": 3,
+            "node_type": "group",
+            "attributes": {
+                "Conventions": "CF-1.10",
+                "title": "fwlidar voxel tiles: calibrated full-waveform intensity per voxel",
+                "crs_wkt": self.info.crs_wkt,
+                "epsg": self.info.epsg,
+                "origin_m": [corner[0], corner[1], g.z_bottom_m],
+                "extent_m": [
+                    extent[0],
+                    extent[1],
+                    extent[0] + g.tiles[0] as f64 * tm[0],
+                    extent[1] + g.tiles[1] as f64 * tm[1],
+                ],
+                "tile_grid_origin_m": g.origin_m,
+                "voxel_size_m": g.voxel_size_m,
+                "tile_size_m": tm,
+                "tile_columns": g.tile_columns,
+                "height": g.height.name(),
+                "intensity_units": self.info.intensity_units,
+                "intensity_quantum": g.intensity_quantum,
+                "configuration": self.info.configuration,
+                "fwlidar": {
+                    "version": env!("CARGO_PKG_VERSION"),
+                    "grid": g,
+                    "arrays": span,
+                    "run_key": self.info.run_key,
+                },
+            },
+            // Zarr v3 consolidated metadata, as zarr-python 3 writes and reads it.
+            "consolidated_metadata": {
+                "kind": "inline",
+                "must_understand": false,
+                "metadata": nodes,
+            },
+        });
+        write_atomic(&self.root.join("zarr.json"), group.to_string().as_bytes())?;
+        sync_dir(&self.root);
         Ok(())
     }
 
@@ -675,7 +997,7 @@ impl ZarrStore {
         chunk: Value,
         dims: Value,
         attrs: Value,
-    ) -> Result<(), StoreError> {
+    ) -> Result<Value, StoreError> {
         let dir = self.root.join(name);
         fs::create_dir_all(&dir).map_err(io(&dir))?;
         let codecs = if data_type == "int32" && shape == json!([]) {
@@ -698,7 +1020,8 @@ impl ZarrStore {
             "attributes": attrs,
             "dimension_names": dims,
         });
-        write_atomic(&dir.join("zarr.json"), meta.to_string().as_bytes())
+        write_atomic(&dir.join("zarr.json"), meta.to_string().as_bytes())?;
+        Ok(meta)
     }
 }
 
@@ -739,6 +1062,23 @@ impl DiskOrder {
             }
         }
     }
+}
+
+/// Whether `span` lies inside the grid's extent (every span a store takes does: the tiles
+/// written are inside it).
+fn within(span: &Span, grid: &Grid) -> bool {
+    let empty = span.tiles.contains(&0);
+    (0..2).all(|a| {
+        let (lo, hi) = (
+            span.tile_min[a] as i128,
+            span.tile_min[a] as i128 + span.tiles[a] as i128,
+        );
+        let (elo, ehi) = (
+            grid.tile_min[a] as i128,
+            grid.tile_min[a] as i128 + grid.tiles[a] as i128,
+        );
+        span.tiles[a] <= grid.tiles[a] && (empty || (lo >= elo && hi <= ehi))
+    })
 }
 
 fn remove_pending(dir: &Path) -> Result<u64, StoreError> {
@@ -846,12 +1186,16 @@ mod tests {
         s.write_tile([1, 0], &new, 5).unwrap();
         let rec = s.record_path([1, 0]);
         for a in ARRAYS {
-            fs::rename(s.chunk_path(a, [1, 0]), s.pending_path(a, [1, 0])).unwrap();
+            fs::rename(
+                s.chunk_path(a, [1, 0]).unwrap(),
+                s.pending_path(a, [1, 0]).unwrap(),
+            )
+            .unwrap();
         }
         fs::write(&rec, br#"{"watermark": 20, "pending": true}"#).unwrap();
         // A crash before the commit record: pending chunks of tile (0,0) must be discarded.
         for a in ARRAYS {
-            fs::write(s.pending_path(a, [0, 0]), b"garbage").unwrap();
+            fs::write(s.pending_path(a, [0, 0]).unwrap(), b"garbage").unwrap();
         }
         let mut s2 = ZarrStore::open(&root).unwrap();
         assert_eq!(s2.recovered_commits, 1);
@@ -873,7 +1217,7 @@ mod tests {
         let n = g.tile_voxels();
         let mut s = ZarrStore::create_or_open(&root, g, info("a")).unwrap();
         s.write_tile([0, 0], &sample(n, 1), 1).unwrap();
-        let p = s.chunk_path("sample_count", [0, 0]);
+        let p = s.chunk_path("sample_count", [0, 0]).unwrap();
         fs::write(&p, b"not gzip").unwrap();
         let mut back = TileData::new(n);
         let e = s.read_tile([0, 0], &mut back).unwrap_err().to_string();
@@ -881,5 +1225,258 @@ mod tests {
             e.contains("sample_count") && e.contains("decompress"),
             "{e}"
         );
+    }
+
+    /// A grid of 4 m tiles over [-32, 32)² m (16 × 16 tiles).
+    fn wide_grid() -> Grid {
+        Grid::new(
+            &VoxelConfig {
+                extent_m: Some([-32.0, -32.0, 32.0, 32.0]),
+                z_range_m: [0.0, 0.6],
+                tile_columns: 8,
+                ..VoxelConfig::default()
+            },
+            [0.0, 0.0],
+        )
+    }
+
+    /// Every file under `root` with its bytes.
+    fn files(root: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+        fn walk(base: &Path, dir: &Path, out: &mut std::collections::BTreeMap<String, Vec<u8>>) {
+            for e in fs::read_dir(dir).unwrap() {
+                let p = e.unwrap().path();
+                if p.is_dir() {
+                    walk(base, &p, out);
+                } else {
+                    let rel = p.strip_prefix(base).unwrap().display().to_string();
+                    out.insert(rel, fs::read(&p).unwrap());
+                }
+            }
+        }
+        let mut m = Default::default();
+        walk(root, root, &mut m);
+        m
+    }
+
+    fn json_of(path: &Path) -> Value {
+        serde_json::from_slice(&fs::read(path).unwrap()).unwrap()
+    }
+
+    fn f64s(path: &Path) -> Vec<f64> {
+        let mut raw = Vec::new();
+        GzDecoder::new(File::open(path).unwrap())
+            .read_to_end(&mut raw)
+            .unwrap();
+        raw.chunks_exact(8)
+            .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
+            .collect()
+    }
+
+    const WRITTEN: [[i64; 2]; 3] = [[-3, 2], [1, -1], [2, 2]];
+
+    /// A store on [`wide_grid`] with the tiles of `WRITTEN`, as a run leaves it before `fit`.
+    fn live_store(root: &Path) -> (ZarrStore, Vec<TileData>) {
+        let g = wide_grid();
+        let n = g.tile_voxels();
+        let mut s = ZarrStore::create_or_open(root, g, info("a")).unwrap();
+        let mut data = Vec::new();
+        for (i, t) in WRITTEN.iter().enumerate() {
+            let d = sample(n, i as u32 + 1);
+            s.write_tile(*t, &d, 10 + i as u64).unwrap();
+            data.push(d);
+        }
+        (s, data)
+    }
+
+    fn assert_holds_written(s: &mut ZarrStore, data: &[TileData]) {
+        let mut back = TileData::new(s.grid().tile_voxels());
+        assert_eq!(s.tiles().len(), WRITTEN.len());
+        for (t, d) in WRITTEN.iter().zip(data) {
+            assert!(s.read_tile(*t, &mut back).unwrap(), "{t:?}");
+            assert_eq!(back.sum_q, d.sum_q, "{t:?}");
+            assert_eq!(back.samples, d.samples, "{t:?}");
+        }
+    }
+
+    #[test]
+    fn fit_shrinks_the_arrays_to_the_tiles_written_and_reopening_restores_the_extent() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("v.zarr");
+        let (mut s, data) = live_store(&root);
+        // While writing: the whole extent, 16 × 16 tiles from tile (-8, -8).
+        assert_eq!(*s.span(), Span::extent(s.grid()));
+        assert_eq!(s.span().tile_min, [-8, -8]);
+        assert!(root.join("sample_count/c/0/7/9").is_file(), "tile (1, -1)");
+        s.fit().unwrap();
+        // The bounding box of (-3, 2), (1, -1), (2, 2): x -3..=2, y -1..=2.
+        let span = *s.span();
+        assert_eq!(
+            span,
+            Span {
+                tile_min: [-3, -1],
+                tiles: [6, 4],
+                fitted: true
+            }
+        );
+        assert_holds_written(&mut s, &data);
+        // Chunk keys counted from the new corner; nothing left at the old ones.
+        for (t, key) in WRITTEN.iter().zip(["3/0", "0/4", "3/5"]) {
+            for a in ARRAYS {
+                assert!(root.join(a).join("c/0").join(key).is_file(), "{a} {t:?}");
+            }
+        }
+        assert!(!root.join("sample_count/c/0/7").exists());
+        assert!(!root.join("fwlidar_state/staging").exists());
+        assert!(!root.join("fwlidar_state/relayout").exists());
+        // Metadata: shape, coordinates (voxel centres from x = -12 m, y = -4 m), the span, and
+        // the consolidated metadata equal to every node's own document.
+        let root_meta = json_of(&root.join("zarr.json"));
+        assert_eq!(
+            root_meta["attributes"]["fwlidar"]["arrays"]["tiles"],
+            json!([6, 4])
+        );
+        assert_eq!(
+            root_meta["attributes"]["origin_m"],
+            json!([-12.0, -4.0, 0.0])
+        );
+        assert_eq!(
+            root_meta["attributes"]["extent_m"],
+            json!([-32.0, -32.0, 32.0, 32.0])
+        );
+        let cm = &root_meta["consolidated_metadata"];
+        assert_eq!(cm["kind"], "inline");
+        let nodes = cm["metadata"].as_object().unwrap();
+        let mut names: Vec<&str> = nodes.keys().map(String::as_str).collect();
+        names.sort_unstable();
+        assert_eq!(
+            names,
+            [
+                "fwlidar_state",
+                "intensity_max",
+                "intensity_sum",
+                "pulse_count",
+                "sample_count",
+                "spatial_ref",
+                "x",
+                "y",
+                "z"
+            ]
+        );
+        for (name, node) in nodes {
+            let mut own = json_of(&root.join(name).join("zarr.json"));
+            if name == "fwlidar_state" {
+                own["consolidated_metadata"] =
+                    json!({"kind": "inline", "must_understand": false, "metadata": {}});
+            }
+            assert_eq!(*node, own, "{name}");
+        }
+        let levels = s.grid().levels as u64;
+        assert_eq!(nodes["sample_count"]["shape"], json!([levels, 32, 48]));
+        let xs = f64s(&root.join("x/c/0"));
+        let ys = f64s(&root.join("y/c/0"));
+        assert_eq!(xs.len(), 48);
+        assert_eq!((xs[0], xs[47]), (-11.75, 11.75));
+        assert_eq!((ys[0], ys[31]), (-3.75, 11.75));
+        let fitted = files(&root);
+
+        // Writing outside the fitted arrays is refused; reopening to write restores the extent.
+        let n = s.grid().tile_voxels();
+        let e = s.write_tile([-8, -8], &sample(n, 9), 1).unwrap_err();
+        assert!(e.to_string().contains("outside the arrays"), "{e}");
+        drop(s);
+        let mut s = ZarrStore::create_or_open(&root, wide_grid(), info("a")).unwrap();
+        assert_eq!(*s.span(), Span::extent(s.grid()));
+        assert!(root.join("sample_count/c/0/7/9").is_file());
+        assert_holds_written(&mut s, &data);
+        assert_eq!(json_of(&root.join("x/zarr.json"))["shape"], json!([128]));
+        // Fitting again gives the same files, byte for byte.
+        s.fit().unwrap();
+        assert_eq!(files(&root), fitted);
+        // A read-only open keeps the fitted arrays.
+        let mut r = ZarrStore::open(&root).unwrap();
+        assert_eq!(r.span(), &span);
+        assert_holds_written(&mut r, &data);
+    }
+
+    #[test]
+    fn a_change_of_span_cut_short_is_finished_on_the_next_open() {
+        let dir = tempfile::tempdir().unwrap();
+        let want = {
+            let root = dir.path().join("want.zarr");
+            let (mut s, _) = live_store(&root);
+            s.fit().unwrap();
+            files(&root)
+        };
+        let target = Span::around(&wide_grid(), WRITTEN);
+        let journal = |s: &ZarrStore| {
+            fs::write(s.journal_path(), serde_json::to_vec(&target).unwrap()).unwrap();
+        };
+        // Cut during the first step: the journal written, one tile's chunks staged, the
+        // metadata still on the extent.
+        let root = dir.path().join("a.zarr");
+        let (s, data) = live_store(&root);
+        journal(&s);
+        fs::create_dir_all(s.staging_dir()).unwrap();
+        for a in ARRAYS {
+            let t = WRITTEN[1];
+            let to = s.staging_dir().join(format!("{a}.{}_{}", t[0], t[1]));
+            fs::rename(s.chunk_path(a, t).unwrap(), to).unwrap();
+        }
+        drop(s);
+        let mut s = ZarrStore::open(&root).unwrap();
+        assert_eq!(*s.span(), target);
+        assert_holds_written(&mut s, &data);
+        assert_eq!(files(&root), want);
+
+        // Cut during the last step: the metadata rewritten for the new span, some chunks still
+        // in staging.
+        let root = dir.path().join("b.zarr");
+        let (mut s, data) = live_store(&root);
+        journal(&s);
+        fs::create_dir_all(s.staging_dir()).unwrap();
+        for t in WRITTEN {
+            for a in ARRAYS {
+                let to = s.staging_dir().join(format!("{a}.{}_{}", t[0], t[1]));
+                fs::rename(s.chunk_path(a, t).unwrap(), to).unwrap();
+            }
+        }
+        for a in ARRAYS {
+            fs::remove_dir_all(root.join(a).join("c")).unwrap();
+        }
+        s.span = target;
+        s.write_metadata().unwrap();
+        let t = WRITTEN[2];
+        let to = s.chunk_path("pulse_count", t).unwrap();
+        fs::create_dir_all(to.parent().unwrap()).unwrap();
+        fs::rename(
+            s.staging_dir()
+                .join(format!("pulse_count.{}_{}", t[0], t[1])),
+            to,
+        )
+        .unwrap();
+        drop(s);
+        let mut s = ZarrStore::open(&root).unwrap();
+        assert_holds_written(&mut s, &data);
+        assert_eq!(files(&root), want);
+    }
+
+    #[test]
+    fn a_store_without_tiles_fits_to_empty_arrays() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("v.zarr");
+        let mut s = ZarrStore::create_or_open(&root, wide_grid(), info("a")).unwrap();
+        s.fit().unwrap();
+        assert_eq!(s.span().tiles, [0, 0]);
+        let meta = json_of(&root.join("zarr.json"));
+        let nodes = &meta["consolidated_metadata"]["metadata"];
+        assert_eq!(nodes["sample_count"]["shape"], json!([4, 0, 0]));
+        assert_eq!(nodes["x"]["shape"], json!([0]));
+        assert!(
+            !root.join("x/c/0").exists(),
+            "no chunk for an empty coordinate"
+        );
+        assert!(root.join("z/c/0").is_file());
+        let r = ZarrStore::open(&root).unwrap();
+        assert!(r.tiles().is_empty());
     }
 }

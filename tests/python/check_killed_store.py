@@ -2,7 +2,9 @@
 
 Usage: check_killed_store.py STORE
 Each tile whose record is committed (not pending) must decode in all four data arrays and hold
-samples; prints the number of tiles and samples read as JSON; exits non-zero otherwise.
+samples; a killed run's arrays span the whole extent (the run had not fitted them yet), and each
+tile's chunk is where the recorded span (attributes fwlidar.arrays) puts it. Prints the number of
+tiles and samples read as JSON; exits non-zero otherwise.
 """
 import json
 import os
@@ -14,7 +16,10 @@ import zarr
 root = sys.argv[1]
 g = zarr.open_group(root, mode="r")
 grid = g.attrs["fwlidar"]["grid"]
-tmin = grid["tile_min"]
+span = g.attrs["fwlidar"]["arrays"]
+assert not span["fitted"], span
+assert span["tile_min"] == grid["tile_min"] and span["tiles"] == grid["tiles"], (span, grid)
+tmin = span["tile_min"]
 records = os.path.join(root, "fwlidar_state", "tiles")
 tiles = samples = 0
 for name in sorted(os.listdir(records)):

@@ -12,12 +12,12 @@ import numpy as np
 import xarray as xr
 
 warnings.simplefilter("error")
-ds = xr.open_zarr(sys.argv[1], consolidated=False)
+ds = xr.open_zarr(sys.argv[1])
 assert ds.intensity_sum.dims == ("z", "y", "x"), ds.intensity_sum.dims
 for c in ("x", "y", "z"):
     assert c in ds.coords, c
 assert ds.attrs["epsg"] == 32736, ds.attrs["epsg"]
-# The store spans 8 km around the first pulse; the plot lies within 60 m of its centre.
+# The store spans the tiles the truth fell in; the plot lies within 60 m of their centre.
 cx = (float(ds.x[0]) + float(ds.x[-1])) / 2
 cy = (float(ds.y[0]) + float(ds.y[-1])) / 2
 lo_y, hi_y = sorted([cy - 60, cy + 60])

@@ -2,7 +2,8 @@
 
 Usage: check_voxels.py OUT_DIR volts|calibrated
 Checks, against the replay's own returns.csv, waveforms.csv, pulses.csv and summary.json:
-named dimensions and coordinates, CRS attributes, the sums and counts of the deposited bins,
+opening with no arguments and no warning (consolidated metadata), arrays fitted to the tiles
+written, named dimensions and coordinates, CRS attributes, the sums and counts of the deposited bins,
 that every return lies in an occupied voxel, pulse counts per level, and the two layers of the
 two-layer scene at their heights. Prints one JSON line of figures; exits non-zero on failure.
 """
@@ -24,7 +25,15 @@ with open(f"{out}/summary.json") as f:
     summary = json.load(f)
 dep = summary["sinks"]["voxels"]["deposits"]
 
-ds = xr.open_zarr(f"{out}/voxels.zarr", consolidated=False)
+# As a user opens it: consolidated metadata, no argument, no warning.
+ds = xr.open_zarr(f"{out}/voxels.zarr")
+# The arrays span the tiles written (fitted when the run ended), not the whole extent.
+span = ds.attrs["fwlidar"]["arrays"]
+assert span["fitted"] is True, span
+t = ds.attrs["tile_columns"]
+assert ds.sample_count.shape == (ds.sizes["z"], span["tiles"][1] * t, span["tiles"][0] * t)
+# Everything deposited is in the arrays: the whole store sums to the deposits.
+assert int(ds.sample_count.sum()) == dep["bins_deposited"], int(ds.sample_count.sum())
 assert ds.intensity_sum.dims == ("z", "y", "x"), ds.intensity_sum.dims
 for c in ("x", "y", "z"):
     assert c in ds.coords, c
