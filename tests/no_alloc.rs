@@ -58,6 +58,10 @@ fn allocations_with(
         stages: factory,
         stage_names,
     };
+    allocations_and_report(spec, pulses).0
+}
+
+fn allocations_and_report(spec: PipelineSpec, pulses: u64) -> (u64, fwlidar::pipeline::RunReport) {
     let before = ALLOCS.load(Ordering::SeqCst);
     let report = run(
         &spec,
@@ -68,7 +72,7 @@ fn allocations_with(
         |_| {},
     );
     assert_eq!(report.pulses_out, pulses);
-    ALLOCS.load(Ordering::SeqCst) - before
+    (ALLOCS.load(Ordering::SeqCst) - before, report)
 }
 
 #[test]
@@ -101,6 +105,49 @@ fn calibrate_allocates_nothing_per_pulse() {
         large.saturating_sub(small) < 1_000,
         "{small} allocations for 10 000 pulses, {large} for 100 000"
     );
+}
+
+/// Deconvolution by each pulse's outgoing pulse cut to its support allocates nothing per pulse,
+/// whether the support fits `max_taps` or is cut to it (the synthetic outgoing ramp stands
+/// above its noise over more than 16 samples).
+#[test]
+fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
+    use fwlidar::signal::deconvolve::{Deconvolve, KERNEL_OVER_MAX_TAPS};
+    use fwlidar::signal::deconvolve::{DeconvolveConfig, MethodConfig, RlConfig};
+    let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    for max_taps in [256usize, 16] {
+        let factory: StageFactory = Arc::new(move || {
+            vec![
+                Box::new(Denoise::new(DenoiseConfig::default())) as Box<dyn Stage>,
+                Box::new(Deconvolve::new(DeconvolveConfig {
+                    max_taps,
+                    ..DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
+                        iterations: 2,
+                        early_stop: None,
+                    }))
+                })),
+            ]
+        });
+        let spec = |factory: &StageFactory| PipelineSpec {
+            workers: 1,
+            queue_capacity: 8,
+            input_policy: FullPolicy::Block,
+            stages: factory.clone(),
+            stage_names: vec!["denoise", "deconvolve"],
+        };
+        let (small, _) = allocations_and_report(spec(&factory), 5_000);
+        let (large, report) = allocations_and_report(spec(&factory), 50_000);
+        let cut = report.stages[1].notes.get(KERNEL_OVER_MAX_TAPS).copied();
+        assert_eq!(
+            cut,
+            (max_taps == 16).then_some(50_000),
+            "max_taps {max_taps}"
+        );
+        assert!(
+            large.saturating_sub(small) < 1_000,
+            "max_taps {max_taps}: {small} allocations for 5 000 pulses, {large} for 50 000"
+        );
+    }
 }
 
 /// The voxeliser deposits pulses into open tiles without allocating: 20 000 and 200 000 pulses

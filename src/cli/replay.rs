@@ -10,6 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use crate::cli::Failure;
 use crate::config::{RunConfig, WaveformFormat};
 use crate::pipeline::runner::{LiveCounters, PipelineSpec};
+use crate::pipeline::warnings::{log_warnings, run_warnings, warnings_block};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
 use crate::sink::atomic_file::write_atomic;
 use crate::sink::hyper_points::HyperPointSink;
@@ -62,7 +63,8 @@ pub fn install_signal_handlers(control: &RunControl) -> Result<(), Failure> {
     Ok(())
 }
 
-/// Runs `fwlidar replay`.
+/// Runs `fwlidar replay`: open the input, build the stages and the sinks, run with a progress
+/// bar, then report (summary.json, the one-screen summary, the warnings).
 pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     let config: RunConfig = crate::config::load_run_config_with(args.config.as_deref(), &args.sets)
         .map_err(Failure::usage)?;
@@ -70,109 +72,10 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from(&config.output.dir));
-    let source = crate::source::open_file(&args.input).map_err(Failure::job)?;
-    let (source, dem, decided_crs) = georeferenced(source, &config)?;
+    let input = open_input(&args.input, &config)?;
     prepare_out_dir(&out_dir)?;
-
-    let p = &config.pipeline;
-    // Keys left to the input (the calibrate stage's system constant and time origin) are
-    // filled from what the opened input states, before the stages are built.
-    let facts = source.facts();
-    let mut stages = p.stages.clone();
-    for stage in &mut stages {
-        stage.resolve_from_input(&facts);
-        if let crate::pipeline::registry::StageConfig::Calibrate(c) = stage {
-            tracing::info!(
-                system_constant = c.system_constant_value.unwrap_or(1.0),
-                t0_is_emission = c.t0_is_emission.unwrap_or(false),
-                "calibrate stage resolved from the input"
-            );
-        }
-    }
-    let spec = PipelineSpec::from_config(
-        args.workers.unwrap_or(p.workers),
-        p.queue_capacity,
-        p.input_edge,
-        stages,
-    );
-    let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
-    if config.output.waveforms {
-        sinks.push(match config.output.waveform_format {
-            WaveformFormat::Npy => {
-                Box::new(WaveformNpySink::create(&out_dir).map_err(Failure::job)?)
-            }
-            WaveformFormat::Csv => {
-                Box::new(WaveformCsvSink::create(&out_dir).map_err(Failure::job)?)
-            }
-        });
-    }
-    let decomposes = spec.stage_names.contains(&"decompose");
-    if config.output.returns && decomposes {
-        sinks.push(Box::new(
-            ReturnsCsvSink::create_with_dem(&out_dir, dem.clone()).map_err(Failure::job)?,
-        ));
-    }
-    if config.output.las && decomposes {
-        if source.facts().crs.is_none() && decided_crs.is_none() {
-            tracing::warn!(
-                "returns.las will have no CRS record: the input states none before it is read \
-                 (georeferencing into the UTM zone of the first fix decides it too late; set \
-                 [georeference] output_epsg to name it)"
-            );
-        }
-        sinks.push(Box::new(
-            LasWaveSink::create(
-                &out_dir,
-                LasWaveOptions {
-                    point_format: config.output.las_point_format,
-                    rotate_s: config.output.las_rotate_s,
-                    flush_s: config.output.las_flush_s,
-                    crs_decided: decided_crs.clone(),
-                    ..las_options(&source.facts())
-                },
-            )
-            .map_err(Failure::job)?,
-        ));
-    }
-    if config.output.hyper_points {
-        let facts = source.facts();
-        let wkt = las_options(&facts).crs_wkt;
-        sinks.push(Box::new(
-            HyperPointSink::create(
-                &out_dir,
-                config.output.hyper_threshold_v.unwrap_or(f32::INFINITY),
-                wkt.as_deref(),
-                config.output.las_flush_s,
-            )
-            .map_err(Failure::job)?,
-        ));
-    }
-    if config.voxels.enabled {
-        let facts = source.facts();
-        let crs = match (facts.crs.clone(), decided_crs) {
-            (Some(c), _) => CrsSource::Known(Some(c)),
-            (None, Some(cell)) => CrsSource::Decided(cell),
-            (None, None) => CrsSource::Known(None),
-        };
-        let info = StoreInfo {
-            crs_wkt: None,
-            epsg: None,
-            intensity_units: intensity_units(&spec.stage_names).into(),
-            run_key: run_key(&args.input, &config),
-            configuration: toml::to_string(&config).unwrap_or_default(),
-        };
-        sinks.push(Box::new(
-            VoxelTilesSink::create(
-                &out_dir,
-                config.voxels.clone(),
-                crs,
-                info,
-                dem.clone(),
-                facts.sensor.as_ref().map(|s| s.beam_divergence_mrad),
-            )
-            .map_err(Failure::job)?,
-        ));
-    }
+    let spec = build_spec(&config, args.workers, &input.source.facts());
+    let sinks = build_sinks(&config, &spec, &input, &args.input, &out_dir)?;
     let control = RunControl::default();
     install_signal_handlers(&control)?;
     tracing::info!(
@@ -182,18 +85,179 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         stages = ?spec.stage_names,
         "replay started"
     );
+    let mut report = run_with_progress(&spec, input.source, sinks, &config, &control, &args);
+    report.warnings = run_warnings(&report, &config);
+    finish(&report, &args.input, &out_dir)
+}
 
-    let bar = (!args.no_progress).then(|| {
-        let bar = ProgressBar::new(0);
-        bar.set_style(
-            ProgressStyle::with_template(
-                "{spinner} [{elapsed_precise}] {wide_bar} {bytes}/{total_bytes} {msg}",
+/// The opened input: the source (georeferenced per `[georeference]`), the DEM, and where the
+/// georeferencing puts the CRS it decides.
+struct Input {
+    source: Box<dyn crate::source::Source>,
+    dem: Option<std::sync::Arc<crate::geo::dem::Dem>>,
+    decided_crs: Option<std::sync::Arc<std::sync::OnceLock<String>>>,
+}
+
+/// Opens the input file and wraps it in the georeferencing.
+fn open_input(path: &Path, config: &RunConfig) -> Result<Input, Failure> {
+    let source = crate::source::open_file(path).map_err(Failure::job)?;
+    let (source, dem, decided_crs) = georeferenced(source, config)?;
+    Ok(Input {
+        source,
+        dem,
+        decided_crs,
+    })
+}
+
+/// The pipeline: the configured stages with the keys left to the input (the calibrate stage's
+/// system constant and time origin) filled from what it states.
+fn build_spec(
+    config: &RunConfig,
+    workers: Option<usize>,
+    facts: &crate::source::SourceFacts,
+) -> PipelineSpec {
+    let p = &config.pipeline;
+    let mut stages = p.stages.clone();
+    for stage in &mut stages {
+        stage.resolve_from_input(facts);
+        if let crate::pipeline::registry::StageConfig::Calibrate(c) = stage {
+            tracing::info!(
+                system_constant = c.system_constant_value.unwrap_or(1.0),
+                t0_is_emission = c.t0_is_emission.unwrap_or(false),
+                "calibrate stage resolved from the input"
+            );
+        }
+    }
+    PipelineSpec::from_config(
+        workers.unwrap_or(p.workers),
+        p.queue_capacity,
+        p.input_edge,
+        stages,
+    )
+}
+
+/// The outputs `[output]` and `[voxels]` ask for (returns and LAS only after a decompose
+/// stage).
+fn build_sinks(
+    config: &RunConfig,
+    spec: &PipelineSpec,
+    input: &Input,
+    input_path: &Path,
+    out_dir: &Path,
+) -> Result<Box<dyn PulseSink>, Failure> {
+    let out = &config.output;
+    let facts = input.source.facts();
+    let decomposes = spec.stage_names.contains(&"decompose");
+    let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
+    if out.waveforms {
+        sinks.push(match out.waveform_format {
+            WaveformFormat::Npy => {
+                Box::new(WaveformNpySink::create(out_dir).map_err(Failure::job)?)
+            }
+            WaveformFormat::Csv => {
+                Box::new(WaveformCsvSink::create(out_dir).map_err(Failure::job)?)
+            }
+        });
+    }
+    if out.returns && decomposes {
+        sinks.push(Box::new(
+            ReturnsCsvSink::create_with_dem(out_dir, input.dem.clone()).map_err(Failure::job)?,
+        ));
+    }
+    if out.las && decomposes {
+        sinks.push(las_sink(config, &facts, input, out_dir)?);
+    }
+    if out.hyper_points {
+        sinks.push(Box::new(
+            HyperPointSink::create(
+                out_dir,
+                out.hyper_threshold_v.unwrap_or(f32::INFINITY),
+                las_options(&facts).crs_wkt.as_deref(),
+                out.las_flush_s,
             )
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            .map_err(Failure::job)?,
+        ));
+    }
+    if config.voxels.enabled {
+        sinks.push(voxel_sink(
+            config, spec, input, &facts, input_path, out_dir,
+        )?);
+    }
+    Ok(Box::new(FanOut(sinks)))
+}
+
+/// `returns.las` (or its rotated files), with the CRS and time base the input states, or the
+/// CRS the georeferencing decides during the run.
+fn las_sink(
+    config: &RunConfig,
+    facts: &crate::source::SourceFacts,
+    input: &Input,
+    out_dir: &Path,
+) -> Result<Box<dyn PulseSink>, Failure> {
+    if facts.crs.is_none() && input.decided_crs.is_none() {
+        tracing::warn!(
+            "returns.las will have no CRS record: the input states none before it is read \
+             and no georeferencing decides it; set [georeference] output_epsg to name it"
         );
-        bar.enable_steady_tick(Duration::from_millis(200));
-        bar
-    });
+    }
+    let out = &config.output;
+    let sink = LasWaveSink::create(
+        out_dir,
+        LasWaveOptions {
+            point_format: out.las_point_format,
+            rotate_s: out.las_rotate_s,
+            flush_s: out.las_flush_s,
+            crs_decided: input.decided_crs.clone(),
+            ..las_options(facts)
+        },
+    )
+    .map_err(Failure::job)?;
+    Ok(Box::new(sink))
+}
+
+/// `voxels.zarr`, in the CRS the input states or the georeferencing decides.
+fn voxel_sink(
+    config: &RunConfig,
+    spec: &PipelineSpec,
+    input: &Input,
+    facts: &crate::source::SourceFacts,
+    input_path: &Path,
+    out_dir: &Path,
+) -> Result<Box<dyn PulseSink>, Failure> {
+    let crs = match (facts.crs.clone(), input.decided_crs.clone()) {
+        (Some(c), _) => CrsSource::Known(Some(c)),
+        (None, Some(cell)) => CrsSource::Decided(cell),
+        (None, None) => CrsSource::Known(None),
+    };
+    let info = StoreInfo {
+        crs_wkt: None,
+        epsg: None,
+        intensity_units: intensity_units(&spec.stage_names).into(),
+        run_key: run_key(input_path, config),
+        configuration: toml::to_string(config).unwrap_or_default(),
+    };
+    let sink = VoxelTilesSink::create(
+        out_dir,
+        config.voxels.clone(),
+        crs,
+        info,
+        input.dem.clone(),
+        facts.sensor.as_ref().map(|s| s.beam_divergence_mrad),
+    )
+    .map_err(Failure::job)?;
+    Ok(Box::new(sink))
+}
+
+/// Runs the pipeline, drawing a progress bar unless `--no-progress`.
+fn run_with_progress(
+    spec: &PipelineSpec,
+    source: Box<dyn crate::source::Source>,
+    sinks: Box<dyn PulseSink>,
+    config: &RunConfig,
+    control: &RunControl,
+    args: &ReplayArgs,
+) -> RunReport {
+    let bar = (!args.no_progress).then(progress_bar);
     let tick = |live: &LiveCounters| {
         if let Some(bar) = &bar {
             bar.set_length(live.progress_total.load(Ordering::Relaxed));
@@ -205,32 +269,42 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
             ));
         }
     };
-    let report = run_pipeline(
-        &spec,
-        source,
-        Box::new(FanOut(sinks)),
-        Box::new(NavDecode::new(
-            config.georeference.leap_seconds,
-            config.navigation.earliest_days(),
-        )),
-        &control,
-        tick,
+    let nav = NavDecode::new(
+        config.georeference.leap_seconds,
+        config.navigation.earliest_days(),
     );
+    let report = run_pipeline(spec, source, sinks, Box::new(nav), control, tick);
     if let Some(bar) = bar {
         bar.finish_and_clear();
     }
+    report
+}
 
+fn progress_bar() -> ProgressBar {
+    let bar = ProgressBar::new(0);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {bytes}/{total_bytes} {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.enable_steady_tick(Duration::from_millis(200));
+    bar
+}
+
+/// Writes `summary.json`, prints the summary and logs the warnings; the run's own failure
+/// comes first (a full disk usually stops an output and then the summary too).
+fn finish(report: &RunReport, input: &Path, out_dir: &Path) -> Result<(), Failure> {
     let summary_path = out_dir.join("summary.json");
-    let json = serde_json::to_vec_pretty(&report)
+    let json = serde_json::to_vec_pretty(report)
         .map_err(|e| Failure::job(format!("cannot encode summary: {e}")))?;
-    // The run's own failure comes first: a full disk usually stops an output and then the
-    // summary too.
     let summary_written = write_atomic(&summary_path, &json);
-    print_summary(&report, &args.input, &out_dir, &summary_path);
+    print_summary(report, input, out_dir, &summary_path);
+    log_warnings(&report.warnings);
     if let Some(f) = &report.fatal {
         return Err(Failure::job(format!(
             "replay of {} failed: {f}{}",
-            args.input.display(),
+            input.display(),
             match &summary_written {
                 Ok(()) => String::new(),
                 Err(e) => format!(" (and the summary could not be written: {e})"),
@@ -344,10 +418,30 @@ fn us(ns: u64) -> f64 {
     ns as f64 / 1000.0
 }
 
-/// Prints the one-screen summary of a run to stdout.
+/// Prints the one-screen summary of a run to stdout, its warnings last.
 pub fn print_summary(r: &RunReport, input: &Path, out: &Path, summary: &Path) {
     println!();
     println!("fwlidar replay  {}  ->  {}", input.display(), out.display());
+    print_pulses(r);
+    print_capture_damage(&r.source);
+    print_navigation_ports(&r.nav);
+    print_georeference(&r.source);
+    print_las(&r.sinks);
+    print_hyper_points(&r.sinks);
+    print_voxels(r);
+    print_stage_times(r);
+    println!(
+        "  {:.2} s wall, {:.0} pulses/s, {} workers; summary in {}",
+        r.wall_time_s,
+        r.pulses_per_s,
+        r.workers,
+        summary.display()
+    );
+    print!("{}", warnings_block(&r.warnings));
+}
+
+/// Pulses in, out, dropped (by reason) and passed on with a note.
+fn print_pulses(r: &RunReport) {
     println!(
         "  pulses: {} in, {} out, {} dropped, {} errors{}",
         r.pulses_in,
@@ -366,153 +460,205 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path, summary: &Path) {
     for st in &r.stages {
         for (note, n) in &st.notes {
             println!(
-                "    passed  {n:>10}  {}.{note} (passed on unprocessed)",
-                st.name
+                "    passed  {n:>10}  {}.{note} ({})",
+                st.name,
+                note_meaning(&st.name, note)
             );
         }
     }
-    if let Some(skipped) = r.source.get("skipped") {
-        let bytes = skipped
-            .get("bytes_skipped")
-            .and_then(|v| v.as_u64())
-            .unwrap_or(0);
-        let tail = skipped
-            .get("truncated_tail_bytes")
-            .and_then(|v| v.as_u64())
-            .unwrap_or(0);
-        let bad = skipped
-            .get("bad_checksums")
-            .and_then(|v| v.as_u64())
-            .unwrap_or(0);
+}
+
+/// What a stage's note means for the pulses it counts.
+fn note_meaning(stage: &str, note: &str) -> &'static str {
+    match (stage, note) {
+        ("deconvolve", "kernel_over_max_taps") => "deconvolved with the kernel cut to max_taps",
+        ("deconvolve", _) => "passed on un-deconvolved",
+        ("calibrate", "range_unknown") => "calibrated without the range factor",
+        ("calibrate", "return_before_emission") => {
+            "a return at or before the emission: no backscatter"
+        }
+        ("calibrate", _) => "calibrated without the energy factor",
+        _ => "passed on partly unprocessed",
+    }
+}
+
+fn u64_at(v: &serde_json::Value, key: &str) -> u64 {
+    v.get(key).and_then(|x| x.as_u64()).unwrap_or(0)
+}
+
+/// `"3 a, 1 b"` of a JSON object of counts (`None` when empty or absent).
+fn counts_list(v: &serde_json::Value) -> Option<String> {
+    let m = v.as_object().filter(|m| !m.is_empty())?;
+    Some(
+        m.iter()
+            .map(|(k, n)| format!("{n} {k}"))
+            .collect::<Vec<_>>()
+            .join(", "),
+    )
+}
+
+/// What the capture reader skipped.
+fn print_capture_damage(source: &serde_json::Value) {
+    if let Some(skipped) = source.get("skipped") {
         println!(
-            "  capture damage: {bytes} bytes skipped ({bad} bad checksums), {tail} bytes of truncated tail"
+            "  capture damage: {} bytes skipped ({} bad checksums), {} bytes of truncated tail",
+            u64_at(skipped, "bytes_skipped"),
+            u64_at(skipped, "bad_checksums"),
+            u64_at(skipped, "truncated_tail_bytes")
         );
     }
-    if let Some(ports) = r.nav.get("ports").and_then(|p| p.as_object()) {
-        for (port, v) in ports {
-            let kinds: Vec<String> = v["by_kind"]
-                .as_object()
-                .map(|m| m.iter().map(|(k, n)| format!("{n} {k}")).collect())
-                .unwrap_or_default();
-            let span = match (
-                v["first_gps_time"].get("sow"),
-                v["last_gps_time"].get("sow"),
-            ) {
-                (Some(a), Some(b)) => format!(
-                    ", GPS week {} {:.1}..{:.1} s",
-                    v["first_gps_time"]["week"],
-                    a.as_f64().unwrap_or(f64::NAN),
-                    b.as_f64().unwrap_or(f64::NAN)
-                ),
-                _ => String::new(),
-            };
-            let reasons = match v["rejected_by_reason"].as_object() {
-                Some(m) if !m.is_empty() => format!(
-                    " ({})",
-                    m.iter()
-                        .map(|(k, n)| format!("{n} {k}"))
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                ),
-                _ => String::new(),
-            };
-            println!(
-                "  navigation port {port}: {} bytes, {} samples ({}){span}, {} rejected{reasons}",
-                v["bytes"],
-                v["records"],
-                kinds.join(", "),
-                v["rejected"],
-            );
-        }
-    }
-    if let Some(g) = r.source.get("georeference") {
-        let missed = match g["missed"].as_object() {
-            Some(m) if !m.is_empty() => m
-                .iter()
-                .map(|(k, n)| format!("{n} {k}"))
-                .collect::<Vec<_>>()
-                .join(", "),
-            _ => "none".into(),
+}
+
+/// One line per navigation port: bytes, samples by kind, GPS time span, rejections.
+fn print_navigation_ports(nav: &serde_json::Value) {
+    let Some(ports) = nav.get("ports").and_then(|p| p.as_object()) else {
+        return;
+    };
+    for (port, v) in ports {
+        let kinds = counts_list(&v["by_kind"]).unwrap_or_default();
+        let span = match (
+            v["first_gps_time"].get("sow"),
+            v["last_gps_time"].get("sow"),
+        ) {
+            (Some(a), Some(b)) => format!(
+                ", GPS week {} {:.1}..{:.1} s",
+                v["first_gps_time"]["week"],
+                a.as_f64().unwrap_or(f64::NAN),
+                b.as_f64().unwrap_or(f64::NAN)
+            ),
+            _ => String::new(),
         };
+        let reasons = counts_list(&v["rejected_by_reason"])
+            .map(|l| format!(" ({l})"))
+            .unwrap_or_default();
         println!(
-            "  georeference: {} pulses placed in {}, {} carried their own geometry, missed: {missed}",
+            "  navigation port {port}: {} bytes, {} samples ({kinds}){span}, {} rejected{reasons}",
+            v["bytes"], v["records"], v["rejected"],
+        );
+    }
+}
+
+/// Pulses placed by the georeferencing, and those it missed by reason.
+fn print_georeference(source: &serde_json::Value) {
+    if let Some(g) = source.get("georeference") {
+        println!(
+            "  georeference: {} pulses placed in {}, {} carried their own geometry, missed: {}",
             g["georeferenced"],
             g["output_crs"].as_str().unwrap_or("(no fix, no CRS)"),
             g["with_own_geometry"],
+            counts_list(&g["missed"]).unwrap_or_else(|| "none".into()),
         );
     }
-    if let Some(las) = r.sinks.get("las") {
-        let files = las["files"].as_array().map_or(0, |f| f.len());
-        let name = if files == 1 {
-            las["files"][0]
-                .as_str()
-                .unwrap_or("returns.las")
-                .to_string()
-        } else {
-            format!("returns_NNNN.las ({files} files)")
-        };
-        let wdp = if las["point_format"] == 9 {
-            format!(
-                "; .wdp: {} packets, {} bytes",
-                las["packets"], las["wdp_bytes"]
-            )
-        } else {
-            String::new()
-        };
-        println!(
-            "  {name}: {} points (format {}) from {} pulses; {} pulses without geometry \
-             skipped, {} returns unrepresentable{wdp}",
-            las["points"],
-            las["point_format"],
-            las["pulses_written"],
-            las["pulses_without_geometry"],
-            las["returns_unrepresentable"],
-        );
-    }
-    if let Some(h) = r.sinks.get("hyper_points") {
+}
+
+/// `returns.las`: points, pulses, skips and the waveform packets.
+fn print_las(sinks: &serde_json::Value) {
+    let Some(las) = sinks.get("las") else {
+        return;
+    };
+    let files = las["files"].as_array().map_or(0, |f| f.len());
+    let name = if files == 1 {
+        las["files"][0]
+            .as_str()
+            .unwrap_or("returns.las")
+            .to_string()
+    } else {
+        format!("returns_NNNN.las ({files} files)")
+    };
+    let wdp = if las["point_format"] == 9 {
+        format!(
+            "; .wdp: {} packets, {} bytes",
+            las["packets"], las["wdp_bytes"]
+        )
+    } else {
+        String::new()
+    };
+    println!(
+        "  {name}: {} points (format {}) from {} pulses; {} pulses without geometry \
+         skipped, {} returns unrepresentable{wdp}",
+        las["points"],
+        las["point_format"],
+        las["pulses_written"],
+        las["pulses_without_geometry"],
+        las["returns_unrepresentable"],
+    );
+}
+
+/// `hyper_points.las`: points above the threshold.
+fn print_hyper_points(sinks: &serde_json::Value) {
+    if let Some(h) = sinks.get("hyper_points") {
         println!(
             "  hyper_points.las: {} points above {} V from {} pulses; {} pulses without geometry \
              skipped",
             h["points"], h["threshold_v"], h["pulses_written"], h["pulses_without_geometry"]
         );
     }
-    if let Some(v) = r.sinks.get("voxels") {
-        let d = &v["deposits"];
-        let t = &v["tiles"];
-        let outside = [
-            "bins_outside_extent",
-            "bins_outside_heights",
-            "bins_outside_dem",
-        ]
-        .iter()
-        .map(|k| d[*k].as_u64().unwrap_or(0))
-        .sum::<u64>();
+}
+
+/// `voxels.zarr`: bins and tiles, or why nothing was deposited.
+fn print_voxels(r: &RunReport) {
+    let Some(v) = r.sinks.get("voxels") else {
+        return;
+    };
+    let d = &v["deposits"];
+    let t = &v["tiles"];
+    let outside = [
+        "bins_outside_extent",
+        "bins_outside_heights",
+        "bins_outside_dem",
+    ]
+    .iter()
+    .map(|k| u64_at(d, k))
+    .sum::<u64>();
+    if u64_at(d, "bins_deposited") + u64_at(d, "bins_resumed") == 0 {
+        println!(
+            "  voxels.zarr: nothing deposited ({})",
+            nothing_deposited_reason(r.pulses_out, d, outside)
+        );
+    } else {
         println!(
             "  voxels.zarr: {} bins of {} pulses deposited ({} outside the grid); tiles {} opened, \
              {} closed ({} early), {} merged with the store, at most {} open ({:.1} MB each){}",
             d["bins_deposited"],
             d["pulses_deposited"],
             outside,
-            t["opened"],
-            t["closed"],
-            t["closed_early"],
-            t["merged"],
-            t["peak_open"],
+            u64_at(t, "opened"),
+            u64_at(t, "closed"),
+            u64_at(t, "closed_early"),
+            u64_at(t, "merged"),
+            u64_at(t, "peak_open"),
             t["tile_bytes"].as_f64().unwrap_or(0.0) / 1e6,
-            match d["bins_resumed"].as_u64() {
-                Some(n) if n > 0 => format!("; resumed: {n} bins already in the store"),
+            match u64_at(d, "bins_resumed") {
+                n if n > 0 => format!("; resumed: {n} bins already in the store"),
                 _ => String::new(),
             }
         );
-        let skipped = d["pulses_no_geometry"].as_u64().unwrap_or(0)
-            + d["pulses_non_finite"].as_u64().unwrap_or(0);
-        if skipped > 0 {
-            println!(
-                "    voxels skipped {skipped} pulses ({} without geometry, {} non-finite)",
-                d["pulses_no_geometry"], d["pulses_non_finite"]
-            );
-        }
     }
+    let skipped = u64_at(d, "pulses_no_geometry") + u64_at(d, "pulses_non_finite");
+    if skipped > 0 {
+        println!(
+            "    voxels skipped {skipped} pulses ({} without geometry, {} non-finite)",
+            d["pulses_no_geometry"], d["pulses_non_finite"]
+        );
+    }
+}
+
+/// Why the voxel sink deposited nothing, in words.
+fn nothing_deposited_reason(pulses_out: u64, d: &serde_json::Value, outside: u64) -> String {
+    let no_geometry = u64_at(d, "pulses_no_geometry") + u64_at(d, "pulses_non_finite");
+    if pulses_out == 0 {
+        "no pulse reached it".into()
+    } else if no_geometry >= pulses_out {
+        format!("none of the {pulses_out} pulses had geometry: not georeferenced")
+    } else if outside > 0 {
+        format!("all {outside} return bins fell outside the grid")
+    } else {
+        format!("the {pulses_out} pulses had no return bins to deposit")
+    }
+}
+
+/// Service time per stage, and the end-to-end latency.
+fn print_stage_times(r: &RunReport) {
     println!(
         "  {:<14} {:>10} {:>10} {:>10} {:>10} {:>10}   (service time, µs)",
         "stage", "received", "p50", "p99", "p99.9", "max"
@@ -535,12 +681,5 @@ pub fn print_summary(r: &RunReport, input: &Path, out: &Path, summary: &Path) {
         us(e.p99_ns),
         us(e.p999_ns),
         us(e.max_ns)
-    );
-    println!(
-        "  {:.2} s wall, {:.0} pulses/s, {} workers; summary in {}",
-        r.wall_time_s,
-        r.pulses_per_s,
-        r.workers,
-        summary.display()
     );
 }

@@ -6,6 +6,7 @@ pub mod runner;
 pub mod stage;
 pub mod telemetry;
 pub mod testing;
+pub mod warnings;
 
 pub use runner::{LivePublish, NavConsumer, PipelineSpec, RunControl, RunReport, run};
 pub use stage::{DropCounts, Emitter, Passthrough, Stage, StageError};

@@ -192,6 +192,10 @@ pub struct RunReport {
     pub wall_time_s: f64,
     /// Pulses written per second of wall time.
     pub pulses_per_s: f64,
+    /// What made the output empty or thinned it by more than a stated share, with the setting
+    /// to change (`pipeline::warnings`); filled by the command after the run, empty from
+    /// [`run`] itself.
+    pub warnings: Vec<crate::pipeline::warnings::RunWarning>,
 }
 
 /// What a worker sends to the sink: the outputs of one input pulse, the last of them marked
@@ -537,6 +541,7 @@ pub fn run(
             } else {
                 0.0
             },
+            warnings: Vec::new(),
         }
     })
 }

@@ -144,13 +144,11 @@ impl PulseSink for ReturnsCsvSink {
     }
 
     fn report(&self) -> serde_json::Value {
-        match self.dem {
-            Some(_) => serde_json::json!({
-                "rows": self.rows,
-                "returns_outside_dem": self.outside_dem,
-            }),
-            None => serde_json::Value::Null,
+        let mut r = serde_json::json!({ "rows": self.rows });
+        if self.dem.is_some() {
+            r["returns_outside_dem"] = self.outside_dem.into();
         }
+        r
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {

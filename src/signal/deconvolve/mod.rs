@@ -22,7 +22,9 @@ use crate::signal::kernel::Kernel;
 pub use gold::{Gold, GoldConfig};
 pub use nnls::{Nnls, NnlsConfig};
 pub use richardson_lucy::{RichardsonLucy, RlConfig};
-pub use stage::{Deconvolve, DeconvolveConfig, KernelSource, WorstCase};
+pub use stage::{
+    Deconvolve, DeconvolveConfig, KERNEL_OVER_MAX_TAPS, KernelSource, LongKernel, WorstCase,
+};
 pub use wiener::{Wiener, WienerConfig};
 
 /// Why a segment could not be deconvolved (the stage drops the pulse with this reason).

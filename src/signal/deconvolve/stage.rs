@@ -13,6 +13,7 @@
 //! # kernel = { flat_target = { ground_return = [...], outgoing = [...] } }  # measured one
 //! max_samples = 4096
 //! max_taps = 256
+//! long_kernel = "cut"      # an outgoing pulse longer than max_taps: "cut" or "drop"
 //! ```
 //!
 //! **System response in two stages** (the waveformlidar R package's order): a first
@@ -34,8 +35,14 @@
 //! - a segment indexing past the samples → rejected `segment_out_of_bounds`;
 //! - a non-finite or non-positive sample interval → rejected `bad_digitizer_parameters`;
 //! - `kernel = "outgoing"`: the kernel is rebuilt from the first outgoing segment's signal with
-//!   [`Kernel::set_from_outgoing`]; no outgoing segment → dropped `no_outgoing`; an unusable one
-//!   (no positive energy, non-finite, longer than `max_taps`) → dropped `bad_kernel`;
+//!   [`Kernel::set_from_outgoing_support`]: the pulse's support (the samples around its peak
+//!   standing out of the noise by more than 3 × the pulse's `noise_v`, from the baseline the
+//!   denoise stage removed), negative lobes clipped, unit sum, centred on the peak. No
+//!   outgoing segment → dropped `no_outgoing` (or passed, `missing_outgoing = "pass"`); an
+//!   unusable one (a non-finite sample, no pulse above its baseline or its noise) → dropped
+//!   `bad_kernel`; a support longer than `max_taps` → cut to `max_taps` around the peak and
+//!   noted `kernel_over_max_taps` (`long_kernel = "cut"`, the default; logged once) or dropped
+//!   `kernel_over_max_taps` (`"drop"`);
 //! - each non-empty return segment is deconvolved into a scratch buffer and copied back; a
 //!   [`DeconvError`](crate::signal::deconvolve::DeconvError) drops the pulse with its
 //!   [`reason`](crate::signal::deconvolve::DeconvError::reason) (e.g. `non_finite_input`,
@@ -51,7 +58,7 @@ use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::{Pulse, SegmentKind};
 use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::deconvolve::{Deconvolver, MethodConfig};
-use crate::signal::kernel::Kernel;
+use crate::signal::kernel::{Kernel, RecordLevels};
 
 /// Where the stage's kernel (system response) comes from.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
@@ -124,10 +131,19 @@ pub struct DeconvolveConfig {
     /// Default 4096.
     #[serde(default = "default_max_samples")]
     pub max_samples: usize,
-    /// Longest kernel accepted, taps; a longer outgoing segment drops the pulse `bad_kernel`.
-    /// Default 256.
+    /// Longest kernel, taps: the buffers and the worst-case cost are sized for it. With
+    /// `kernel = "outgoing"` the kernel is the outgoing pulse's support (the samples around its
+    /// peak above its noise, [`pulse_support`](crate::signal::kernel::pulse_support)); a
+    /// support longer than this is handled per `long_kernel`. Default 256.
     #[serde(default = "default_max_taps")]
     pub max_taps: usize,
+    /// With `kernel = "outgoing"`, what happens when the outgoing pulse's support is longer
+    /// than `max_taps`: `"cut"` (the kernel is cut to the `max_taps` samples around the peak
+    /// holding the most energy, the pulse deconvolved and counted in the stage's `notes` as
+    /// `kernel_over_max_taps`; the default) or `"drop"` (dropped, counted
+    /// `kernel_over_max_taps`).
+    #[serde(default)]
+    pub long_kernel: LongKernel,
     /// With `kernel = "outgoing"`, what happens to a pulse that recorded no outgoing segment
     /// (LAS waveform files never carry one): `"drop"` (counted `no_outgoing`; the default) or
     /// `"pass"` (passed on un-deconvolved, counted in the stage's `notes` as `no_outgoing`).
@@ -146,6 +162,23 @@ pub enum MissingOutgoing {
     /// Pass it on as it is (not deconvolved), counted in the stage's notes under `no_outgoing`.
     Pass,
 }
+
+/// What a deconvolve stage with `kernel = "outgoing"` does with an outgoing pulse whose support
+/// is longer than `max_taps`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LongKernel {
+    /// Cut the kernel to `max_taps` around the peak, deconvolve, count the note
+    /// `kernel_over_max_taps`.
+    #[default]
+    Cut,
+    /// Drop the pulse, counted under `kernel_over_max_taps`.
+    Drop,
+}
+
+/// Note (`long_kernel = "cut"`) or drop reason (`"drop"`) of a pulse whose outgoing pulse's
+/// support is longer than `max_taps`.
+pub const KERNEL_OVER_MAX_TAPS: &str = "kernel_over_max_taps";
 
 fn default_max_samples() -> usize {
     4096
@@ -194,6 +227,7 @@ impl DeconvolveConfig {
             max_samples: default_max_samples(),
             max_taps: default_max_taps(),
             missing_outgoing: MissingOutgoing::default(),
+            long_kernel: LongKernel::default(),
         }
     }
 }
@@ -207,6 +241,8 @@ pub struct Deconvolve {
     kernel_error: Option<String>,
     /// Output of one segment, `max_samples`.
     out: Vec<f32>,
+    /// Set once the first kernel was cut to `max_taps` (logged once per stage).
+    warned_cut: bool,
 }
 
 impl Deconvolve {
@@ -228,6 +264,7 @@ impl Deconvolve {
             kernel,
             kernel_error,
             config,
+            warned_cut: false,
         }
     }
 
@@ -271,6 +308,7 @@ impl Stage for Deconvolve {
             out.reject(pulse, "bad_digitizer_parameters");
             return Ok(());
         }
+        let mut cut = false;
         if self.config.kernel == KernelSource::Outgoing {
             let Some(o) = pulse.outgoing() else {
                 match self.config.missing_outgoing {
@@ -280,13 +318,30 @@ impl Stage for Deconvolve {
                 return Ok(());
             };
             let range = pulse.segments[o].range();
-            if self
-                .kernel
-                .set_from_outgoing(&pulse.signal[range], self.config.max_taps)
-                .is_err()
-            {
-                out.drop_pulse(pulse, "bad_kernel");
-                return Ok(());
+            // The denoise stage removed the baseline and measured the noise level.
+            let noise_v = pulse.noise.noise_v;
+            let known = RecordLevels {
+                baseline_removed: true,
+                noise: (noise_v.is_finite() && noise_v > 0.0).then_some(noise_v),
+            };
+            match self.kernel.set_from_outgoing_support(
+                &pulse.signal[range],
+                known,
+                self.config.max_taps,
+            ) {
+                Err(_) => {
+                    out.drop_pulse(pulse, "bad_kernel");
+                    return Ok(());
+                }
+                Ok(fit) if fit.was_cut() => {
+                    if self.config.long_kernel == LongKernel::Drop {
+                        out.drop_pulse(pulse, KERNEL_OVER_MAX_TAPS);
+                        return Ok(());
+                    }
+                    self.warn_cut_once(fit.span);
+                    cut = true;
+                }
+                Ok(_) => {}
             }
         }
         let noise_v = pulse.noise.noise_v;
@@ -321,8 +376,29 @@ impl Stage for Deconvolve {
             out.drop_pulse(pulse, reason);
             return Ok(());
         }
-        out.emit(pulse);
+        if cut {
+            out.emit_noted(pulse, KERNEL_OVER_MAX_TAPS);
+        } else {
+            out.emit(pulse);
+        }
         Ok(())
+    }
+}
+
+impl Deconvolve {
+    /// Logs the first kernel cut to `max_taps` (the run's summary counts every one).
+    fn warn_cut_once(&mut self, support: usize) {
+        if !self.warned_cut {
+            self.warned_cut = true;
+            tracing::warn!(
+                support,
+                max_taps = self.config.max_taps,
+                "deconvolve: an outgoing pulse stands above its noise over {support} samples, more \
+                 than max_taps = {}; its kernel is cut to max_taps around the peak (counted as \
+                 the note deconvolve.kernel_over_max_taps; raise max_taps to keep the whole pulse)",
+                self.config.max_taps
+            );
+        }
     }
 }
 
@@ -564,6 +640,106 @@ mod tests {
         }
     }
 
+    /// The issue's outgoing pulse, denoised (volts above the baseline): 98 samples, peak 0.8 V
+    /// at sample 15, a fast fall and a long low tail (15 % decaying over 25 samples), with
+    /// ±4 mV of residual noise. Returns the noisy record and the clean pulse.
+    fn long_outgoing() -> (Vec<f32>, Vec<f32>) {
+        let clean: Vec<f32> = (0..98)
+            .map(|i| {
+                let t = i as f32 - 15.0;
+                0.8 * if t < 0.0 {
+                    (-0.5 * (t / 2.0).powi(2)).exp()
+                } else {
+                    0.85 * (-t / 3.0).exp() + 0.15 * (-t / 25.0).exp()
+                }
+            })
+            .collect();
+        let mut x = 12345u32;
+        let noisy = clean
+            .iter()
+            .map(|v| {
+                x = x.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                v + 0.004 * ((x >> 8) as f32 / (1u32 << 24) as f32 * 2.0 - 1.0)
+            })
+            .collect();
+        (noisy, clean)
+    }
+
+    /// A pulse with [`long_outgoing`] and a 240-sample return of point targets at bins 60 and
+    /// 150 echoing the clean pulse (emission reference at its peak, sample 15).
+    fn long_outgoing_pulse() -> Pulse {
+        let (noisy, clean) = long_outgoing();
+        let mut ret = vec![0.0f32; 240];
+        for (t, a) in [(60usize, 0.6f32), (150, 0.4)] {
+            for (i, r) in ret.iter_mut().enumerate() {
+                let j = i as i64 - t as i64 + 15;
+                if (0..clean.len() as i64).contains(&j) {
+                    *r += a * clean[j as usize];
+                }
+            }
+        }
+        let mut p = Pulse::default();
+        p.push_segment(SegmentKind::Outgoing, 0, -15.0, [0u16; 98]);
+        p.push_segment(SegmentKind::Return, 0, 900.0, [0u16; 240]);
+        p.signal = noisy;
+        p.signal.extend(&ret);
+        p.noise.noise_v = 0.004;
+        p
+    }
+
+    #[test]
+    fn a_long_outgoing_segment_deconvolves_by_its_support_and_returns_stay_in_place() {
+        // 98 samples with max_taps = 96 (the replay configuration): every such pulse used to be
+        // dropped `bad_kernel`; its support (~70 samples above the noise) fits.
+        let mut methods = methods().to_vec();
+        methods.push(MethodConfig::Nnls(Default::default()));
+        for m in methods {
+            let mut stage = Deconvolve::new(DeconvolveConfig {
+                max_taps: 96,
+                ..DeconvolveConfig::with_method(m.clone())
+            });
+            let run = run_stage(&mut stage, [long_outgoing_pulse()]).unwrap();
+            assert_eq!(run.emitted.len(), 1, "{m:?}: {:?}", run.dropped);
+            assert_eq!(run.notes.total(), 0, "{m:?}: the support fits, nothing cut");
+            let y = run.emitted[0].signal_of(1);
+            for t in [60usize, 150] {
+                let window = &y[t - 10..t + 11];
+                let peak = crate::signal::kernel::peak_index(window).unwrap() as i64 - 10;
+                assert_eq!(
+                    peak,
+                    0,
+                    "{m:?}: target at {t} came back at {}",
+                    t as i64 + peak
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_support_longer_than_max_taps_is_cut_and_noted_or_dropped() {
+        let rl = MethodConfig::RichardsonLucy(RlConfig::default());
+        let mut cut = Deconvolve::new(DeconvolveConfig {
+            max_taps: 16,
+            ..DeconvolveConfig::with_method(rl.clone())
+        });
+        let run = run_stage(&mut cut, (0..3).map(|_| long_outgoing_pulse())).unwrap();
+        assert_eq!(run.emitted.len(), 3);
+        assert_eq!(run.notes.get(KERNEL_OVER_MAX_TAPS), 3);
+        assert_eq!(run.dropped.total(), 0);
+        assert_eq!(cut.kernel.len(), 16);
+        let y = run.emitted[0].signal_of(1);
+        assert_eq!(crate::signal::kernel::peak_index(&y[50..71]), Some(10));
+        let mut drop = Deconvolve::new(DeconvolveConfig {
+            max_taps: 16,
+            long_kernel: LongKernel::Drop,
+            ..DeconvolveConfig::with_method(rl)
+        });
+        let run = run_stage(&mut drop, (0..3).map(|_| long_outgoing_pulse())).unwrap();
+        assert_eq!(run.emitted.len(), 0);
+        assert_eq!(run.dropped.get(KERNEL_OVER_MAX_TAPS), 3);
+        assert_eq!(run.notes.total(), 0);
+    }
+
     #[test]
     fn deconvolve_stage_two_stage_system_response_keeps_returns_in_place() {
         // The full response is outgoing ⊛ h, h a 5-tap asymmetric receiver response measured
@@ -661,12 +837,25 @@ mod tests {
     #[test]
     fn deconvolve_stage_does_not_grow_buffers() {
         for m in methods() {
-            let mut stage = Deconvolve::new(DeconvolveConfig::with_method(m));
-            run_stage(&mut stage, [denoised_pulse()]).unwrap();
-            let caps = stage.buffer_capacities();
-            let run = run_stage(&mut stage, (0..200).map(|_| denoised_pulse())).unwrap();
-            assert_eq!(run.emitted.len(), 200);
-            assert_eq!(stage.buffer_capacities(), caps);
+            for max_taps in [256, 16] {
+                // 16: every long outgoing pulse is cut to max_taps.
+                let mut stage = Deconvolve::new(DeconvolveConfig {
+                    max_taps,
+                    ..DeconvolveConfig::with_method(m.clone())
+                });
+                run_stage(&mut stage, [denoised_pulse()]).unwrap();
+                let caps = stage.buffer_capacities();
+                let pulses = (0..200).map(|i| {
+                    if i % 2 == 0 {
+                        denoised_pulse()
+                    } else {
+                        long_outgoing_pulse()
+                    }
+                });
+                let run = run_stage(&mut stage, pulses).unwrap();
+                assert_eq!(run.emitted.len(), 200);
+                assert_eq!(stage.buffer_capacities(), caps);
+            }
         }
     }
 
@@ -681,6 +870,13 @@ mod tests {
             c,
             DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig::default()))
         );
+        let c = parse("method = { method = \"gold\" }\nlong_kernel = \"drop\"").unwrap();
+        assert_eq!(c.long_kernel, LongKernel::Drop);
+        assert_eq!(
+            parse("method = { method = \"gold\" }").unwrap().long_kernel,
+            LongKernel::Cut
+        );
+        assert!(parse("method = { method = \"gold\" }\nlong_kernel = \"trim\"").is_err());
         let text = "max_taps = 64\n[method]\nmethod = \"gold\"\niterations = 10\nrepetitions = 3\nboost = 1.5\n[kernel.taps]\ntaps = [0.25, 0.5, 0.25]\ncenter = 1\n";
         let c = parse(text).unwrap();
         assert_eq!(c.max_taps, 64);

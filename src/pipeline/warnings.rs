@@ -1,0 +1,713 @@
+//! The loud end of a run: what in a [`RunReport`] means the output is empty or badly thinned,
+//! with the reason and the configuration key to change (`summary.json` → `warnings`, and a
+//! block at the end of the one-screen summary).
+//!
+//! A warning is raised when
+//!
+//! - **an output is empty**: no pulse reached the outputs (`output.no_pulses`), the decompose
+//!   stage found no return in any pulse that did (`output.no_returns`), or nothing was deposited
+//!   in the voxel store that was asked for (`voxels.nothing_deposited`);
+//! - **one reason takes more than [`WARN_SHARE`]** of the pulses: a stage's drop reason
+//!   (`deconvolve.bad_kernel`), a stage's note (pulses passed on partly unprocessed, e.g.
+//!   `deconvolve.no_outgoing`), a georeference miss (`georeference.navigation_late`, a share of
+//!   the pulses read), the input edge's `input_queue_full`, or a sink's skip counter
+//!   (`voxels.pulses_no_geometry`, `las.pulses_without_geometry`, a share of the pulses out;
+//!   return bins outside the voxel grid are not pulses and only explain an empty store: a
+//!   recording window reaching below the ground puts many there harmlessly);
+//! - **a limit bit at all**: `deconvolve.kernel_over_max_taps` (a kernel cut to `max_taps`)
+//!   warns from its first pulse.
+//!
+//! Each known reason maps to the setting that governs it (`pipeline.stages[1].max_taps`:
+//! stage indices count the `[[pipeline.stages]]` tables from 0) and a sentence saying what to
+//! do; a reason the input alone causes (a damaged file, NaN samples) names no setting.
+
+use serde::Serialize;
+
+use crate::config::RunConfig;
+use crate::geo::georeferencing_source::OnMissing;
+use crate::pipeline::RunReport;
+use crate::pipeline::runner::INPUT_QUEUE_FULL;
+
+/// Share of the pulses (or bins) above which one reason is a warning: 10 %.
+pub const WARN_SHARE: f64 = 0.10;
+
+/// One warning of a run (`summary.json` → `warnings[]`).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct RunWarning {
+    /// What happened, a dotted code: a drop reason as in `dropped` (`deconvolve.bad_kernel`),
+    /// a stage's note (`deconvolve.kernel_over_max_taps`), a georeference miss
+    /// (`georeference.navigation_late`), a sink's counter (`voxels.pulses_no_geometry`), or an
+    /// empty output (`output.no_pulses`, `output.no_returns`, `voxels.nothing_deposited`).
+    pub reason: String,
+    /// Pulses it concerns.
+    pub count: u64,
+    /// `count` as a share of the whole it belongs to (0 to 1): the pulses in for stage drops
+    /// and notes, the pulses read for georeference misses, the pulses out for sinks' pulse
+    /// counters; 1 for an empty output.
+    pub share: f64,
+    /// The configuration key to change (e.g. `pipeline.stages[1].max_taps`); `null` when the
+    /// input itself is at fault.
+    pub setting: Option<String>,
+    /// What happened and what to do, one or two sentences.
+    pub message: String,
+}
+
+impl RunWarning {
+    fn new(reason: impl Into<String>, count: u64, whole: u64, rule: Rule) -> Self {
+        RunWarning {
+            reason: reason.into(),
+            count,
+            share: share(count, whole),
+            setting: rule.setting,
+            message: rule.advice,
+        }
+    }
+}
+
+fn share(count: u64, whole: u64) -> f64 {
+    if whole == 0 {
+        0.0
+    } else {
+        count as f64 / whole as f64
+    }
+}
+
+/// The setting and the advice for one reason.
+struct Rule {
+    setting: Option<String>,
+    advice: String,
+}
+
+fn rule(setting: Option<String>, advice: impl Into<String>) -> Rule {
+    Rule {
+        setting,
+        advice: advice.into(),
+    }
+}
+
+/// Every warning of a run: empty outputs first, then by share (largest first).
+pub fn run_warnings(report: &RunReport, config: &RunConfig) -> Vec<RunWarning> {
+    let mut shares = Vec::new();
+    stage_warnings(report, config, &mut shares);
+    input_edge_warning(report, &mut shares);
+    georeference_warnings(report, config, &mut shares);
+    sink_warnings(report, &mut shares);
+    shares.sort_by(|a, b| b.share.total_cmp(&a.share));
+    let mut out = empty_output_warnings(report, config, &shares);
+    out.extend(shares);
+    out
+}
+
+/// `pipeline.stages[i].key`.
+fn stage_key(i: usize, key: &str) -> Option<String> {
+    Some(format!("pipeline.stages[{i}].{key}"))
+}
+
+/// Drops and notes of each stage above the share (any kernel cut to `max_taps`).
+fn stage_warnings(report: &RunReport, config: &RunConfig, out: &mut Vec<RunWarning>) {
+    for (i, st) in report.stages.iter().enumerate() {
+        for (reason, &n) in &st.dropped {
+            if (n > 0 && always_warns(&st.name, reason)) || share(n, report.pulses_in) > WARN_SHARE
+            {
+                let rule = drop_rule(&st.name, reason, i, config);
+                out.push(RunWarning::new(
+                    format!("{}.{reason}", st.name),
+                    n,
+                    report.pulses_in,
+                    rule,
+                ));
+            }
+        }
+        for (note, &n) in &st.notes {
+            if (n > 0 && always_warns(&st.name, note)) || share(n, report.pulses_in) > WARN_SHARE {
+                out.push(RunWarning::new(
+                    format!("{}.{note}", st.name),
+                    n,
+                    report.pulses_in,
+                    note_rule(&st.name, note, i),
+                ));
+            }
+        }
+    }
+}
+
+/// A limit that bit: warned from its first pulse, whatever its share.
+fn always_warns(stage: &str, reason: &str) -> bool {
+    stage == "deconvolve" && reason == crate::signal::deconvolve::KERNEL_OVER_MAX_TAPS
+}
+
+/// The setting and advice for a stage's drop reason.
+fn drop_rule(stage: &str, reason: &str, i: usize, config: &RunConfig) -> Rule {
+    let outgoing_taps = matches!(
+        config.pipeline.stages.get(i),
+        Some(crate::pipeline::registry::StageConfig::Deconvolve(c))
+            if c.kernel == crate::signal::deconvolve::KernelSource::Outgoing
+    );
+    match (stage, reason) {
+        (_, "segment_too_long") => rule(
+            stage_key(i, "max_samples"),
+            format!(
+                "{stage} dropped pulses with a segment longer than its max_samples; raise max_samples \
+                 (buffers and the worst-case cost grow with it)"
+            ),
+        ),
+        ("denoise", "invalid_cutoff" | "cutoff_above_nyquist") => rule(
+            stage_key(i, "cutoff_ghz"),
+            "the low-pass cut-off is not below the Nyquist frequency of these pulses' sampling \
+             (1 / (2 x sample interval)); lower cutoff_ghz",
+        ),
+        ("denoise", "no_segments") => rule(None, "the pulses carry no waveform segment"),
+        (_, "not_denoised") => rule(
+            Some("pipeline.stages".into()),
+            format!("{stage} needs a denoise stage before it; add one in front"),
+        ),
+        ("deconvolve", "no_outgoing") => rule(
+            stage_key(i, "missing_outgoing"),
+            "the pulses recorded no outgoing segment to take the kernel from; set \
+             missing_outgoing = \"pass\" to pass them on un-deconvolved, or give a calibrated \
+             kernel = { taps = { ... } }",
+        ),
+        ("deconvolve", "bad_kernel") if outgoing_taps => rule(
+            stage_key(i, "kernel"),
+            "the outgoing segment holds no pulse above its noise (or a non-finite sample), so \
+             no kernel could be taken from it; give a calibrated kernel = { taps = { ... } } for \
+             this instrument",
+        ),
+        ("deconvolve", "bad_kernel") => rule(
+            stage_key(i, "kernel"),
+            "the calibrated kernel is unusable; check its taps",
+        ),
+        ("deconvolve", "kernel_over_max_taps") => rule(
+            stage_key(i, "max_taps"),
+            "the outgoing pulse stands above its noise over more samples than max_taps and \
+             long_kernel = \"drop\"; raise max_taps (the cost grows with it) or set long_kernel = \
+             \"cut\"",
+        ),
+        ("deconvolve", "kernel_too_long") => rule(
+            stage_key(i, "max_taps"),
+            "the kernel is longer than the method was sized for; raise max_taps",
+        ),
+        ("calibrate", "range_unknown") => rule(
+            stage_key(i, "range_unknown"),
+            "the pulses' emission time is unknown (no outgoing segment, t0 not the emission); \
+             set range_unknown = \"unscaled\", or t0_is_emission = true if it is",
+        ),
+        ("calibrate", "no_outgoing" | "bad_outgoing_energy") => rule(
+            stage_key(i, "energy_unknown"),
+            "the pulses' outgoing energy is unknown; set energy_unknown = \"unscaled\"",
+        ),
+        ("calibrate", "invalid_configuration") => rule(
+            stage_key(i, "system_constant_value"),
+            "the calibrate stage's constants are not usable (system constant, references)",
+        ),
+        (_, "non_finite_input") => rule(None, "the input holds NaN or infinite samples"),
+        (_, "segment_out_of_bounds" | "bad_digitizer_parameters" | "length_mismatch") => rule(
+            None,
+            "the input's pulses are inconsistent (segments past their samples, or a bad sample \
+             interval); the file is damaged",
+        ),
+        _ => rule(
+            stage_key(i, "type"),
+            format!("the {stage} stage dropped them; see its documentation (docs/signal.md)"),
+        ),
+    }
+}
+
+/// The setting and advice for a stage's note (pulses passed on partly unprocessed).
+fn note_rule(stage: &str, note: &str, i: usize) -> Rule {
+    match (stage, note) {
+        ("deconvolve", "kernel_over_max_taps") => rule(
+            stage_key(i, "max_taps"),
+            "the outgoing pulse stands above its noise over more samples than max_taps: the \
+             kernel was cut to max_taps around its peak (returns stay in place, the far tail is \
+             not deconvolved); raise max_taps to keep the whole pulse (the cost grows with it)",
+        ),
+        ("deconvolve", "no_outgoing") => rule(
+            stage_key(i, "kernel"),
+            "these pulses recorded no outgoing segment and were passed on un-deconvolved; give \
+             a calibrated kernel = { taps = { ... } } to deconvolve them",
+        ),
+        ("calibrate", "range_unknown") => rule(
+            stage_key(i, "t0_is_emission"),
+            "the range factor was left out: the emission time is unknown (no outgoing segment); \
+             set t0_is_emission = true if the input's t0 is the emission",
+        ),
+        ("calibrate", "no_outgoing" | "bad_outgoing_energy") => rule(
+            stage_key(i, "energy"),
+            "the energy factor was left out: the outgoing energy is unknown; set energy = false \
+             to say so",
+        ),
+        ("calibrate", "return_before_emission") => rule(
+            stage_key(i, "t0_is_emission"),
+            "returns lie at or before the emission and got no backscatter; check \
+             t0_is_emission for this input",
+        ),
+        _ => rule(
+            stage_key(i, "type"),
+            format!("passed on partly unprocessed by the {stage} stage"),
+        ),
+    }
+}
+
+fn input_edge_warning(report: &RunReport, out: &mut Vec<RunWarning>) {
+    let n = report.dropped.get(INPUT_QUEUE_FULL).copied().unwrap_or(0);
+    let whole = report.pulses_in + n;
+    if share(n, whole) > WARN_SHARE {
+        out.push(RunWarning::new(
+            INPUT_QUEUE_FULL,
+            n,
+            whole,
+            rule(
+                Some("pipeline.input_edge".into()),
+                "the workers could not keep up and the input edge dropped the newest pulses; \
+                 input_edge = \"block\" loses none on replay, or raise pipeline.workers / lower \
+                 the stages' cost",
+            ),
+        ));
+    }
+}
+
+/// Pulses the georeferencing dropped, by reason, and the pulses it read.
+fn georeference_misses(report: &RunReport, config: &RunConfig) -> (Vec<(String, u64)>, u64) {
+    let missed: Vec<(String, u64)> = report
+        .source
+        .get("georeference")
+        .and_then(|g| g.get("missed"))
+        .and_then(|m| m.as_object())
+        .map(|m| {
+            m.iter()
+                .map(|(k, v)| (k.clone(), v.as_u64().unwrap_or(0)))
+                .collect()
+        })
+        .unwrap_or_default();
+    let dropped: u64 = if config.georeference.on_missing == OnMissing::Drop {
+        missed.iter().map(|(_, n)| n).sum()
+    } else {
+        0
+    };
+    (missed, report.pulses_in + dropped)
+}
+
+fn georeference_warnings(report: &RunReport, config: &RunConfig, out: &mut Vec<RunWarning>) {
+    let (missed, read) = georeference_misses(report, config);
+    for (reason, n) in missed {
+        if share(n, read) <= WARN_SHARE {
+            continue;
+        }
+        let r = match reason.as_str() {
+            "navigation_late" => rule(
+                Some("georeference.max_wait_s".into()),
+                "pulses waited longer than max_wait_s (or max_pending pulses) for navigation; \
+                 raise georeference.max_wait_s / max_pending",
+            ),
+            "navigation_gap" => rule(
+                Some("georeference.max_gap_s".into()),
+                "the navigation has gaps longer than max_gap_s at these pulses' times; raise \
+                 georeference.max_gap_s to interpolate across them",
+            ),
+            "before_navigation" | "no_navigation_after" => rule(
+                Some("georeference.pulse_time_offset_s".into()),
+                "these pulses' times lie outside the navigation's time span; check the \
+                 digitizer clock offset (pulse_time_offset_s) and the navigation recorded with \
+                 the capture, or set on_missing = \"pass\"",
+            ),
+            "no_output_crs" => rule(
+                Some("georeference.output_epsg".into()),
+                "no output CRS could be decided; name one with output_epsg",
+            ),
+            _ => rule(
+                Some("georeference.on_missing".into()),
+                "the trajectory could not place these pulses",
+            ),
+        };
+        out.push(RunWarning::new(
+            format!("georeference.{reason}"),
+            n,
+            read,
+            r,
+        ));
+    }
+}
+
+fn counter(v: &serde_json::Value, key: &str) -> u64 {
+    v.get(key).and_then(|x| x.as_u64()).unwrap_or(0)
+}
+
+/// The voxel sink's bins counters: `(counter, setting, advice)`.
+const VOXEL_BINS: [(&str, &str, &str); 3] = [
+    (
+        "bins_outside_heights",
+        "voxels.z_range_m",
+        "return bins fell outside the voxel grid's height range; widen voxels.z_range_m (or \
+         height = \"above_dem\" with a DEM)",
+    ),
+    (
+        "bins_outside_extent",
+        "voxels.extent_m",
+        "return bins fell outside the voxel store's horizontal extent; set voxels.extent_m to \
+         the survey area (or raise auto_extent_m)",
+    ),
+    (
+        "bins_outside_dem",
+        "georeference.dem",
+        "return bins fell where the DEM has no height; use a DEM covering the survey",
+    ),
+];
+
+fn sink_warnings(report: &RunReport, out: &mut Vec<RunWarning>) {
+    let no_geometry = || {
+        rule(
+            Some("georeference.enabled".into()),
+            "pulses reached the sink without geometry (not georeferenced); enable \
+             [georeference] (navigation recorded with the capture) or use an input that \
+             carries its geometry",
+        )
+    };
+    if let Some(v) = report.sinks.get("voxels") {
+        let d = &v["deposits"];
+        let n = counter(d, "pulses_no_geometry");
+        if share(n, report.pulses_out) > WARN_SHARE {
+            out.push(RunWarning::new(
+                "voxels.pulses_no_geometry",
+                n,
+                report.pulses_out,
+                no_geometry(),
+            ));
+        }
+    }
+    if let Some(las) = report.sinks.get("las") {
+        let n = counter(las, "pulses_without_geometry");
+        if share(n, report.pulses_out) > WARN_SHARE {
+            out.push(RunWarning::new(
+                "las.pulses_without_geometry",
+                n,
+                report.pulses_out,
+                no_geometry(),
+            ));
+        }
+    }
+}
+
+/// No pulse out, no return found, nothing deposited: each names the largest cause found in
+/// `causes` (the share warnings) when there is one.
+fn empty_output_warnings(
+    report: &RunReport,
+    config: &RunConfig,
+    causes: &[RunWarning],
+) -> Vec<RunWarning> {
+    let mut out = Vec::new();
+    let main = causes.first();
+    let because = |main: Option<&RunWarning>| match main {
+        Some(w) => (
+            w.setting.clone(),
+            format!(
+                "; the largest cause: {} {} ({:.0} %): {}",
+                w.count,
+                w.reason,
+                100.0 * w.share,
+                w.message
+            ),
+        ),
+        None => (None, String::new()),
+    };
+    let (_, read) = georeference_misses(report, config);
+    if report.pulses_out == 0 {
+        let (setting, cause) = because(main);
+        let message = if read == 0 {
+            "the input held no pulses (check it with `fwlidar inspect FILE`)".to_string()
+        } else {
+            format!("none of the {read} pulses read reached the outputs{cause}")
+        };
+        out.push(RunWarning {
+            reason: "output.no_pulses".into(),
+            count: read,
+            share: if read == 0 { 0.0 } else { 1.0 },
+            setting,
+            message,
+        });
+    }
+    let decompose = report.stages.iter().position(|s| s.name == "decompose");
+    let rows = report.sinks.get("returns_csv").map(|r| counter(r, "rows"));
+    if let (Some(i), Some(0)) = (decompose, rows)
+        && report.pulses_out > 0
+    {
+        out.push(RunWarning {
+            reason: "output.no_returns".into(),
+            count: report.pulses_out,
+            share: 1.0,
+            setting: stage_key(i, "min_snr"),
+            message: format!(
+                "the decompose stage found no return in any of the {} pulses out (no peak \
+                 min_snr noise levels above the baseline); lower min_snr, or check the stages \
+                 before it",
+                report.pulses_out
+            ),
+        });
+    }
+    if let Some(v) = report.sinks.get("voxels")
+        && config.voxels.enabled
+        && counter(&v["deposits"], "bins_deposited") + counter(&v["deposits"], "bins_resumed") == 0
+    {
+        let d = &v["deposits"];
+        let (setting, message) = if report.pulses_out == 0 {
+            let (setting, cause) = because(main);
+            (setting, format!("no pulse reached the voxel store{cause}"))
+        } else if counter(d, "pulses_no_geometry") + counter(d, "pulses_non_finite")
+            >= report.pulses_out
+        {
+            (
+                Some("georeference.enabled".to_string()),
+                "no pulse had geometry to place its bins (not georeferenced); enable \
+                 [georeference] or use an input that carries its geometry"
+                    .to_string(),
+            )
+        } else {
+            match VOXEL_BINS
+                .iter()
+                .max_by_key(|(k, _, _)| counter(d, k))
+                .filter(|(k, _, _)| counter(d, k) > 0)
+            {
+                Some((_, setting, advice)) => (Some(setting.to_string()), advice.to_string()),
+                None => (
+                    Some("pipeline.stages".to_string()),
+                    "the pulses out had no processed return bins to deposit".to_string(),
+                ),
+            }
+        };
+        out.push(RunWarning {
+            reason: "voxels.nothing_deposited".into(),
+            count: report.pulses_out,
+            share: 1.0,
+            setting,
+            message: format!("nothing was deposited in voxels.zarr: {message}"),
+        });
+    }
+    out
+}
+
+/// The warnings as a block for the end of the one-screen summary (empty when there are none).
+pub fn warnings_block(warnings: &[RunWarning]) -> String {
+    use std::fmt::Write as _;
+    let mut s = String::new();
+    if warnings.is_empty() {
+        return s;
+    }
+    let _ = writeln!(
+        s,
+        "  !! WARNING: {} problem{} in this run (summary.json → warnings):",
+        warnings.len(),
+        if warnings.len() == 1 { "" } else { "s" }
+    );
+    for w in warnings {
+        let _ = writeln!(
+            s,
+            "  !! {}: {} pulses ({:.1} %): {}",
+            w.reason,
+            w.count,
+            100.0 * w.share,
+            w.message
+        );
+        if let Some(k) = &w.setting {
+            let _ = writeln!(s, "  !!    setting to change: {k}");
+        }
+    }
+    s
+}
+
+/// Logs each warning at warn level (stderr).
+pub fn log_warnings(warnings: &[RunWarning]) {
+    for w in warnings {
+        tracing::warn!(
+            reason = %w.reason,
+            count = w.count,
+            share = w.share,
+            setting = w.setting.as_deref().unwrap_or("-"),
+            "{}",
+            w.message
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::telemetry::StageReport;
+    use std::collections::BTreeMap;
+
+    fn stage(name: &str, dropped: &[(&str, u64)], notes: &[(&str, u64)]) -> StageReport {
+        let map = |v: &[(&str, u64)]| -> BTreeMap<String, u64> {
+            v.iter().map(|(k, n)| (k.to_string(), *n)).collect()
+        };
+        StageReport {
+            name: name.into(),
+            received: 0,
+            sent: 0,
+            dropped: map(dropped),
+            errors: 0,
+            notes: map(notes),
+            service: Default::default(),
+            since_arrival: Default::default(),
+        }
+    }
+
+    fn report(pulses_in: u64, pulses_out: u64, stages: Vec<StageReport>) -> RunReport {
+        let mut dropped = BTreeMap::new();
+        for s in &stages {
+            for (r, n) in &s.dropped {
+                dropped.insert(format!("{}.{r}", s.name), *n);
+            }
+        }
+        RunReport {
+            fwlidar_version: String::new(),
+            workers: 1,
+            pulses_in,
+            pulses_out,
+            dropped_total: dropped.values().sum(),
+            dropped,
+            errors: 0,
+            stages,
+            end_to_end: Default::default(),
+            source: serde_json::Value::Null,
+            nav: serde_json::Value::Null,
+            sinks: serde_json::json!({}),
+            pool_allocations: 0,
+            stopped_early: false,
+            fatal: None,
+            wall_time_s: 0.0,
+            pulses_per_s: 0.0,
+            warnings: Vec::new(),
+        }
+    }
+
+    fn replay_config() -> RunConfig {
+        crate::config::load_run_config(None).unwrap()
+    }
+
+    #[test]
+    fn every_pulse_dropped_names_the_reason_and_the_setting() {
+        let r = report(
+            1000,
+            0,
+            vec![
+                stage("denoise", &[], &[]),
+                stage("deconvolve", &[("kernel_over_max_taps", 1000)], &[]),
+                stage("decompose", &[], &[]),
+            ],
+        );
+        let w = run_warnings(&r, &replay_config());
+        let reasons: Vec<&str> = w.iter().map(|w| w.reason.as_str()).collect();
+        assert_eq!(
+            reasons,
+            ["output.no_pulses", "deconvolve.kernel_over_max_taps"],
+            "{w:#?}"
+        );
+        assert_eq!(w[0].setting.as_deref(), Some("pipeline.stages[1].max_taps"));
+        assert!(
+            w[0].message.contains("kernel_over_max_taps"),
+            "{}",
+            w[0].message
+        );
+        assert_eq!((w[1].count, w[1].share), (1000, 1.0));
+        assert_eq!(w[1].setting.as_deref(), Some("pipeline.stages[1].max_taps"));
+        let block = warnings_block(&w);
+        assert!(block.contains("WARNING: 2 problems"), "{block}");
+        assert!(block.contains("pipeline.stages[1].max_taps"), "{block}");
+    }
+
+    #[test]
+    fn shares_at_or_below_the_threshold_are_quiet_except_a_limit_that_bit() {
+        let quiet = report(
+            1000,
+            900,
+            vec![stage(
+                "deconvolve",
+                &[("bad_kernel", 100)],
+                &[("no_outgoing", 50)],
+            )],
+        );
+        assert!(run_warnings(&quiet, &replay_config()).is_empty());
+        let loud = report(
+            1000,
+            899,
+            vec![stage(
+                "deconvolve",
+                &[("bad_kernel", 101)],
+                &[("no_outgoing", 50)],
+            )],
+        );
+        let w = run_warnings(&loud, &replay_config());
+        assert_eq!(w.len(), 1, "{w:#?}");
+        assert_eq!(w[0].reason, "deconvolve.bad_kernel");
+        assert_eq!(w[0].setting.as_deref(), Some("pipeline.stages[0].kernel"));
+        let cut = report(
+            1000,
+            1000,
+            vec![stage("deconvolve", &[], &[("kernel_over_max_taps", 1)])],
+        );
+        let w = run_warnings(&cut, &replay_config());
+        assert_eq!(w.len(), 1, "{w:#?}");
+        assert_eq!(w[0].reason, "deconvolve.kernel_over_max_taps");
+        assert_eq!(w[0].count, 1);
+    }
+
+    #[test]
+    fn empty_inputs_outputs_and_voxel_stores_say_why() {
+        let cfg = replay_config();
+        let w = run_warnings(&report(0, 0, vec![]), &cfg);
+        assert_eq!(w.len(), 1);
+        assert_eq!(w[0].reason, "output.no_pulses");
+        assert!(w[0].message.contains("held no pulses"), "{}", w[0].message);
+
+        let mut r = report(10, 10, vec![stage("decompose", &[], &[])]);
+        r.sinks = serde_json::json!({
+            "returns_csv": { "rows": 0 },
+            "voxels": { "deposits": { "bins_deposited": 0, "pulses_no_geometry": 10 } },
+        });
+        let w = run_warnings(&r, &cfg);
+        let by = |reason: &str| w.iter().find(|w| w.reason == reason).cloned();
+        let no_returns = by("output.no_returns").expect("no returns");
+        assert_eq!(
+            no_returns.setting.as_deref(),
+            Some("pipeline.stages[0].min_snr")
+        );
+        let voxels = by("voxels.nothing_deposited").expect("nothing deposited");
+        assert_eq!(voxels.setting.as_deref(), Some("georeference.enabled"));
+        let no_geo = by("voxels.pulses_no_geometry").expect("no geometry");
+        assert_eq!(no_geo.share, 1.0);
+
+        // Bins above the grid: the height range is the setting; a resumed store is not empty.
+        r.sinks = serde_json::json!({
+            "returns_csv": { "rows": 30 },
+            "voxels": { "deposits": { "bins_deposited": 0, "bins_outside_heights": 400 } },
+        });
+        let w = run_warnings(&r, &cfg);
+        assert_eq!(w[0].reason, "voxels.nothing_deposited");
+        assert_eq!(w[0].setting.as_deref(), Some("voxels.z_range_m"));
+        assert_eq!(w.len(), 1, "{w:#?}");
+        // Bins outside the grid beside deposits are no warning (a window below the ground).
+        r.sinks = serde_json::json!({
+            "returns_csv": { "rows": 30 },
+            "voxels": { "deposits": { "bins_deposited": 10, "bins_outside_heights": 400 } },
+        });
+        assert!(run_warnings(&r, &cfg).is_empty());
+        r.sinks = serde_json::json!({
+            "returns_csv": { "rows": 30 },
+            "voxels": { "deposits": { "bins_deposited": 0, "bins_resumed": 400 } },
+        });
+        assert!(run_warnings(&r, &cfg).is_empty());
+    }
+
+    #[test]
+    fn georeference_misses_are_a_share_of_the_pulses_read() {
+        let mut r = report(600, 600, vec![]);
+        r.source = serde_json::json!({
+            "georeference": { "missed": { "navigation_gap": 400, "before_navigation": 10 } }
+        });
+        let w = run_warnings(&r, &replay_config());
+        assert_eq!(w.len(), 1, "{w:#?}");
+        assert_eq!(w[0].reason, "georeference.navigation_gap");
+        // 600 pulses in and 410 dropped by the georeferencing (on_missing = "drop") were read.
+        assert_eq!(w[0].share, 400.0 / 1010.0);
+        assert_eq!(w[0].setting.as_deref(), Some("georeference.max_gap_s"));
+    }
+}
