@@ -1,6 +1,6 @@
 //! LAS waveform read throughput: every pulse of the real RIEGL file
 //! (`waveform/riegl_q680i/100429_152240_2535pt_UTM.las` + `.wdp`, 2535 points, 2376 pulses, from
-//! the shared fixtures: `$FWLIDAR_FIXTURES`, else `<manifest>/../shared/fixtures`), opened and
+//! the repository's `tests/data`, or `$FWLIDAR_FIXTURES`), opened and
 //! decoded into one reused pulse, from the page cache (`LasReader::open`) and from memory
 //! (`LasReader::from_bytes`). Throughput is in bytes of the `.wdp` (the waveform data).
 //! Results are recorded in `docs/performance.md`.
@@ -13,17 +13,7 @@ use fwlidar::format::las_read::LasReader;
 use fwlidar::pulse::Pulse;
 
 fn fixture() -> PathBuf {
-    let root = match std::env::var_os("FWLIDAR_FIXTURES") {
-        Some(p) => PathBuf::from(p),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"),
-    };
-    let las = root.join("waveform/riegl_q680i/100429_152240_2535pt_UTM.las");
-    assert!(
-        las.is_file(),
-        "the LAS read benchmark needs {} (set FWLIDAR_FIXTURES)",
-        las.display()
-    );
-    las
+    fwlidar::fixtures::path("waveform/riegl_q680i/100429_152240_2535pt_UTM.las")
 }
 
 fn las_read(c: &mut Criterion) {

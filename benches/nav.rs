@@ -1,5 +1,5 @@
 //! Navigation framer + decoders throughput (`docs/performance.md`): real receiver bytes from
-//! `../shared/fixtures/nav/` repeated into ~4 MiB streams — the OxTS NMEA log (PASHR 25 Hz, GGA
+//! `tests/data/nav/` repeated into ~4 MiB streams — the OxTS NMEA log (PASHR 25 Hz, GGA
 //! 10 Hz; gpsd's `#` comment lines removed) and the NovAtel SPAN binary capture — fed to a
 //! `NavDecoder` in 4 KiB reads, as a serial port would deliver them. Throughput in input bytes.
 //! Also: trajectory lookup + interpolation at a pulse time, and one pulse's georeferencing
@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use fwlidar::geo::OutputCrs;
-use fwlidar::geo::georef::{Mounting, georeference};
+use fwlidar::geo::direct_georeference::{Mounting, georeference};
 use fwlidar::nav::dating::GpsTime;
 use fwlidar::nav::decoder::NavDecoder;
 use fwlidar::nav::trajectory::{Trajectory, TrajectoryConfig};
@@ -19,11 +19,8 @@ use fwlidar::nav::{NavKind, NavSample, NavTime};
 const TARGET: usize = 4 << 20;
 
 fn fixture(rel: &str) -> Vec<u8> {
-    let base = std::env::var_os("FWLIDAR_FIXTURES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"));
-    let p = base.join(rel);
-    std::fs::read(&p).unwrap_or_else(|e| panic!("missing fixture {}: {e}", p.display()))
+    let p = fwlidar::fixtures::path(rel);
+    std::fs::read(&p).unwrap_or_else(|e| panic!("fixture {}: {e}", p.display()))
 }
 
 fn repeat(unit: &[u8]) -> Vec<u8> {

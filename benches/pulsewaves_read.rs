@@ -1,6 +1,6 @@
 //! PulseWaves read throughput: open a `.pls` + `.wvs` pair and read and decode every pulse
 //! into one reused `Pulse`, files in the page cache. Throughput is in bytes of the `.wvs` file
-//! (the waveform data). Needs `../shared/fixtures` (or `FWLIDAR_FIXTURES`); results are
+//! (the waveform data). Reads `tests/data` (or `$FWLIDAR_FIXTURES`); results are
 //! recorded in `docs/performance.md`.
 
 use std::hint::black_box;
@@ -11,12 +11,7 @@ use fwlidar::format::pulsewaves::PulseWavesReader;
 use fwlidar::pulse::Pulse;
 
 fn fixtures() -> PathBuf {
-    let p = match std::env::var_os("FWLIDAR_FIXTURES") {
-        Some(p) => PathBuf::from(p),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"),
-    };
-    assert!(p.is_dir(), "fixtures missing: {}", p.display());
-    p
+    fwlidar::fixtures::dir()
 }
 
 fn read_file(c: &mut Criterion) {

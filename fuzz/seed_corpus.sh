@@ -6,18 +6,21 @@
 #   frame_decode:   the payloads of the first frame and nav records of that capture.
 #   config_load:    every file of config/.
 #   waveform_table: a small CSV and NPY written here (mode byte 0x00 CSV, 0x01 NPY), plus the
-#                   first lines of the NEON return.csv and imp.csv when ../shared/fixtures exists.
-#   pulsewaves_reader: the PulseWaves pairs of ../shared/fixtures/waveform (when it exists), each
+#                   first lines of the NEON return.csv and imp.csv. Real files come from
+#                   tests/data, or $FWLIDAR_FIXTURES when set.
+#   pulsewaves_reader: the PulseWaves pairs of tests/data/waveform (when it exists), each
 #                   cut to its header, records and first pulses (number_of_pulses patched to
 #                   match), as u16 .pls length + .pls + .wvs.
-#   nav_decoder:    the real receiver logs of ../shared/fixtures/nav (gpsd NMEA logs, the NovAtel
+#   nav_decoder:    the real receiver logs of tests/data/nav (gpsd NMEA logs, the NovAtel
 #                   SPAN capture, the SBET files), each behind a mode byte 0x07, when it exists.
 #   live_frames:    the first three digitizer frames of that capture as a live stream (28-byte
 #                   headers with sequence numbers and CRC-32C, docs/formats.md), behind a mode
 #                   byte 0x00 (pushed whole) and 0x05 (pushed in reads of 5 bytes).
-#   las_reader:     when ../shared/fixtures exists, the real RIEGL LAS 1.4 file cut to its first
-#                   20 points with the .wdp bytes they use (u32 LE .las length, .las, .wdp), and
-#                   the same with the packets internal (global encoding bit 1, appended EVLR).
+#   las_reader:     the real RIEGL LAS 1.4 file cut to its first 20 points with the .wdp bytes
+#                   they use (u32 LE .las length, .las, .wdp), and the same with the packets
+#                   internal (global encoding bit 1, appended EVLR); with a Python holding laspy
+#                   and lazrs, also that cut as LAZ (only the descriptors used): format 9 (one
+#                   chunk), format 9 in chunks of 5 points (lazrs), and format 4 (LAS 1.3).
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(dirname "$here")
@@ -98,14 +101,14 @@ data = struct.pack("<6f", 1.0, 2.0, float("nan"), 4.0, 5.0, 6.0)
 blob = b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header.encode() + data
 open(sys.argv[1], "wb").write(b"\x01" + blob)
 PY
-fx="$root/../shared/fixtures/waveform/neon_harv"
+fx="${FWLIDAR_FIXTURES:-$root/tests/data}/waveform/neon_harv"
 if [ -d "$fx" ]; then
     { printf '\000'; head -n 4 "$fx/return.csv"; } > "$wt/neon_return_head"
     { printf '\000'; cat "$fx/imp.csv"; } > "$wt/neon_imp"
 fi
 
 # pulsewaves_reader
-wf="$root/../shared/fixtures/waveform"
+wf="${FWLIDAR_FIXTURES:-$root/tests/data}/waveform"
 if [ -d "$wf" ]; then
     python3 - "$here/corpus/pulsewaves_reader" "$wf/pulsewaves/test" "$wf/pulsewaves/lvis_example1" \
         "$wf/pulsewaves/las13fwf_example1" "$wf/riegl_q680i/100429_152240_2535pt_UTM" <<'PY'
@@ -131,7 +134,7 @@ PY
 fi
 
 # las_reader
-fl="$root/../shared/fixtures/waveform/riegl_q680i/100429_152240_2535pt_UTM"
+fl="${FWLIDAR_FIXTURES:-$root/tests/data}/waveform/riegl_q680i/100429_152240_2535pt_UTM"
 if [ -f "$fl.las" ]; then
     python3 - "$fl" "$here/corpus/las_reader" <<'PY'
 import struct, sys
@@ -154,10 +157,53 @@ struct.pack_into("<QQI", inner, 227, len(inner), len(inner), 1)
 inner += wave
 open(out + "/riegl_20_points_internal", "wb").write(struct.pack("<I", len(inner)) + inner)
 PY
+    # LAZ seeds need laspy and lazrs (the venv of .ci/run, or $FWLIDAR_PYTHON).
+    py="${FWLIDAR_PYTHON:-$root/.venv/bin/python}"
+    if [ -x "$py" ] && "$py" -c "import laspy, lazrs" 2>/dev/null; then
+        "$py" - "$fl" "$here/corpus/las_reader" <<'PY'
+import io, struct, sys
+import laspy, lazrs
+stem, out = sys.argv[1], sys.argv[2]
+n = 20
+las = laspy.read(stem + ".las")
+wdp = open(stem + ".wdp", "rb").read()
+cut = laspy.LasData(las.header, las.points[:n].copy())
+used = set(int(i) for i in cut.wavepacket_index)
+# Only the descriptors the points use: the fuzzer's mutations land in the compressed points.
+cut.header.vlrs = [v for v in las.header.vlrs
+                   if not (99 < v.record_id < 355) or v.record_id - 99 in used]
+cut.update_header()
+end = int(max(cut.wavepacket_offset + cut.wavepacket_size))
+wave = bytearray(wdp[:end])
+struct.pack_into("<Q", wave, 20, len(wave) - 60)
+def seed(name, laz):
+    open(f"{out}/{name}", "wb").write(struct.pack("<I", len(laz)) + laz + bytes(wave))
+b = io.BytesIO(); cut.write(b, do_compress=True); seed("riegl_20_points_laz9", b.getvalue())
+f4 = laspy.convert(cut, point_format_id=4, file_version="1.3")
+b = io.BytesIO(); f4.write(b, do_compress=True); seed("riegl_20_points_laz4", b.getvalue())
+# Variable-size chunks of 5 points (lazrs), so the chunk table holds point counts.
+b = io.BytesIO(); cut.write(b, do_compress=True); fixed = b.getvalue()
+off, = struct.unpack_from("<I", fixed, 96)
+rl, = struct.unpack_from("<H", fixed, 105)
+head = bytearray(fixed[:off])
+vlr = lazrs.LazVlr.new_for_compression(9, rl - 59, True)
+at = head.find(b"laszip encoded") - 2
+head[at + 54:at + 54 + len(vlr.record_data())] = vlr.record_data()
+raw = io.BytesIO(); cut.write(raw, do_compress=False); raw = raw.getvalue()
+roff, = struct.unpack_from("<I", raw, 96)
+dest = io.BytesIO(); dest.write(bytes(head))
+comp = lazrs.LasZipCompressor(dest, vlr)
+for s in range(0, n, 5):
+    comp.compress_many(raw[roff + s * rl:roff + (s + 5) * rl])
+    comp.finish_current_chunk()
+comp.done()
+seed("riegl_20_points_laz9_chunks", dest.getvalue())
+PY
+    fi
 fi
 
 # nav_decoder
-nv="$root/../shared/fixtures/nav"
+nv="${FWLIDAR_FIXTURES:-$root/tests/data}/nav"
 if [ -d "$nv" ]; then
     for f in "$nv"/gpsd/*.log "$nv"/novatel/*.bin "$nv"/sbet/*.sbet; do
         { printf '\007'; cat "$f"; } > "$here/corpus/nav_decoder/$(basename "$f")"

@@ -19,6 +19,7 @@ pub mod cli;
 pub mod config;
 pub mod daemon;
 pub mod eval;
+pub mod fixtures;
 pub mod format;
 pub mod geo;
 pub mod nav;

@@ -20,6 +20,7 @@ fn replay(dir: &Path, config: Option<&str>) -> (Vec<Vec<(String, String)>>, serd
         out.display().to_string(),
         "--no-progress".into(),
     ];
+    args.extend(common::CSV_OUTPUTS.map(String::from));
     if let Some(text) = config {
         let cfg = dir.join("run.toml");
         std::fs::write(&cfg, text).unwrap();

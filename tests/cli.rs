@@ -10,6 +10,13 @@ use fwlidar::format::{CaptureReader, Record};
 
 const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
 const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+/// The flags that ask `replay` for its text outputs beside the binary ones.
+const CSV_OUTPUTS: [&str; 4] = [
+    "--set",
+    "output.waveform_format=csv",
+    "--set",
+    "output.returns=true",
+];
 
 fn fwlidar(args: &[&str]) -> Output {
     Command::new(BIN)
@@ -75,6 +82,10 @@ fn replay_of_the_sample_writes_consistent_outputs() {
         "--out",
         out.to_str().unwrap(),
         "--no-progress",
+        "--set",
+        "output.waveform_format=csv",
+        "--set",
+        "output.returns=true",
     ]);
     assert!(o.status.success(), "{}", text(&o.stderr));
     let stdout = text(&o.stdout);
@@ -474,6 +485,7 @@ fn stop_replay_with(cap: &Path, out: &Path, signal: &str) {
             out.to_str().unwrap(),
             "--no-progress",
         ])
+        .args(CSV_OUTPUTS)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()

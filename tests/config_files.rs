@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use fwlidar::config::{Validated, validate_any};
+use fwlidar::cli::validate::{Validated, validate_any};
 
 fn toml_files(dir: &Path, out: &mut Vec<PathBuf>) {
     let entries = std::fs::read_dir(dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));

@@ -169,6 +169,8 @@ fn replay_with_config(
         "--out",
         out.to_str().unwrap(),
         "--no-progress",
+        "--set",
+        "output.returns=true",
     ]);
     (o, out)
 }

@@ -2,7 +2,7 @@
 //! on what our own LAS writer writes, and on damaged input.
 //!
 //! The real file is `waveform/riegl_q680i/100429_152240_2535pt_UTM.las` + `.wdp` of the shared
-//! fixtures (`$FWLIDAR_FIXTURES`, else `<manifest>/../shared/fixtures`; see their MANIFEST.md).
+//! fixtures (`tests/data`, or `$FWLIDAR_FIXTURES`; see tests/data/MANIFEST.md).
 //! It is read in place, never copied into the repository; the tests fail, naming the path, when
 //! it is missing. The cross-checks parse the raw bytes here, independently of the reader.
 
@@ -19,20 +19,10 @@ use proptest::prelude::*;
 
 const STEM: &str = "waveform/riegl_q680i/100429_152240_2535pt_UTM";
 
-/// The fixtures folder: `FWLIDAR_FIXTURES`, else `<manifest>/../shared/fixtures`.
+/// The fixtures folder (`tests/data`, or `$FWLIDAR_FIXTURES`), checked to hold the RIEGL file.
 fn fixtures() -> PathBuf {
-    let p = match std::env::var_os("FWLIDAR_FIXTURES") {
-        Some(p) => PathBuf::from(p),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"),
-    };
-    let las = p.join(format!("{STEM}.las"));
-    assert!(
-        las.is_file(),
-        "the real LAS waveform fixture is missing: {} (set FWLIDAR_FIXTURES to the shared \
-         fixtures folder)",
-        las.display()
-    );
-    p
+    fwlidar::fixtures::path(&format!("{STEM}.las"));
+    fwlidar::fixtures::dir()
 }
 
 fn real_las() -> PathBuf {

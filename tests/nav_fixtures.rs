@@ -1,4 +1,4 @@
-//! Navigation parsers on real receiver logs (`../shared/fixtures/nav/`, see its MANIFEST.md):
+//! Navigation parsers on real receiver logs (`tests/data/nav/`, see tests/data/MANIFEST.md):
 //! gpsd's regression logs (OxTS PASHR attitude, a Hemisphere heading receiver, a cold boot full
 //! of garbled sentences, bad checksums, odd number formats), a NovAtel SPAN binary stream and
 //! Applanix SBET files. Counts are exact; fails naming any missing fixture.

@@ -25,34 +25,6 @@ use fwlidar::pipeline::testing::run_stage;
 use fwlidar::pulse::{Pulse, SegmentKind};
 use fwlidar::signal::{Decompose, DecomposeConfig, Denoise, DenoiseConfig};
 
-/// The fixtures folder: `FWLIDAR_FIXTURES`, else `<manifest>/../shared/fixtures`, else
-/// `/work/shared/fixtures`; `Err` with the places looked at when none exists.
-fn fixtures() -> Result<PathBuf, String> {
-    if let Some(p) = std::env::var_os("FWLIDAR_FIXTURES") {
-        let p = PathBuf::from(p);
-        return if p.is_dir() {
-            Ok(p)
-        } else {
-            Err(format!("{} (FWLIDAR_FIXTURES)", p.display()))
-        };
-    }
-    let candidates = [
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"),
-        PathBuf::from("/work/shared/fixtures"),
-    ];
-    candidates
-        .iter()
-        .find(|p| p.is_dir())
-        .cloned()
-        .ok_or_else(|| {
-            candidates
-                .iter()
-                .map(|p| p.display().to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
-        })
-}
-
 /// One component of the R package's result: waveform index (1-based), A, u (1-based bin), σ.
 struct Reference {
     waveform: usize,
@@ -220,17 +192,7 @@ fn report(name: &str, c: &Comparison, reference: usize) {
 
 #[test]
 fn neon_harv_decomposition_matches_the_reference() {
-    let dir = match fixtures() {
-        Ok(d) => d.join("waveform/neon_harv"),
-        Err(looked) => {
-            assert!(
-                std::env::var_os("CI").is_none(),
-                "fixtures missing at {looked} (CI is set)"
-            );
-            println!("SKIPPED: fixtures missing at {looked}");
-            return;
-        }
-    };
+    let dir = fwlidar::fixtures::dir().join("waveform/neon_harv");
     let waveforms = std::fs::read_to_string(dir.join("return.csv")).expect("return.csv");
     let reference = std::fs::read_to_string(dir.join("decom_result.csv")).expect("decom csv");
     let pulses = read_waveforms(&waveforms);

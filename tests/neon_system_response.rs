@@ -19,25 +19,11 @@ use fwlidar::signal::deconvolve::{
 };
 use fwlidar::signal::{Denoise, DenoiseConfig};
 
-/// The NEON fixtures folder, `None` (said) outside CI when absent; a failure in CI.
+/// The NEON fixtures folder (`tests/data/waveform/neon_harv`, or under `$FWLIDAR_FIXTURES`).
 fn neon() -> Option<PathBuf> {
-    let candidates = [
-        std::env::var_os("FWLIDAR_FIXTURES").map(PathBuf::from),
-        Some(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures")),
-        Some(PathBuf::from("/work/shared/fixtures")),
-    ];
-    for c in candidates.into_iter().flatten() {
-        let d = c.join("waveform/neon_harv");
-        if d.join("imp.csv").is_file() {
-            return Some(d);
-        }
-    }
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "fixtures (waveform/neon_harv) missing and CI is set"
-    );
-    println!("SKIPPED: fixtures (waveform/neon_harv) missing");
-    None
+    let d = fwlidar::fixtures::dir().join("waveform/neon_harv");
+    assert!(d.join("imp.csv").is_file(), "missing {}", d.display());
+    Some(d)
 }
 
 /// Rows of a CSV with a header line, as numbers.

@@ -22,26 +22,10 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
-/// The shared fixtures folder: `FWLIDAR_FIXTURES`, else `<manifest>/../shared/fixtures`, else
-/// `/work/shared/fixtures`. `None` (after saying so) when absent outside CI; a failure in CI.
+/// The real-data fixtures folder (`tests/data`, or `$FWLIDAR_FIXTURES`); always present, the
+/// `Option` keeps the callers' shape.
 fn fixtures() -> Option<PathBuf> {
-    let candidates = [
-        std::env::var_os("FWLIDAR_FIXTURES").map(PathBuf::from),
-        Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures")),
-        Some(PathBuf::from("/work/shared/fixtures")),
-    ];
-    for c in candidates.into_iter().flatten() {
-        if c.join("waveform/neon_harv/return.csv").is_file() {
-            return Some(c);
-        }
-    }
-    if std::env::var_os("CI").is_some() {
-        panic!("shared fixtures (waveform/neon_harv) not found, and CI is set");
-    }
-    eprintln!(
-        "SKIPPED: shared fixtures not found (set FWLIDAR_FIXTURES or place ../shared/fixtures)"
-    );
-    None
+    Some(fwlidar::fixtures::dir())
 }
 
 fn ragged_rows() -> Vec<Vec<f32>> {

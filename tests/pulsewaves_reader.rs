@@ -1,4 +1,4 @@
-//! The PulseWaves reader against the real files of `../shared/fixtures/waveform/` (LVIS,
+//! The PulseWaves reader against the real files of `tests/data/waveform/` (LVIS,
 //! a converted LAS 1.3 file, the PulseWaves library's own test file, a RIEGL LMS-Q680i line):
 //! counts, segment layouts, values cross-checked with an independent decoding of the raw bytes,
 //! geometry, damaged inputs (clear errors naming file and field, never a panic) and the CLI.
@@ -15,19 +15,9 @@ use fwlidar::format::pulsewaves::{PulseWavesError, PulseWavesReader, TimeBase};
 use fwlidar::pulse::{Pulse, SegmentKind};
 use fwlidar::source::{self, SourceEvent};
 
-/// The fixtures folder: `FWLIDAR_FIXTURES`, else `<manifest>/../shared/fixtures`; panics naming
-/// the path looked for when it is missing.
+/// The fixtures folder (`tests/data`, or `$FWLIDAR_FIXTURES`).
 fn fixtures() -> PathBuf {
-    let p = match std::env::var_os("FWLIDAR_FIXTURES") {
-        Some(p) => PathBuf::from(p),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"),
-    };
-    assert!(
-        p.is_dir(),
-        "fixtures missing: {} does not exist (set FWLIDAR_FIXTURES to the shared fixtures folder)",
-        p.display()
-    );
-    p
+    fwlidar::fixtures::dir()
 }
 
 fn fixture(stem: &str) -> PathBuf {

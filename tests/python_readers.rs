@@ -1,6 +1,8 @@
-//! Real readers of our outputs: numpy reads what `replay` wrote (`tests/python/read_outputs.py`).
+//! Real readers of our outputs: numpy, laspy and pyproj read what the README's `replay` wrote
+//! (`tests/python/read_outputs.py`): `waveforms.npy` equal to the CSV form of the same run,
+//! `returns.las` with its CRS where `returns.csv` puts the returns.
 //!
-//! The interpreter is `$FWLIDAR_PYTHON`, else `.venv/bin/python` (made by `.ci/run` with numpy).
+//! The interpreter is `$FWLIDAR_PYTHON`, else `.venv/bin/python` (made by `.ci/run` with numpy, laspy, pyproj).
 //! Outside CI without either, the test says what is missing and passes; under CI (`CI` set) a
 //! missing interpreter fails the test.
 
@@ -30,6 +32,7 @@ fn numpy_reads_replay_outputs() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
+    // The README's main job (the embedded configuration) ...
     let out = dir.path().join("out");
     let o = Command::new(BIN)
         .args(["replay", "--out", out.to_str().unwrap(), "--no-progress"])
@@ -37,9 +40,32 @@ fn numpy_reads_replay_outputs() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // ... and the same with the text outputs asked for.
+    let embedded = std::fs::read_to_string(Path::new(ROOT).join("config/replay.toml")).unwrap();
+    let text = embedded
+        .replace("waveform_format = \"npy\"", "waveform_format = \"csv\"")
+        .replace("\nreturns = false", "\nreturns = true");
+    assert_ne!(text, embedded);
+    let config = dir.path().join("csv.toml");
+    std::fs::write(&config, text).unwrap();
+    let csv = dir.path().join("csv");
+    let o = Command::new(BIN)
+        .args([
+            "replay",
+            "--out",
+            csv.to_str().unwrap(),
+            "--no-progress",
+            "--config",
+        ])
+        .arg(&config)
+        .current_dir(ROOT)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let o = Command::new(&py)
         .arg(Path::new(ROOT).join("tests/python/read_outputs.py"))
         .arg(&out)
+        .arg(&csv)
         .output()
         .unwrap_or_else(|e| panic!("cannot run {}: {e}", py.display()));
     let stdout = String::from_utf8_lossy(&o.stdout);

@@ -3,7 +3,7 @@
 //! PulseWaves pins the LAS parametric-line sign convention (every LAS point lies on its
 //! PulseWaves pulse's ray), and `replay` / `import` accept both formats directly.
 //!
-//! Needs `../shared/fixtures/waveform/` (see its MANIFEST.md); fails naming what is missing.
+//! Reads `tests/data/waveform/` (see tests/data/MANIFEST.md); fails naming what is missing.
 
 use std::path::Path;
 
@@ -407,6 +407,8 @@ fn replay_of_las_and_pulsewaves_writes_located_returns() {
             "--out",
             out.to_str().unwrap(),
             "--no-progress",
+            "--set",
+            "output.returns=true",
         ]);
         assert!(o.status.success(), "{name}: {}", text(&o.stderr));
         let csv = std::fs::read_to_string(out.join("returns.csv")).unwrap();

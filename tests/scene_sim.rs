@@ -134,6 +134,8 @@ fn a_simulated_scan_georeferences_onto_its_truth() {
             "--out",
             out.to_str().unwrap(),
             "--no-progress",
+            "--set",
+            "output.returns=true",
         ]);
         assert!(o.status.success(), "{}", text(&o.stderr));
         let truth = truth_points(&dir.path().join("bare.scatterers.csv"));

@@ -21,6 +21,7 @@ fn replay(input: &Path, out: &Path, config: Option<&Path>) -> std::process::Outp
         out.display().to_string(),
         "--no-progress".into(),
     ];
+    args.extend(common::CSV_OUTPUTS.map(String::from));
     if let Some(c) = config {
         args.push("--config".into());
         args.push(c.display().to_string());
@@ -42,10 +43,10 @@ fn volts_config(dir: &Path) -> PathBuf {
     let end = start + text[start..].find("\n[georeference]").unwrap();
     let p = dir.join("volts.toml");
     let mut text = format!("{}{}", &text[..start], &text[end..]);
-    // The last `las = false` is [voxels]'s (the first is [output]'s returns.las).
+    // The last `las = false` is [voxels]'s ([output]'s returns.las is on by default).
     let at = text.rfind("\nlas = false").unwrap();
     text.replace_range(at..at + "\nlas = false".len(), "\nlas = true");
-    assert!(text.contains("[output]") && text.matches("\nlas = false").count() == 1);
+    assert!(text.contains("[output]") && text.matches("\nlas = true").count() == 2);
     std::fs::write(&p, text).unwrap();
     p
 }
@@ -206,6 +207,7 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
             cut.to_str().unwrap(),
         ])
         .args(["--config", cfg.to_str().unwrap(), "--no-progress"])
+        .args(common::CSV_OUTPUTS)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()

@@ -1,5 +1,7 @@
-//! Arbitrary bytes as a LAS file and its `.wdp` through `LasReader`: every pulse is read until
-//! the end or an error. The reader promises never to panic, whatever the input.
+//! Arbitrary bytes as a LAS (or LAZ) file and its `.wdp` through `LasReader`: every pulse is
+//! read until the end or an error. The reader promises never to panic, whatever the input, and
+//! every error names the file at fault. LAZ inputs (point format bit 7 and the LASzip VLR) go
+//! through the `laz` crate's decoder, whose own panics the reader turns into errors.
 //!
 //! Input: a u32 little-endian length n, then n bytes of `.las`, then the `.wdp` (the rest).
 //! When n is larger than what follows, all of it is the `.las` and the `.wdp` is empty. Packets
@@ -16,14 +18,27 @@ fuzz_target!(|data: &[u8]| {
     };
     let n = (u32::from_le_bytes(*head) as usize).min(rest.len());
     let (las, wdp) = rest.split_at(n);
-    let Ok(mut reader) = LasReader::from_bytes(las, Some(wdp)) else {
-        return;
+    let names_file = |e: &dyn std::fmt::Display| {
+        let m = e.to_string();
+        assert!(m.starts_with("las.las: ") || m.starts_with("las.wdp: "), "{m}");
+    };
+    let mut reader = match LasReader::from_bytes(las, Some(wdp)) {
+        Ok(r) => r,
+        Err(e) => return names_file(&e),
     };
     let points = reader.info().header.number_of_points;
     let mut pulse = Pulse::default();
     let mut pulses = 0u64;
     let mut samples = 0u64;
-    while let Ok(true) = reader.next_pulse(&mut pulse) {
+    loop {
+        match reader.next_pulse(&mut pulse) {
+            Ok(true) => {}
+            Ok(false) => break,
+            Err(e) => {
+                names_file(&e);
+                break;
+            }
+        }
         pulses += 1;
         // One return segment from 0 ns holding every sample of the packet.
         assert_eq!(pulse.segments.len(), 1);

@@ -163,7 +163,7 @@ fn inspect_source(args: InspectArgs) -> Result<(), Failure> {
     } else {
         writeln!(
             out,
-            "{}\n  format: {}\n  {} pulses ({} with anchor and direction), {} navigation records ({} bytes)\n  GPS time {} .. {} s; samples per pulse {}..{}; bits {:?}\n  report: {}",
+            "{}\n  format: {}\n  {} pulses ({} with anchor and direction), {} navigation records ({} bytes)\n  GPS time {} .. {} s; samples per pulse {}..{}; bits {:?}",
             ov.file,
             ov.format,
             ov.pulses,
@@ -175,11 +175,262 @@ fn inspect_source(args: InspectArgs) -> Result<(), Failure> {
             ov.samples_min.unwrap_or(0),
             ov.samples_max.unwrap_or(0),
             ov.bits,
-            ov.report
         )
         .map_err(write_err)?;
+        write_report(&mut out, &ov.report).map_err(write_err)?;
     }
     out.flush().map_err(write_err)
+}
+
+/// Writes a source's report for people: its plain values one per line, the descriptors (LAS
+/// wave packet descriptors, PulseWaves pulse descriptors) and scanners as aligned tables, the
+/// warnings one per line, anything else as compact JSON. `--json` prints the report as is.
+fn write_report(out: &mut impl Write, report: &serde_json::Value) -> std::io::Result<()> {
+    use serde_json::Value;
+    let Some(map) = report.as_object() else {
+        return writeln!(out, "  report: {report}");
+    };
+    writeln!(out, "  report:")?;
+    let plain: Vec<_> = map
+        .iter()
+        .filter(|(_, v)| !v.is_array() && !v.is_object())
+        .collect();
+    let width = plain.iter().map(|(k, _)| k.len()).max().unwrap_or(0);
+    for (k, v) in plain {
+        writeln!(out, "    {k:<width$}  {}", cell(v))?;
+    }
+    for (k, v) in map.iter().filter(|(_, v)| v.is_array() || v.is_object()) {
+        match (k.as_str(), v) {
+            (_, Value::Array(a)) if a.is_empty() => writeln!(out, "  {k}: none")?,
+            ("wave_packet_descriptors", Value::Array(a)) => {
+                writeln!(out, "  wave packet descriptors:")?;
+                write_table(out, "    ", &las_descriptor_rows(a))?;
+            }
+            ("descriptors", Value::Array(a)) => {
+                writeln!(out, "  pulse descriptors:")?;
+                write_table(out, "    ", &pulse_descriptor_rows(a))?;
+            }
+            ("scanners", Value::Array(a)) => {
+                writeln!(out, "  scanners:")?;
+                write_table(out, "    ", &transposed_rows("scanner", a))?;
+            }
+            ("warnings", Value::Array(a)) => {
+                writeln!(out, "  warnings:")?;
+                for w in a {
+                    writeln!(out, "    - {}", cell(w))?;
+                }
+            }
+            _ => writeln!(out, "  {k}: {v}")?,
+        }
+    }
+    Ok(())
+}
+
+/// A JSON value as a table cell: strings unquoted, numbers to 7 significant digits (the
+/// precision of the `f32` most of them come from), `null` as `-`.
+fn cell(v: &serde_json::Value) -> String {
+    use serde_json::Value;
+    match v {
+        Value::Null => "-".into(),
+        Value::String(s) => s.clone(),
+        Value::Number(n) if n.is_f64() => {
+            let x = n.as_f64().unwrap_or(f64::NAN);
+            if x == 0.0 || !x.is_finite() {
+                return format!("{x}");
+            }
+            let decimals = (6 - x.abs().log10().floor() as i32).clamp(0, 20) as usize;
+            let s = format!("{x:.decimals$}");
+            if s.contains('.') {
+                s.trim_end_matches('0').trim_end_matches('.').to_string()
+            } else {
+                s
+            }
+        }
+        other => other.to_string(),
+    }
+}
+
+/// The LAS wave packet descriptors as table rows (header first); consecutive indices with the
+/// same fields share a row (`3-100`).
+fn las_descriptor_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
+    const FIELDS: [&str; 6] = [
+        "bits_per_sample",
+        "compression",
+        "samples",
+        "temporal_spacing_ps",
+        "digitizer_gain",
+        "digitizer_offset",
+    ];
+    let mut rows = vec![
+        [
+            "index",
+            "bits",
+            "compression",
+            "samples",
+            "interval (ps)",
+            "gain (V/count)",
+            "offset (V)",
+        ]
+        .map(String::from)
+        .to_vec(),
+    ];
+    let mut run: Option<(u64, u64, Vec<String>)> = None;
+    let flush = |run: &mut Option<(u64, u64, Vec<String>)>, rows: &mut Vec<Vec<String>>| {
+        if let Some((first, last, cells)) = run.take() {
+            let index = if first == last {
+                first.to_string()
+            } else {
+                format!("{first}-{last}")
+            };
+            rows.push(std::iter::once(index).chain(cells).collect());
+        }
+    };
+    for d in list {
+        let index = d["index"].as_u64().unwrap_or(0);
+        let cells: Vec<String> = FIELDS.iter().map(|f| cell(&d[*f])).collect();
+        match &mut run {
+            Some((_, last, c)) if *last + 1 == index && *c == cells => *last = index,
+            _ => {
+                flush(&mut run, &mut rows);
+                run = Some((index, index, cells));
+            }
+        }
+    }
+    flush(&mut run, &mut rows);
+    rows
+}
+
+/// The PulseWaves pulse descriptors as table rows (header first): one row per sampling, the
+/// descriptor's index, scanner and description on its first.
+fn pulse_descriptor_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
+    let mut rows = vec![
+        [
+            "index",
+            "scanner",
+            "sampling",
+            "type",
+            "channel",
+            "bits",
+            "segments",
+            "samples",
+            "interval (ns)",
+            "lookup table",
+            "description",
+        ]
+        .map(String::from)
+        .to_vec(),
+    ];
+    for d in list {
+        let samplings = d["samplings"].as_array().map_or(&[][..], Vec::as_slice);
+        if samplings.is_empty() {
+            let mut row = vec![cell(&d["index"]), cell(&d["scanner_index"])];
+            row.extend(std::iter::repeat_n(String::new(), 8));
+            row.push(cell(&d["description"]));
+            rows.push(row);
+        }
+        for (i, s) in samplings.iter().enumerate() {
+            let first = i == 0;
+            let lookup = match s["lookup_table_index"].as_u64() {
+                Some(0) | None => "-".to_string(),
+                Some(n) => n.to_string(),
+            };
+            rows.push(vec![
+                if first {
+                    cell(&d["index"])
+                } else {
+                    String::new()
+                },
+                if first {
+                    cell(&d["scanner_index"])
+                } else {
+                    String::new()
+                },
+                (i + 1).to_string(),
+                cell(&s["type"]),
+                cell(&s["channel"]),
+                cell(&s["bits_per_sample"]),
+                cell(&s["segments"]),
+                cell(&s["samples"]),
+                cell(if s["sample_units_ns"].is_null() {
+                    &d["sample_units_ns"]
+                } else {
+                    &s["sample_units_ns"]
+                }),
+                lookup,
+                if first {
+                    cell(&d["description"])
+                } else {
+                    String::new()
+                },
+            ]);
+        }
+    }
+    rows
+}
+
+/// A list of objects as a table with a row per key and a column per object (`scanner 1`, ...,
+/// numbered by their `index` when they have one).
+fn transposed_rows(what: &str, list: &[serde_json::Value]) -> Vec<Vec<String>> {
+    let mut keys: Vec<&str> = Vec::new();
+    for o in list.iter().filter_map(|o| o.as_object()) {
+        for k in o.keys().filter(|k| *k != "index") {
+            if !keys.contains(&k.as_str()) {
+                keys.push(k);
+            }
+        }
+    }
+    let mut header = vec![String::new()];
+    header.extend(list.iter().enumerate().map(|(i, o)| {
+        let n = o["index"].as_u64().unwrap_or(i as u64 + 1);
+        format!("{what} {n}")
+    }));
+    let mut rows = vec![header];
+    for k in keys {
+        let mut row = vec![k.to_string()];
+        row.extend(list.iter().map(|o| cell(&o[k])));
+        rows.push(row);
+    }
+    rows
+}
+
+/// Writes `rows` (the first is the header) as columns separated by two spaces, each line
+/// prefixed by `indent`: columns whose cells are all numbers are right-aligned, others left.
+fn write_table(out: &mut impl Write, indent: &str, rows: &[Vec<String>]) -> std::io::Result<()> {
+    let columns = rows.iter().map(Vec::len).max().unwrap_or(0);
+    let width = |c: usize| {
+        rows.iter()
+            .filter_map(|r| r.get(c))
+            .map(|s| s.chars().count())
+            .max()
+            .unwrap_or(0)
+    };
+    let numeric = |c: usize| {
+        rows.iter()
+            .skip(1)
+            .filter_map(|r| r.get(c))
+            .filter(|s| !s.is_empty())
+            .all(|s| s.parse::<f64>().is_ok())
+    };
+    let layout: Vec<(usize, bool)> = (0..columns).map(|c| (width(c), numeric(c))).collect();
+    for row in rows {
+        let mut line = String::from(indent);
+        for (c, (w, right)) in layout.iter().enumerate() {
+            let text = row.get(c).map_or("", String::as_str);
+            if c > 0 {
+                line.push_str("  ");
+            }
+            let pad = w.saturating_sub(text.chars().count());
+            if *right {
+                line.extend(std::iter::repeat_n(' ', pad));
+                line.push_str(text);
+            } else {
+                line.push_str(text);
+                line.extend(std::iter::repeat_n(' ', pad));
+            }
+        }
+        writeln!(out, "{}", line.trim_end())?;
+    }
+    Ok(())
 }
 
 /// The overview of a file read through a source.
@@ -325,5 +576,51 @@ fn print_pulse(out: &mut impl Write, p: &Pulse, json: bool) -> std::io::Result<(
             )?;
         }
         writeln!(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn inspect_cells_round_to_seven_digits() {
+        assert_eq!(cell(&json!(0.30000001192092896)), "0.3");
+        assert_eq!(cell(&json!(28.300003051757812)), "28.3");
+        assert_eq!(cell(&json!(0.00390625)), "0.00390625");
+        assert_eq!(cell(&json!(1.0)), "1");
+        assert_eq!(cell(&json!(0.0)), "0");
+        assert_eq!(cell(&json!(1234567.5)), "1234568");
+        assert_eq!(cell(&json!(240)), "240");
+        assert_eq!(cell(&json!("text")), "text");
+        assert_eq!(cell(&json!(null)), "-");
+    }
+
+    #[test]
+    fn inspect_identical_consecutive_descriptors_share_a_row() {
+        let d = |index: u64, samples: u64| {
+            json!({"index": index, "bits_per_sample": 16, "compression": 0, "samples": samples,
+                   "temporal_spacing_ps": 1000, "digitizer_gain": 1.0, "digitizer_offset": 0.0})
+        };
+        let rows = las_descriptor_rows(&[d(1, 60), d(2, 0), d(3, 0), d(4, 0), d(6, 0), d(7, 5)]);
+        let index: Vec<&str> = rows.iter().map(|r| r[0].as_str()).collect();
+        // 5 is missing, so 6 starts a new run; 7 differs.
+        assert_eq!(index, ["index", "1", "2-4", "6", "7"]);
+        assert_eq!(rows[2], ["2-4", "16", "0", "0", "1000", "1", "0"]);
+    }
+
+    #[test]
+    fn inspect_tables_align_numbers_right_and_text_left() {
+        let rows: Vec<Vec<String>> = [["n", "name"], ["5", "a"], ["120", "long name"]]
+            .iter()
+            .map(|r| r.iter().map(|s| s.to_string()).collect())
+            .collect();
+        let mut out = Vec::new();
+        write_table(&mut out, "  ", &rows).unwrap();
+        assert_eq!(
+            String::from_utf8(out).unwrap(),
+            "    n  name\n    5  a\n  120  long name\n"
+        );
     }
 }

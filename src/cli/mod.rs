@@ -4,9 +4,11 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 
+pub mod completions;
 pub mod import;
 pub mod inspect;
 pub mod inspect_nav;
+pub mod man;
 pub mod merge;
 pub mod process;
 pub mod repair;
@@ -46,7 +48,7 @@ pub enum Command {
     /// The on-board daemon: record digitizer frames (network) and navigation (serial ports),
     /// process them live into voxel tiles, serve QC; SIGTERM stops it.
     Run(run::RunArgs),
-    /// Replay a recorded capture (or a LAS / PulseWaves waveform file) through the processing
+    /// Replay a recorded capture (or a LAS/LAZ / PulseWaves waveform file) through the processing
     /// chain into an output folder.
     Replay(replay::ReplayArgs),
     /// Rebuild the header of a LAS 1.4 file cut off by a crash (point count, bounds, per-return
@@ -56,10 +58,10 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Check configuration files (run configs, sensor profiles, scenes); report every error.
     Validate(validate::ValidateArgs),
-    /// Describe a capture, LAS or PulseWaves file: header, record counts, damage; optionally
+    /// Describe a capture, LAS/LAZ or PulseWaves file: header, record counts, damage; optionally
     /// every pulse as JSON.
     Inspect(inspect::InspectArgs),
-    /// Convert a LAS or PulseWaves waveform file (or a capture) into a capture.
+    /// Convert a LAS/LAZ or PulseWaves waveform file (or a capture) into a capture.
     Import(import::ImportArgs),
     /// Denoise, deconvolve (and optionally decompose) a table of waveforms (CSV or .npy).
     Process(process::ProcessArgs),
@@ -69,6 +71,10 @@ pub enum Command {
     /// Combine voxel stores (voxels.zarr) of several flights or replays into one, independent
     /// of order.
     Merge(merge::MergeArgs),
+    /// Print the shell completion script (bash, zsh, fish, elvish, powershell).
+    Completions(completions::CompletionsArgs),
+    /// Write the manual pages (fwlidar.1 and one per command) into a folder.
+    Man(man::ManArgs),
 }
 
 /// A failure to report: the message and the exit code.
@@ -136,6 +142,8 @@ pub fn main() -> i32 {
         Command::Process(a) => process::run(a),
         Command::Tradeoff(a) => tradeoff::run(a),
         Command::Merge(a) => merge::run(a),
+        Command::Completions(a) => completions::run(a),
+        Command::Man(a) => man::run(a),
     };
     match result {
         Ok(()) => 0,

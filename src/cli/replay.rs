@@ -8,7 +8,7 @@ use std::time::Duration;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
-use crate::config::RunConfig;
+use crate::config::{RunConfig, WaveformFormat};
 use crate::pipeline::runner::{LiveCounters, PipelineSpec};
 use crate::pipeline::warnings::{log_warnings, run_warnings, warnings_block};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
@@ -19,6 +19,7 @@ use crate::sink::nav_decode::NavDecode;
 use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::voxel_tiles::{CrsSource, VoxelTilesSink};
 use crate::sink::waveform_csv::WaveformCsvSink;
+use crate::sink::waveform_npy::WaveformNpySink;
 use crate::sink::{FanOut, PulseSink};
 use crate::voxel::zarr::StoreInfo;
 
@@ -43,6 +44,11 @@ pub struct ReplayArgs {
     /// Do not draw a progress bar.
     #[arg(long)]
     pub no_progress: bool,
+    /// Override a key of the run configuration, `KEY=VALUE` (dotted key with list indices,
+    /// TOML value), checked like the file, e.g. `--set output.las=true --set
+    /// 'pipeline.stages[1].max_taps=128'`. Repeatable; a later one wins.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub sets: Vec<String>,
 }
 
 /// Registers SIGINT and SIGTERM: the first sets `control.stop` (clean shutdown, every sink
@@ -60,8 +66,8 @@ pub fn install_signal_handlers(control: &RunControl) -> Result<(), Failure> {
 /// Runs `fwlidar replay`: open the input, build the stages and the sinks, run with a progress
 /// bar, then report (summary.json, the one-screen summary, the warnings).
 pub fn run(args: ReplayArgs) -> Result<(), Failure> {
-    let config: RunConfig =
-        crate::config::load_run_config(args.config.as_deref()).map_err(Failure::usage)?;
+    let config: RunConfig = crate::config::load_run_config_with(args.config.as_deref(), &args.sets)
+        .map_err(Failure::usage)?;
     let out_dir = args
         .out
         .clone()
@@ -144,9 +150,14 @@ fn build_sinks(
     let decomposes = spec.stage_names.contains(&"decompose");
     let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
     if out.waveforms {
-        sinks.push(Box::new(
-            WaveformCsvSink::create(out_dir).map_err(Failure::job)?,
-        ));
+        sinks.push(match out.waveform_format {
+            WaveformFormat::Npy => {
+                Box::new(WaveformNpySink::create(out_dir).map_err(Failure::job)?)
+            }
+            WaveformFormat::Csv => {
+                Box::new(WaveformCsvSink::create(out_dir).map_err(Failure::job)?)
+            }
+        });
     }
     if out.returns && decomposes {
         sinks.push(Box::new(
@@ -154,7 +165,7 @@ fn build_sinks(
         ));
     }
     if out.las && decomposes {
-        sinks.push(las_sink(config, &facts, out_dir)?);
+        sinks.push(las_sink(config, &facts, input, out_dir)?);
     }
     if out.hyper_points {
         sinks.push(Box::new(
@@ -179,9 +190,10 @@ fn build_sinks(
 fn las_sink(
     config: &RunConfig,
     facts: &crate::source::SourceFacts,
+    input: &Input,
     out_dir: &Path,
 ) -> Result<Box<dyn PulseSink>, Failure> {
-    if facts.crs.is_none() {
+    if facts.crs.is_none() && input.decided_crs.is_none() {
         tracing::warn!(
             "returns.las will have no CRS record: the input states none before it is read \
              (georeferencing into the UTM zone of the first fix decides it too late; set \
@@ -195,6 +207,7 @@ fn las_sink(
             point_format: out.las_point_format,
             rotate_s: out.las_rotate_s,
             flush_s: out.las_flush_s,
+            crs_decided: input.decided_crs.clone(),
             ..las_options(facts)
         },
     )
@@ -337,7 +350,7 @@ pub fn georeferenced(
     {
         geo_cfg.output_epsg = Some(code);
     }
-    let mut g = crate::geo::georeference::GeoreferencingSource::new(source, geo_cfg)
+    let mut g = crate::geo::georeferencing_source::GeoreferencingSource::new(source, geo_cfg)
         .map_err(Failure::usage)?
         .with_earliest_date(config.navigation.earliest_days());
     if let (Some(d), Some(path)) = (&dem, &config.georeference.dem) {

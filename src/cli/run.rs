@@ -56,6 +56,11 @@ pub struct RunArgs {
     /// Worker threads (overrides `[pipeline] workers`; 0 = automatic).
     #[arg(long)]
     pub workers: Option<usize>,
+    /// Override a key of the run configuration, `KEY=VALUE` (dotted key with list indices,
+    /// TOML value), checked like the file, e.g. `--set voxels.enabled=false`. Repeatable; a
+    /// later one wins; the options above win over it.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub sets: Vec<String>,
 }
 
 /// The next free segment `<survey>_NNNN.fwcap` in `dir`.
@@ -84,8 +89,8 @@ fn create_dir(dir: &Path, what: &str) -> Result<(), Failure> {
 
 /// Runs the daemon until SIGINT/SIGTERM.
 pub fn run(args: RunArgs) -> Result<(), Failure> {
-    let mut config: RunConfig =
-        crate::config::load_run_config(Some(&args.config)).map_err(Failure::usage)?;
+    let mut config: RunConfig = crate::config::load_run_config_with(Some(&args.config), &args.sets)
+        .map_err(Failure::usage)?;
     if let Some(f) = &args.frames {
         crate::daemon::FrameInput::parse(f)
             .map_err(|e| Failure::usage(format!("--frames: {e}")))?;
@@ -257,7 +262,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     // Outputs: the survey's voxel store (continued across restarts) and the segment's LAS.
     let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
     if config.voxels.enabled {
-        let crs = match (facts.crs.clone(), decided_crs) {
+        let crs = match (facts.crs.clone(), decided_crs.clone()) {
             (Some(c), _) => CrsSource::Known(Some(c)),
             (None, Some(cell)) => CrsSource::Decided(cell),
             (None, None) => CrsSource::Known(None),
@@ -310,6 +315,8 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
                         60.0
                     },
                     flush_s: config.output.las_flush_s,
+                    crs_wkt: facts.crs.clone().filter(|c| !c.starts_with("EPSG:")),
+                    crs_decided: decided_crs.clone(),
                     ..LasWaveOptions::default()
                 },
             )
@@ -334,7 +341,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
                 .unwrap_or_default(),
             georeference: config.georeference.enabled,
             drop_missed: config.georeference.on_missing
-                == crate::geo::georeference::OnMissing::Drop,
+                == crate::geo::georeferencing_source::OnMissing::Drop,
             stages,
         },
     );

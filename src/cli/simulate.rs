@@ -38,8 +38,9 @@ pub struct SimulateArgs {
     /// Do not draw a progress bar.
     #[arg(long)]
     pub no_progress: bool,
-    /// Override a key of a described scene, `KEY=VALUE` (dotted key, TOML value), e.g.
-    /// `--set sensor.outgoing_fwhm_ns=8 --set flight.scan.zenith_deg=10`. Repeatable.
+    /// Override a key of a described scene, `KEY=VALUE` (dotted key with list indices, TOML
+    /// value), e.g. `--set sensor.outgoing_fwhm_ns=8 --set 'tree[0].height_m=20'`. Repeatable;
+    /// a later one wins.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub sets: Vec<String>,
     /// Do not voxelise the truth (a described scene writes `<stem>.truth/voxels.zarr`).
@@ -408,6 +409,7 @@ fn voxelise_truth(truth: &Path, dir: &Path) -> Result<(), Failure> {
         config: Some(config),
         workers: Some(1),
         no_progress: true,
+        sets: Vec::new(),
     })
 }
 

@@ -3,10 +3,44 @@
 
 use std::path::PathBuf;
 
+use std::path::Path;
+
 use crate::cli::Failure;
-use crate::config::{Validated, validate_any};
+use crate::config::{ConfigErrors, RunConfig, SensorFile, load_str, read_top_level_keys};
 use crate::pipeline::registry::StageConfig;
 use crate::signal::deconvolve::KernelSource;
+
+/// A configuration file, validated, as recognised by [`validate_any`].
+#[derive(Clone, Debug, PartialEq)]
+pub enum Validated {
+    /// A sensor profile (a `[sensor]` table).
+    Sensor(SensorFile),
+    /// A run configuration (`sensor_profile`, `[pipeline]`, `[output]`).
+    Run(Box<RunConfig>),
+    /// A simulator scene (a `[scene]` table).
+    Scene(Box<crate::sim::SceneFile>),
+    /// A described simulator scene (a `[flight]` table: terrain, objects, flight plan).
+    World(Box<crate::sim::world::scene::WorldScene>),
+}
+
+/// Validates the file at `path` as whichever kind it is, decided by its top-level tables: a
+/// `[flight]` table makes it a described simulator scene, a `[sensor]` table a sensor profile,
+/// a `[scene]` table an analytic simulator scene (schema, values and its sensor profile),
+/// anything else a run configuration. Every problem is reported, as by `config::load_file`.
+pub fn validate_any(path: impl AsRef<Path>) -> Result<Validated, ConfigErrors> {
+    let path = path.as_ref();
+    let (text, keys) = read_top_level_keys(path)?;
+    let has = |k: &str| keys.iter().any(|key| key == k);
+    if has("flight") {
+        load_str(&text, path).map(|f| Validated::World(Box::new(f)))
+    } else if has("sensor") {
+        load_str(&text, path).map(Validated::Sensor)
+    } else if has("scene") {
+        load_str(&text, path).map(|f| Validated::Scene(Box::new(f)))
+    } else {
+        load_str(&text, path).map(|r| Validated::Run(Box::new(r)))
+    }
+}
 
 /// Arguments of `fwlidar validate`.
 #[derive(Debug, clap::Args)]
@@ -129,5 +163,42 @@ mod tests {
         assert_eq!(grouped(999), "999");
         assert_eq!(grouped(1000), "1 000");
         assert_eq!(grouped(1_860_770), "1 860 770");
+    }
+
+    #[test]
+    fn validate_any_decides_by_top_level_tables() {
+        use crate::config::IssueKind;
+        let dir = tempfile::tempdir().unwrap();
+        let sensor = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("config/sensors/riegl_lms_q680i.toml"),
+        )
+        .unwrap();
+        let write = |name: &str, text: &str| {
+            let p = dir.path().join(name);
+            std::fs::write(&p, text).unwrap();
+            p
+        };
+        let s = write("s.toml", &sensor);
+        assert!(matches!(validate_any(&s), Ok(Validated::Sensor(_))));
+        let r = write("r.toml", "[pipeline]\nworkers = 2\n");
+        assert!(matches!(validate_any(&r), Ok(Validated::Run(_))));
+        let c = write("c.toml", "[scene]\ntrees = 6\n");
+        let e = validate_any(&c).unwrap_err();
+        assert!(
+            e.issues
+                .iter()
+                .any(|i| i.kind == IssueKind::Schema && i.path == "scene.trees"),
+            "{e}"
+        );
+        // A file that mixes kinds is checked against the first kind found.
+        let m = write("m.toml", &format!("{sensor}\n[pipeline]\nworkers = 2\n"));
+        let e = validate_any(&m).unwrap_err();
+        let paths: Vec<&str> = e.issues.iter().map(|i| i.path.as_str()).collect();
+        assert_eq!(paths, ["pipeline"], "{e}");
+        // Unreadable text is reported before any kind is chosen.
+        let b = dir.path().join("b.toml");
+        std::fs::write(&b, b"a = 1\nb = \"\xff\xfe\"\n").unwrap();
+        let e = validate_any(&b).unwrap_err();
+        assert_eq!(e.issues[0].kind, IssueKind::Io);
     }
 }

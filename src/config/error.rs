@@ -17,6 +17,9 @@ pub enum IssueKind {
     Invalid,
     /// The file's kind (which schema it follows) is not one this build validates.
     UnknownKind,
+    /// A `--set KEY=VALUE` override cannot be applied (not `KEY=VALUE`, not a key path, or a
+    /// path through a value that is not a table or list, or past the end of a list).
+    Override,
 }
 
 /// A position in a file, both 1-based; the column counts characters, not bytes.

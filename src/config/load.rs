@@ -24,7 +24,6 @@ use toml::de::{DeTable, DeValue};
 use toml::{Spanned, Table, Value};
 
 use super::error::{ConfigErrors, ConfigIssue, IssueKind, Location};
-use super::{RunConfig, SensorFile};
 
 /// Bound on the repair rounds of one file (each round finds at most one schema error).
 const MAX_ROUNDS: usize = 200;
@@ -132,27 +131,26 @@ pub fn index(path: &str, i: usize) -> String {
     format!("{path}[{i}]")
 }
 
-/// A configuration file, validated, as recognised by [`validate_any`].
-#[derive(Clone, Debug, PartialEq)]
-pub enum Validated {
-    /// A sensor profile (a `[sensor]` table).
-    Sensor(SensorFile),
-    /// A run configuration (`sensor_profile`, `[pipeline]`, `[output]`).
-    Run(Box<RunConfig>),
-    /// A simulator scene (a `[scene]` table).
-    Scene(Box<crate::sim::SceneFile>),
-    /// A described simulator scene (a `[flight]` table: terrain, objects, flight plan).
-    World(Box<crate::sim::world::scene::WorldScene>),
-}
-
 /// Reads, parses, deserializes and validates the file at `path` as a `T`, reporting every
 /// problem found (see the module documentation). Never panics.
 pub fn load_file<T: DeserializeOwned + Validate>(
     path: impl AsRef<Path>,
 ) -> Result<T, ConfigErrors> {
+    load_file_with(path, &[] as &[&str])
+}
+
+/// As [`load_file`], with `--set KEY=VALUE` overrides ([`super::overrides`]) applied to the
+/// parsed file before it is checked. A problem with an overridden field is reported like one
+/// in the file, without a line and column, its reason ending `(from --set KEY=VALUE)`; an
+/// override that cannot be applied (not `KEY=VALUE`, an index past the end of a list) is an
+/// issue of kind [`IssueKind::Override`].
+pub fn load_file_with<T: DeserializeOwned + Validate>(
+    path: impl AsRef<Path>,
+    sets: &[impl AsRef<str>],
+) -> Result<T, ConfigErrors> {
     let path = path.as_ref();
     let text = read_text(path)?;
-    load_str(&text, path)
+    load_str_with(&text, path, sets)
 }
 
 /// As [`load_file`], for `text` that came from `origin` (used in messages and to resolve
@@ -161,29 +159,43 @@ pub fn load_str<T: DeserializeOwned + Validate>(
     text: &str,
     origin: impl AsRef<Path>,
 ) -> Result<T, ConfigErrors> {
-    let origin = origin.as_ref();
-    let doc = parse(text, origin)?;
-    Loader::new(text, origin, &doc.spans).run(doc.table)
+    load_str_with(text, origin, &[] as &[&str])
 }
 
-/// Validates the file at `path` as whichever kind it is, decided by its top-level tables: a
-/// `[flight]` table makes it a described simulator scene, a `[sensor]` table a sensor profile,
-/// a `[scene]` table an analytic simulator scene (schema, values and its sensor profile),
-/// anything else a run configuration.
-pub fn validate_any(path: impl AsRef<Path>) -> Result<Validated, ConfigErrors> {
+/// As [`load_file_with`], for `text` that came from `origin`.
+pub fn load_str_with<T: DeserializeOwned + Validate>(
+    text: &str,
+    origin: impl AsRef<Path>,
+    sets: &[impl AsRef<str>],
+) -> Result<T, ConfigErrors> {
+    let origin = origin.as_ref();
+    let mut doc = parse(text, origin)?;
+    let overrides = super::overrides::apply_all(&mut doc.table, sets).map_err(|e| {
+        ConfigErrors::single(
+            origin,
+            IssueKind::Override,
+            e.at(),
+            format!("--set {e}"),
+            None,
+        )
+    })?;
+    let mut loader = Loader::new(text, origin, &doc.spans);
+    loader.overrides = overrides
+        .iter()
+        .map(|o| (o.key(), o.text.clone()))
+        .collect();
+    loader.run(doc.table)
+}
+
+/// Reads the file at `path` and parses it as TOML: its text and the names of its top-level
+/// keys and tables, for a caller that decides the kind of a file by what it holds (`fwlidar
+/// validate`, `cli/validate.rs`) and then loads the text with [`load_str`]. Errors (unreadable,
+/// not UTF-8, invalid TOML) are reported as by [`load_file`].
+pub fn read_top_level_keys(path: impl AsRef<Path>) -> Result<(String, Vec<String>), ConfigErrors> {
     let path = path.as_ref();
     let text = read_text(path)?;
-    let doc = parse(&text, path)?;
-    let loader = Loader::new(&text, path, &doc.spans);
-    if doc.table.contains_key("flight") {
-        loader.run(doc.table).map(|f| Validated::World(Box::new(f)))
-    } else if doc.table.contains_key("sensor") {
-        loader.run(doc.table).map(Validated::Sensor)
-    } else if doc.table.contains_key("scene") {
-        loader.run(doc.table).map(|f| Validated::Scene(Box::new(f)))
-    } else {
-        loader.run(doc.table).map(|r| Validated::Run(Box::new(r)))
-    }
+    let keys = parse(&text, path)?.table.keys().cloned().collect();
+    Ok((text, keys))
 }
 
 /// Reads a configuration file as UTF-8 text, naming the file in every error.
@@ -376,6 +388,8 @@ struct Loader<'a, 't> {
     removed: Vec<(String, Vec<usize>)>,
     /// Placeholders in force: original dotted path, current path, candidate number.
     placed: Vec<(String, Vec<Seg>, usize)>,
+    /// The `--set` overrides applied: dotted key path, override as given.
+    overrides: Vec<(String, String)>,
     issues: Vec<ConfigIssue>,
 }
 
@@ -387,6 +401,7 @@ impl<'a, 't> Loader<'a, 't> {
             spans,
             removed: Vec::new(),
             placed: Vec::new(),
+            overrides: Vec::new(),
             issues: Vec::new(),
         }
     }
@@ -441,7 +456,7 @@ impl<'a, 't> Loader<'a, 't> {
             {
                 continue;
             }
-            let location = self.location(&dotted_to_segs(&path), false);
+            let (location, reason) = self.origin_of(&path, reason, false);
             self.issues.push(ConfigIssue {
                 kind: IssueKind::Invalid,
                 path,
@@ -534,7 +549,7 @@ impl<'a, 't> Loader<'a, 't> {
             .any(|p| !p.is_empty() && is_under(&original, p));
         if !consequence {
             let want_key = reason.starts_with("unknown key");
-            let location = self.location(&dotted_to_segs(&original), want_key);
+            let (location, reason) = self.origin_of(&original, reason, want_key);
             self.issues.push(ConfigIssue {
                 kind: IssueKind::Schema,
                 path: original,
@@ -660,6 +675,22 @@ impl<'a, 't> Loader<'a, 't> {
         }
     }
 
+    /// Where an issue at the (original) dotted `path` comes from, and its reason: a field set
+    /// by a `--set` override (at or below its key; the last such override) has no place in the
+    /// file and the reason names the override; any other field is located in the file
+    /// ([`Loader::location`]).
+    fn origin_of(&self, path: &str, reason: String, want_key: bool) -> (Option<Location>, String) {
+        match self
+            .overrides
+            .iter()
+            .rev()
+            .find(|(key, _)| is_under(path, key))
+        {
+            Some((_, text)) => (None, format!("{reason} (from --set {text})")),
+            None => (self.location(&dotted_to_segs(path), want_key), reason),
+        }
+    }
+
     /// The line and column of the field at `path` in the file (of its key when `want_key`,
     /// else of its value); for a field absent from the file, of the nearest enclosing table
     /// written in the file; `None` at the top level.
@@ -740,6 +771,7 @@ fn dotted_to_segs(path: &str) -> Vec<Seg> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::{RunConfig, SensorFile};
 
     fn run(text: &str) -> Result<RunConfig, ConfigErrors> {
         load_str(text, "run.toml")
@@ -994,7 +1026,7 @@ waveforms = "yes"
         assert!(e.to_string().starts_with(&dir.path().display().to_string()));
         let binary = dir.path().join("bin.toml");
         std::fs::write(&binary, b"a = 1\nb = \"\xff\xfe\"\n").unwrap();
-        let e = validate_any(&binary).unwrap_err();
+        let e = read_top_level_keys(&binary).unwrap_err();
         assert_eq!(e.issues[0].kind, IssueKind::Io);
         assert_eq!(e.issues[0].location, Some(Location { line: 2, column: 6 }));
         assert!(e.to_string().contains("not UTF-8"), "{e}");
@@ -1024,35 +1056,6 @@ waveforms = "yes"
     }
 
     #[test]
-    fn config_validate_any_decides_by_top_level_tables() {
-        let dir = tempfile::tempdir().unwrap();
-        let write = |name: &str, text: &str| {
-            let p = dir.path().join(name);
-            std::fs::write(&p, text).unwrap();
-            p
-        };
-        let s = write("s.toml", GOOD_SENSOR);
-        assert!(matches!(validate_any(&s), Ok(Validated::Sensor(_))));
-        let r = write("r.toml", "[pipeline]\nworkers = 2\n");
-        assert!(matches!(validate_any(&r), Ok(Validated::Run(_))));
-        let c = write("c.toml", "[scene]\ntrees = 6\n");
-        let e = validate_any(&c).unwrap_err();
-        assert!(
-            e.issues
-                .iter()
-                .any(|i| i.kind == IssueKind::Schema && i.path == "scene.trees"),
-            "{e}"
-        );
-        // A file that mixes kinds is checked against the first kind found.
-        let m = write(
-            "m.toml",
-            &format!("{GOOD_SENSOR}\n[pipeline]\nworkers = 2\n"),
-        );
-        let e = validate_any(&m).unwrap_err();
-        assert_eq!(paths(&e), ["pipeline"], "{e}");
-    }
-
-    #[test]
     fn config_loader_never_panics_on_truncated_or_mangled_text() {
         let text = r#"sensor_profile = "sensors/none.toml"
 [pipeline]
@@ -1077,5 +1080,107 @@ dir = "out"
                 .collect();
             let _ = run(&mangled);
         }
+    }
+
+    fn run_with(text: &str, sets: &[&str]) -> Result<RunConfig, ConfigErrors> {
+        load_str_with(text, "run.toml", sets)
+    }
+
+    const TWO_STAGES: &str = "[pipeline]\nworkers = 2\n[[pipeline.stages]]\ntype = \"denoise\"\n\
+        [[pipeline.stages]]\ntype = \"deconvolve\"\nmax_taps = 96\n\
+        method = { method = \"richardson_lucy\", iterations = 20 }\n[output]\nlas = false\n";
+
+    #[test]
+    fn config_overrides_change_the_loaded_value() {
+        let base = run(TWO_STAGES).unwrap();
+        let c = run_with(
+            TWO_STAGES,
+            &[
+                "output.las=true",
+                "pipeline.stages[1].max_taps=128",
+                "voxels.enabled=false",
+                "pipeline.workers=3",
+            ],
+        )
+        .unwrap();
+        assert!(!base.output.las && c.output.las);
+        assert_eq!(c.pipeline.workers, 3);
+        assert!(!c.voxels.enabled);
+        let taps = |c: &RunConfig| match &c.pipeline.stages[1] {
+            crate::pipeline::registry::StageConfig::Deconvolve(d) => d.max_taps,
+            other => panic!("stage 1 is {other:?}"),
+        };
+        assert_eq!((taps(&base), taps(&c)), (96, 128));
+        // Everything not overridden is as the file says.
+        let mut back = c.clone();
+        back.output.las = false;
+        back.pipeline.workers = 2;
+        back.voxels.enabled = base.voxels.enabled;
+        if let crate::pipeline::registry::StageConfig::Deconvolve(d) = &mut back.pipeline.stages[1]
+        {
+            d.max_taps = 96;
+        }
+        assert_eq!(back, base);
+    }
+
+    #[test]
+    fn config_override_errors_name_the_field_and_the_override() {
+        // A misspelt key: reported as an unknown key, without a place in the file.
+        let e = run_with(TWO_STAGES, &["output.lass=true"]).unwrap_err();
+        assert_eq!(
+            issues(&e),
+            [(
+                "output.lass".to_string(),
+                None,
+                "unknown key `lass`, expected one of `dir`, `waveforms`, `waveform_format`, \
+                 `returns`, `las`, `las_point_format`, `las_rotate_s`, `las_flush_s`, \
+                 `hyper_points`, `hyper_threshold_v` (from --set output.lass=true)"
+                    .to_string()
+            )],
+            "{e}"
+        );
+        // A value of the wrong type.
+        let e = run_with(TWO_STAGES, &["output.las=ture"]).unwrap_err();
+        assert_eq!(paths(&e), ["output.las"], "{e}");
+        assert!(e.issues[0].location.is_none());
+        assert!(
+            e.issues[0].reason.contains("expected a boolean")
+                && e.issues[0].reason.ends_with("(from --set output.las=ture)"),
+            "{e}"
+        );
+        // A key the stage does not have, inside a tagged list entry.
+        let e = run_with(TWO_STAGES, &["pipeline.stages[0].max_taps=128"]).unwrap_err();
+        assert_eq!(paths(&e), ["pipeline.stages[0].max_taps"], "{e}");
+        // A value out of range, found by the semantic checks.
+        let e = run_with(TWO_STAGES, &["pipeline.stages[1].max_taps=0"]).unwrap_err();
+        assert_eq!(paths(&e), ["pipeline.stages[1].max_taps"], "{e}");
+        assert_eq!(e.issues[0].kind, IssueKind::Invalid);
+        assert!(
+            e.issues[0]
+                .reason
+                .ends_with("(from --set pipeline.stages[1].max_taps=0)")
+        );
+        // An index past the end, and text that is no override.
+        let e = run_with(TWO_STAGES, &["pipeline.stages[2].max_taps=1"]).unwrap_err();
+        assert_eq!(e.issues[0].kind, IssueKind::Override);
+        assert_eq!(paths(&e), ["pipeline.stages"], "{e}");
+        assert!(e.to_string().contains("has 2 entries"), "{e}");
+        let e = run_with(TWO_STAGES, &["output.las"]).unwrap_err();
+        assert_eq!(e.issues[0].kind, IssueKind::Override);
+        // A problem in the file itself keeps its line and column beside an override.
+        let e = run_with(
+            &TWO_STAGES.replace("workers = 2", "workers = \"2\""),
+            &["output.las=true"],
+        )
+        .unwrap_err();
+        assert_eq!(issues(&e)[0].0, "pipeline.workers");
+        assert_eq!(issues(&e)[0].1, Some((2, 11)), "{e}");
+        // An override that repairs the file's problem is taken.
+        let fixed = run_with(
+            &TWO_STAGES.replace("workers = 2", "workers = \"2\""),
+            &["pipeline.workers=2"],
+        )
+        .unwrap();
+        assert_eq!(fixed, run(TWO_STAGES).unwrap());
     }
 }

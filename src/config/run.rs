@@ -39,9 +39,9 @@ pub struct RunConfig {
     /// Outputs.
     #[serde(default)]
     pub output: OutputConfig,
-    /// Georeferencing from the navigation stream (`src/geo/georeference.rs`).
+    /// Georeferencing from the navigation stream (`src/geo/georeferencing_source.rs`).
     #[serde(default)]
-    pub georeference: crate::geo::georeference::GeoreferenceConfig,
+    pub georeference: crate::geo::georeferencing_source::GeoreferenceConfig,
     /// Navigation inputs and their time handling.
     #[serde(default)]
     pub navigation: NavigationConfig,
@@ -178,18 +178,24 @@ pub struct OutputConfig {
     /// Output folder (the command line's `--out` takes precedence). Default `out`.
     #[serde(default = "default_out_dir")]
     pub dir: String,
-    /// Write the processed waveforms (`waveforms.csv` + `pulses.csv`). Default true.
+    /// Write the processed waveforms, in `waveform_format`. Default true.
     #[serde(default = "yes")]
     pub waveforms: bool,
-    /// Write the discrete returns of a `decompose` stage (`returns.csv`). Default true; the
-    /// file is only written when the pipeline has a `decompose` stage.
-    #[serde(default = "yes")]
+    /// Form of the processed waveforms: `npy` (`waveforms.npy` + `waveform_index.npy`, binary,
+    /// what `numpy.load` reads; `sink::waveform_npy`) or `csv` (`waveforms.csv` + `pulses.csv`,
+    /// text, ~3 times larger and slower). Default `npy`.
+    #[serde(default)]
+    pub waveform_format: WaveformFormat,
+    /// Write the discrete returns of a `decompose` stage as text (`returns.csv`). Default false
+    /// (`returns.las` holds them); the file is only written when the pipeline has a `decompose`
+    /// stage.
+    #[serde(default)]
     pub returns: bool,
     /// Write the discrete returns of a `decompose` stage as LAS 1.4 (`returns.las`; with point
     /// format 9 also `returns.wdp`), for the pulses that carry geometry (LAS, PulseWaves input,
-    /// or georeferenced captures). Default false; written only when the pipeline has a
+    /// or georeferenced captures). Default true; written only when the pipeline has a
     /// `decompose` stage.
-    #[serde(default)]
+    #[serde(default = "yes")]
     pub las: bool,
     /// Point data record format of the LAS output: 6 (points) or 9 (points with their raw
     /// waveforms in a `.wdp`). Default 6.
@@ -215,6 +221,17 @@ pub struct OutputConfig {
     pub hyper_threshold_v: Option<f32>,
 }
 
+/// The form of the processed waveforms written by `replay`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WaveformFormat {
+    /// `waveforms.npy` + `waveform_index.npy` (NumPy binary).
+    #[default]
+    Npy,
+    /// `waveforms.csv` + `pulses.csv` (text).
+    Csv,
+}
+
 fn default_las_point_format() -> u8 {
     6
 }
@@ -234,8 +251,9 @@ impl Default for OutputConfig {
         OutputConfig {
             dir: default_out_dir(),
             waveforms: true,
-            returns: true,
-            las: false,
+            waveform_format: WaveformFormat::Npy,
+            returns: false,
+            las: true,
             las_point_format: default_las_point_format(),
             las_rotate_s: 0.0,
             las_flush_s: default_las_flush_s(),

@@ -22,7 +22,7 @@ use crate::eval::metrics::{
 use crate::eval::tradeoff::percentile;
 use crate::format::{CaptureHeader, CaptureWriter, FlushPolicy};
 use crate::geo::crs::OutputCrs;
-use crate::geo::georeference::{GeoreferenceConfig, GeoreferencingSource};
+use crate::geo::georeferencing_source::{GeoreferenceConfig, GeoreferencingSource};
 use crate::pulse::{Pulse, PulseGeometry, SegmentKind};
 use crate::signal::deconvolve::{
     Deconvolver, GoldConfig, MethodConfig, NnlsConfig, RlConfig, WienerConfig,

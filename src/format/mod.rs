@@ -13,6 +13,8 @@
 //!   of points with extra dimensions (voxel tiles and other point outputs).
 //! - [`las_repair`]: rebuilding the header of a LAS 1.4 file cut off by a crash.
 //! - [`pulsewaves`]: PulseWaves 0.3 `.pls` + `.wvs` reader (input).
+//! - [`geokeys`]: the GeoTIFF GeoKey directory of LAS and PulseWaves files and the CRS it names
+//!   (one precedence for both readers).
 //!
 //! Byte layouts are specified in `docs/formats.md`.
 
@@ -20,6 +22,7 @@ pub mod capture;
 pub mod capture_reader;
 pub mod capture_writer;
 pub mod frame;
+pub mod geokeys;
 pub mod header;
 pub mod las_points;
 pub mod las_read;

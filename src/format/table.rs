@@ -566,24 +566,44 @@ pub fn parse_npy(bytes: &[u8], path: &str) -> Result<Table, TableError> {
     Ok(table)
 }
 
+/// The preamble of an NPY v1.0 file (magic, version, header length, header dictionary) for an
+/// array of dtype `descr` (a NumPy dtype description in Python syntax, e.g. `'<f4'` or a list of
+/// `('name', '<u8')` fields) and `shape`, C order, padded with spaces to `min_len` bytes or more
+/// (always a multiple of 64, as NumPy aligns the data). `None` when the dictionary does not fit
+/// the 16-bit header length.
+pub fn npy_preamble(descr: &str, shape: &[u64], min_len: usize) -> Option<Vec<u8>> {
+    let dims = match shape {
+        [n] => format!("({n},)"),
+        _ => format!(
+            "({})",
+            shape
+                .iter()
+                .map(u64::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    };
+    let mut header = format!("{{'descr': {descr}, 'fortran_order': False, 'shape': {dims}, }}");
+    let unpadded = NPY_MAGIC.len() + 2 + 2 + header.len() + 1;
+    let total = unpadded.max(min_len).div_ceil(64) * 64;
+    header.extend(std::iter::repeat_n(' ', total - unpadded));
+    header.push('\n');
+    let len = u16::try_from(header.len()).ok()?;
+    let mut out = Vec::with_capacity(total);
+    out.extend_from_slice(NPY_MAGIC);
+    out.extend_from_slice(&[1, 0]);
+    out.extend_from_slice(&len.to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    Some(out)
+}
+
 /// Encodes rows as an NPY v1.0 file: `<f4`, C order, shape `(rows, longest row)`, shorter rows
 /// padded with NaN.
 pub fn encode_npy(rows: &[Vec<f32>]) -> Vec<u8> {
     let cols = rows.iter().map(Vec::len).max().unwrap_or(0);
-    let mut header = format!(
-        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, {}), }}",
-        rows.len(),
-        cols
-    );
-    // Pad with spaces so that magic + version + length + header + '\n' is a multiple of 64.
-    let unpadded = NPY_MAGIC.len() + 2 + 2 + header.len() + 1;
-    header.extend(std::iter::repeat_n(' ', (64 - unpadded % 64) % 64));
-    header.push('\n');
-    let mut out = Vec::with_capacity(10 + header.len() + rows.len() * cols * 4);
-    out.extend_from_slice(NPY_MAGIC);
-    out.extend_from_slice(&[1, 0]);
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
+    let mut out = npy_preamble("'<f4'", &[rows.len() as u64, cols as u64], 0)
+        .expect("a two-dimensional shape fits an NPY header");
+    out.reserve(rows.len() * cols * 4);
     for row in rows {
         for v in row {
             out.extend_from_slice(&v.to_le_bytes());

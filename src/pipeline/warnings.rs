@@ -5,7 +5,8 @@
 //! A warning is raised when
 //!
 //! - **an output is empty**: no pulse reached the outputs (`output.no_pulses`), the decompose
-//!   stage found no return in any pulse that did (`output.no_returns`), or nothing was deposited
+//!   stage found no return in any pulse that did (`output.no_returns`, as `returns.csv` or
+//!   `returns.las` saw them), or nothing was deposited
 //!   in the voxel store that was asked for (`voxels.nothing_deposited`);
 //! - **one reason takes more than [`WARN_SHARE`]** of the pulses: a stage's drop reason
 //!   (`deconvolve.bad_kernel`), a stage's note (pulses passed on partly unprocessed, e.g.
@@ -24,7 +25,7 @@
 use serde::Serialize;
 
 use crate::config::RunConfig;
-use crate::geo::georeference::OnMissing;
+use crate::geo::georeferencing_source::OnMissing;
 use crate::pipeline::RunReport;
 use crate::pipeline::runner::INPUT_QUEUE_FULL;
 
@@ -427,8 +428,13 @@ fn empty_output_warnings(
         });
     }
     let decompose = report.stages.iter().position(|s| s.name == "decompose");
-    let rows = report.sinks.get("returns_csv").map(|r| counter(r, "rows"));
-    if let (Some(i), Some(0)) = (decompose, rows)
+    // Whether any return was found, as the returns' outputs saw it (`None` without one).
+    let any_return = match (report.sinks.get("returns_csv"), report.sinks.get("las")) {
+        (Some(csv), _) => Some(counter(csv, "rows") > 0),
+        (None, Some(las)) => Some(counter(las, "pulses_without_returns") < report.pulses_out),
+        (None, None) => None,
+    };
+    if let (Some(i), Some(false)) = (decompose, any_return)
         && report.pulses_out > 0
     {
         out.push(RunWarning {
@@ -666,6 +672,12 @@ mod tests {
         let w = run_warnings(&r, &cfg);
         let by = |reason: &str| w.iter().find(|w| w.reason == reason).cloned();
         let no_returns = by("output.no_returns").expect("no returns");
+        let mut las_only = r.clone();
+        las_only.sinks = serde_json::json!({ "las": { "pulses_without_returns": 10 } });
+        let w2 = run_warnings(&las_only, &cfg);
+        assert_eq!(w2[0].reason, "output.no_returns", "{w2:#?}");
+        las_only.sinks = serde_json::json!({ "las": { "pulses_without_returns": 9 } });
+        assert!(run_warnings(&las_only, &cfg).is_empty());
         assert_eq!(
             no_returns.setting.as_deref(),
             Some("pipeline.stages[0].min_snr")

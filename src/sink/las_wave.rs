@@ -94,6 +94,12 @@ pub struct LasWaveOptions {
     /// Hand the open file's buffered bytes to the OS when a pulse's GPS time is this many
     /// seconds past the last time it was done (0 = only when the 1 MiB buffers fill). Default 1.
     pub flush_s: f64,
+    /// The CRS decided during the run (by the georeferencing: the UTM zone of the first fix),
+    /// when `crs_wkt` is `None`: written at the end of each file, once known, as the OGC WKT
+    /// EVLR (`LASF_Projection` / 2112, which LAS 1.4 allows after the points), so a file whose
+    /// CRS was not known when it was opened still carries it. A value that is not WKT (e.g.
+    /// `EPSG:<code>`) is not written (and said).
+    pub crs_decided: Option<std::sync::Arc<std::sync::OnceLock<String>>>,
 }
 
 impl Default for LasWaveOptions {
@@ -105,6 +111,7 @@ impl Default for LasWaveOptions {
             point_format: 6,
             rotate_s: 0.0,
             flush_s: 1.0,
+            crs_decided: None,
         }
     }
 }
@@ -161,6 +168,8 @@ struct OpenFile {
     by_return: [u64; MAX_RETURNS],
     points: u64,
     wdp_pos: u64,
+    /// Where the WKT EVLR starts, once written when the file is completed.
+    evlr_start: Option<u64>,
 }
 
 /// Writes the returns as LAS into a folder.
@@ -326,6 +335,7 @@ impl LasWaveSink {
             by_return: [0; MAX_RETURNS],
             points: 0,
             wdp_pos: EVLR_HEADER_SIZE as u64,
+            evlr_start: None,
         });
         self.build_preamble()?;
         let f = self.file.as_mut().expect("just opened");
@@ -607,8 +617,8 @@ impl LasWaveSink {
             max: bound(&f.max),
             min: bound(&f.min),
             start_of_waveform_data: 0,
-            start_of_first_evlr: 0,
-            number_of_evlrs: 0,
+            start_of_first_evlr: f.evlr_start.unwrap_or(0),
+            number_of_evlrs: u32::from(f.evlr_start.is_some()),
             number_of_points: n,
             points_by_return: f.by_return,
         }
@@ -663,6 +673,7 @@ impl LasWaveSink {
         if self.file.is_none() {
             return Ok(());
         }
+        self.append_decided_crs()?;
         self.build_preamble()?;
         let mut f = self.file.take().expect("checked");
         if let Some(wdp) = f.wdp.as_mut() {
@@ -692,6 +703,56 @@ impl LasWaveSink {
         tracing::debug!(file = %name, points = f.points, "LAS file complete");
         self.report.files.push(name);
         self.file_index += 1;
+        Ok(())
+    }
+
+    /// Appends the CRS decided during the run as the WKT EVLR after the open file's points
+    /// (only when no CRS VLR was written at its start).
+    fn append_decided_crs(&mut self) -> Result<(), SinkError> {
+        if self.options.crs_wkt.is_some() {
+            return Ok(());
+        }
+        let Some(crs) = self
+            .options
+            .crs_decided
+            .as_ref()
+            .and_then(|c| c.get())
+            .cloned()
+        else {
+            return Ok(());
+        };
+        let f = self.file.as_mut().expect("a file is open");
+        if !crs.starts_with("PROJCS[") && !crs.starts_with("GEOGCS[") {
+            tracing::warn!(
+                file = %f.las_path.display(),
+                crs = %crs,
+                "no WKT for the output CRS: the LAS file states no CRS"
+            );
+            return Ok(());
+        }
+        let mut evlr = lw::evlr_header(
+            lw::LASF_PROJECTION,
+            lw::WKT_RECORD_ID,
+            crs.len() as u64 + 1,
+            "OGC WKT CRS",
+        )
+        .to_vec();
+        evlr.extend_from_slice(crs.as_bytes());
+        evlr.push(0);
+        let start = HEADER_SIZE as u64
+            + self.fixed_vlrs.len() as u64
+            + if self.options.point_format == 9 {
+                DESCRIPTOR_ROOM as u64
+            } else {
+                0
+            }
+            + f.points * self.record_len as u64;
+        let path = f.las_path.clone();
+        f.las
+            .writer()?
+            .write_all(&evlr)
+            .map_err(|e| io_err(&path, e))?;
+        f.evlr_start = Some(start);
         Ok(())
     }
 

@@ -9,6 +9,7 @@ pub mod nav_tally;
 pub mod returns_csv;
 pub mod voxel_tiles;
 pub mod waveform_csv;
+pub mod waveform_npy;
 
 use crate::pulse::Pulse;
 

@@ -1,5 +1,5 @@
-//! LAS 1.3 / 1.4 files with waveform packets as a [`Source`]: one pulse per waveform packet
-//! (the consecutive points that name it are its returns), read by
+//! LAS 1.3 / 1.4 files (plain or LAZ-compressed) with waveform packets as a [`Source`]: one
+//! pulse per waveform packet (the consecutive points that name it are its returns), read by
 //! [`crate::format::las_read::LasReader`]. Pulses carry their geometry (anchor at the first
 //! sample, direction per ns), so they need no navigation.
 
@@ -10,14 +10,15 @@ use crate::format::las_read::{LasReadError, LasReader, WaveformLocation};
 use crate::pulse::PulsePool;
 use crate::source::{Source, SourceError, SourceEvent, SourceFacts};
 
-/// Reads a LAS file (and its `.wdp`) as a [`Source`].
+/// Reads a LAS or LAZ file (and its `.wdp`) as a [`Source`].
 pub struct LasSource {
     reader: LasReader<File, File>,
 }
 
 impl LasSource {
-    /// Opens `path` and its waveform data. Errors name the file and the field at fault; a
-    /// missing `.wdp` names the paths looked for.
+    /// Opens `path` (LAS or LAZ) and its waveform data. Errors name the file and the field at
+    /// fault; a missing `.wdp` names the paths looked for, a `.wdz` the command that decompresses
+    /// it.
     pub fn open(path: &Path) -> Result<Self, LasReadError> {
         let reader = LasReader::open(path)?;
         let info = reader.info();
@@ -25,6 +26,7 @@ impl LasSource {
             file = %info.file,
             version = %format!("{}.{}", info.version.0, info.version.1),
             point_format = info.header.point_format,
+            laz = reader.is_laz(),
             points = info.header.number_of_points,
             descriptors = info.descriptors_defined(),
             "LAS input"
@@ -61,6 +63,8 @@ impl Source for LasSource {
                 format!("{}.{}", info.version.0, info.version.1).into(),
             );
             o.insert("point_format".into(), info.header.point_format.into());
+            let compression = if self.reader.is_laz() { "laz" } else { "none" };
+            o.insert("compression".into(), compression.into());
             o.insert(
                 "points_in_header".into(),
                 info.header.number_of_points.into(),
@@ -68,6 +72,28 @@ impl Source for LasSource {
             o.insert(
                 "descriptors".into(),
                 (info.descriptors_defined() as u64).into(),
+            );
+            let defined = info
+                .descriptors
+                .iter()
+                .enumerate()
+                .filter_map(|(index, d)| {
+                    let d = d.as_ref()?;
+                    let w = &d.descriptor;
+                    Some(serde_json::json!({
+                        "index": index,
+                        "bits_per_sample": w.bits_per_sample,
+                        "compression": w.compression,
+                        "samples": w.number_of_samples,
+                        "temporal_spacing_ps": w.temporal_spacing_ps,
+                        "digitizer_gain": w.digitizer_gain,
+                        "digitizer_offset": w.digitizer_offset,
+                        "payload_bytes": d.payload_len,
+                    }))
+                });
+            o.insert(
+                "wave_packet_descriptors".into(),
+                defined.collect::<Vec<_>>().into(),
             );
             let location = match info.waveform {
                 WaveformLocation::External => "external",

@@ -128,6 +128,8 @@ impl Source for PulseWavesSource {
                         } else {
                             serde_json::Value::from(s.number_of_samples)
                         },
+                        "sample_units_ns": s.sample_units_ns,
+                        "lookup_table_index": s.lookup_table_index,
                         "description": s.description,
                     })).collect::<Vec<_>>(),
                 })

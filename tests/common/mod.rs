@@ -9,6 +9,15 @@ pub const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
 /// The repository root.
 pub const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
+/// The `replay` flags that ask for the text outputs (`pulses.csv` + `waveforms.csv`,
+/// `returns.csv`) beside the default binary ones, for tests that read them.
+pub const CSV_OUTPUTS: [&str; 4] = [
+    "--set",
+    "output.waveform_format=csv",
+    "--set",
+    "output.returns=true",
+];
+
 /// Runs `fwlidar` with `args` from the repository root.
 pub fn fwlidar(args: &[&str]) -> Output {
     Command::new(BIN)
@@ -23,20 +32,11 @@ pub fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()
 }
 
-/// A real-data fixture file: `$FWLIDAR_FIXTURES/<rel>`, else `<root>/../shared/fixtures/<rel>`.
-/// Panics naming the missing file (CI has the folder; a fresh clone may not).
+/// A real-data fixture file: `$FWLIDAR_FIXTURES/<rel>`, else `<root>/tests/data/<rel>` (the
+/// repository carries every file its tests read; `tests/data/MANIFEST.md`). Panics naming the
+/// missing file.
 pub fn fixture(rel: &str) -> PathBuf {
-    let base = std::env::var_os("FWLIDAR_FIXTURES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(ROOT).join("../shared/fixtures"));
-    let p = base.join(rel);
-    assert!(
-        p.is_file(),
-        "missing real-data fixture {} (set FWLIDAR_FIXTURES to the shared fixtures folder; see \
-         its MANIFEST.md)",
-        p.display()
-    );
-    p
+    fwlidar::fixtures::path(rel)
 }
 
 /// The Python with the real readers of our outputs (numpy, laspy, lazrs): `$FWLIDAR_PYTHON`,
@@ -53,4 +53,37 @@ pub fn python() -> PathBuf {
         venv.display()
     );
     venv
+}
+
+/// The real RIEGL waveform LAS fixture (LAS 1.4, point format 9, packets in the `.wdp`).
+pub const RIEGL_LAS: &str = "waveform/riegl_q680i/100429_152240_2535pt_UTM.las";
+
+/// LAZ copies of the real RIEGL fixture written by the real LAZ writers
+/// (`tests/python/write_laz.py`: laspy and lazrs), each with the fixture's `.wdp` beside it, in
+/// `dir` (made anew): `r9.laz` (format 9, one fixed-size chunk), `r9v.laz` (format 9,
+/// variable-size chunks of 500 points), `r4.las` and `r4.laz` (LAS 1.3 format 4, converted by
+/// laspy). Returns the script's JSON line (`{"r9.laz": [point format byte, chunk size,
+/// variable], ...}`).
+pub fn write_laz_copies(dir: &Path) -> serde_json::Value {
+    let las = fixture(RIEGL_LAS);
+    let wdp = las.with_extension("wdp");
+    let _ = std::fs::remove_dir_all(dir);
+    std::fs::create_dir_all(dir).unwrap();
+    let o = Command::new(python())
+        .arg(Path::new(ROOT).join("tests/python/write_laz.py"))
+        .arg(&las)
+        .arg(dir)
+        .output()
+        .expect("run python");
+    assert!(
+        o.status.success(),
+        "write_laz.py failed: {}{}",
+        text(&o.stdout),
+        text(&o.stderr)
+    );
+    for stem in ["r9", "r9v", "r4"] {
+        let to = dir.join(format!("{stem}.wdp"));
+        std::fs::write(&to, std::fs::read(&wdp).unwrap()).unwrap();
+    }
+    serde_json::from_slice(&o.stdout).expect("write_laz.py prints one JSON line")
 }

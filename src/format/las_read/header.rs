@@ -3,6 +3,7 @@
 
 use std::io::{BufReader, Read, Seek, SeekFrom};
 
+use super::laz::{LASZIP_RECORD_ID, LASZIP_USER_ID};
 use super::{
     GLOBAL_WAVEFORM_INTERNAL, HEADER_SIZE_13, LasReadError, MAX_WKT_BYTES, invalid, io_err,
 };
@@ -15,12 +16,6 @@ use crate::format::las_write::{
 
 /// Record id of the GeoTIFF GeoKeyDirectoryTag VLR (`LASF_Projection`).
 pub const GEO_KEY_DIRECTORY_RECORD_ID: u16 = 34735;
-/// GeoTIFF ProjectedCSTypeGeoKey.
-const PROJECTED_CS_KEY: u16 = 3072;
-/// GeoTIFF GeographicTypeGeoKey.
-const GEOGRAPHIC_TYPE_KEY: u16 = 2048;
-/// GeoTIFF "user-defined" code: no EPSG code.
-const GEOKEY_USER_DEFINED: u16 = 32767;
 /// Record id of the last possible waveform packet descriptor (index 255).
 const DESCRIPTOR_RECORD_ID_LAST: u16 = DESCRIPTOR_RECORD_ID_BASE + MAX_DESCRIPTORS as u16;
 
@@ -70,11 +65,14 @@ pub struct LasInfo {
     /// OGC WKT of the coordinate reference system (VLR or EVLR `LASF_Projection` / 2112), NULs
     /// trimmed.
     pub wkt: Option<String>,
-    /// EPSG code from the GeoKey directory (`LASF_Projection` / 34735), when it holds a plain
-    /// projected or geographic code.
+    /// EPSG code from the GeoKey directory (`LASF_Projection` / 34735): [`epsg_of_geokeys`].
     pub epsg: Option<u16>,
     /// Where the waveform packets are.
     pub waveform: WaveformLocation,
+    /// The payload of the LASzip VLR (`laszip encoded` 22204) when the point records are
+    /// LAZ-compressed (point data record format with bit 7 set, e.g. 137 for format 9;
+    /// `header.point_format` holds the format without it); `None` for plain LAS.
+    pub laz: Option<Vec<u8>>,
 }
 
 /// Byte layout of the point formats that carry waveforms.
@@ -261,28 +259,11 @@ pub(super) fn stream_len<R: Seek>(r: &mut R, file: &str) -> Result<u64, LasReadE
         .map_err(|e| io_err(file, "its length", e))
 }
 
-/// EPSG code of a GeoKey directory payload, when it names a plain projected (3072) or
-/// geographic (2048) code stored in the key itself.
+/// EPSG code of a GeoKey directory payload, by the precedence of [`crate::format::geokeys`]:
+/// a projected code (3072), else EPSG:4978 for a geocentric model (1024 = 3; another datum when
+/// 2048 names one), else a geographic code (2048) unless the model is projected.
 pub fn epsg_of_geokeys(b: &[u8]) -> Option<u16> {
-    let n = usize::from(u16_at(b, 6));
-    let key = |id: u16| {
-        (0..n).find_map(|k| {
-            let at = 8 + 8 * k;
-            if at + 8 > b.len() {
-                return None;
-            }
-            let (key_id, location, count, value) = (
-                u16_at(b, at),
-                u16_at(b, at + 2),
-                u16_at(b, at + 4),
-                u16_at(b, at + 6),
-            );
-            (key_id == id && location == 0 && count == 1 && value != 0)
-                .then_some(value)
-                .filter(|&v| v != GEOKEY_USER_DEFINED)
-        })
-    };
-    key(PROJECTED_CS_KEY).or_else(|| key(GEOGRAPHIC_TYPE_KEY))
+    crate::format::geokeys::GeoKeyDirectory::parse(b).epsg()
 }
 
 /// Indices set in `d`, runs of three or more written `a-b`: `1, 2`, `1-100`, `none`.
@@ -347,6 +328,12 @@ fn take_record<R: Read + Seek>(
         if !wkt.trim().is_empty() {
             info.wkt = Some(wkt);
         }
+    } else if user == LASZIP_USER_ID && record_id == LASZIP_RECORD_ID && info.laz.is_none() {
+        // At most 65535 bytes (a VLR), and read_at checks it lies in the file first.
+        let n = payload_len.min(u64::from(u16::MAX)) as usize;
+        let mut b = vec![0u8; n.min(info.file_len as usize)];
+        read_at(r, &file, info.file_len, payload_at, &mut b, label)?;
+        info.laz = Some(b);
     } else if user == LASF_PROJECTION && record_id == GEO_KEY_DIRECTORY_RECORD_ID {
         let n = payload_len.min(u64::from(u16::MAX)) as usize;
         let mut b = vec![0u8; n.min(info.file_len as usize)];
@@ -421,7 +408,20 @@ impl LasInfo {
         let global_encoding = u16_at(&h, 6);
         let offset_to_point_data = u32_at(&h, 96);
         let number_of_vlrs = u32_at(&h, 100);
-        let point_format = h[104];
+        let raw_format = h[104];
+        // LASzip marks compressed point records by setting bit 7.
+        let compressed = raw_format & 0x80 != 0;
+        let point_format = raw_format & 0x7f;
+        if point_format & 0x40 != 0 {
+            return Err(LasReadError::Unsupported {
+                file: file.into(),
+                field: "header: point data record format".into(),
+                what: format!(
+                    "{raw_format} (bit 6 set: no LAS format; early experimental LASzip versions \
+                     marked their files so)"
+                ),
+            });
+        }
         let point_record_length = u16_at(&h, 105);
         if u64::from(offset_to_point_data) < u64::from(header_size) {
             return Err(invalid(
@@ -430,20 +430,18 @@ impl LasInfo {
                 format!("{offset_to_point_data}, inside the {header_size}-byte header"),
             ));
         }
-        if point_format & 0xc0 != 0 {
-            return Err(LasReadError::Unsupported {
-                file: file.into(),
-                field: "header: point data record format".into(),
-                what: format!("{point_format} (bits 6-7 set: a compressed, LAZ, point format)"),
-            });
-        }
         let Some(layout) = PointLayout::of(point_format) else {
+            let laz = if compressed {
+                format!(" (LAZ-compressed, stored as {raw_format})")
+            } else {
+                String::new()
+            };
             return Err(LasReadError::Unsupported {
                 file: file.into(),
                 field: "header: point data record format".into(),
                 what: format!(
-                    "point format {point_format}, which carries no waveform packets (formats 4, \
-                     5, 9 and 10 do)"
+                    "point format {point_format}{laz}, which carries no waveform packets \
+                     (formats 4, 5, 9 and 10 do)"
                 ),
             });
         };
@@ -499,11 +497,12 @@ impl LasInfo {
             number_of_points,
             points_by_return,
         };
-        // The point records must lie in the file.
+        // The point records must lie in the file (LAZ: checked against the chunk table when the
+        // points are opened, `laz.rs`).
         let points_end = number_of_points
             .checked_mul(u64::from(point_record_length))
             .and_then(|b| b.checked_add(u64::from(offset_to_point_data)));
-        if points_end.is_none_or(|e| e > file_len) {
+        if !compressed && points_end.is_none_or(|e| e > file_len) {
             return Err(LasReadError::Truncated {
                 file: file.into(),
                 what: format!(
@@ -525,6 +524,7 @@ impl LasInfo {
             wkt: None,
             epsg: None,
             waveform: WaveformLocation::Absent,
+            laz: None,
         };
 
         // VLRs: between the header and the points.
@@ -560,6 +560,22 @@ impl LasInfo {
             }
             take_record(r, &mut info, &user, record_id, payload_at, len, &label)?;
             at = payload_at + len;
+        }
+
+        if compressed && info.laz.is_none() {
+            return Err(invalid(
+                file,
+                "header: point data record format",
+                format!(
+                    "{raw_format} says the point records are LAZ-compressed (format \
+                     {point_format} with bit 7 set), but no LASzip VLR (\"{LASZIP_USER_ID}\" \
+                     {LASZIP_RECORD_ID}) describes how"
+                ),
+            ));
+        }
+        if !compressed {
+            // A plain LAS file that kept the VLR of the LAZ it was decompressed from.
+            info.laz = None;
         }
 
         // EVLRs (LAS 1.4): after the points.
@@ -668,12 +684,27 @@ mod tests {
             b.extend_from_slice(&v.to_le_bytes());
         }
         assert_eq!(epsg_of_geokeys(&b), Some(32633));
-        // User-defined projected CS: fall back to the geographic code.
-        b[26..28].copy_from_slice(&GEOKEY_USER_DEFINED.to_le_bytes());
+        // Bytes 14..16 hold the model type (key 1024), 30..32 the projected code (key 3072).
+        // User-defined projected CS of a projected model: the geographic code names only the
+        // projection's datum, so no code.
+        b[30..32].copy_from_slice(&32767u16.to_le_bytes());
+        assert_eq!(epsg_of_geokeys(&b), None);
+        // A geographic model: still user-defined.
+        b[14..16].copy_from_slice(&2u16.to_le_bytes());
+        assert_eq!(epsg_of_geokeys(&b), None, "3072 = 32767 is user-defined");
+        // Without a projected code, a geographic model's geographic code.
+        b[30..32].copy_from_slice(&0u16.to_le_bytes());
         assert_eq!(epsg_of_geokeys(&b), Some(4326));
+        // A projected code stored elsewhere (TIFF tag location not 0) is not read as a code.
+        b[30..32].copy_from_slice(&32633u16.to_le_bytes());
+        b[26..28].copy_from_slice(&34736u16.to_le_bytes());
+        assert_eq!(epsg_of_geokeys(&b), Some(4326));
+        // A geocentric model on WGS 84: EPSG:4978.
+        b[14..16].copy_from_slice(&3u16.to_le_bytes());
+        assert_eq!(epsg_of_geokeys(&b), Some(4978));
         // A key count larger than the payload reads no further than the payload.
         b[6..8].copy_from_slice(&1000u16.to_le_bytes());
-        assert_eq!(epsg_of_geokeys(&b), Some(4326));
+        assert_eq!(epsg_of_geokeys(&b), Some(4978));
         assert_eq!(epsg_of_geokeys(&b[..7]), None);
     }
 

@@ -18,10 +18,17 @@
 //! first is read, each packet before it is read. Errors ([`LasReadError`]) name the file and the
 //! field.
 //!
+//! LAZ files (point formats 4, 5, 9, 10 stored as 132, 133, 137, 138 with the LASzip VLR) are
+//! read too: `laz.rs` decompresses their point records, chunk by chunk, into the bytes a LAS
+//! file would hold, and the same decoding follows. Their waveform packets come from the `.wdp`
+//! beside them or from inside the file, as for LAS; LASzip-compressed packets (a `.wdz`) are
+//! refused with the command that decompresses them.
+//!
 //! `header.rs` reads the header and (E)VLRs ([`LasInfo`]); this module reads the points and
 //! packets ([`LasReader`]).
 
 mod header;
+mod laz;
 
 use std::fs::File;
 use std::io::{BufReader, Cursor, Read, Seek, SeekFrom};
@@ -37,6 +44,8 @@ pub use header::{
     DescriptorRecord, GEO_KEY_DIRECTORY_RECORD_ID, LasInfo, WaveformLocation, epsg_of_geokeys,
 };
 use header::{PointLayout, Positioned, defined_list, stream_len};
+use laz::LazPoints;
+pub use laz::{LASZIP_RECORD_ID, LASZIP_USER_ID};
 
 /// Size of the LAS 1.3 public header block (up to the start of the waveform data packet
 /// record), bytes.
@@ -131,6 +140,23 @@ pub enum LasReadError {
         /// The `.WDP` path looked for.
         alt: String,
     },
+    /// The waveform packets are external but LASzip-compressed: a `.wdz` lies beside the file
+    /// instead of a `.wdp`.
+    #[error(
+        "{las}: the waveform data packets are in {wdz}, compressed by LASzip, which fwlidar does \
+         not read (no {wdp} beside it); decompress them with LAStools: `{command}` writes the \
+         file again uncompressed with its packets in a .wdp beside it; then read that file"
+    )]
+    CompressedWdp {
+        /// The LAS or LAZ file.
+        las: String,
+        /// The `.wdz` found.
+        wdz: String,
+        /// The `.wdp` path looked for.
+        wdp: String,
+        /// The LAStools command that decompresses the file and its packets.
+        command: String,
+    },
     /// A waveform packet lies (partly) outside the waveform data.
     #[error(
         "{file}: point {point}: waveform packet at bytes {start}..{end} lies outside the \
@@ -179,6 +205,40 @@ pub fn wdp_paths(las: &Path) -> (PathBuf, PathBuf) {
     (las.with_extension("wdp"), las.with_extension("WDP"))
 }
 
+/// The `.wdz` (and `.WDZ`) paths of LASzip-compressed waveform packets beside a file.
+pub fn wdz_paths(las: &Path) -> (PathBuf, PathBuf) {
+    (las.with_extension("wdz"), las.with_extension("WDZ"))
+}
+
+/// The LAStools command that decompresses `las` (LAS or LAZ) and its `.wdz` packets: laszip's
+/// `-waveform` option reads the `.wdz` and, for LAS output, writes the packets uncompressed to a
+/// `.wdp` beside the output (descriptors' compression type set back to 0). Paths with spaces or
+/// shell characters are single-quoted.
+pub fn laszip_decompress_command(las: &Path) -> String {
+    let is_laz = las
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("laz"));
+    let out = if is_laz {
+        las.with_extension("las")
+    } else {
+        let stem = las.file_stem().unwrap_or_default().to_string_lossy();
+        las.with_file_name(format!("{stem}_wdp.las"))
+    };
+    let arg = |p: &Path| {
+        let t = p.display().to_string();
+        if t.contains(|c: char| c.is_whitespace() || "'\"$`\\".contains(c)) {
+            format!("'{}'", t.replace('\'', "'\\''"))
+        } else {
+            t
+        }
+    };
+    format!("laszip -i {} -o {} -waveform", arg(las), arg(&out))
+}
+
+fn is_zero(v: &u64) -> bool {
+    *v == 0
+}
+
 /// Counts of what was read, for the source's report.
 #[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct LasReadStats {
@@ -197,6 +257,9 @@ pub struct LasReadStats {
     pub waveform_bytes: u64,
     /// Waveform packet descriptors used by the points read so far.
     pub descriptors_used: u64,
+    /// LAZ chunks decompressed (started) so far; absent from the report for LAS.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub laz_chunks: u64,
 }
 
 /// The waveform data: a `.wdp` file, or the LAS file again, read through a buffer.
@@ -220,11 +283,19 @@ impl<W: Read + Seek> WaveData<W> {
     }
 }
 
-/// Reads the waveform packets of a LAS file as pulses ([`LasReader::next_pulse`]).
-pub struct LasReader<R, W> {
+/// Where the point records come from.
+enum Points<R: Read + Seek> {
+    /// Plain LAS: the records as stored.
+    Raw(BufReader<R>),
+    /// LAZ: decompressed chunk by chunk.
+    Laz(Box<LazPoints<R>>),
+}
+
+/// Reads the waveform packets of a LAS (or LAZ) file as pulses ([`LasReader::next_pulse`]).
+pub struct LasReader<R: Read + Seek, W> {
     info: LasInfo,
     layout: PointLayout,
-    points: BufReader<R>,
+    points: Points<R>,
     wave: Option<WaveData<W>>,
     next_point: u64,
     pending: Option<(u64, PointRecord9)>,
@@ -236,8 +307,9 @@ pub struct LasReader<R, W> {
 }
 
 impl LasReader<File, File> {
-    /// Opens a LAS file and its waveform data (the `.wdp` beside it when external; the LAS file
-    /// again when internal).
+    /// Opens a LAS or LAZ file and its waveform data (the `.wdp` beside it when external; the
+    /// file again when internal). A `.wdz` beside it instead of a `.wdp` is an error that says
+    /// how to decompress it ([`LasReadError::CompressedWdp`]).
     pub fn open(path: &Path) -> Result<Self, LasReadError> {
         let name = path.display().to_string();
         let mut las = File::open(path).map_err(|e| io_err(&name, "the file", e))?;
@@ -245,10 +317,18 @@ impl LasReader<File, File> {
         let wave = match info.waveform {
             WaveformLocation::External => {
                 let (wdp, alt) = wdp_paths(path);
+                let (wdz, wdz_alt) = wdz_paths(path);
                 let chosen = if wdp.exists() {
                     wdp
                 } else if alt.exists() {
                     alt
+                } else if let Some(z) = [wdz, wdz_alt].into_iter().find(|z| z.exists()) {
+                    return Err(LasReadError::CompressedWdp {
+                        las: name,
+                        wdz: z.display().to_string(),
+                        wdp: wdp.display().to_string(),
+                        command: laszip_decompress_command(path),
+                    });
                 } else {
                     return Err(LasReadError::MissingWdp {
                         las: name,
@@ -309,12 +389,18 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
                 "not 4, 5, 9, 10",
             ));
         };
-        las.seek(SeekFrom::Start(u64::from(info.header.offset_to_point_data)))
-            .map_err(|e| io_err(&info.file, "the point records", e))?;
+        let points = match &info.laz {
+            Some(vlr) => Points::Laz(Box::new(LazPoints::open(&info, vlr, las)?)),
+            None => {
+                las.seek(SeekFrom::Start(u64::from(info.header.offset_to_point_data)))
+                    .map_err(|e| io_err(&info.file, "the point records", e))?;
+                Points::Raw(BufReader::with_capacity(1 << 16, las))
+            }
+        };
         let record = vec![0u8; usize::from(info.header.point_record_length)];
         Ok(LasReader {
             layout,
-            points: BufReader::with_capacity(1 << 16, las),
+            points,
             wave,
             next_point: 0,
             pending: None,
@@ -337,15 +423,24 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
         &self.stats
     }
 
-    /// Bytes of the LAS file covered so far and in all (header, VLRs and point records), for
-    /// progress.
+    /// Bytes of the file covered so far and in all (header, VLRs and point records; for LAZ the
+    /// compressed records, estimated within the chunk being read), for progress.
     pub fn progress(&self) -> (u64, u64) {
         let rl = u64::from(self.info.header.point_record_length);
         let base = u64::from(self.info.header.offset_to_point_data);
-        (
-            base.saturating_add(self.next_point.saturating_mul(rl)),
-            base.saturating_add(self.info.header.number_of_points.saturating_mul(rl)),
-        )
+        let (done, all) = match &self.points {
+            Points::Raw(_) => (
+                self.next_point.saturating_mul(rl),
+                self.info.header.number_of_points.saturating_mul(rl),
+            ),
+            Points::Laz(z) => z.progress(),
+        };
+        (base.saturating_add(done), base.saturating_add(all))
+    }
+
+    /// Whether the point records are LAZ-compressed.
+    pub fn is_laz(&self) -> bool {
+        matches!(self.points, Points::Laz(_))
     }
 
     /// The next point record, `None` after the last.
@@ -354,9 +449,15 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
             return Ok(None);
         }
         let n = self.next_point;
-        self.points
-            .read_exact(&mut self.record)
-            .map_err(|e| io_err(&self.info.file, format!("point {n}"), e))?;
+        match &mut self.points {
+            Points::Raw(r) => r
+                .read_exact(&mut self.record)
+                .map_err(|e| io_err(&self.info.file, format!("point {n}"), e))?,
+            Points::Laz(z) => {
+                z.read_point(n, &mut self.record)?;
+                self.stats.laz_chunks = z.chunks_started;
+            }
+        }
         self.next_point += 1;
         self.stats.points += 1;
         Ok(Some((n, PointRecord9::decode(&self.record, self.layout))))
@@ -588,4 +689,30 @@ fn geometry(h: &Header, p: &PointRecord9) -> Option<PulseGeometry> {
     let direction = v.map(|x| -1000.0 * x);
     let finite = anchor.iter().chain(&direction).all(|x| x.is_finite());
     (finite && direction.iter().any(|&x| x != 0.0)).then_some(PulseGeometry { anchor, direction })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn laszip_command_names_the_las_it_writes() {
+        assert_eq!(
+            laszip_decompress_command(Path::new("d/x.laz")),
+            "laszip -i d/x.laz -o d/x.las -waveform"
+        );
+        assert_eq!(
+            laszip_decompress_command(Path::new("d/X.LAZ")),
+            "laszip -i d/X.LAZ -o d/X.las -waveform"
+        );
+        // A LAS input is not overwritten.
+        assert_eq!(
+            laszip_decompress_command(Path::new("x.las")),
+            "laszip -i x.las -o x_wdp.las -waveform"
+        );
+        assert_eq!(
+            laszip_decompress_command(Path::new("my dir/it's.laz")),
+            "laszip -i 'my dir/it'\\''s.laz' -o 'my dir/it'\\''s.las' -waveform"
+        );
+    }
 }

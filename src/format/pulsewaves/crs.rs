@@ -1,10 +1,15 @@
 //! The coordinate reference system of the anchors and targets, from the `PulseWaves_Proj`
 //! records (the GeoTIFF keys of LAS: 34735 key directory, 34736 doubles, 34737 ASCII; 2112 OGC
 //! WKT). Damaged or ambiguous keys never fail the read: they leave the CRS unknown, or take the
-//! best reading, and say so in a warning.
+//! best reading, and say so in a warning. The keys are read, and their precedence decided, by
+//! [`crate::format::geokeys`] (shared with the LAS reader); this module adds the WKT, the UTM
+//! zone of a user-defined projection's citation, and the warnings.
 
 use super::le;
 use super::vlr::Vlr;
+use crate::format::geokeys::{
+    CITATION_KEY, GeoKeyDirectory, KeysCrs, PCS_CITATION_KEY, PROJECTED_CS_KEY,
+};
 
 /// What the projection records say.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -14,9 +19,6 @@ pub struct CrsInfo {
     /// What was doubtful, for the report (also logged with `tracing::warn`).
     pub warnings: Vec<String>,
 }
-
-/// A GeoKey entry: (key ID, TIFF tag location, count, value or offset).
-type Key = (u16, u16, u16, u16);
 
 fn key_name(id: u16) -> &'static str {
     match id {
@@ -61,46 +63,39 @@ pub fn from_records(records: &[Vlr]) -> CrsInfo {
         return info;
     };
     let ascii = find(34737).map(|r| r.payload.as_slice()).unwrap_or(&[]);
-    let shorts: Vec<u16> = dir.payload.chunks_exact(2).map(|c| le::u16(c, 0)).collect();
-    let declared = shorts.get(3).copied().unwrap_or(0) as usize;
-    let available = shorts.len().saturating_sub(4) / 4;
-    if shorts.len() < 4 || declared > available {
+    let keys = GeoKeyDirectory::parse(&dir.payload);
+    if dir.payload.len() < 8 || keys.declared > keys.available() {
         info.warnings.push(format!(
-            "{}: GeoKey directory (34735) declares {declared} keys but holds {available}; \
-             reading those",
-            dir.place
+            "{}: GeoKey directory (34735) declares {} keys but holds {}; reading those",
+            dir.place,
+            keys.declared,
+            keys.available()
         ));
     }
-    let keys: Vec<Key> = shorts
-        .get(4..)
-        .unwrap_or(&[])
-        .chunks_exact(4)
-        .take(declared.min(available))
-        .map(|k| (k[0], k[1], k[2], k[3]))
-        .collect();
-    let direct = |id: u16| keys.iter().find(|k| k.0 == id && k.1 == 0).map(|k| k.3);
     let citation = |id: u16| {
-        keys.iter().find(|k| k.0 == id && k.1 == 34737).map(|k| {
-            let start = usize::from(k.3);
-            let end = start.saturating_add(usize::from(k.2));
-            le::text(
-                ascii
-                    .get(start.min(ascii.len())..end.min(ascii.len()))
-                    .unwrap_or(&[]),
-                0,
-                usize::MAX,
-            )
-        })
+        keys.keys
+            .iter()
+            .find(|k| k.id == id && k.location == 34737)
+            .map(|k| {
+                let start = usize::from(k.value_or_offset);
+                let end = start.saturating_add(usize::from(k.count));
+                le::text(
+                    ascii
+                        .get(start.min(ascii.len())..end.min(ascii.len()))
+                        .unwrap_or(&[]),
+                    0,
+                    usize::MAX,
+                )
+            })
     };
-    let model = direct(1024);
-    match direct(3072) {
-        Some(code @ 1..=32766) => {
+    let unknown = match keys.crs() {
+        KeysCrs::Epsg(code) => {
             info.crs = Some(format!("EPSG:{code}"));
             return info;
         }
-        Some(32767) => {
-            let cite = citation(3073)
-                .or_else(|| citation(1026))
+        KeysCrs::UserDefinedProjection => {
+            let cite = citation(PCS_CITATION_KEY)
+                .or_else(|| citation(CITATION_KEY))
                 .unwrap_or_default();
             let all = String::from_utf8_lossy(ascii).to_string();
             match utm_from_citation(&cite, &all) {
@@ -118,32 +113,24 @@ pub fn from_records(records: &[Vlr]) -> CrsInfo {
             }
             return info;
         }
-        _ => {}
-    }
-    if model != Some(1)
-        && let Some(code @ 1..=32766) = direct(2048)
-    {
-        info.crs = Some(format!("EPSG:{code}"));
-        return info;
-    }
+        KeysCrs::Unknown(why) => why,
+    };
     // No usable code: look for a projected CRS code stored under the wrong key.
     if let Some(k) = keys
+        .keys
         .iter()
-        .find(|k| k.1 == 0 && k.0 != 3072 && is_wgs84_utm(k.3))
+        .find(|k| k.location == 0 && k.id != PROJECTED_CS_KEY && is_wgs84_utm(k.value_or_offset))
     {
         info.warnings.push(format!(
             "malformed GeoKeys: {} ({}) holds {}, which is not a value of that key but looks \
              like EPSG:{} stored under the wrong key; CRS left unknown",
-            key_name(k.0),
-            k.0,
-            k.3,
-            k.3
+            key_name(k.id),
+            k.id,
+            k.value_or_offset,
+            k.value_or_offset
         ));
     } else {
-        info.warnings.push(format!(
-            "GeoKeys name no EPSG code (GTModelTypeGeoKey {}): CRS unknown",
-            model.map_or("absent".to_string(), |m| m.to_string())
-        ));
+        info.warnings.push(format!("{unknown}: CRS unknown"));
     }
     info
 }

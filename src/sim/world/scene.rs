@@ -805,8 +805,9 @@ impl WorldScene {
     }
 
     /// As [`WorldScene::load`], with `KEY=VALUE` overrides applied to the file's TOML first
-    /// (`KEY` a dotted path such as `flight.scan.zenith_deg`, `VALUE` a TOML value; a bare word
-    /// is taken as a string).
+    /// (`KEY` a dotted path such as `flight.scan.zenith_deg`, with list indices such as
+    /// `tree[0].height_m`; `VALUE` a TOML value, anything else taken as a string):
+    /// [`crate::config::overrides`].
     pub fn load_with(
         path: &Path,
         sets: &[String],
@@ -815,9 +816,12 @@ impl WorldScene {
         if !sets.is_empty() {
             let what = path.display().to_string();
             let mut table: toml::Table = crate::sim::scene::parse_toml(&text, &what)?;
-            for set in sets {
-                apply_set(&mut table, set)?;
-            }
+            crate::config::overrides::apply_all(&mut table, sets).map_err(|e| {
+                SceneError::Invalid {
+                    field: "--set",
+                    reason: e.to_string(),
+                }
+            })?;
             text = toml::to_string(&table).map_err(|e| SceneError::Parse {
                 what,
                 field: String::new(),
@@ -1256,34 +1260,4 @@ impl crate::config::Validate for WorldScene {
             }
         }
     }
-}
-
-/// Applies one `KEY=VALUE` override to a scene's TOML table.
-fn apply_set(table: &mut toml::Table, set: &str) -> Result<(), SceneError> {
-    let bad = |reason: String| SceneError::Invalid {
-        field: "--set",
-        reason,
-    };
-    let (key, value) = set
-        .split_once('=')
-        .ok_or_else(|| bad(format!("`{set}` is not KEY=VALUE")))?;
-    let value = toml::from_str::<toml::Table>(&format!("v = {value}"))
-        .ok()
-        .and_then(|mut t| t.remove("v"))
-        .unwrap_or_else(|| toml::Value::String(value.to_string()));
-    let parts: Vec<&str> = key.trim().split('.').collect();
-    if parts.iter().any(|p| p.is_empty()) {
-        return Err(bad(format!("`{key}` is not a dotted key")));
-    }
-    let mut t = table;
-    for p in &parts[..parts.len() - 1] {
-        let entry = t
-            .entry(p.to_string())
-            .or_insert_with(|| toml::Value::Table(toml::Table::new()));
-        t = entry
-            .as_table_mut()
-            .ok_or_else(|| bad(format!("`{p}` in `{key}` is not a table")))?;
-    }
-    t.insert(parts[parts.len() - 1].to_string(), value);
-    Ok(())
 }

@@ -419,7 +419,7 @@ fn scan_patterns_sweep_as_designed() {
     let palmer = ScanPatternFixture::Palmer.pattern();
     for i in 0..50 {
         let [th, ph] = scan_angles(&palmer, i as f64 * 0.0013);
-        let b = crate::geo::georef::beam_in_scanner(th, ph);
+        let b = crate::geo::direct_georeference::beam_in_scanner(th, ph);
         assert!((b.z.acos().to_degrees() - 12.0).abs() < 1e-9, "on the cone");
     }
 }
@@ -558,17 +558,8 @@ fn media_render_the_same_from_the_kernel_tables_and_one_by_one() {
 #[test]
 fn a_geotiff_terrain_is_hit_at_the_dem_height() {
     // A real DEM (IGN LiDAR HD, 0.5 m cells), placed with its centre at the scene origin.
-    // As the integration tests find fixtures: $FWLIDAR_FIXTURES, else ../shared/fixtures.
-    let base = std::env::var_os("FWLIDAR_FIXTURES")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"));
-    let tif = base.join("dem/ign_lidarhd/DTM_test_data_77055_627760_LA93_IGN69_50CM.tif");
-    assert!(
-        tif.exists(),
-        "missing real-data fixture {} (set FWLIDAR_FIXTURES to the shared fixtures folder; see \
-         its MANIFEST.md)",
-        tif.display()
-    );
+    let tif =
+        crate::fixtures::path("dem/ign_lidarhd/DTM_test_data_77055_627760_LA93_IGN69_50CM.tif");
     let mut sim = world(&format!(
         "effects = [\"off_nadir\"]\n[terrain]\nkind = \"geotiff\"\npath = \"{}\"\n\
          [flight]\npulse_rate_hz = 2000.0\nlines = [{{ start_m = [-20.0, 0.0], end_m = [20.0, 0.0] }}]\n\

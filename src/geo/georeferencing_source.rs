@@ -4,7 +4,7 @@
 //! in the order they were recorded, so it needs no locks: navigation bytes of every port go
 //! through the navigation decoder into a [`Trajectory`] (and are passed on unchanged, for the
 //! navigation thread's report), and each pulse without geometry waits in a bounded queue until
-//! the trajectory brackets its time, is georeferenced ([`super::georef::georeference`]) and
+//! the trajectory brackets its time, is georeferenced ([`super::direct_georeference::georeference`]) and
 //! handed on, in its original order. Pulses that already carry their geometry (LAS, PulseWaves)
 //! skip the navigation path.
 //!
@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use super::crs::OutputCrs;
 use super::dem::Dem;
-use super::georef::{Mounting, georeference};
+use super::direct_georeference::{Mounting, georeference};
 use crate::config::load::{Validate, Validator, field};
 use crate::nav::dating::{GpsTime, WEEK_S};
 use crate::nav::decoder::{LEAP_SECONDS_NOW, NavDecoder};
