@@ -180,7 +180,7 @@ fn drop_rule(stage: &str, reason: &str, i: usize, config: &RunConfig) -> Rule {
         ),
         ("deconvolve", "kernel_over_max_taps") => rule(
             stage_key(i, "max_taps"),
-            "the outgoing pulse stands above its noise over more samples than max_taps and \
+            "the outgoing pulse stands out of its noise over more samples than max_taps and \
              long_kernel = \"drop\"; raise max_taps (the cost grows with it) or set long_kernel = \
              \"cut\"",
         ),
@@ -219,7 +219,7 @@ fn note_rule(stage: &str, note: &str, i: usize) -> Rule {
     match (stage, note) {
         ("deconvolve", "kernel_over_max_taps") => rule(
             stage_key(i, "max_taps"),
-            "the outgoing pulse stands above its noise over more samples than max_taps: the \
+            "the outgoing pulse stands out of its noise over more samples than max_taps: the \
              kernel was cut to max_taps around its peak (returns stay in place, the far tail is \
              not deconvolved); raise max_taps to keep the whole pulse (the cost grows with it)",
         ),
@@ -402,11 +402,10 @@ fn empty_output_warnings(
         Some(w) => (
             w.setting.clone(),
             format!(
-                "; the largest cause: {} {} ({:.0} %): {}",
-                w.count,
+                "; the largest cause: {} ({} pulses, {:.0} %; its warning says what to do)",
                 w.reason,
-                100.0 * w.share,
-                w.message
+                w.count,
+                100.0 * w.share
             ),
         ),
         None => (None, String::new()),
@@ -482,7 +481,7 @@ fn empty_output_warnings(
         };
         out.push(RunWarning {
             reason: "voxels.nothing_deposited".into(),
-            count: report.pulses_out,
+            count: read,
             share: 1.0,
             setting,
             message: format!("nothing was deposited in voxels.zarr: {message}"),
