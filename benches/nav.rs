@@ -6,7 +6,6 @@
 //! (geometry from the pose, then 256 bins stepped along it).
 
 use std::hint::black_box;
-use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use fwlidar::geo::OutputCrs;

@@ -8,7 +8,6 @@ mod common;
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
-use std::path::PathBuf;
 
 use fwlidar::format::las_read::LasReader;
 use fwlidar::pulse::Pulse;

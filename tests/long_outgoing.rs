@@ -40,6 +40,10 @@ max_samples = 1024
 [[pipeline.stages]]
 type = "decompose"
 max_samples = 1024
+
+[output]
+returns = true
+waveforms = false
 {extra}
 "#
     );
@@ -398,7 +402,15 @@ fn a_simulated_long_outgoing_pulse_replays_onto_its_truth() {
     assert_eq!(outgoing, 164);
 
     let out = dir.path().join("out");
-    let o = replay(&cap, &out, None);
+    let o = fwlidar(&[
+        "replay",
+        cap.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+        "--set",
+        "output.returns=true",
+    ]);
     assert!(o.status.success(), "{}", text(&o.stderr));
     let s = summary(&out);
     assert_eq!(s["pulses_in"], 500);

@@ -19,8 +19,6 @@
 //! negative amplitude discarded (the 18 waveforms without a result). Its peaks below 22 % of the
 //! maximum are never fitted, so components we find there count as "extra" by construction.
 
-use std::path::PathBuf;
-
 use fwlidar::pipeline::testing::run_stage;
 use fwlidar::pulse::{Pulse, SegmentKind};
 use fwlidar::signal::{Decompose, DecomposeConfig, Denoise, DenoiseConfig};

@@ -5,7 +5,8 @@
 //! A warning is raised when
 //!
 //! - **an output is empty**: no pulse reached the outputs (`output.no_pulses`), the decompose
-//!   stage found no return in any pulse that did (`output.no_returns`), or nothing was deposited
+//!   stage found no return in any pulse that did (`output.no_returns`, as `returns.csv` or
+//!   `returns.las` saw them), or nothing was deposited
 //!   in the voxel store that was asked for (`voxels.nothing_deposited`);
 //! - **one reason takes more than [`WARN_SHARE`]** of the pulses: a stage's drop reason
 //!   (`deconvolve.bad_kernel`), a stage's note (pulses passed on partly unprocessed, e.g.
@@ -179,7 +180,7 @@ fn drop_rule(stage: &str, reason: &str, i: usize, config: &RunConfig) -> Rule {
         ),
         ("deconvolve", "kernel_over_max_taps") => rule(
             stage_key(i, "max_taps"),
-            "the outgoing pulse stands above its noise over more samples than max_taps and \
+            "the outgoing pulse stands out of its noise over more samples than max_taps and \
              long_kernel = \"drop\"; raise max_taps (the cost grows with it) or set long_kernel = \
              \"cut\"",
         ),
@@ -218,7 +219,7 @@ fn note_rule(stage: &str, note: &str, i: usize) -> Rule {
     match (stage, note) {
         ("deconvolve", "kernel_over_max_taps") => rule(
             stage_key(i, "max_taps"),
-            "the outgoing pulse stands above its noise over more samples than max_taps: the \
+            "the outgoing pulse stands out of its noise over more samples than max_taps: the \
              kernel was cut to max_taps around its peak (returns stay in place, the far tail is \
              not deconvolved); raise max_taps to keep the whole pulse (the cost grows with it)",
         ),
@@ -401,11 +402,10 @@ fn empty_output_warnings(
         Some(w) => (
             w.setting.clone(),
             format!(
-                "; the largest cause: {} {} ({:.0} %): {}",
-                w.count,
+                "; the largest cause: {} ({} pulses, {:.0} %; its warning says what to do)",
                 w.reason,
-                100.0 * w.share,
-                w.message
+                w.count,
+                100.0 * w.share
             ),
         ),
         None => (None, String::new()),
@@ -427,8 +427,13 @@ fn empty_output_warnings(
         });
     }
     let decompose = report.stages.iter().position(|s| s.name == "decompose");
-    let rows = report.sinks.get("returns_csv").map(|r| counter(r, "rows"));
-    if let (Some(i), Some(0)) = (decompose, rows)
+    // Whether any return was found, as the returns' outputs saw it (`None` without one).
+    let any_return = match (report.sinks.get("returns_csv"), report.sinks.get("las")) {
+        (Some(csv), _) => Some(counter(csv, "rows") > 0),
+        (None, Some(las)) => Some(counter(las, "pulses_without_returns") < report.pulses_out),
+        (None, None) => None,
+    };
+    if let (Some(i), Some(false)) = (decompose, any_return)
         && report.pulses_out > 0
     {
         out.push(RunWarning {
@@ -476,7 +481,7 @@ fn empty_output_warnings(
         };
         out.push(RunWarning {
             reason: "voxels.nothing_deposited".into(),
-            count: report.pulses_out,
+            count: read,
             share: 1.0,
             setting,
             message: format!("nothing was deposited in voxels.zarr: {message}"),
@@ -666,6 +671,12 @@ mod tests {
         let w = run_warnings(&r, &cfg);
         let by = |reason: &str| w.iter().find(|w| w.reason == reason).cloned();
         let no_returns = by("output.no_returns").expect("no returns");
+        let mut las_only = r.clone();
+        las_only.sinks = serde_json::json!({ "las": { "pulses_without_returns": 10 } });
+        let w2 = run_warnings(&las_only, &cfg);
+        assert_eq!(w2[0].reason, "output.no_returns", "{w2:#?}");
+        las_only.sinks = serde_json::json!({ "las": { "pulses_without_returns": 9 } });
+        assert!(run_warnings(&las_only, &cfg).is_empty());
         assert_eq!(
             no_returns.setting.as_deref(),
             Some("pipeline.stages[0].min_snr")

@@ -189,10 +189,12 @@ mod tests {
     fn the_preamble_is_reserved_room_and_the_samples_parse_back() {
         let dir = tempfile::tempdir().unwrap();
         let mut sink = WaveformNpySink::create(dir.path()).unwrap();
-        let mut p = Pulse::default();
-        p.pulse_id = 7;
-        p.gps_time = 12.5;
-        p.sample_ns = 1.0;
+        let mut p = Pulse {
+            pulse_id: 7,
+            gps_time: 12.5,
+            sample_ns: 1.0,
+            ..Default::default()
+        };
         p.push_segment(SegmentKind::Outgoing, 0, 0.0, [1u16, 2, 3]);
         p.push_segment(SegmentKind::Return, 1, 100.0, [4u16, 5]);
         p.signal.extend_from_slice(&[0.5, 1.5, 2.5, -1.0, 3.25]);

@@ -133,7 +133,7 @@ pub struct DeconvolveConfig {
     pub max_samples: usize,
     /// Longest kernel, taps: the buffers and the worst-case cost are sized for it. With
     /// `kernel = "outgoing"` the kernel is the outgoing pulse's support (the samples around its
-    /// peak above its noise, [`pulse_support`](crate::signal::kernel::pulse_support)); a
+    /// peak standing out of its noise, [`pulse_support`](crate::signal::kernel::pulse_support)); a
     /// support longer than this is handled per `long_kernel`. Default 256.
     #[serde(default = "default_max_taps")]
     pub max_taps: usize,
@@ -393,7 +393,7 @@ impl Deconvolve {
             tracing::warn!(
                 support,
                 max_taps = self.config.max_taps,
-                "deconvolve: an outgoing pulse stands above its noise over {support} samples, more \
+                "deconvolve: an outgoing pulse stands out of its noise over {support} samples, more \
                  than max_taps = {}; its kernel is cut to max_taps around the peak (counted as \
                  the note deconvolve.kernel_over_max_taps; raise max_taps to keep the whole pulse)",
                 self.config.max_taps
