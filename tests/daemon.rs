@@ -659,6 +659,15 @@ fn kill_9_keeps_the_capture_up_to_the_last_flush_and_a_restart_continues_the_sur
         "{sm:#}"
     );
     assert!(u(&sm["sinks"]["voxels"]["tiles"]["in_store"]) > 0, "{sm:#}");
+    // Stopped cleanly: the survey's store (both runs' tiles) is fitted to the tiles written and
+    // opens in xarray with no warning.
+    assert_eq!(sm["sinks"]["voxels"]["arrays"]["fitted"], true, "{sm:#}");
+    let o = std::process::Command::new(common::python())
+        .arg(Path::new(ROOT).join("tests/python/check_fitted_store.py"))
+        .arg(dir.path().join("out/voxels.zarr"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
 }
 
 /// The headless browser: `$FWLIDAR_CHROMIUM`, else `chromium` or `chromium-browser` on the PATH
