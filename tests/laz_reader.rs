@@ -123,6 +123,33 @@ fn laz_reads_as_the_same_pulses_as_the_las() {
     }
 }
 
+/// A LAZ whose packets are internal (LAS 1.4: the waveform data packet record as an EVLR after
+/// the chunk table, global encoding bit 1) reads as the same pulses: the packets are read from
+/// the LAZ file itself, uncompressed, as for LAS.
+#[test]
+fn laz_with_internal_packets_reads_as_the_las() {
+    let mut b = std::fs::read(laz("r9v.laz")).unwrap();
+    let mut wdp = std::fs::read(laz("r9.wdp")).unwrap();
+    // The .wdp starts with the record's 60-byte EVLR header; its length after the header:
+    let after = (wdp.len() - 60) as u64;
+    wdp[20..28].copy_from_slice(&after.to_le_bytes());
+    let at = b.len() as u64;
+    b[6..8].copy_from_slice(&(1u16 << 1).to_le_bytes());
+    b[227..235].copy_from_slice(&at.to_le_bytes());
+    b[235..243].copy_from_slice(&at.to_le_bytes());
+    b[243..247].copy_from_slice(&1u32.to_le_bytes());
+    b.extend_from_slice(&wdp);
+    let mut r = LasReader::from_bytes(&b, None).unwrap();
+    assert_eq!(
+        r.info().waveform,
+        fwlidar::format::las_read::WaveformLocation::Internal { record_start: at }
+    );
+    let got = read_all(&mut r).unwrap();
+    let (want, _, _) = pulses_of(&real_las());
+    assert_same_pulses(&want, &got, "internal packets");
+    assert_eq!(r.stats().laz_chunks, 6);
+}
+
 /// The reader's progress through a LAZ (compressed bytes) never goes back, stays within the
 /// file and ends at the end of the compressed points.
 #[test]
