@@ -5,8 +5,8 @@
 //!   policy); [`capture_reader`] and [`capture_writer`] read and write it.
 //! - [`frame`]: the digitizer frame and nav payloads inside capture records.
 //! - [`table`]: waveform tables (CSV, NumPy `.npy`) for `fwlidar process`.
-//! - [`las_read`]: LAS 1.3/1.4 waveform packets (point formats 4, 5, 9, 10, `.wdp` or
-//!   internal) read as pulses.
+//! - [`las_read`]: LAS 1.3/1.4 waveform packets (point formats 4, 5, 9, 10, plain or LAZ,
+//!   `.wdp` or internal) read as pulses.
 //! - [`las_write`]: LAS 1.4 header, VLR/EVLR, Extra Bytes and point formats 6 and 9 encoding
 //!   (returns output).
 //! - [`las_points`]: a complete LAS 1.4 point format 6 file written atomically from an iterator

@@ -299,6 +299,8 @@ pub struct LasReader<R: Read + Seek, W> {
     wave: Option<WaveData<W>>,
     next_point: u64,
     pending: Option<(u64, PointRecord9)>,
+    /// The error of a point read after a pulse's first, returned by the next call.
+    deferred: Option<LasReadError>,
     record: Vec<u8>,
     packet: Vec<u8>,
     checked: [bool; MAX_DESCRIPTORS + 1],
@@ -404,6 +406,7 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
             wave,
             next_point: 0,
             pending: None,
+            deferred: None,
             record,
             packet: Vec::new(),
             checked: [false; MAX_DESCRIPTORS + 1],
@@ -478,7 +481,14 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
     /// caller) with the next pulse; `false` after the last. Points without
     /// a waveform are skipped (counted). The pulse's `pulse_id` is the number of its first point
     /// (from 0).
+    ///
+    /// A point that cannot be read after the pulse's first (a damaged LAZ chunk, say) does not
+    /// lose the pulse, whose packet is read already: the pulse is returned and the error comes
+    /// with the next call.
     pub fn next_pulse(&mut self, pulse: &mut Pulse) -> Result<bool, LasReadError> {
+        if let Some(e) = self.deferred.take() {
+            return Err(e);
+        }
         let first = match self.pending.take() {
             Some(p) => p,
             None => match self.read_wave_point()? {
@@ -488,7 +498,15 @@ impl<R: Read + Seek, W: Read + Seek> LasReader<R, W> {
         };
         self.fill(pulse, first.0, &first.1)?;
         // The rest of the pulse: following points naming the same packet.
-        while let Some((n, p)) = self.read_point()? {
+        loop {
+            let (n, p) = match self.read_point() {
+                Ok(Some(np)) => np,
+                Ok(None) => break,
+                Err(e) => {
+                    self.deferred = Some(e);
+                    break;
+                }
+            };
             if p.wave_packet_index == 0 {
                 self.stats.points_without_waveform += 1;
             } else if p.wave_packet_index != first.1.wave_packet_index
