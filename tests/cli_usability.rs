@@ -53,7 +53,8 @@ fn set_overrides_change_what_replay_writes() {
     assert!(b.join("voxels.zarr").is_dir());
 
     // An index into the stage list: a one-tap kernel limit makes every outgoing pulse too long
-    // for the deconvolve stage, which drops the pulses as `bad_kernel`; a later --set wins.
+    // for the deconvolve stage, which (long_kernel = "drop") drops the pulses as
+    // `kernel_over_max_taps`; a later --set wins.
     let c = dir.path().join("c");
     let o = replay(
         &c,
@@ -61,6 +62,7 @@ fn set_overrides_change_what_replay_writes() {
             "voxels.enabled=false",
             "pipeline.stages[1].max_taps=128",
             "pipeline.stages[1].max_taps=1",
+            "pipeline.stages[1].long_kernel=drop",
         ],
     );
     assert!(o.status.success(), "{}", text(&o.stderr));
@@ -70,7 +72,7 @@ fn set_overrides_change_what_replay_writes() {
     let received = deconvolve["received"].as_u64().unwrap();
     assert!(received > 0);
     assert_eq!(
-        deconvolve["dropped"]["bad_kernel"].as_u64(),
+        deconvolve["dropped"]["kernel_over_max_taps"].as_u64(),
         Some(received),
         "{s}"
     );
