@@ -247,6 +247,10 @@ fn replay_of_the_laz_matches_the_las() {
             "2".as_ref(),
             "--out".as_ref(),
             out.as_os_str(),
+            "--set".as_ref(),
+            "output.waveform_format=csv".as_ref(),
+            "--set".as_ref(),
+            "output.returns=true".as_ref(),
         ]);
         assert!(o.status.success(), "{}", common::text(&o.stderr));
         let s: serde_json::Value =
