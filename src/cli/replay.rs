@@ -90,6 +90,35 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     finish(&report, &args.input, &out_dir)
 }
 
+/// A replay without the command's trimmings (no progress bar, signal handlers, summary or
+/// warnings): `input` through the configured stages into the outputs under `out_dir`, as
+/// `fwlidar replay` runs it. For benchmarks and embedding; `workers` overrides the
+/// configuration's.
+pub fn replay_quiet(
+    input: &Path,
+    out_dir: &Path,
+    config: &RunConfig,
+    workers: Option<usize>,
+) -> Result<RunReport, Failure> {
+    let opened = open_input(input, config)?;
+    prepare_out_dir(out_dir)?;
+    let spec = build_spec(config, workers, &opened.source.facts());
+    let sinks = build_sinks(config, &spec, &opened, input, out_dir)?;
+    let nav = NavDecode::new(
+        config.georeference.leap_seconds,
+        config.navigation.earliest_days(),
+    );
+    let control = RunControl::default();
+    Ok(run_pipeline(
+        &spec,
+        opened.source,
+        sinks,
+        Box::new(nav),
+        &control,
+        |_| {},
+    ))
+}
+
 /// The opened input: the source (georeferenced per `[georeference]`), the DEM, and where the
 /// georeferencing puts the CRS it decides.
 struct Input {

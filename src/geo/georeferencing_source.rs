@@ -446,6 +446,12 @@ impl Source for GeoreferencingSource {
         self.inner.name()
     }
 
+    /// The pulses waiting for navigation (at most `max_pending` + 1) and those placed but not
+    /// yet handed out (one drain's worth, bounded by the same), plus what the inner source holds.
+    fn held_pulses(&self) -> usize {
+        2 * (self.cfg.max_pending + 1) + self.inner.held_pulses()
+    }
+
     fn next(&mut self, pool: &PulsePool) -> Result<SourceEvent, SourceError> {
         loop {
             if let Some(e) = &self.failed {

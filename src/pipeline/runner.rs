@@ -223,8 +223,12 @@ pub fn run(
     let started = Instant::now();
     let workers = spec.workers.max(1);
     let cap = spec.queue_capacity.max(2);
-    // Bound on pulses in flight: every edge full plus one in hand per thread.
-    let pool = PulsePool::new(workers * (2 * cap + 8) + 8);
+    // Bound on pulses in flight: every edge full plus one in hand per thread, plus what the
+    // source holds (pulses waiting for navigation): pulses beyond the pool's idle capacity would
+    // be freed by the sink and allocated again by the source, one allocation per pulse. (The
+    // pool's slots are preallocated, 16 bytes each: the source's share is capped at 2^18.)
+    let held = source.held_pulses().min(1 << 18);
+    let pool = PulsePool::new(workers * (2 * cap + 8) + 8 + held);
     let fatal: Arc<Mutex<Option<String>>> = Arc::new(Mutex::new(None));
     let set_fatal = {
         let fatal = fatal.clone();

@@ -70,6 +70,14 @@ pub trait Source: Send {
     fn facts(&self) -> SourceFacts {
         SourceFacts::default()
     }
+
+    /// At most how many pulses the source may hold at once between taking them from the pool
+    /// and handing them out (e.g. pulses waiting for the navigation that brackets them). The
+    /// runner sizes the pool's idle capacity with it, so that those pulses return to the pool
+    /// instead of being freed and allocated again on every pulse. Default 0.
+    fn held_pulses(&self) -> usize {
+        0
+    }
 }
 
 /// One pulse from a file reader into a pooled pulse: `Ok(true)` from `read` is a pulse, `Ok(false)`
