@@ -22,9 +22,15 @@ use crate::sim::{SimItem, SimItems};
 /// Arguments of `fwlidar simulate`.
 #[derive(Debug, clap::Args)]
 pub struct SimulateArgs {
-    /// Scene file (TOML with a `[scene]` table; see `config/scenes/`).
-    #[arg(long)]
-    pub scene: PathBuf,
+    /// Scene file (TOML with a `[scene]` table; see `config/scenes/`). Not with `--from`.
+    #[arg(long, required_unless_present = "from", conflicts_with = "from")]
+    pub scene: Option<PathBuf>,
+    /// Live: play a capture written by `fwlidar simulate --out` (its frames and navigation
+    /// bytes, paced by their GPS times) instead of simulating a scene: playback costs a frame
+    /// encoding and a send per pulse, so pulse rates beyond what the simulator computes in
+    /// real time on this machine can be played (e.g. the 400 kHz survey line into the daemon).
+    #[arg(long, requires = "live", value_name = "CAPTURE")]
+    pub from: Option<PathBuf>,
     /// Capture file to write (must not exist: captures are never overwritten). Exactly one of
     /// `--out` and `--live`.
     #[arg(long, short, required_unless_present = "live", conflicts_with = "live")]
@@ -88,8 +94,18 @@ fn parse_speed(text: &str) -> Result<f64, String> {
 /// Runs `fwlidar simulate`: an analytic scene (a `[scene]` table) or a described one (a
 /// `[flight]` table, [`crate::sim::world`]), which also writes its truth beside the capture.
 pub fn run(args: SimulateArgs) -> Result<(), Failure> {
-    let text = crate::config::load::read_bounded(&args.scene)
-        .map_err(|e| Failure::usage(format!("cannot read {}: {e}", args.scene.display())))?;
+    let Some(scene_path) = args.scene.clone() else {
+        let from = args.from.clone().unwrap_or_default();
+        let mut items = crate::sim::capture_items::CaptureItems::open(&from)
+            .map_err(|e| Failure::usage(e.to_string()))?;
+        run_live(&args, &mut items)?;
+        return match items.error() {
+            Some(e) => Err(Failure::job(e.to_string())),
+            None => Ok(()),
+        };
+    };
+    let text = crate::config::load::read_bounded(&scene_path)
+        .map_err(|e| Failure::usage(format!("cannot read {}: {e}", scene_path.display())))?;
     let described = toml::from_str::<toml::Table>(&String::from_utf8_lossy(&text))
         .is_ok_and(|t| t.contains_key("flight"));
     if described {
@@ -99,10 +115,10 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         return Err(Failure::usage(format!(
             "--set applies to described scenes (a [flight] table); {} is an analytic scene: \
              edit its [scene] table",
-            args.scene.display()
+            scene_path.display()
         )));
     }
-    let (mut scene, sensor) = Scene::load(&args.scene).map_err(Failure::usage)?;
+    let (mut scene, sensor) = Scene::load(&scene_path).map_err(Failure::usage)?;
     if let Some(n) = args.pulses {
         scene.pulses = n;
     }
@@ -151,7 +167,7 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
     println!(
         "wrote {}: {pulses} pulses, {nav} navigation records, {bytes} bytes (scene {}, seed {})",
         out.display(),
-        args.scene.display(),
+        scene_path.display(),
         scene.seed
     );
     Ok(())
@@ -197,15 +213,16 @@ pub fn truth_paths(out: &Path) -> [PathBuf; 4] {
 }
 
 fn run_world(args: SimulateArgs) -> Result<(), Failure> {
+    let scene_path = args.scene.clone().unwrap_or_default();
     let (mut scene, sensor) =
-        WorldScene::load_with(&args.scene, &args.sets).map_err(Failure::usage)?;
+        WorldScene::load_with(&scene_path, &args.sets).map_err(Failure::usage)?;
     if let Some(n) = args.pulses {
         scene.flight.max_pulses = Some(n);
     }
     if let Some(s) = args.seed {
         scene.seed = s;
     }
-    let base = args.scene.parent().unwrap_or(Path::new("."));
+    let base = scene_path.parent().unwrap_or(Path::new("."));
     let sim = WorldSim::new(&scene, &sensor, base).map_err(Failure::usage)?;
     let out = match (&args.out, args.live) {
         (Some(out), false) => out.clone(),
@@ -307,7 +324,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
     truth_writer.finish().map_err(Failure::job)?;
     let o = &scene.origin;
     let summary = serde_json::json!({
-        "scene": args.scene.display().to_string(),
+        "scene": scene_path.display().to_string(),
         "seed": scene.seed,
         "frame": {
             "description": "scene frame: metres east, north, up of the origin, tangent plane",
@@ -339,7 +356,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
         "wrote {}: {pulses} pulses ({} lost), {nav} navigation records, {bytes} bytes (scene {}, seed {}); truth in {} and {}",
         out.display(),
         items.lost().len(),
-        args.scene.display(),
+        scene_path.display(),
         scene.seed,
         truth_path.display(),
         csv_path.display()

@@ -11,6 +11,7 @@
 //! [`SimItems`] interleaves the two streams in time order, as a capture would hold them.
 
 pub mod analytic;
+pub mod capture_items;
 pub mod live;
 pub mod navstream;
 pub mod nmea;
