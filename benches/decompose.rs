@@ -27,7 +27,7 @@ use fwlidar::config::RunConfig;
 use fwlidar::pipeline::registry::StageConfig;
 use fwlidar::pipeline::stage::{DropCounts, Emitter, Stage};
 use fwlidar::pipeline::testing::run_stage;
-use fwlidar::pulse::{Pulse, PulsePool};
+use fwlidar::pulse::{Pulse, PulsePool, SegmentKind};
 use fwlidar::signal::DecomposeConfig;
 use fwlidar::signal::decompose::Decomposer;
 use fwlidar::sim::world::scene::WorldScene;
@@ -203,6 +203,29 @@ fn survey_line(c: &mut Criterion) {
         q(0.999),
         q(1.0)
     );
+    // What the fits did: LM trial steps and components per pulse.
+    if let StageConfig::Decompose(cfg) = &config {
+        let mut d = Decomposer::new(cfg.clone(), cfg.max_samples);
+        let mut scratch = Vec::with_capacity(8);
+        let (mut iters, mut at_cap, mut none_above, mut comps) = (0u64, 0usize, 0usize, 0u64);
+        for p in &done {
+            for seg in p.segments.iter().filter(|s| s.kind == SegmentKind::Return) {
+                scratch.clear();
+                let st = d.fit(&p.signal[seg.range()], p.noise.noise_v, &mut scratch).unwrap();
+                iters += st.iterations as u64;
+                at_cap += (st.iterations >= cfg.max_iterations) as usize;
+                none_above += (st.peaks == 0 && st.components == 0) as usize;
+                comps += st.components as u64;
+            }
+        }
+        println!(
+            "decompose_survey_line: LM steps per pulse {:.2}, segments at the {}-step budget {at_cap}, \
+             segments without a peak {none_above}, components per pulse {:.2}",
+            iters as f64 / done.len() as f64,
+            cfg.max_iterations,
+            comps as f64 / done.len() as f64
+        );
+    }
     if let Ok(path) = std::env::var("FWLIDAR_DECOMPOSE_DUMP") {
         dump(&path, &done, &truth);
     }

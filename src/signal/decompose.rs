@@ -27,7 +27,11 @@
 //! [`DecomposeConfig::max_iterations`] trial steps (the first fit at most half of it when
 //! refinement is enabled) ([`FitStats::iterations`] never exceeds it),
 //! so the worst-case cost per segment is fixed by the configuration: O(max_iterations ×
-//! segment length × components) plus linear detection. Every buffer is sized in
+//! samples inside the components' windows × components) plus one linear scan for detection
+//! and at most `refine_passes` + 1 residual scans. Components are kept sorted by centre, so the
+//! fit's normal equations are banded ([`crate::signal::gauss_fit`]). A segment with no sample
+//! at or above the threshold (empty air) costs one scan (finiteness, maximum, `Σ y²`) and
+//! nothing more: it cannot have a peak or a residual peak. Every buffer is sized in
 //! [`Decomposer::new`]; a fit allocates nothing (`out` aside, which the caller reuses).
 //!
 //! The stage ([`Decompose`]) fits every return segment of a denoised pulse (`pulse.signal` in
