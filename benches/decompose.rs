@@ -102,6 +102,8 @@ fn replay_stages() -> (StageConfig, StageConfig, StageConfig) {
 }
 
 /// Denoised and deconvolved survey-line pulses, ready for the decompose stage, with their truth.
+// The stage API moves boxed pulses.
+#[allow(clippy::vec_box)]
 fn survey_line_mix() -> (Vec<Box<Pulse>>, Vec<ShotTruth>, StageConfig) {
     let (denoise, deconvolve, decompose) = replay_stages();
     let mut raw = simulate(MIX_PULSES, None);
@@ -117,6 +119,8 @@ fn survey_line_mix() -> (Vec<Box<Pulse>>, Vec<ShotTruth>, StageConfig) {
 }
 
 /// Runs `stage` on `pulse` (emitted back into `slot`).
+// The stage API moves boxed pulses.
+#[allow(clippy::vec_box)]
 fn process(
     stage: &mut dyn Stage,
     pulse: Box<Pulse>,
@@ -211,7 +215,9 @@ fn survey_line(c: &mut Criterion) {
         for p in &done {
             for seg in p.segments.iter().filter(|s| s.kind == SegmentKind::Return) {
                 scratch.clear();
-                let st = d.fit(&p.signal[seg.range()], p.noise.noise_v, &mut scratch).unwrap();
+                let st = d
+                    .fit(&p.signal[seg.range()], p.noise.noise_v, &mut scratch)
+                    .unwrap();
                 iters += st.iterations as u64;
                 at_cap += (st.iterations >= cfg.max_iterations) as usize;
                 none_above += (st.peaks == 0 && st.components == 0) as usize;

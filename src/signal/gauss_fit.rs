@@ -803,6 +803,8 @@ mod tests {
     }
 
     #[test]
+    // Matrix index notation, as in the code under test.
+    #[allow(clippy::needless_range_loop)]
     fn normal_equations_match_the_per_sample_reference() {
         let (y, comps) = mixed_case();
         let k = comps.len();
@@ -864,6 +866,8 @@ mod tests {
     }
 
     #[test]
+    // Matrix index notation, as in the code under test.
+    #[allow(clippy::needless_range_loop)]
     fn profile_cholesky_matches_the_dense_solve() {
         // A block-banded SPD matrix: 4 blocks of 3, each coupled to the previous one only,
         // except block 3, which stands alone.
