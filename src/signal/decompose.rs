@@ -27,7 +27,11 @@
 //! [`DecomposeConfig::max_iterations`] trial steps (the first fit at most half of it when
 //! refinement is enabled) ([`FitStats::iterations`] never exceeds it),
 //! so the worst-case cost per segment is fixed by the configuration: O(max_iterations ×
-//! segment length × components) plus linear detection. Every buffer is sized in
+//! samples inside the components' windows × components) plus one linear scan for detection
+//! and at most `refine_passes` + 1 residual scans. Components are kept sorted by centre, so the
+//! fit's normal equations are banded ([`crate::signal::gauss_fit`]). A segment with no sample
+//! at or above the threshold (empty air) costs one scan (finiteness, maximum, `Σ y²`) and
+//! nothing more: it cannot have a peak or a residual peak. Every buffer is sized in
 //! [`Decomposer::new`]; a fit allocates nothing (`out` aside, which the caller reuses).
 //!
 //! The stage ([`Decompose`]) fits every return segment of a denoised pulse (`pulse.signal` in
@@ -42,7 +46,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::{FittedReturn, Pulse, SegmentKind};
-use crate::signal::gauss_fit::{Bounds, GaussFitter, Gaussian, MAX_COMPONENTS, model_at};
+use crate::signal::gauss_fit::{Bounds, GaussFitter, Gaussian, MAX_COMPONENTS};
 use crate::signal::peaks::{Peak, PeakFinder, PeakSettings};
 
 /// `√(2 ln 2)`: half width at half maximum of a Gaussian in units of σ.
@@ -201,7 +205,7 @@ impl Decomposer {
             max_samples,
             finder: PeakFinder::new(max_samples),
             peaks: Vec::with_capacity(MAX_COMPONENTS),
-            fitter: GaussFitter::new(),
+            fitter: GaussFitter::with_capacity(max_samples),
             residual: vec![0.0; max_samples],
         }
     }
@@ -220,10 +224,13 @@ impl Decomposer {
         noise_v: f32,
         out: &mut Vec<FittedReturn>,
     ) -> Result<FitStats, DecomposeError> {
-        if !noise_v.is_finite() || y.iter().any(|v| !v.is_finite()) {
+        if !noise_v.is_finite() {
             return Err(DecomposeError::NonFiniteInput);
         }
         if y.len() > self.max_samples {
+            if y.iter().any(|v| !v.is_finite()) {
+                return Err(DecomposeError::NonFiniteInput);
+            }
             return Err(DecomposeError::SegmentTooLong {
                 len: y.len(),
                 max_samples: self.max_samples,
@@ -234,11 +241,28 @@ impl Decomposer {
         if n == 0 {
             return Ok(stats);
         }
+        // One scan: finiteness, the largest sample and Σ y² (the RSS of an empty model).
+        let mut finite = true;
+        let mut y_max = 0.0f32;
+        let mut sum_sq = 0.0f64;
+        for &v in y {
+            finite &= v.is_finite();
+            y_max = y_max.max(v);
+            sum_sq += (v as f64) * (v as f64);
+        }
+        if !finite {
+            return Err(DecomposeError::NonFiniteInput);
+        }
         let cfg = &self.config;
-        let y_max = y.iter().copied().fold(0.0f32, f32::max);
         let threshold = (cfg.min_snr * noise_v.max(0.0))
             .max(cfg.min_relative_amplitude * y_max)
             .max(f32::MIN_POSITIVE);
+        // Empty pulse: no sample reaches the threshold, so neither a peak nor a residual peak
+        // can (without components the residual is `y`); nothing more to do.
+        if y_max < threshold {
+            stats.rms_residual = (sum_sq / n as f64).sqrt() as f32;
+            return Ok(stats);
+        }
         let (s_min, s_max) = (cfg.sigma_min_bins, cfg.sigma_max_bins);
         let bounds = Bounds {
             center_min_bins: 0.0,
@@ -288,13 +312,13 @@ impl Decomposer {
                 break;
             }
             let res = &mut self.residual[..n];
+            self.fitter.residual(y, &comps[..k], res);
             let mut best = 0;
             let mut res_best = f32::NEG_INFINITY;
-            for (i, (r, &v)) in res.iter_mut().zip(y).enumerate() {
-                *r = v - model_at(&comps[..k], i as f64) as f32;
-                if i == 0 || *r > res_best {
+            for (i, &r) in res.iter().enumerate() {
+                if i == 0 || r > res_best {
                     best = i;
-                    res_best = *r;
+                    res_best = r;
                 }
             }
             // Like the peak detector, the residual's first and last samples are no peaks.
@@ -326,6 +350,8 @@ impl Decomposer {
             }
             comps[k] = new;
             k += 1;
+            // Sorted by centre, the normal equations are banded (cheapest solve).
+            comps[..k].sort_unstable_by(|a, b| a.center_bins.total_cmp(&b.center_bins));
             used += self
                 .fitter
                 .fit(y, &mut comps[..k], &bounds, budget - used)
@@ -341,7 +367,8 @@ impl Decomposer {
 
         let comps = &mut comps[..k];
         comps.sort_unstable_by(|a, b| a.center_bins.total_cmp(&b.center_bins));
-        let rms = (GaussFitter::rss(y, comps) / n as f64).sqrt() as f32;
+        let rss = self.fitter.residual(y, comps, &mut self.residual[..n]);
+        let rms = (rss / n as f64).sqrt() as f32;
         for g in comps.iter() {
             out.push(FittedReturn {
                 segment: 0,
