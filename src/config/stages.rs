@@ -6,7 +6,7 @@ use crate::pipeline::registry::StageConfig;
 use crate::signal::calibrate::CalibrateConfig;
 use crate::signal::decompose::DecomposeConfig;
 use crate::signal::deconvolve::response::{ResponseError, response_from_flat_target};
-use crate::signal::deconvolve::{DeconvolveConfig, KernelSource, MethodConfig};
+use crate::signal::deconvolve::{DeconvolveConfig, GateError, KernelSource, MethodConfig};
 use crate::signal::denoise::DenoiseConfig;
 use crate::signal::gauss_fit::MAX_COMPONENTS;
 
@@ -170,6 +170,16 @@ impl Validate for DeconvolveConfig {
                     field(&method, "tolerance"),
                     format!("must be a relative tolerance in 0..1, got {}", c.tolerance),
                 );
+            }
+        }
+        if let Some(gate) = &self.gate {
+            match gate.validate(&self.method) {
+                Ok(()) => {}
+                Err(e @ GateError::BadThreshold(_)) => v.report(
+                    field(&field(path, "gate"), "threshold_noise"),
+                    e.to_string(),
+                ),
+                Err(e) => v.report(field(path, "gate"), e.to_string()),
             }
         }
         if let KernelSource::Taps { taps, center } = &self.kernel {
