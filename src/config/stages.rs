@@ -440,6 +440,46 @@ mod tests {
     }
 
     #[test]
+    fn stage_config_deconvolve_gate_is_parsed_and_checked() {
+        use crate::signal::deconvolve::Gate;
+        let StageConfig::Deconvolve(c) = stage(
+            "type = \"deconvolve\"\nmethod = { method = \"richardson_lucy\" }\ngate = \"off\"",
+        )
+        .unwrap() else {
+            panic!("not a deconvolve stage")
+        };
+        assert_eq!(c.gate, Some(Gate::Off));
+        assert_eq!(c.effective_gate(), Gate::Off);
+        let e = stage("type = \"deconvolve\"\nmethod = { method = \"gold\" }\ngate = { k = 1 }")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("threshold_noise"), "{e}");
+        let issues = |text: &str| {
+            let StageConfig::Deconvolve(c) = stage(text).unwrap() else {
+                panic!("not a deconvolve stage")
+            };
+            let mut v = Validator::new(None);
+            Validate::validate(&c, "s", &mut v);
+            v.issues()
+                .iter()
+                .map(|(p, _)| p.clone())
+                .collect::<Vec<_>>()
+        };
+        assert!(issues("type = \"deconvolve\"\nmethod = { method = \"gold\" }\ngate = { threshold_noise = 2.0 }").is_empty());
+        assert!(issues("type = \"deconvolve\"\nmethod = { method = \"wiener\" }").is_empty());
+        assert_eq!(
+            issues(
+                "type = \"deconvolve\"\nmethod = { method = \"richardson_lucy\" }\ngate = { threshold_noise = 0.0 }"
+            ),
+            ["s.gate.threshold_noise"]
+        );
+        assert_eq!(
+            issues("type = \"deconvolve\"\nmethod = { method = \"nnls\" }\ngate = \"on\""),
+            ["s.gate"]
+        );
+    }
+
+    #[test]
     fn stage_config_flat_target_kernel_is_parsed_and_checked() {
         let text = "type = \"deconvolve\"\nmethod = { method = \"gold\" }\n\
                     kernel = { flat_target = { ground_return = [200.0, 200.0, 900.0, 400.0, 200.0], \
