@@ -6,6 +6,7 @@ mod waveforms;
 use criterion::{Criterion, criterion_group, criterion_main};
 use fwlidar::pipeline::{DropCounts, Emitter, Stage};
 use fwlidar::pulse::{FittedReturn, Pulse, PulsePool, SegmentKind};
+use fwlidar::signal::denoise::LowPass;
 use fwlidar::signal::{Calibrate, CalibrateConfig, Denoise, DenoiseConfig};
 use std::hint::black_box;
 
@@ -58,6 +59,19 @@ fn denoise(c: &mut Criterion) {
             let p = pulse.take().expect("the pulse comes back every iteration");
             let mut em = Emitter::new(&mut out, &pool, &mut dropped, &mut errors);
             stage.process(black_box(p), &mut em).expect("denoise");
+            pulse = out.pop();
+        })
+    });
+    // The same pulse through the optional FIR low-pass (`filter = "fir"`).
+    let mut fir = Denoise::new(DenoiseConfig {
+        filter: LowPass::Fir,
+        ..DenoiseConfig::default()
+    });
+    c.bench_function("denoise_fir_outgoing64_return256_1ns", |b| {
+        b.iter(|| {
+            let p = pulse.take().expect("the pulse comes back every iteration");
+            let mut em = Emitter::new(&mut out, &pool, &mut dropped, &mut errors);
+            fir.process(black_box(p), &mut em).expect("denoise");
             pulse = out.pop();
         })
     });

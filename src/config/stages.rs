@@ -6,7 +6,7 @@ use crate::pipeline::registry::StageConfig;
 use crate::signal::calibrate::CalibrateConfig;
 use crate::signal::decompose::DecomposeConfig;
 use crate::signal::deconvolve::response::{ResponseError, response_from_flat_target};
-use crate::signal::deconvolve::{DeconvolveConfig, KernelSource, MethodConfig};
+use crate::signal::deconvolve::{DeconvolveConfig, GateError, KernelSource, MethodConfig};
 use crate::signal::denoise::DenoiseConfig;
 use crate::signal::gauss_fit::MAX_COMPONENTS;
 
@@ -170,6 +170,16 @@ impl Validate for DeconvolveConfig {
                     field(&method, "tolerance"),
                     format!("must be a relative tolerance in 0..1, got {}", c.tolerance),
                 );
+            }
+        }
+        if let Some(gate) = &self.gate {
+            match gate.validate(&self.method) {
+                Ok(()) => {}
+                Err(e @ GateError::BadThreshold(_)) => v.report(
+                    field(&field(path, "gate"), "threshold_noise"),
+                    e.to_string(),
+                ),
+                Err(e) => v.report(field(path, "gate"), e.to_string()),
             }
         }
         if let KernelSource::Taps { taps, center } = &self.kernel {
@@ -427,6 +437,46 @@ mod tests {
             &mut v,
         );
         assert!(v.issues().is_empty());
+    }
+
+    #[test]
+    fn stage_config_deconvolve_gate_is_parsed_and_checked() {
+        use crate::signal::deconvolve::Gate;
+        let StageConfig::Deconvolve(c) = stage(
+            "type = \"deconvolve\"\nmethod = { method = \"richardson_lucy\" }\ngate = \"off\"",
+        )
+        .unwrap() else {
+            panic!("not a deconvolve stage")
+        };
+        assert_eq!(c.gate, Some(Gate::Off));
+        assert_eq!(c.effective_gate(), Gate::Off);
+        let e = stage("type = \"deconvolve\"\nmethod = { method = \"gold\" }\ngate = { k = 1 }")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("threshold_noise"), "{e}");
+        let issues = |text: &str| {
+            let StageConfig::Deconvolve(c) = stage(text).unwrap() else {
+                panic!("not a deconvolve stage")
+            };
+            let mut v = Validator::new(None);
+            Validate::validate(&c, "s", &mut v);
+            v.issues()
+                .iter()
+                .map(|(p, _)| p.clone())
+                .collect::<Vec<_>>()
+        };
+        assert!(issues("type = \"deconvolve\"\nmethod = { method = \"gold\" }\ngate = { threshold_noise = 2.0 }").is_empty());
+        assert!(issues("type = \"deconvolve\"\nmethod = { method = \"wiener\" }").is_empty());
+        assert_eq!(
+            issues(
+                "type = \"deconvolve\"\nmethod = { method = \"richardson_lucy\" }\ngate = { threshold_noise = 0.0 }"
+            ),
+            ["s.gate.threshold_noise"]
+        );
+        assert_eq!(
+            issues("type = \"deconvolve\"\nmethod = { method = \"nnls\" }\ngate = \"on\""),
+            ["s.gate"]
+        );
     }
 
     #[test]

@@ -25,7 +25,7 @@ use crate::geo::crs::OutputCrs;
 use crate::geo::georeferencing_source::{GeoreferenceConfig, GeoreferencingSource};
 use crate::pulse::{Pulse, PulseGeometry, SegmentKind};
 use crate::signal::deconvolve::{
-    Deconvolver, GoldConfig, MethodConfig, NnlsConfig, RlConfig, WienerConfig,
+    Deconvolver, Gate, Gated, GoldConfig, MethodConfig, NnlsConfig, RlConfig, WienerConfig,
 };
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::kernel::{Kernel, convolve_same, remove_baseline};
@@ -235,7 +235,10 @@ pub fn run_scene_steps(
             max_samples: bins.max(16),
             ..DenoiseConfig::default()
         });
-        let mut deconv: Option<Box<dyn Deconvolver>> = method.as_ref().map(|m| m.build(bins, taps));
+        // The deconvolve stage's own code: the method behind its default echo-window gate.
+        let mut deconv: Option<Gated> = method
+            .as_ref()
+            .map(|m| Gated::build(m, Gate::default_for(m), bins, taps));
         let (mut rmse, mut rmse_2ns) = (RmseAccumulator::default(), RmseAccumulator::default());
         let (mut peaks, mut n_truth, mut sam) = (PeakMatch::default(), 0u64, 0.0);
         let mut times = Vec::with_capacity(shots.len());

@@ -18,7 +18,8 @@ use crate::eval::metrics::{
     PeakMatch, RmseAccumulator, local_peaks, match_peaks, spectral_angle_deg,
 };
 use crate::signal::deconvolve::{
-    DeconvError, Deconvolver, GoldConfig, MethodConfig, NnlsConfig, RlConfig, WienerConfig,
+    DeconvError, Deconvolver, Gate, Gated, GoldConfig, MethodConfig, NnlsConfig, RlConfig,
+    WienerConfig,
 };
 use crate::signal::denoise::{Denoise, DenoiseConfig, DenoiseError};
 use crate::signal::kernel::{Kernel, convolve_same};
@@ -305,7 +306,7 @@ pub struct Progress<'a> {
 /// The processing objects of one setting, built for one kernel size.
 struct Runner {
     denoise: Option<Denoise>,
-    deconv: Option<Box<dyn Deconvolver>>,
+    deconv: Option<Gated>,
     denoised: Vec<f32>,
 }
 
@@ -319,7 +320,8 @@ impl Runner {
             })),
         };
         let deconv = match &setting.processing {
-            Processing::Deconvolve(m) => Some(m.build(bins, taps)),
+            // The deconvolve stage's own code: the method behind its default echo-window gate.
+            Processing::Deconvolve(m) => Some(Gated::build(m, Gate::default_for(m), bins, taps)),
             _ => None,
         };
         Runner {

@@ -5,7 +5,8 @@
 //! Every method implements [`Deconvolver`] on plain slices (one segment at a time, volts above
 //! baseline) so the stage, `fwlidar process` and the benchmarks share the same code.
 
-mod direct;
+pub(crate) mod direct;
+pub mod gate;
 pub mod gold;
 pub mod nnls;
 pub mod response;
@@ -19,6 +20,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::signal::kernel::Kernel;
 
+pub use gate::{Gate, GateError, GateStats, Gated};
 pub use gold::{Gold, GoldConfig};
 pub use nnls::{Nnls, NnlsConfig};
 pub use richardson_lucy::{RichardsonLucy, RlConfig};

@@ -57,7 +57,7 @@ use serde::{Deserialize, Serialize};
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::{Pulse, SegmentKind};
 use crate::signal::deconvolve::response::response_from_flat_target;
-use crate::signal::deconvolve::{Deconvolver, MethodConfig};
+use crate::signal::deconvolve::{Deconvolver, Gate, Gated, MethodConfig};
 use crate::signal::kernel::{Kernel, RecordLevels};
 
 /// Where the stage's kernel (system response) comes from.
@@ -122,6 +122,13 @@ impl KernelSource {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DeconvolveConfig {
+    /// The echo-window gate ([`gate`](crate::signal::deconvolve::gate)): `"off"` (every return
+    /// segment deconvolved whole), `"on"` or `{ threshold_noise = K }` (only the windows
+    /// around samples above `K × noise_v`, widened by the kernel's length on both sides; 0
+    /// elsewhere). Default (key absent): on with `K = 3` for `richardson_lucy` and `gold`, off
+    /// for `wiener` and `nnls` (which do not support it: naming it with them is an error).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gate: Option<Gate>,
     /// The method and its settings (a table with its own `method = "..."` key). Required.
     pub method: MethodConfig,
     /// Kernel source. Default `"outgoing"`.
@@ -219,9 +226,15 @@ impl DeconvolveConfig {
         }
     }
 
+    /// The gate in force: the configured one, or [`Gate::default_for`] the method.
+    pub fn effective_gate(&self) -> Gate {
+        self.gate.unwrap_or_else(|| Gate::default_for(&self.method))
+    }
+
     /// A configuration with the given method and every other field at its default.
     pub fn with_method(method: MethodConfig) -> Self {
         DeconvolveConfig {
+            gate: None,
             method,
             kernel: KernelSource::default(),
             max_samples: default_max_samples(),
@@ -235,7 +248,8 @@ impl DeconvolveConfig {
 /// The deconvolve stage.
 pub struct Deconvolve {
     config: DeconvolveConfig,
-    method: Box<dyn Deconvolver>,
+    /// The method behind the configured echo-window gate.
+    method: Gated,
     kernel: Kernel,
     /// Set when a configured calibrated kernel is unusable (reported as a fatal error).
     kernel_error: Option<String>,
@@ -250,7 +264,12 @@ impl Deconvolve {
     /// the first `process` call return a fatal error (configuration validation reports it
     /// before that).
     pub fn new(config: DeconvolveConfig) -> Self {
-        let method = config.method.build(config.max_samples, config.max_taps);
+        let method = Gated::build(
+            &config.method,
+            config.effective_gate(),
+            config.max_samples,
+            config.max_taps,
+        );
         let mut kernel = Kernel::with_capacity(config.max_taps);
         let mut kernel_error = None;
         match config.kernel.fixed_kernel(&config.method, config.max_taps) {
