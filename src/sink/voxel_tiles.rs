@@ -195,7 +195,7 @@ impl VoxelTilesSink {
         let wkt = store.info().crs_wkt.clone();
         let mut tiles = TileSet::new(store, self.cfg.max_open_tiles, self.cfg.close_after_s);
         if self.writer_queue > 0 {
-            tiles = tiles.with_writer_thread(self.writer_queue);
+            tiles = tiles.with_writer_threads(self.writer_queue, self.cfg.writer_threads());
         }
         if self.cfg.las {
             let dir = self
@@ -272,12 +272,15 @@ impl PulseSink for VoxelTilesSink {
             v["tiles"] = serde_json::to_value(t.stats()).unwrap_or_default();
             v["tiles"]["written"] = s.tiles_written.into();
             v["tiles"]["bytes_written"] = s.bytes_written.into();
+            v["tiles"]["bytes_stored"] = s.bytes_stored.into();
+            v["tiles"]["chunks_written"] = s.chunks_written.into();
             v["tiles"]["in_store"] = s.tiles().len().into();
             v["tiles"]["recovered_commits"] = s.recovered_commits.into();
             v["grid"] = serde_json::json!({
                 "epsg": s.info().epsg,
                 "voxel_size_m": g.voxel_size_m,
                 "levels": g.levels,
+                "chunk_levels": g.chunk_levels(),
                 "tile_columns": g.tile_columns,
                 "extent_origin_m": g.extent_origin(),
                 "tiles": g.tiles,
