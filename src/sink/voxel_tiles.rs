@@ -343,7 +343,7 @@ fn deposit_counts_only(pulse: &Pulse, stats: &mut DepositStats) {
 mod tests {
     use super::*;
     use crate::pulse::PulseGeometry;
-    use crate::voxel::tile::TileData;
+    use crate::voxel::tile::Dense;
 
     /// A nadir pulse over (x, y): 40 return bins from 10 m above z = 0 down to 2 m below, 1 V
     /// each except a 5 V echo at z = 0.
@@ -414,18 +414,21 @@ mod tests {
         out.chain(back)
     }
 
-    fn read_all(dir: &Path) -> Vec<([i64; 2], TileData)> {
+    fn read_all(dir: &Path) -> Vec<([i64; 2], Dense)> {
         ZarrStore::open(&dir.join("voxels.zarr"))
             .unwrap()
             .read_all()
             .unwrap()
+            .into_iter()
+            .map(|(t, d)| (t, d.dense()))
+            .collect()
     }
 
     /// Two stores' tiles hold the same sums, counts and maxima (bit for bit).
     fn assert_same_tiles(a: &Path, b: &Path) {
         let (a, b) = (read_all(a), read_all(b));
         assert_eq!(a.len(), b.len());
-        let bits = |d: &TileData| d.max.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let bits = |d: &Dense| d.max.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         for ((ta, da), (tb, db)) in a.iter().zip(&b) {
             assert_eq!(ta, tb);
             assert_eq!(da.sum_q, db.sum_q, "tile {ta:?}");

@@ -510,10 +510,7 @@ pub fn tile_las(
             },
             ..PointSix::default()
         };
-        (
-            point,
-            [m, f64::from(mx), f64::from(n), f64::from(p)],
-        )
+        (point, [m, f64::from(mx), f64::from(n), f64::from(p)])
     });
     let extra = [
         ExtraDim::f32("mean", "mean deposited intensity"),
