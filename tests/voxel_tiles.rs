@@ -715,3 +715,90 @@ fn a_full_disk_stops_the_replay_with_an_error_naming_the_file() {
         "the input is never touched"
     );
 }
+
+/// On the default grid (every height on Earth, sparse height chunks) bins far above and below
+/// any former fixed range land; only the height chunks holding them exist on disk (empty air is
+/// absent); and zarr-python reads the zstd store back equal to what was deposited.
+#[test]
+fn far_heights_land_in_sparse_zstd_chunks_that_zarr_python_reads_back() {
+    use fwlidar::voxel::grid::{Grid, VoxelConfig};
+    use fwlidar::voxel::zarr::StoreInfo;
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("v.zarr");
+    let cfg = VoxelConfig {
+        enabled: true,
+        extent_m: Some([0.0, 0.0, 32.0, 16.0]),
+        ..VoxelConfig::default()
+    };
+    let grid = Grid::new(&cfg, [0.0, 0.0]);
+    assert_eq!(grid.chunk_levels(), 64);
+    let mut s = ZarrStore::create_or_open(
+        &root,
+        grid.clone(),
+        StoreInfo {
+            crs_wkt: None,
+            epsg: Some(32736),
+            intensity_units: "V".into(),
+            run_key: "far".into(),
+            configuration: String::new(),
+        },
+    )
+    .unwrap();
+    let level = |z: f64| ((z - grid.z_bottom_m) / grid.voxel_size_m[2]).floor() as usize;
+    let l = grid.levels as usize;
+    // Column (i=3, j=5) of tile (0, 0): a bin at 8500 m and one at -900 m; tile (1, 0): 12 m.
+    let mut a = TileData::for_grid(&grid);
+    let (k_hi, k_lo) = (level(8500.0), level(-900.0));
+    a.deposit((5 * 32 + 3) * l + k_hi, 2_500_000, 2.5);
+    a.pass((5 * 32 + 3) * l + k_hi);
+    a.deposit((5 * 32 + 3) * l + k_lo, 1_000_000, 1.0);
+    let mut b = TileData::for_grid(&grid);
+    let k_mid = level(12.0);
+    b.deposit(7 * l + k_mid, 3_000_000, 3.0);
+    s.write_tile([0, 0], &a, 1).unwrap();
+    s.write_tile([1, 0], &b, 2).unwrap();
+    s.fit().unwrap();
+    // Three height chunks hold data: only their chunks exist (4 arrays each).
+    let chunk_files: Vec<String> = store_files(&root)
+        .into_keys()
+        .filter(|f| f.starts_with("sample_count/c/"))
+        .collect();
+    assert_eq!(chunk_files.len(), 3, "{chunk_files:?}");
+    let span = *s.span();
+    let kc = |k: usize| (k / 64) as u32;
+    assert_eq!(span.level_chunk_min, kc(k_lo));
+    assert_eq!(span.level_chunks, kc(k_hi) - kc(k_lo) + 1);
+    let script = r#"
+import sys, json, numpy as np, xarray as xr, zarr
+ds = xr.open_zarr(sys.argv[1])
+codecs = zarr.open_array(sys.argv[1] + "/sample_count").metadata.codecs
+assert any(type(c).__name__ == "ZstdCodec" for c in codecs), codecs
+n = ds.sample_count
+hits = np.argwhere(n.values > 0)
+out = []
+for k, j, i in hits:
+    out.append([float(ds.z[k]), float(ds.y[j]), float(ds.x[i]), int(n.values[k, j, i]),
+                float(ds.intensity_sum.values[k, j, i]), int(ds.pulse_count.values[k, j, i])])
+print(json.dumps(out))
+"#;
+    let o = Command::new(python())
+        .arg("-c")
+        .arg(script)
+        .arg(&root)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let got: Vec<[f64; 6]> = serde_json::from_slice(&o.stdout).unwrap();
+    let centre = |k: usize| grid.z_bottom_m + (k as f64 + 0.5) * grid.voxel_size_m[2];
+    let want = [
+        [centre(k_lo), 2.75, 1.75, 1.0, 1.0, 0.0],
+        [centre(k_mid), 0.25, 19.75, 1.0, 3.0, 0.0],
+        [centre(k_hi), 2.75, 1.75, 1.0, 2.5, 1.0],
+    ];
+    assert_eq!(got.len(), 3, "{got:?}");
+    for (g, w) in got.iter().zip(&want) {
+        for (a, b) in g.iter().zip(w) {
+            assert!((a - b).abs() < 1e-6, "{got:?} vs {want:?}");
+        }
+    }
+}
