@@ -130,7 +130,7 @@ fn the_readme_replay_opens_in_xarray_and_sums_without_a_warning() {
     let (nx, ny) = ((hi(0) - lo(0) + 1) as u64, (hi(1) - lo(1) + 1) as u64);
     // The fitted height: from the lowest to the highest height chunk written.
     let levels = vox["arrays"]["shape"][0].as_u64().unwrap();
-    assert!(levels > 0 && levels % 64 == 0, "{vox}");
+    assert!(levels > 0 && levels.is_multiple_of(64), "{vox}");
     assert_eq!(
         got["shape"],
         serde_json::json!([levels, ny * 32, nx * 32]),
