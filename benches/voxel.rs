@@ -24,10 +24,10 @@ fn info() -> StoreInfo {
 }
 
 fn cfg() -> VoxelConfig {
-    // The defaults (0.5 × 0.5 × 0.15 m, 32-column tiles) over a 60 m height range.
+    // The defaults: 0.5 × 0.5 × 0.15 m, 32-column tiles, every height on Earth in sparse
+    // height chunks of 64 levels.
     VoxelConfig {
         enabled: true,
-        z_range_m: [-10.0, 50.0],
         extent_m: Some([0.0, 0.0, 1024.0, 1024.0]),
         ..VoxelConfig::default()
     }
@@ -95,24 +95,29 @@ fn deposit(c: &mut Criterion) {
 fn write(c: &mut Criterion) {
     let mut g = c.benchmark_group("voxel_tile_write");
     let grid = Grid::new(&cfg(), [0.0, 0.0]);
-    let n = grid.tile_voxels();
-    // A realistic tile: every column holds samples in a 30 m band (ground to canopy top).
-    let mut t = TileData::new(n);
+    // A realistic tile: every column holds samples in a 30 m band (ground at 0 m to the canopy
+    // top), on the default grid (every height on Earth, sparse height chunks).
+    let mut t = TileData::for_grid(&grid);
     let cols = (grid.tile_columns * grid.tile_columns) as usize;
-    for k in 60..260usize {
+    let levels = grid.levels as usize;
+    let ground = (-grid.z_bottom_m / grid.voxel_size_m[2]) as usize;
+    for k in ground..ground + 200 {
         for c in 0..cols {
-            let o = k * cols + c;
+            let o = c * levels + k;
             t.deposit(o, (o as i64 * 7919) % 100_000, (o % 977) as f32 * 1e-3);
             t.pass(o);
         }
     }
-    g.throughput(Throughput::Bytes(t.bytes() as u64));
+    // Throughput: the bytes of the height chunks the tile holds (what is compressed).
+    g.throughput(Throughput::Bytes(
+        (t.present_count() * grid.chunk_voxels() * 20) as u64,
+    ));
     g.sample_size(20);
     g.measurement_time(Duration::from_secs(10));
     let dir = tempfile::tempdir().unwrap();
     let mut store =
         ZarrStore::create_or_open(&dir.path().join("v.zarr"), grid.clone(), info()).unwrap();
-    g.bench_function("one_tile_32x32x400_gzip1_fsync", |b| {
+    g.bench_function("one_tile_32x32_band30m_zstd1_sparse", |b| {
         b.iter_custom(|iters| {
             let start = Instant::now();
             for i in 0..iters {

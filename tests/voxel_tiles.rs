@@ -11,7 +11,7 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::{BIN, ROOT, fwlidar, python, text};
-use fwlidar::voxel::tile::TileData;
+use fwlidar::voxel::tile::{Dense, TileData};
 use fwlidar::voxel::zarr::ZarrStore;
 
 fn replay(input: &Path, out: &Path, config: Option<&Path>) -> std::process::Output {
@@ -128,7 +128,9 @@ fn the_readme_replay_opens_in_xarray_and_sums_without_a_warning() {
     let lo = |a: usize| records.iter().map(|t| t[a]).min().unwrap();
     let hi = |a: usize| records.iter().map(|t| t[a]).max().unwrap();
     let (nx, ny) = ((hi(0) - lo(0) + 1) as u64, (hi(1) - lo(1) + 1) as u64);
-    let levels = vox["grid"]["levels"].as_u64().unwrap();
+    // The fitted height: from the lowest to the highest height chunk written.
+    let levels = vox["arrays"]["shape"][0].as_u64().unwrap();
+    assert!(levels > 0 && levels.is_multiple_of(64), "{vox}");
     assert_eq!(
         got["shape"],
         serde_json::json!([levels, ny * 32, nx * 32]),
@@ -175,7 +177,7 @@ fn a_run_that_deposits_nothing_leaves_empty_arrays_xarray_opens() {
     assert!(vox["deposits"]["bins_outside_extent"].as_u64().unwrap() > 0);
     let fitted = check_fitted(&out.join("voxels.zarr"));
     assert_eq!(fitted["samples"], 0);
-    assert_eq!(fitted["shape"], serde_json::json!([234, 0, 0]));
+    assert_eq!(fitted["shape"], serde_json::json!([0, 0, 0]));
 }
 
 fn check_with_xarray(out: &Path, mode: &str) -> serde_json::Value {
@@ -203,18 +205,18 @@ fn replay_writes_tiles_that_xarray_reads_with_the_right_values() {
     assert!(o.status.success(), "{}", text(&o.stderr));
     let stdout = text(&o.stdout);
     assert!(
-        stdout.contains("voxels.zarr: 404000 bins of 2000 pulses deposited"),
+        stdout.contains("voxels.zarr: 450000 bins of 2000 pulses deposited"),
         "{stdout}"
     );
     assert!(stdout.contains("tiles 1 opened, 1 closed"), "{stdout}");
     let figures = check_with_xarray(&out, "calibrated");
-    assert_eq!(figures["bins"], 404000);
+    assert_eq!(figures["bins"], 450000);
     // Without the calibrate stage: volts, summed exactly as waveforms.csv has them.
     let volts = dir.path().join("volts");
     let o = replay(&sample(), &volts, Some(&volts_config(dir.path())));
     assert!(o.status.success(), "{}", text(&o.stderr));
     let figures = check_with_xarray(&volts, "volts");
-    assert_eq!(figures["bins"], 404000);
+    assert_eq!(figures["bins"], 450000);
     // The tile as a LAS point cloud (laspy): one point per occupied voxel, the same totals.
     let las: Vec<PathBuf> = std::fs::read_dir(volts.join("voxels_las"))
         .unwrap()
@@ -240,7 +242,7 @@ fn replay_writes_tiles_that_xarray_reads_with_the_right_values() {
         .unwrap();
     assert!(o.status.success(), "{}", text(&o.stderr));
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(v["samples"], 404000, "{v}");
+    assert_eq!(v["samples"], 450000, "{v}");
     let sum = v["sum"].as_f64().unwrap();
     let want = figures["sum_v"].as_f64().unwrap();
     assert!((sum - want).abs() < 1e-4 * want.abs(), "{sum} vs {want}");
@@ -409,12 +411,13 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
     assert_eq!(store_files(&cut.join("voxels.zarr")), a);
 }
 
-fn read_all(root: &Path) -> BTreeMap<[i64; 2], TileData> {
+fn read_all(root: &Path) -> BTreeMap<[i64; 2], Dense> {
     ZarrStore::open(root)
         .unwrap()
         .read_all()
         .unwrap()
         .into_iter()
+        .map(|(t, d)| (t, d.dense()))
         .collect()
 }
 
@@ -476,12 +479,12 @@ fn merge_adds_stores_exactly_and_refuses_what_does_not_fit() {
     assert!(!m.is_empty());
     let mut overlapping = 0;
     for (t, md) in &m {
-        let empty = TileData::new(md.len());
+        let empty = TileData::new(1, md.sum_q.len(), 1).dense();
         let (ad, bd) = (a.get(t).unwrap_or(&empty), b.get(t).unwrap_or(&empty));
         if a.contains_key(t) && b.contains_key(t) {
             overlapping += 1;
         }
-        for i in 0..md.len() {
+        for i in 0..md.sum_q.len() {
             assert_eq!(md.sum_q[i], ad.sum_q[i] + bd.sum_q[i]);
             assert_eq!(md.samples[i], ad.samples[i] + bd.samples[i]);
             assert_eq!(md.pulses[i], ad.pulses[i] + bd.pulses[i]);
@@ -593,7 +596,7 @@ mod damaged_store {
                 },
             )
             .unwrap();
-            let mut t = TileData::new(grid.tile_voxels());
+            let mut t = TileData::for_grid(&grid);
             t.deposit(3, 1000, 1.0);
             t.pass(3);
             s.write_tile([0, 0], &t, 7).unwrap();
@@ -643,10 +646,13 @@ mod damaged_store {
             }
             std::fs::write(&victim, &bytes).unwrap();
             if let Ok(mut s) = ZarrStore::open(&root) {
-                let n = s.grid().tile_voxels().min(1 << 20);
-                let mut d = TileData::new(n);
-                for t in s.tiles() {
-                    let _ = s.read_tile(t, &mut d);
+                let g = s.grid();
+                let chunk_ok = g.chunk_voxels() <= 1 << 20 && g.height_chunks() <= 1 << 20;
+                if chunk_ok {
+                    let mut d = TileData::for_grid(g);
+                    for t in s.tiles() {
+                        let _ = s.read_tile(t, &mut d);
+                    }
                 }
             }
         }
@@ -710,4 +716,91 @@ fn a_full_disk_stops_the_replay_with_an_error_naming_the_file() {
         before,
         "the input is never touched"
     );
+}
+
+/// On the default grid (every height on Earth, sparse height chunks) bins far above and below
+/// any former fixed range land; only the height chunks holding them exist on disk (empty air is
+/// absent); and zarr-python reads the zstd store back equal to what was deposited.
+#[test]
+fn far_heights_land_in_sparse_zstd_chunks_that_zarr_python_reads_back() {
+    use fwlidar::voxel::grid::{Grid, VoxelConfig};
+    use fwlidar::voxel::zarr::StoreInfo;
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("v.zarr");
+    let cfg = VoxelConfig {
+        enabled: true,
+        extent_m: Some([0.0, 0.0, 32.0, 16.0]),
+        ..VoxelConfig::default()
+    };
+    let grid = Grid::new(&cfg, [0.0, 0.0]);
+    assert_eq!(grid.chunk_levels(), 64);
+    let mut s = ZarrStore::create_or_open(
+        &root,
+        grid.clone(),
+        StoreInfo {
+            crs_wkt: None,
+            epsg: Some(32736),
+            intensity_units: "V".into(),
+            run_key: "far".into(),
+            configuration: String::new(),
+        },
+    )
+    .unwrap();
+    let level = |z: f64| ((z - grid.z_bottom_m) / grid.voxel_size_m[2]).floor() as usize;
+    let l = grid.levels as usize;
+    // Column (i=3, j=5) of tile (0, 0): a bin at 8500 m and one at -900 m; tile (1, 0): 12 m.
+    let mut a = TileData::for_grid(&grid);
+    let (k_hi, k_lo) = (level(8500.0), level(-900.0));
+    a.deposit((5 * 32 + 3) * l + k_hi, 2_500_000, 2.5);
+    a.pass((5 * 32 + 3) * l + k_hi);
+    a.deposit((5 * 32 + 3) * l + k_lo, 1_000_000, 1.0);
+    let mut b = TileData::for_grid(&grid);
+    let k_mid = level(12.0);
+    b.deposit(7 * l + k_mid, 3_000_000, 3.0);
+    s.write_tile([0, 0], &a, 1).unwrap();
+    s.write_tile([1, 0], &b, 2).unwrap();
+    s.fit().unwrap();
+    // Three height chunks hold data: only their chunks exist (4 arrays each).
+    let chunk_files: Vec<String> = store_files(&root)
+        .into_keys()
+        .filter(|f| f.starts_with("sample_count/c/"))
+        .collect();
+    assert_eq!(chunk_files.len(), 3, "{chunk_files:?}");
+    let span = *s.span();
+    let kc = |k: usize| (k / 64) as u32;
+    assert_eq!(span.level_chunk_min, kc(k_lo));
+    assert_eq!(span.level_chunks, kc(k_hi) - kc(k_lo) + 1);
+    let script = r#"
+import sys, json, numpy as np, xarray as xr, zarr
+ds = xr.open_zarr(sys.argv[1])
+codecs = zarr.open_array(sys.argv[1] + "/sample_count").metadata.codecs
+assert any(type(c).__name__ == "ZstdCodec" for c in codecs), codecs
+n = ds.sample_count
+hits = np.argwhere(n.values > 0)
+out = []
+for k, j, i in hits:
+    out.append([float(ds.z[k]), float(ds.y[j]), float(ds.x[i]), int(n.values[k, j, i]),
+                float(ds.intensity_sum.values[k, j, i]), int(ds.pulse_count.values[k, j, i])])
+print(json.dumps(out))
+"#;
+    let o = Command::new(python())
+        .arg("-c")
+        .arg(script)
+        .arg(&root)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let got: Vec<[f64; 6]> = serde_json::from_slice(&o.stdout).unwrap();
+    let centre = |k: usize| grid.z_bottom_m + (k as f64 + 0.5) * grid.voxel_size_m[2];
+    let want = [
+        [centre(k_lo), 2.75, 1.75, 1.0, 1.0, 0.0],
+        [centre(k_mid), 0.25, 19.75, 1.0, 3.0, 0.0],
+        [centre(k_hi), 2.75, 1.75, 1.0, 2.5, 1.0],
+    ];
+    assert_eq!(got.len(), 3, "{got:?}");
+    for (g, w) in got.iter().zip(&want) {
+        for (a, b) in g.iter().zip(w) {
+            assert!((a - b).abs() < 1e-6, "{got:?} vs {want:?}");
+        }
+    }
 }

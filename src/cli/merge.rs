@@ -102,8 +102,7 @@ pub fn run(args: MergeArgs) -> Result<(), Failure> {
         );
         bar
     });
-    let n = grid.tile_voxels();
-    let (mut acc, mut part) = (TileData::new(n), TileData::new(n));
+    let (mut acc, mut part) = (TileData::for_grid(&grid), TileData::for_grid(&grid));
     let mut merged_from_several = 0u64;
     for &t in &tiles {
         acc.clear();

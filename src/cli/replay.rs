@@ -273,9 +273,14 @@ fn voxel_sink(
         input.dem.clone(),
         facts.sensor.as_ref().map(|s| s.beam_divergence_mrad),
     )
-    .map_err(Failure::job)?;
+    .map_err(Failure::job)?
+    // Closed tiles are compressed and committed off the sink thread (the store is the same).
+    .with_tile_writer(TILE_WRITER_QUEUE);
     Ok(Box::new(sink))
 }
+
+/// Closed voxel tiles waiting for the tile writer threads at most (then the sink waits).
+const TILE_WRITER_QUEUE: usize = 32;
 
 /// Runs the pipeline, drawing a progress bar unless `--no-progress`.
 fn run_with_progress(

@@ -521,6 +521,7 @@ fn voxel_step(
         if tt != pt {
             return Err(err(name, "the two grids hold different tiles"));
         }
+        let (td, pd) = (td.dense(), pd.dense());
         for c in 0..td.sum_q.len() / levels {
             let range = c * levels..(c + 1) * levels;
             if td.samples[range.clone()].iter().all(|&s| s == 0) {

@@ -195,7 +195,7 @@ impl VoxelTilesSink {
         let wkt = store.info().crs_wkt.clone();
         let mut tiles = TileSet::new(store, self.cfg.max_open_tiles, self.cfg.close_after_s);
         if self.writer_queue > 0 {
-            tiles = tiles.with_writer_thread(self.writer_queue);
+            tiles = tiles.with_writer_threads(self.writer_queue, self.cfg.writer_threads());
         }
         if self.cfg.las {
             let dir = self
@@ -272,12 +272,15 @@ impl PulseSink for VoxelTilesSink {
             v["tiles"] = serde_json::to_value(t.stats()).unwrap_or_default();
             v["tiles"]["written"] = s.tiles_written.into();
             v["tiles"]["bytes_written"] = s.bytes_written.into();
+            v["tiles"]["bytes_stored"] = s.bytes_stored.into();
+            v["tiles"]["chunks_written"] = s.chunks_written.into();
             v["tiles"]["in_store"] = s.tiles().len().into();
             v["tiles"]["recovered_commits"] = s.recovered_commits.into();
             v["grid"] = serde_json::json!({
                 "epsg": s.info().epsg,
                 "voxel_size_m": g.voxel_size_m,
                 "levels": g.levels,
+                "chunk_levels": g.chunk_levels(),
                 "tile_columns": g.tile_columns,
                 "extent_origin_m": g.extent_origin(),
                 "tiles": g.tiles,
@@ -340,7 +343,7 @@ fn deposit_counts_only(pulse: &Pulse, stats: &mut DepositStats) {
 mod tests {
     use super::*;
     use crate::pulse::PulseGeometry;
-    use crate::voxel::tile::TileData;
+    use crate::voxel::tile::Dense;
 
     /// A nadir pulse over (x, y): 40 return bins from 10 m above z = 0 down to 2 m below, 1 V
     /// each except a 5 V echo at z = 0.
@@ -411,18 +414,21 @@ mod tests {
         out.chain(back)
     }
 
-    fn read_all(dir: &Path) -> Vec<([i64; 2], TileData)> {
+    fn read_all(dir: &Path) -> Vec<([i64; 2], Dense)> {
         ZarrStore::open(&dir.join("voxels.zarr"))
             .unwrap()
             .read_all()
             .unwrap()
+            .into_iter()
+            .map(|(t, d)| (t, d.dense()))
+            .collect()
     }
 
     /// Two stores' tiles hold the same sums, counts and maxima (bit for bit).
     fn assert_same_tiles(a: &Path, b: &Path) {
         let (a, b) = (read_all(a), read_all(b));
         assert_eq!(a.len(), b.len());
-        let bits = |d: &TileData| d.max.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let bits = |d: &Dense| d.max.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         for ((ta, da), (tb, db)) in a.iter().zip(&b) {
             assert_eq!(ta, tb);
             assert_eq!(da.sum_q, db.sum_q, "tile {ta:?}");

@@ -9,10 +9,15 @@
 //! different flights with the same voxel size and tile size line up and merge): tile `(tx, ty)`
 //! covers `origin + (tx·S, ty·S)` to `origin + ((tx+1)·S, (ty+1)·S)` with `S = tile_columns ·
 //! voxel size`. Inside a tile a voxel is `(k, j, i)`: level `k` from `z_range_m[0]` upwards,
-//! row `j` northwards, column `i` eastwards. In memory its accumulators sit at
-//! `(j·T + i)·L + k` (`L` levels): a column is contiguous, so the bins of a near-vertical beam
-//! land in neighbouring cache lines. The store's chunks are in the `[z, y, x]` order of the
-//! arrays (`(k·T + j)·T + i`); `zarr` transposes when it writes and reads.
+//! row `j` northwards, column `i` eastwards; its offset is `(j·T + i)·L + k` (`L` levels).
+//!
+//! The height axis is cut into chunks of `chunk_levels` (`H`) levels, and only the chunks that
+//! hold data exist (in memory and in the store): the default height range is therefore every
+//! height on Earth (`[-1000, 9000]` m, anchored at fixed levels so that stores line up and
+//! merge), at no cost for the air. In memory a chunk's accumulators sit at `(j·T + i)·H + kk`
+//! (a column contiguous, so the bins of a near-vertical beam land in neighbouring cache lines);
+//! the store's chunks are in the `[z, y, x]` order of the arrays (`(kk·T + j)·T + i`); `zarr`
+//! transposes when it writes and reads.
 
 use serde::{Deserialize, Serialize};
 
@@ -52,9 +57,15 @@ pub struct VoxelConfig {
     /// Anchor of the tile grid `[x, y]` in the output CRS, metres. Default `[0, 0]`.
     #[serde(default)]
     pub origin_m: [f64; 2],
-    /// Height range `[bottom, top]` of the grid, metres (see `height`). Default `[-10, 50]`.
+    /// Height range `[bottom, top]` of the grid, metres (see `height`): an optional limit.
+    /// Default `[-1000, 9000]`, every height on Earth (only the height chunks that hold data
+    /// cost memory or disk, so a tall range is free).
     #[serde(default = "default_z_range")]
     pub z_range_m: [f64; 2],
+    /// Levels per height chunk of the store (a power of two, 1..=4096); a chunk is
+    /// `tile_columns² × chunk_levels` voxels. Default 64 (9.6 m at 0.15 m).
+    #[serde(default = "default_chunk_levels")]
+    pub chunk_levels: u32,
     /// Heights absolute or above the DEM. Default absolute.
     #[serde(default)]
     pub height: HeightMode,
@@ -93,13 +104,20 @@ pub struct VoxelConfig {
     /// (`voxels_las/tile_<tx>_<ty>.las`). Default false.
     #[serde(default)]
     pub las: bool,
+    /// Threads writing closed tiles (compression, sync, commit), each tile always on the same
+    /// one. Default: one per four cores, at least one.
+    #[serde(default)]
+    pub writer_threads: Option<usize>,
 }
 
 fn default_voxel_size() -> [f64; 3] {
     [0.5, 0.5, 0.15]
 }
 fn default_z_range() -> [f64; 2] {
-    [-10.0, 50.0]
+    [-1000.0, 9000.0]
+}
+fn default_chunk_levels() -> u32 {
+    64
 }
 fn default_tile_columns() -> u32 {
     32
@@ -124,6 +142,7 @@ impl Default for VoxelConfig {
             voxel_size_m: default_voxel_size(),
             origin_m: [0.0, 0.0],
             z_range_m: default_z_range(),
+            chunk_levels: default_chunk_levels(),
             height: HeightMode::Absolute,
             tile_columns: default_tile_columns(),
             extent_m: None,
@@ -134,12 +153,16 @@ impl Default for VoxelConfig {
             beam_divergence_mrad: None,
             intensity_quantum: default_quantum(),
             las: false,
+            writer_threads: None,
         }
     }
 }
 
-/// Most voxels a tile may hold (memory of one tile: 20 bytes per voxel).
+/// Most voxels a height chunk may hold (memory of one chunk: 20 bytes per voxel).
 pub const MAX_TILE_VOXELS: u64 = 1 << 26;
+
+/// Most voxels a tile may span over the whole height range (offsets inside a tile are `u32`).
+pub const MAX_TILE_SPAN: u64 = u32::MAX as u64;
 
 impl Validate for VoxelConfig {
     fn validate(&self, path: &str, v: &mut Validator) {
@@ -188,6 +211,13 @@ impl Validate for VoxelConfig {
             field(path, "close_after_s"),
             format!("must be in 0..=3600 s, got {}", self.close_after_s),
         );
+        if let Some(n) = self.writer_threads {
+            v.require(
+                (1..=64).contains(&n),
+                field(path, "writer_threads"),
+                format!("must be in 1..=64, got {n}"),
+            );
+        }
         if let Some(d) = self.beam_divergence_mrad {
             v.require(
                 d.is_finite() && d > 0.0 && d < 100.0,
@@ -200,14 +230,34 @@ impl Validate for VoxelConfig {
             field(path, "intensity_quantum"),
             format!("must be > 0, got {}", self.intensity_quantum),
         );
+        v.require(
+            self.chunk_levels.is_power_of_two() && self.chunk_levels <= 4096,
+            field(path, "chunk_levels"),
+            format!(
+                "must be a power of two in 1..=4096, got {}",
+                self.chunk_levels
+            ),
+        );
         if let Some(levels) = self.levels_checked() {
-            let voxels = levels as u64 * self.tile_columns as u64 * self.tile_columns as u64;
+            let cols = self.tile_columns as u64 * self.tile_columns as u64;
+            let voxels = cols * self.chunk_levels.min(levels) as u64;
             v.require(
                 voxels <= MAX_TILE_VOXELS,
                 field(path, "tile_columns"),
                 format!(
-                    "a tile of {0}×{0} columns × {levels} levels is {voxels} voxels, more than \
-                     {MAX_TILE_VOXELS}: use smaller tiles, a shorter z_range_m or taller voxels",
+                    "a height chunk of {0}×{0} columns × {1} levels is {voxels} voxels, more \
+                     than {MAX_TILE_VOXELS}: use smaller tiles or fewer chunk_levels",
+                    self.tile_columns,
+                    self.chunk_levels.min(levels)
+                ),
+            );
+            let span = cols * levels as u64;
+            v.require(
+                span <= MAX_TILE_SPAN,
+                field(path, "z_range_m"),
+                format!(
+                    "a tile of {0}×{0} columns × {levels} levels spans {span} voxels, more than \
+                     {MAX_TILE_SPAN}: use smaller tiles, a shorter z_range_m or taller voxels",
                     self.tile_columns
                 ),
             );
@@ -216,6 +266,16 @@ impl Validate for VoxelConfig {
 }
 
 impl VoxelConfig {
+    /// Tile writer threads: the configured number, or one per four cores (at least one).
+    pub fn writer_threads(&self) -> usize {
+        self.writer_threads.unwrap_or_else(|| {
+            std::thread::available_parallelism()
+                .map(|n| n.get() / 4)
+                .unwrap_or(1)
+                .max(1)
+        })
+    }
+
     fn levels_checked(&self) -> Option<u32> {
         let [lo, hi] = self.z_range_m;
         let dz = self.voxel_size_m[2];
@@ -236,6 +296,10 @@ pub struct Grid {
     pub z_bottom_m: f64,
     /// Height levels.
     pub levels: u32,
+    /// Levels per height chunk (a power of two; 0 in stores of older versions, which are not
+    /// read).
+    #[serde(default)]
+    pub chunk_levels: u32,
     /// Columns along each side of a tile.
     pub tile_columns: u32,
     /// Heights absolute or above the DEM.
@@ -272,6 +336,12 @@ impl Grid {
             origin_m: cfg.origin_m,
             z_bottom_m: cfg.z_range_m[0],
             levels,
+            // No taller than the grid needs (a small grid is one chunk).
+            chunk_levels: cfg
+                .chunk_levels
+                .max(1)
+                .min(levels.next_power_of_two())
+                .next_power_of_two(),
             tile_columns: cfg.tile_columns,
             height: cfg.height,
             tile_min: t0,
@@ -283,9 +353,24 @@ impl Grid {
         }
     }
 
-    /// Voxels in one tile.
+    /// Voxels in one tile over the whole height range (most are never allocated).
     pub fn tile_voxels(&self) -> usize {
         self.levels as usize * self.tile_columns as usize * self.tile_columns as usize
+    }
+
+    /// Levels per height chunk, `H`.
+    pub fn chunk_levels(&self) -> u32 {
+        self.chunk_levels.max(1)
+    }
+
+    /// Voxels in one height chunk of a tile, `T² · H`.
+    pub fn chunk_voxels(&self) -> usize {
+        self.chunk_levels() as usize * self.tile_columns as usize * self.tile_columns as usize
+    }
+
+    /// Height chunks over the grid's levels.
+    pub fn height_chunks(&self) -> u32 {
+        self.levels.div_ceil(self.chunk_levels())
     }
 
     /// Tile side `[x, y]`, metres.
@@ -340,6 +425,12 @@ impl Grid {
             return Err(format!(
                 "height ranges differ: {} m + {} levels and {} m + {} levels",
                 self.z_bottom_m, self.levels, other.z_bottom_m, other.levels
+            ));
+        }
+        if self.chunk_levels != other.chunk_levels {
+            return Err(format!(
+                "height chunks differ: {} and {} levels",
+                self.chunk_levels, other.chunk_levels
             ));
         }
         if self.tile_columns != other.tile_columns {

@@ -5,10 +5,18 @@
 //! independent of order (floating-point sums are not associative); counts add, maxima take the
 //! larger. That is what lets a tile touched by a later flight line, a resumed run or
 //! `fwlidar merge` end bit-identical to processing everything at once.
+//!
+//! **Sparse in height.** A tile's `L` levels are cut into height chunks of `H` levels (`H` a
+//! power of two, the store's chunk height): a chunk holds the `T × T × H` voxels of the tile's
+//! columns between levels `kc·H` and `(kc+1)·H`, and exists only once a bin or a pass landed in
+//! it. Memory and the bytes written follow the data, not the grid's height range. Inside a
+//! chunk a voxel of column `col = j·T + i` at level `kk` sits at `col·H + kk` (a column is
+//! contiguous). Offsets across the tile ([`VoxelIndex`](super::grid::VoxelIndex)) are
+//! `col·L + k`.
 
-/// Accumulators of one tile, each `levels · T · T` long in `(k·T + j)·T + i` order.
+/// The accumulators of one height chunk of a tile, each `T² · H` long in `col·H + kk` order.
 #[derive(Clone, Debug, PartialEq)]
-pub struct TileData {
+pub struct Chunk {
     /// Sum of deposited intensity, in quanta of the grid's `intensity_quantum`.
     pub sum_q: Vec<i64>,
     /// Samples (bins) deposited.
@@ -19,10 +27,9 @@ pub struct TileData {
     pub pulses: Vec<u32>,
 }
 
-impl TileData {
-    /// Empty accumulators for `voxels` voxels.
-    pub fn new(voxels: usize) -> TileData {
-        TileData {
+impl Chunk {
+    fn new(voxels: usize) -> Chunk {
+        Chunk {
             sum_q: vec![0; voxels],
             samples: vec![0; voxels],
             max: vec![f32::NAN; voxels],
@@ -30,27 +37,25 @@ impl TileData {
         }
     }
 
-    /// Voxels held.
-    pub fn len(&self) -> usize {
-        self.sum_q.len()
-    }
-
-    /// Whether the tile holds no voxel at all (zero-sized).
-    pub fn is_empty(&self) -> bool {
-        self.sum_q.is_empty()
-    }
-
-    /// Back to empty, keeping the allocations.
-    pub fn clear(&mut self) {
+    fn clear(&mut self) {
         self.sum_q.fill(0);
         self.samples.fill(0);
         self.max.fill(f32::NAN);
         self.pulses.fill(0);
     }
 
-    /// Adds `other` (same size) into `self`: sums and counts add, maxima take the larger.
-    pub fn merge(&mut self, other: &TileData) {
-        debug_assert_eq!(self.len(), other.len());
+    /// Voxels held.
+    pub fn len(&self) -> usize {
+        self.sum_q.len()
+    }
+
+    /// Whether the chunk holds no voxel (zero-sized).
+    pub fn is_empty(&self) -> bool {
+        self.sum_q.is_empty()
+    }
+
+    /// Adds `other` (same size): sums and counts add, maxima take the larger.
+    pub fn merge(&mut self, other: &Chunk) {
         for (a, b) in self.sum_q.iter_mut().zip(&other.sum_q) {
             *a = a.saturating_add(*b);
         }
@@ -66,82 +71,275 @@ impl TileData {
         }
     }
 
-    /// Deposits one sample of `value_q` quanta (`value` itself for the maximum) at `offset`.
-    #[inline]
-    pub fn deposit(&mut self, offset: usize, value_q: i64, value: f32) {
-        self.sum_q[offset] = self.sum_q[offset].saturating_add(value_q);
-        self.samples[offset] = self.samples[offset].saturating_add(1);
-        self.max[offset] = self.max[offset].max(value);
+    /// Whether nothing was deposited in it.
+    pub fn is_blank(&self) -> bool {
+        self.samples.iter().all(|s| *s == 0) && self.pulses.iter().all(|p| *p == 0)
     }
+}
 
-    /// The accumulators of one column: `levels` voxels from `base` (sum, samples, max, pulses).
-    #[inline]
-    pub fn column_mut(&mut self, base: usize, levels: usize) -> ColumnMut<'_> {
-        let r = base..base + levels;
-        ColumnMut {
-            sum_q: &mut self.sum_q[r.clone()],
-            samples: &mut self.samples[r.clone()],
-            max: &mut self.max[r.clone()],
-            pulses: &mut self.pulses[r],
+/// The accumulators of one tile: its height chunks, allocated when first touched.
+#[derive(Clone, Debug)]
+pub struct TileData {
+    /// Columns of the tile, `T²`.
+    columns: usize,
+    /// Levels of the grid, `L`.
+    levels: usize,
+    /// log2 of the chunk height `H`.
+    shift: u32,
+    /// Chunk `kc`, if allocated (`ceil(L / H)` entries).
+    chunks: Vec<Option<Box<Chunk>>>,
+    /// Indices of the allocated chunks, in allocation order.
+    present: Vec<u32>,
+    /// Cleared chunks kept for reuse.
+    pool: Vec<Box<Chunk>>,
+}
+
+impl PartialEq for TileData {
+    fn eq(&self, other: &Self) -> bool {
+        self.columns == other.columns
+            && self.levels == other.levels
+            && self.shift == other.shift
+            && (0..self.chunks.len().max(other.chunks.len())).all(|kc| {
+                match (self.chunk(kc), other.chunk(kc)) {
+                    (Some(a), Some(b)) => a == b || (a.is_blank() && b.is_blank()),
+                    (Some(a), None) | (None, Some(a)) => a.is_blank(),
+                    (None, None) => true,
+                }
+            })
+    }
+}
+
+/// A tile's accumulators laid out densely, `T² · L` long in `col·L + k` order (tests, small
+/// grids, evaluation).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Dense {
+    /// Sums, quanta.
+    pub sum_q: Vec<i64>,
+    /// Samples.
+    pub samples: Vec<u32>,
+    /// Maxima (NaN: none).
+    pub max: Vec<f32>,
+    /// Pulses passed.
+    pub pulses: Vec<u32>,
+}
+
+impl TileData {
+    /// Empty accumulators for a tile of `columns` (`T²`) columns of `levels` levels, cut into
+    /// height chunks of `chunk_levels` (a power of two) levels.
+    pub fn new(columns: usize, levels: usize, chunk_levels: usize) -> TileData {
+        let h = chunk_levels.max(1).next_power_of_two();
+        TileData {
+            columns,
+            levels,
+            shift: h.trailing_zeros(),
+            chunks: vec![None; levels.div_ceil(h)],
+            present: Vec::new(),
+            pool: Vec::new(),
         }
     }
 
-    /// Counts one pulse passing through the voxel at `offset`.
+    /// Empty accumulators for a tile of `grid`.
+    pub fn for_grid(grid: &super::grid::Grid) -> TileData {
+        let t = grid.tile_columns as usize;
+        TileData::new(t * t, grid.levels as usize, grid.chunk_levels() as usize)
+    }
+
+    /// Levels per height chunk, `H`.
+    #[inline]
+    pub fn chunk_levels(&self) -> usize {
+        1 << self.shift
+    }
+
+    /// log2 of the chunk height.
+    #[inline]
+    pub fn chunk_shift(&self) -> u32 {
+        self.shift
+    }
+
+    /// Columns, `T²`.
+    pub fn columns(&self) -> usize {
+        self.columns
+    }
+
+    /// Levels, `L`.
+    pub fn levels(&self) -> usize {
+        self.levels
+    }
+
+    /// Height chunks of the grid, allocated or not.
+    pub fn chunk_count(&self) -> usize {
+        self.chunks.len()
+    }
+
+    /// Voxels of the whole tile (allocated or not), `T² · L`.
+    pub fn len(&self) -> usize {
+        self.columns * self.levels
+    }
+
+    /// Whether the tile has no voxel at all (zero-sized).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Chunk `kc`, if allocated.
+    #[inline]
+    pub fn chunk(&self, kc: usize) -> Option<&Chunk> {
+        self.chunks.get(kc).and_then(|c| c.as_deref())
+    }
+
+    /// Chunk `kc` (below [`chunk_count`](Self::chunk_count)), allocated (or taken from the
+    /// pool) when absent.
+    #[inline]
+    pub fn chunk_mut(&mut self, kc: usize) -> &mut Chunk {
+        if self.chunks[kc].is_none() {
+            self.alloc(kc);
+        }
+        self.chunks[kc].as_deref_mut().expect("allocated above")
+    }
+
+    #[cold]
+    fn alloc(&mut self, kc: usize) {
+        let n = self.columns << self.shift;
+        let c = self.pool.pop().unwrap_or_else(|| Box::new(Chunk::new(n)));
+        self.chunks[kc] = Some(c);
+        self.present.push(kc as u32);
+    }
+
+    /// Indices of the allocated chunks, ascending.
+    pub fn present(&self) -> Vec<u32> {
+        let mut p = self.present.clone();
+        p.sort_unstable();
+        p
+    }
+
+    /// Allocated chunks.
+    pub fn present_count(&self) -> usize {
+        self.present.len()
+    }
+
+    /// Back to empty: chunks go to the pool (cleared), nothing is freed.
+    pub fn clear(&mut self) {
+        for kc in self.present.drain(..) {
+            if let Some(mut c) = self.chunks[kc as usize].take() {
+                c.clear();
+                self.pool.push(c);
+            }
+        }
+    }
+
+    /// Adds `other` (same shape) into `self`: sums and counts add, maxima take the larger.
+    pub fn merge(&mut self, other: &TileData) {
+        debug_assert_eq!(self.len(), other.len());
+        for &kc in &other.present {
+            if let Some(b) = other.chunk(kc as usize) {
+                self.chunk_mut(kc as usize).merge(b);
+            }
+        }
+    }
+
+    /// Where offset `col·L + k` lies: chunk and index inside it.
+    #[inline]
+    fn locate(&self, offset: usize) -> (usize, usize) {
+        let (col, k) = (offset / self.levels, offset % self.levels);
+        let h = 1usize << self.shift;
+        (k >> self.shift, col * h + (k & (h - 1)))
+    }
+
+    /// Deposits one sample of `value_q` quanta (`value` itself for the maximum) at offset
+    /// `col·L + k`.
+    #[inline]
+    pub fn deposit(&mut self, offset: usize, value_q: i64, value: f32) {
+        let (kc, i) = self.locate(offset);
+        let c = self.chunk_mut(kc);
+        c.sum_q[i] = c.sum_q[i].saturating_add(value_q);
+        c.samples[i] = c.samples[i].saturating_add(1);
+        c.max[i] = c.max[i].max(value);
+    }
+
+    /// Counts one pulse passing through the voxel at offset `col·L + k`.
     #[inline]
     pub fn pass(&mut self, offset: usize) {
-        self.pulses[offset] = self.pulses[offset].saturating_add(1);
+        let (kc, i) = self.locate(offset);
+        let c = self.chunk_mut(kc);
+        c.pulses[i] = c.pulses[i].saturating_add(1);
     }
 
     /// Voxels holding at least one sample or pass.
     pub fn occupied(&self) -> usize {
-        self.samples
+        self.present
             .iter()
-            .zip(&self.pulses)
-            .filter(|(s, p)| **s > 0 || **p > 0)
-            .count()
+            .filter_map(|&kc| self.chunk(kc as usize))
+            .map(|c| {
+                c.samples
+                    .iter()
+                    .zip(&c.pulses)
+                    .filter(|(s, p)| **s > 0 || **p > 0)
+                    .count()
+            })
+            .sum()
     }
 
     /// Whether nothing was ever deposited.
     pub fn is_blank(&self) -> bool {
-        self.samples.iter().all(|s| *s == 0) && self.pulses.iter().all(|p| *p == 0)
+        self.present
+            .iter()
+            .filter_map(|&kc| self.chunk(kc as usize))
+            .all(Chunk::is_blank)
     }
 
-    /// Bytes of memory the accumulators take.
+    /// Bytes of memory the allocated chunks take (pooled ones included).
     pub fn bytes(&self) -> usize {
-        self.len() * (8 + 4 + 4 + 4)
+        (self.present.len() + self.pool.len()) * (self.columns << self.shift) * (8 + 4 + 4 + 4)
     }
-}
 
-/// The accumulators of one column of a tile, level by level.
-pub struct ColumnMut<'a> {
-    /// Sums, quanta.
-    pub sum_q: &'a mut [i64],
-    /// Samples.
-    pub samples: &'a mut [u32],
-    /// Maxima.
-    pub max: &'a mut [f32],
-    /// Pulses passed.
-    pub pulses: &'a mut [u32],
-}
-
-impl ColumnMut<'_> {
-    /// Deposits one sample at level `k` (must be below the column's length).
-    #[inline]
-    pub fn deposit(&mut self, k: usize, value_q: i64, value: f32) {
-        // One bounds check for the four arrays of equal length.
-        if k < self.sum_q.len() && k < self.samples.len() && k < self.max.len() {
-            self.sum_q[k] = self.sum_q[k].saturating_add(value_q);
-            self.samples[k] = self.samples[k].saturating_add(1);
-            self.max[k] = self.max[k].max(value);
+    /// Calls `f(col, k, chunk, index)` for every voxel holding a sample, chunk by chunk.
+    pub fn for_each_sampled(&self, mut f: impl FnMut(usize, usize, &Chunk, usize)) {
+        let h = 1usize << self.shift;
+        for kc in self.present() {
+            let Some(c) = self.chunk(kc as usize) else {
+                continue;
+            };
+            for (idx, &s) in c.samples.iter().enumerate() {
+                let k = kc as usize * h + idx % h;
+                if s > 0 && k < self.levels {
+                    f(idx / h, k, c, idx);
+                }
+            }
         }
     }
 
-    /// Counts one pulse passing through level `k`.
-    #[inline]
-    pub fn pass(&mut self, k: usize) {
-        if let Some(p) = self.pulses.get_mut(k) {
-            *p = p.saturating_add(1);
+    /// The whole tile laid out densely (`T² · L` voxels: small grids only).
+    pub fn dense(&self) -> Dense {
+        let n = self.len();
+        let mut d = Dense {
+            sum_q: vec![0; n],
+            samples: vec![0; n],
+            max: vec![f32::NAN; n],
+            pulses: vec![0; n],
+        };
+        let h = 1usize << self.shift;
+        for kc in self.present() {
+            let Some(c) = self.chunk(kc as usize) else {
+                continue;
+            };
+            for (idx, ((&s, &q), (&m, &p))) in c
+                .samples
+                .iter()
+                .zip(&c.sum_q)
+                .zip(c.max.iter().zip(&c.pulses))
+                .enumerate()
+            {
+                let (col, k) = (idx / h, kc as usize * h + idx % h);
+                if k < self.levels {
+                    let o = col * self.levels + k;
+                    d.sum_q[o] = q;
+                    d.samples[o] = s;
+                    d.max[o] = m;
+                    d.pulses[o] = p;
+                }
+            }
         }
+        d
     }
 }
 
@@ -172,7 +370,7 @@ mod tests {
             .collect();
         let inv_q = 1e6;
         let all = {
-            let mut t = TileData::new(64);
+            let mut t = TileData::new(4, 16, 4);
             for &(o, v) in &deposits {
                 t.deposit(o, quantise(v, inv_q), v);
                 t.pass(o);
@@ -183,7 +381,7 @@ mod tests {
         let parts: Vec<TileData> = deposits
             .chunks(1700)
             .map(|c| {
-                let mut t = TileData::new(64);
+                let mut t = TileData::new(4, 16, 4);
                 for &(o, v) in c {
                     t.deposit(o, quantise(v, inv_q), v);
                     t.pass(o);
@@ -192,10 +390,11 @@ mod tests {
             })
             .collect();
         for order in [[0, 1, 2], [2, 1, 0], [1, 0, 2], [2, 0, 1]] {
-            let mut m = TileData::new(64);
+            let mut m = TileData::new(4, 16, 4);
             for i in order {
                 m.merge(&parts[i]);
             }
+            let (m, all) = (m.dense(), all.dense());
             assert_eq!(m.sum_q, all.sum_q);
             assert_eq!(m.samples, all.samples);
             assert_eq!(m.pulses, all.pulses);
@@ -226,11 +425,35 @@ mod tests {
 
     #[test]
     fn untouched_voxels_have_no_maximum() {
-        let mut t = TileData::new(4);
+        let mut t = TileData::new(1, 4, 2);
         t.deposit(1, 5, 5.0);
-        assert!(t.max[0].is_nan() && t.max[1] == 5.0);
+        let d = t.dense();
+        assert!(d.max[0].is_nan() && d.max[1] == 5.0);
         assert_eq!(t.occupied(), 1);
         t.clear();
         assert!(t.is_blank());
+    }
+
+    #[test]
+    fn only_the_height_chunks_touched_are_allocated() {
+        // 4 columns, 1000 levels in chunks of 8: a deposit at level 997 allocates chunk 124.
+        let mut t = TileData::new(4, 1000, 8);
+        assert_eq!(t.chunk_count(), 125);
+        assert_eq!(t.present_count(), 0);
+        assert!(t.is_blank() && t.bytes() == 0);
+        let off = 3 * 1000 + 997;
+        t.deposit(off, 7, 7.0);
+        t.pass(off);
+        assert_eq!(t.present(), vec![124]);
+        let c = t.chunk(124).unwrap();
+        assert_eq!(c.len(), 4 * 8);
+        assert_eq!(c.samples[3 * 8 + 5], 1, "column 3, level 997 = 124·8 + 5");
+        assert_eq!(t.dense().samples[off], 1);
+        // Cleared chunks are pooled, and reused without allocating new memory.
+        t.clear();
+        assert_eq!(t.present_count(), 0);
+        t.deposit(5, 1, 1.0);
+        assert_eq!(t.present(), vec![0]);
+        assert_eq!(t.bytes(), 4 * 8 * 20);
     }
 }

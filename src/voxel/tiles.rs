@@ -12,7 +12,7 @@ use std::collections::HashMap;
 
 use super::grid::Grid;
 use super::tile::TileData;
-use super::zarr::{StoreError, ZarrStore};
+use super::zarr::{StoreError, WriteCost, ZarrStore};
 
 /// Counters of the lifecycle (`summary.json`: `sinks.voxels.tiles`).
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -27,8 +27,13 @@ pub struct TileStats {
     pub merged: u64,
     /// Most tiles open at once.
     pub peak_open: usize,
-    /// Memory of one open tile, bytes.
-    pub tile_bytes: usize,
+    /// Memory of one height chunk of a tile, bytes (a tile holds the chunks it was deposited
+    /// in).
+    pub chunk_bytes: usize,
+    /// Most height chunks allocated at once over the open tiles.
+    pub peak_chunks: usize,
+    /// Tile writer threads.
+    pub writers: usize,
     /// Tile LAS files written (`[voxels] las`).
     pub las_files: u64,
 }
@@ -51,26 +56,42 @@ struct WriteJob {
     watermark: u64,
 }
 
-/// What the writer thread hands back: the tile, its watermark, its buffer (for reuse), and
-/// whether the write succeeded.
-type WriteDone = ([i64; 2], u64, TileData, Result<(), StoreError>);
+/// What a writer thread hands back: the tile, its watermark, its buffer (for reuse), and the
+/// write's result (the tile's height chunks and the cost).
+type WriteDone = (
+    [i64; 2],
+    u64,
+    TileData,
+    Result<(Vec<u32>, WriteCost), StoreError>,
+);
 
-/// The writer thread: tiles closed on the sink thread are written (compressed, fsynced,
-/// committed) here, so that a row of tiles closing at once does not stall the deposits.
+/// The writer threads: tiles closed on the sink thread are written (compressed, synced,
+/// committed) there, so that a row of tiles closing at once does not stall the deposits. Tiles
+/// are partitioned among the threads by their numbers: a tile always goes to the same thread,
+/// so its writes happen in the order they were handed over.
 struct Writer {
-    jobs: Option<crossbeam_channel::Sender<WriteJob>>,
+    jobs: Vec<crossbeam_channel::Sender<WriteJob>>,
     done: crossbeam_channel::Receiver<WriteDone>,
-    thread: Option<std::thread::JoinHandle<()>>,
+    threads: Vec<std::thread::JoinHandle<()>>,
     /// Tiles handed over and not yet reported back.
     in_flight: std::collections::HashSet<[i64; 2]>,
     /// Buffers of written tiles, for the next tile that closes.
     spare: Vec<TileData>,
 }
 
+impl Writer {
+    /// The thread writing `tile`.
+    fn of(&self, tile: [i64; 2]) -> usize {
+        let h = (tile[0] as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            ^ (tile[1] as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
+        ((h >> 32) % self.jobs.len().max(1) as u64) as usize
+    }
+}
+
 impl Drop for Writer {
     fn drop(&mut self) {
-        self.jobs.take();
-        if let Some(t) = self.thread.take() {
+        self.jobs.clear();
+        for t in self.threads.drain(..) {
             let _ = t.join();
         }
     }
@@ -102,7 +123,7 @@ const EMPTY_BOX: [i64; 4] = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
 impl TileSet {
     /// Tiles over `store`.
     pub fn new(store: ZarrStore, max_open: usize, close_after_s: f64) -> TileSet {
-        let tile_bytes = store.grid().tile_voxels() * 20;
+        let chunk_bytes = store.grid().chunk_voxels() * 20;
         TileSet {
             store,
             slots: Vec::new(),
@@ -114,7 +135,7 @@ impl TileSet {
             period_end_s: f64::NEG_INFINITY,
             next_check_s: f64::NEG_INFINITY,
             stats: TileStats {
-                tile_bytes,
+                chunk_bytes,
                 ..TileStats::default()
             },
             idle: Vec::with_capacity(max_open + 1),
@@ -127,35 +148,53 @@ impl TileSet {
     /// for the writer: memory stays bounded by `max_open_tiles + queue + 1` tiles). The store
     /// ends up the same (each tile's commit is atomic and independent of the others); a tile
     /// reopened while its write is under way waits for it before it is read back.
-    pub fn with_writer_thread(mut self, queue: usize) -> Self {
-        let (jobs_tx, jobs_rx) = crossbeam_channel::bounded::<WriteJob>(queue.max(1));
+    pub fn with_writer_thread(self, queue: usize) -> Self {
+        self.with_writer_threads(queue, 1)
+    }
+
+    /// Writes closed tiles on `threads` threads, each tile always on the same one, at most
+    /// `queue` waiting per thread (see [`with_writer_thread`](Self::with_writer_thread)).
+    pub fn with_writer_threads(mut self, queue: usize, threads: usize) -> Self {
         let (done_tx, done_rx) = crossbeam_channel::unbounded::<WriteDone>();
-        let mut store = self.store.tile_writer();
-        let thread = std::thread::Builder::new()
-            .name("tile-writer".into())
-            .spawn(move || {
-                for job in jobs_rx.iter() {
-                    let r = store.write_tile(job.tile, &job.data, job.watermark);
-                    if done_tx
-                        .send((job.tile, job.watermark, job.data, r))
-                        .is_err()
-                    {
-                        break;
+        let mut jobs = Vec::new();
+        let mut handles = Vec::new();
+        for n in 0..threads.max(1) {
+            let (jobs_tx, jobs_rx) = crossbeam_channel::bounded::<WriteJob>(queue.max(1));
+            let mut store = self.store.tile_writer();
+            let done_tx = done_tx.clone();
+            let thread = std::thread::Builder::new()
+                .name(format!("tile-writer-{n}"))
+                .spawn(move || {
+                    for job in jobs_rx.iter() {
+                        let r = store.write_tile(job.tile, &job.data, job.watermark);
+                        if done_tx
+                            .send((job.tile, job.watermark, job.data, r))
+                            .is_err()
+                        {
+                            break;
+                        }
                     }
-                }
-            });
-        match thread {
-            Ok(t) => {
-                self.writer = Some(Writer {
-                    jobs: Some(jobs_tx),
-                    done: done_rx,
-                    thread: Some(t),
-                    in_flight: std::collections::HashSet::new(),
-                    spare: Vec::new(),
                 });
+            match thread {
+                Ok(t) => {
+                    jobs.push(jobs_tx);
+                    handles.push(t);
+                }
+                Err(e) => tracing::warn!("tile writer thread {n} not started ({e})"),
             }
-            Err(e) => tracing::warn!("no tile writer thread ({e}); tiles are written inline"),
         }
+        if jobs.is_empty() {
+            tracing::warn!("no tile writer thread; tiles are written inline");
+            return self;
+        }
+        self.stats.writers = jobs.len();
+        self.writer = Some(Writer {
+            jobs,
+            done: done_rx,
+            threads: handles,
+            in_flight: std::collections::HashSet::new(),
+            spare: Vec::new(),
+        });
         self
     }
 
@@ -184,7 +223,7 @@ impl TileSet {
             w.in_flight.remove(&tile);
             w.spare.push(data);
             match r {
-                Ok(()) => self.store.note_committed(tile, watermark),
+                Ok((chunks, cost)) => self.store.note_committed(tile, watermark, chunks, cost),
                 Err(e) => {
                     if result.is_ok() {
                         result = Err(e);
@@ -266,7 +305,7 @@ impl TileSet {
             None => {
                 self.slots.push(Slot {
                     tile,
-                    data: TileData::new(self.store.grid().tile_voxels()),
+                    data: TileData::for_grid(self.store.grid()),
                     last_deposit_s: now_s,
                     skip_below: 0,
                     last_seq: seq,
@@ -279,7 +318,8 @@ impl TileSet {
         slot.last_deposit_s = now_s;
         slot.skip_below = 0;
         slot.last_seq = seq;
-        if self.store.read_tile(tile, &mut slot.data)? {
+        let reopened = self.store.read_tile(tile, &mut slot.data)?;
+        if reopened {
             slot.skip_below = self.store.watermark(tile).unwrap_or(0);
             self.stats.merged += 1;
         }
@@ -312,6 +352,12 @@ impl TileSet {
         let slot = &self.slots[s];
         let tile = slot.tile;
         let w = watermark.max(slot.skip_below);
+        let chunks: usize = self
+            .open
+            .values()
+            .map(|s| self.slots[*s].data.present_count())
+            .sum();
+        self.stats.peak_chunks = self.stats.peak_chunks.max(chunks);
         if self.writer.is_none() {
             self.store.write_tile(tile, &slot.data, w)?;
         }
@@ -327,12 +373,18 @@ impl TileSet {
         }
         if self.writer.is_some() {
             self.collect_writes(None, false)?;
-            let n = self.store.grid().tile_voxels();
+            let grid = self.store.grid();
             if let Some(wr) = self.writer.as_mut() {
-                let fresh = wr.spare.pop().unwrap_or_else(|| TileData::new(n));
+                let fresh = match wr.spare.pop() {
+                    Some(mut d) => {
+                        d.clear();
+                        d
+                    }
+                    None => TileData::for_grid(grid),
+                };
                 let data = std::mem::replace(&mut self.slots[s].data, fresh);
                 wr.in_flight.insert(tile);
-                let sent = wr.jobs.as_ref().map(|j| {
+                let sent = wr.jobs.get(wr.of(tile)).map(|j| {
                     j.send(WriteJob {
                         tile,
                         data,
@@ -430,47 +482,35 @@ pub fn tile_las(
 ) -> Result<(), crate::sink::SinkError> {
     use crate::format::las_points::{PointSix, write_point_cloud};
     use crate::format::las_write::ExtraDim;
-    let (t, l) = (grid.tile_columns as usize, grid.levels as usize);
+    let t = grid.tile_columns as usize;
     let tm = grid.tile_m();
     let west = grid.origin_m[0] + tile[0] as f64 * tm[0];
     let south = grid.origin_m[1] + tile[1] as f64 * tm[1];
     let v = grid.voxel_size_m;
     let q = grid.intensity_quantum;
-    let mean = |o: usize| data.sum_q[o] as f64 * q / data.samples[o] as f64;
-    let top = (0..data.len())
-        .filter(|&o| data.samples[o] > 0)
-        .map(mean)
-        .fold(0.0f64, f64::max);
-    let points = (0..t * t).flat_map(move |col| {
+    // (column, level, mean, max, samples, pulses) of every voxel holding a sample.
+    let mut voxels = Vec::new();
+    data.for_each_sampled(|col, k, c, o| {
+        let mean = c.sum_q[o] as f64 * q / c.samples[o] as f64;
+        voxels.push((col, k, mean, c.max[o], c.samples[o], c.pulses[o]));
+    });
+    let top = voxels.iter().map(|x| x.2).fold(0.0f64, f64::max);
+    let points = voxels.into_iter().map(move |(col, k, m, mx, n, p)| {
         let (j, i) = (col / t, col % t);
-        (0..l).filter_map(move |k| {
-            let o = col * l + k;
-            (data.samples[o] > 0).then(|| {
-                let m = mean(o);
-                let p = PointSix {
-                    xyz: [
-                        west + (i as f64 + 0.5) * v[0],
-                        south + (j as f64 + 0.5) * v[1],
-                        grid.z_bottom_m + (k as f64 + 0.5) * v[2],
-                    ],
-                    intensity: if top > 0.0 {
-                        (m.max(0.0) / top * 65535.0).round() as u16
-                    } else {
-                        0
-                    },
-                    ..PointSix::default()
-                };
-                (
-                    p,
-                    [
-                        m,
-                        f64::from(data.max[o]),
-                        f64::from(data.samples[o]),
-                        f64::from(data.pulses[o]),
-                    ],
-                )
-            })
-        })
+        let point = PointSix {
+            xyz: [
+                west + (i as f64 + 0.5) * v[0],
+                south + (j as f64 + 0.5) * v[1],
+                grid.z_bottom_m + (k as f64 + 0.5) * v[2],
+            ],
+            intensity: if top > 0.0 {
+                (m.max(0.0) / top * 65535.0).round() as u16
+            } else {
+                0
+            },
+            ..PointSix::default()
+        };
+        (point, [m, f64::from(mx), f64::from(n), f64::from(p)])
     });
     let extra = [
         ExtraDim::f32("mean", "mean deposited intensity"),

@@ -18,7 +18,7 @@ use crate::geo::dem::Dem;
 use crate::pulse::{Pulse, SegmentKind};
 
 use super::grid::{HeightMode, Placer};
-use super::tile::{ColumnMut, quantise};
+use super::tile::{TileData, quantise};
 use super::tiles::TileSet;
 use super::zarr::StoreError;
 
@@ -252,7 +252,8 @@ fn deposit_on_axis(
             } else {
                 i + safe as usize
             };
-            let mut column = tiles.data(slot).column_mut(base, levels as usize);
+            let column_index = base / levels as usize;
+            let data = tiles.data(slot);
             if prev.0 != tile {
                 prev = (tile, u32::MAX);
             }
@@ -272,11 +273,23 @@ fn deposit_on_axis(
                 // Already in the store (resume): count, do not deposit.
                 resumed += (safe_end - i) as u64;
             } else if let Some(c) = &cal {
-                span.deposit(&mut column, &mut prev.1, &mut counts, &mut scratch, |t| {
-                    c.factor_at(t)
-                });
+                span.deposit(
+                    data,
+                    column_index,
+                    &mut prev.1,
+                    &mut counts,
+                    &mut scratch,
+                    |t| c.factor_at(t),
+                );
             } else {
-                span.deposit(&mut column, &mut prev.1, &mut counts, &mut scratch, |_| 1.0);
+                span.deposit(
+                    data,
+                    column_index,
+                    &mut prev.1,
+                    &mut counts,
+                    &mut scratch,
+                    |_| 1.0,
+                );
             }
             deposited += counts.deposited;
             outside_heights += counts.outside_heights;
@@ -305,10 +318,10 @@ fn deposit_on_axis(
                     return;
                 }
                 let k = kf as usize;
-                column.deposit(k, quantise(value, inv_q), value);
+                data.deposit(base + k, quantise(value, inv_q), value);
                 let off = (base + k) as u32;
                 if prev.1 != off || prev.0 != tile {
-                    column.pass(k);
+                    data.pass(base + k);
                     prev = (tile, off);
                 }
                 deposited += 1;
@@ -383,29 +396,29 @@ struct SpanCounts {
 }
 
 impl Span<'_> {
-    /// The hot loop: per bin its time, level, calibrated value, and the four accumulators.
-    /// `factor` is the calibration (a constant 1 without one, which the compiler folds).
+    /// The hot loop: per bin its time, level, calibrated value, and the four accumulators of
+    /// the height chunk it lands in (allocated when the first bin lands there). `factor` is the
+    /// calibration (a constant 1 without one, which the compiler folds).
     #[inline(always)]
     fn deposit(
         &self,
-        column: &mut ColumnMut<'_>,
+        data: &mut TileData,
+        column: usize,
         prev_off: &mut u32,
         counts: &mut SpanCounts,
         scratch: &mut Scratch,
         factor: impl Fn(f64) -> f32,
     ) {
-        let n = column.sum_q.len();
-        // Equal lengths, stated once so that one comparison bounds every index below.
-        let (sum_q, samples, max, pulses) = (
-            &mut column.sum_q[..n],
-            &mut column.samples[..n],
-            &mut column.max[..n],
-            &mut column.pulses[..n],
-        );
-        let levels_f = n as f64;
+        let levels = data.levels();
+        let shift = data.chunk_shift();
+        let h = 1usize << shift;
+        let mask = (h - 1) as u32;
+        let col_base = column * h;
+        let levels_f = levels as f64;
         let mut prev = *prev_off;
         // Two passes over blocks of bins: the arithmetic without branches (level, calibrated
-        // value, quantum; the compiler vectorises it), then the updates.
+        // value, quantum; the compiler vectorises it), then the updates, in runs of bins that
+        // stay in one height chunk (a beam crosses a chunk's levels in order).
         const OUTSIDE: u32 = u32::MAX;
         const NON_FINITE: u32 = u32::MAX - 1;
         let Scratch { ks, qs, vs, kfs } = scratch;
@@ -438,30 +451,52 @@ impl Span<'_> {
                     NON_FINITE
                 };
             }
-            for b in 0..len {
-                let k = ks[b] as usize;
-                if k >= n {
-                    if ks[b] == NON_FINITE {
+            let mut b = 0;
+            while b < len {
+                let k0 = ks[b];
+                if k0 as usize >= levels {
+                    if k0 == NON_FINITE {
                         counts.non_finite += 1;
                     } else {
                         counts.outside_heights += 1;
                     }
+                    b += 1;
                     continue;
                 }
-                let value = vs[b];
-                // Plain adds: 2^63 quanta or 2^32 samples in one voxel are out of reach;
-                // merging saturates.
-                sum_q[k] = sum_q[k].wrapping_add(qs[b]);
-                samples[k] = samples[k].wrapping_add(1);
-                // NaN (nothing yet) fails the comparison and takes the value.
-                let m = max[k];
-                max[k] = if m >= value { m } else { value };
-                let off = self.base + k as u32;
-                if off != prev {
-                    pulses[k] = pulses[k].wrapping_add(1);
-                    prev = off;
+                let kc = k0 >> shift;
+                let chunk = data.chunk_mut(kc as usize);
+                let n = chunk.sum_q.len();
+                // Equal lengths, stated once so that one comparison bounds every index below.
+                let (sum_q, samples, max, pulses) = (
+                    &mut chunk.sum_q[..n],
+                    &mut chunk.samples[..n],
+                    &mut chunk.max[..n],
+                    &mut chunk.pulses[..n],
+                );
+                // The run: bins of this height chunk (OUTSIDE and NON_FINITE never match).
+                while b < len && ks[b] >> shift == kc {
+                    let (k, q, value) = (ks[b], qs[b], vs[b]);
+                    let i = col_base + (k & mask) as usize;
+                    b += 1;
+                    if i >= n {
+                        // Not reached: a column of the tile is below T².
+                        counts.outside_heights += 1;
+                        continue;
+                    }
+                    // Plain adds: 2^63 quanta or 2^32 samples in one voxel are out of reach;
+                    // merging saturates.
+                    sum_q[i] = sum_q[i].wrapping_add(q);
+                    samples[i] = samples[i].wrapping_add(1);
+                    // NaN (nothing yet) fails the comparison and takes the value.
+                    let m = max[i];
+                    max[i] = if m >= value { m } else { value };
+                    let off = self.base + k;
+                    if off != prev {
+                        pulses[i] = pulses[i].wrapping_add(1);
+                        prev = off;
+                    }
+                    counts.deposited += 1;
                 }
-                counts.deposited += 1;
             }
             j0 += len;
         }

@@ -1,4 +1,5 @@
-//! Voxel tiles as a Zarr v3 store (`voxels.zarr`), one chunk per tile, written atomically.
+//! Voxel tiles as a Zarr v3 store (`voxels.zarr`): per tile one chunk per height chunk that
+//! holds data, written atomically.
 //!
 //! Layout (Zarr v3 core specification; CF conventions so that `xarray.open_zarr` gives named
 //! dimensions, coordinates and the CRS; the root's `consolidated_metadata` as zarr-python 3
@@ -17,22 +18,28 @@
 //! voxels.zarr/fwlidar_state/tiles/TX_TY the tile's watermark record (resume; see below)
 //! ```
 //!
-//! Every data array has chunk shape `[levels, T, T]`: a chunk is a tile, chunk key
-//! `c/0/ROW/COL`. Codecs: `bytes` (little endian) then `gzip` (level 1): a tile is mostly air.
+//! Every data array has chunk shape `[H, T, T]` (`H` = the grid's `chunk_levels`): a chunk is
+//! the `T × T` columns of one tile over `H` levels, chunk key `c/LEV/ROW/COL`. Only chunks that
+//! hold a deposit exist; a missing chunk is all fill value (Zarr's rule, which zarr-python and
+//! xarray follow), so empty air is neither held in memory nor compressed nor written. Codecs:
+//! `bytes` (little endian) then `zstd` (level 1; stores of the gzip era are still read).
 //!
-//! **The arrays' span** ([`Span`]): chunk `(ROW, COL)` is tile `span.tile_min + (COL, ROW)`.
+//! **The arrays' span** ([`Span`]): chunk `(LEV, ROW, COL)` is height chunk
+//! `span.level_chunk_min + LEV` of tile `span.tile_min + (COL, ROW)`.
 //! While a run writes, the span is the grid's whole extent (fixed, so a tile's chunk key never
 //! changes under the writer); when the run ends, [`ZarrStore::fit`] shrinks it to the bounding
-//! box of the tiles written, which is what a reader sees of a finished store. Reopening a store
+//! box of the tiles and height chunks written, which is what a reader sees of a finished store. Reopening a store
 //! to write puts it back on the extent. A change of span moves every tile's chunks: first into
-//! `fwlidar_state/staging/` (named by tile, so nothing is ambiguous), then the metadata is
+//! `fwlidar_state/staging/` (named by tile and height chunk, so nothing is ambiguous), then the metadata is
 //! rewritten, then the chunks go to their new keys; a journal (`fwlidar_state/relayout`, the
 //! target span) written before the first move lets the next open finish a move cut short.
 //!
-//! **Crash safety.** A tile's four chunks are written under `KEY.pending` and synced; then its
-//! record `fwlidar_state/tiles/TX_TY` is replaced atomically by `{watermark, pending: true}`
-//! (the commit point); then the pending chunks are renamed into place and the record rewritten
-//! with `pending: false`. Opening a store completes any committed tile whose renames were cut
+//! **Crash safety.** A tile's chunks (four arrays × its height chunks) are written under
+//! `KEY.pending` and synced (one `syncfs` on Linux); then its record `fwlidar_state/tiles/TX_TY`
+//! is replaced atomically by `{watermark, chunks, pending: true}` (the commit point; `chunks`
+//! lists the height chunks the tile holds, ascending); then the pending chunks are renamed into
+//! place and the record rewritten with `pending: false`. A tile written again holds every
+//! height chunk it held before (it is read back and merged), so no chunk is left behind. Opening a store completes any committed tile whose renames were cut
 //! short and deletes pending chunks that were never committed, so every tile is either its old
 //! or its new content, never a mix. The **watermark** is the sequence number of the first pulse
 //! not yet in the tile: a tile holds exactly the deposits of pulses numbered below it (pulses
@@ -130,6 +137,12 @@ pub struct Span {
     pub tile_min: [i64; 2],
     /// Tiles along `[x, y]` (0 when the store holds none).
     pub tiles: [u32; 2],
+    /// The height chunk (of the grid's, counted from its bottom) in chunk level 0.
+    #[serde(default)]
+    pub level_chunk_min: u32,
+    /// Height chunks spanned (0 when the store holds none).
+    #[serde(default = "one")]
+    pub level_chunks: u32,
     /// The span is the bounding box of the tiles written (a run or a merge ended), not the
     /// grid's whole extent (a run is writing, or was killed).
     pub fitted: bool,
@@ -141,39 +154,64 @@ impl Span {
         Span {
             tile_min: grid.tile_min,
             tiles: grid.tiles,
+            level_chunk_min: 0,
+            level_chunks: grid.height_chunks(),
             fitted: false,
         }
     }
 
-    /// The bounding box of `tiles` (none: an empty span at the extent's corner).
-    pub fn around(grid: &Grid, tiles: impl IntoIterator<Item = [i64; 2]>) -> Span {
+    /// The bounding box of `tiles`, each with the height chunks it holds (none: an empty span
+    /// at the extent's corner).
+    pub fn around<'a>(grid: &Grid, tiles: impl IntoIterator<Item = ([i64; 2], &'a [u32])>) -> Span {
         let mut b = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
-        for t in tiles {
+        let (mut klo, mut khi) = (u32::MAX, 0u32);
+        for (t, chunks) in tiles {
             b = [
                 b[0].min(t[0]),
                 b[1].min(t[1]),
                 b[2].max(t[0]),
                 b[3].max(t[1]),
             ];
+            for &k in chunks {
+                klo = klo.min(k);
+                khi = khi.max(k);
+            }
         }
         if b[0] > b[2] {
             return Span {
                 tile_min: grid.tile_min,
                 tiles: [0, 0],
+                level_chunk_min: 0,
+                level_chunks: 0,
                 fitted: true,
             };
+        }
+        if klo > khi {
+            // Tiles without any chunk (nothing deposited): one height chunk at the bottom.
+            (klo, khi) = (0, 0);
         }
         let n = |lo: i64, hi: i64| (hi as i128 - lo as i128 + 1).clamp(0, u32::MAX as i128) as u32;
         Span {
             tile_min: [b[0], b[1]],
             tiles: [n(b[0], b[2]), n(b[1], b[3])],
+            level_chunk_min: klo,
+            level_chunks: khi - klo + 1,
             fitted: true,
         }
     }
 
-    /// Whether the arrays cover the same tiles (fitted or not).
+    /// Whether the arrays cover the same tiles and height chunks (fitted or not).
     pub fn same_tiles(&self, other: &Span) -> bool {
-        self.tile_min == other.tile_min && self.tiles == other.tiles
+        self.tile_min == other.tile_min
+            && self.tiles == other.tiles
+            && self.level_chunk_min == other.level_chunk_min
+            && self.level_chunks == other.level_chunks
+    }
+
+    /// Chunk level (of the arrays) of the grid's height chunk `kc`, if the span holds it.
+    pub fn level_of(&self, kc: u32) -> Option<u32> {
+        kc.checked_sub(self.level_chunk_min)
+            .filter(|l| *l < self.level_chunks)
     }
 
     /// Chunk indices `[row, column]` of a tile, if the span holds it.
@@ -190,14 +228,24 @@ impl Span {
         self.chunk_of(tile).is_some()
     }
 
-    /// The data arrays' shape `[levels, rows (y), columns (x)]`.
+    /// The data arrays' shape `[levels, rows (y), columns (x)]` (levels from the bottom of
+    /// height chunk `level_chunk_min`, to the grid's top at most).
     pub fn shape(&self, grid: &Grid) -> [u64; 3] {
         let t = grid.tile_columns as u64;
+        let h = grid.chunk_levels() as u64;
+        let below = self.level_chunk_min as u64 * h;
         [
-            grid.levels as u64,
+            (self.level_chunks as u64 * h).min((grid.levels as u64).saturating_sub(below)),
             self.tiles[1] as u64 * t,
             self.tiles[0] as u64 * t,
         ]
+    }
+
+    /// Bottom of the arrays' first level, metres.
+    pub fn z_bottom_m(&self, grid: &Grid) -> f64 {
+        grid.z_bottom_m
+            + (self.level_chunk_min as u64 * grid.chunk_levels() as u64) as f64
+                * grid.voxel_size_m[2]
     }
 
     /// West and south edges of the arrays (of chunk `(0, 0)`), metres.
@@ -210,13 +258,99 @@ impl Span {
     }
 }
 
-/// Per tile: the watermark and whether a commit is incomplete.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+fn one() -> u32 {
+    1
+}
+
+/// Per tile: the watermark, its height chunks, and whether a commit is incomplete.
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct TileRecord {
     /// First pulse sequence number not in the tile.
     pub watermark: u64,
+    /// Height chunks the tile holds (grid numbering, ascending).
+    pub chunks: Vec<u32>,
     /// The tile's chunks are being renamed into place.
     pub pending: bool,
+}
+
+impl TileRecord {
+    fn json(&self) -> Vec<u8> {
+        json!({"watermark": self.watermark, "chunks": self.chunks, "pending": self.pending})
+            .to_string()
+            .into_bytes()
+    }
+}
+
+/// How chunks are compressed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Codec {
+    /// Zarr's `zstd` codec at this level (what this version writes).
+    Zstd(i32),
+    /// Zarr's `gzip` codec at this level (stores of earlier versions).
+    Gzip(u32),
+}
+
+impl Codec {
+    /// The codec this version writes: zstd level 1 (see docs/architecture.md for the measured
+    /// reason).
+    pub const WRITE: Codec = Codec::Zstd(1);
+
+    fn meta(self) -> Value {
+        match self {
+            Codec::Zstd(level) => {
+                json!({"name": "zstd", "configuration": {"level": level, "checksum": false}})
+            }
+            Codec::Gzip(level) => json!({"name": "gzip", "configuration": {"level": level}}),
+        }
+    }
+
+    fn of_meta(v: &Value) -> Option<Codec> {
+        let codecs = v.get("codecs")?.as_array()?;
+        codecs.iter().find_map(|c| {
+            let level = c.get("configuration").and_then(|x| x.get("level"));
+            match c.get("name")?.as_str()? {
+                "zstd" => Some(Codec::Zstd(
+                    level.and_then(Value::as_i64).unwrap_or(1) as i32
+                )),
+                "gzip" => Some(Codec::Gzip(
+                    level.and_then(Value::as_u64).unwrap_or(1) as u32
+                )),
+                _ => None,
+            }
+        })
+    }
+
+    fn encode(self, raw: &[u8], out: &mut Vec<u8>) -> std::io::Result<()> {
+        out.clear();
+        match self {
+            Codec::Zstd(level) => {
+                let mut enc = zstd::stream::Encoder::new(std::mem::take(out), level)?;
+                enc.include_contentsize(true)?;
+                enc.set_pledged_src_size(Some(raw.len() as u64))?;
+                enc.write_all(raw)?;
+                *out = enc.finish()?;
+            }
+            Codec::Gzip(level) => {
+                let mut enc = GzEncoder::new(std::mem::take(out), Compression::new(level));
+                enc.write_all(raw)?;
+                *out = enc.finish()?;
+            }
+        }
+        Ok(())
+    }
+
+    fn decode(self, file: File, out: &mut Vec<u8>) -> std::io::Result<()> {
+        out.clear();
+        match self {
+            Codec::Zstd(_) => {
+                zstd::stream::Decoder::new(file)?.read_to_end(out)?;
+            }
+            Codec::Gzip(_) => {
+                GzDecoder::new(file).read_to_end(out)?;
+            }
+        }
+        Ok(())
+    }
 }
 
 /// An open store.
@@ -229,12 +363,18 @@ pub struct ZarrStore {
     packed: Vec<u8>,
     /// The tiles the data arrays span.
     span: Span,
-    /// Committed tiles and their watermarks.
-    records: HashMap<[i64; 2], u64>,
+    /// How chunks are compressed.
+    codec: Codec,
+    /// Committed tiles: watermark and height chunks.
+    records: HashMap<[i64; 2], (u64, Vec<u32>)>,
     /// Tiles written (for the summary).
     pub tiles_written: u64,
-    /// Bytes of uncompressed tile data written.
+    /// Chunks written (all four arrays).
+    pub chunks_written: u64,
+    /// Bytes of uncompressed chunk data written (what went through the compressor).
     pub bytes_written: u64,
+    /// Bytes of compressed chunk data written (on disk).
+    pub bytes_stored: u64,
     /// Committed tiles whose renames a previous run left unfinished, completed on open.
     pub recovered_commits: u64,
     /// Uncommitted pending chunks of a previous run, deleted on open.
@@ -325,11 +465,14 @@ impl ZarrStore {
             grid,
             info,
             span,
+            codec: Codec::WRITE,
             raw: Vec::new(),
             packed: Vec::new(),
             records: Default::default(),
             tiles_written: 0,
+            chunks_written: 0,
             bytes_written: 0,
+            bytes_stored: 0,
             recovered_commits: 0,
             discarded_pending: 0,
         }
@@ -338,10 +481,9 @@ impl ZarrStore {
     /// Every tile of the store with its accumulators, in tile order (tests, small stores: one
     /// tile's memory each).
     pub fn read_all(&mut self) -> Result<Vec<([i64; 2], TileData)>, StoreError> {
-        let n = self.grid.tile_voxels();
         let mut out = Vec::new();
         for t in self.tiles() {
-            let mut d = TileData::new(n);
+            let mut d = TileData::for_grid(&self.grid);
             self.read_tile(t, &mut d)?;
             out.push((t, d));
         }
@@ -411,6 +553,13 @@ impl ZarrStore {
             .ok_or_else(|| invalid(&meta, "no `attributes.fwlidar`: not a fwlidar voxel store"))?;
         let grid: Grid = serde_json::from_value(fw.get("grid").cloned().unwrap_or(Value::Null))
             .map_err(|e| invalid(&meta, format!("attributes.fwlidar.grid: {e}")))?;
+        if !grid.chunk_levels.is_power_of_two() {
+            return Err(invalid(
+                &meta,
+                "attributes.fwlidar.grid.chunk_levels: missing or not a power of two (a store of \
+                 an fwlidar version with one chunk per tile: process its input again)",
+            ));
+        }
         let s = |k: &str| attrs.get(k).and_then(|x| x.as_str()).map(str::to_string);
         let info = StoreInfo {
             crs_wkt: s("crs_wkt"),
@@ -442,6 +591,13 @@ impl ZarrStore {
             ));
         }
         let mut store = ZarrStore::at(root, grid, info, span);
+        let array_meta = root.join(ARRAYS[1]).join("zarr.json");
+        if let Ok(text) = fs::read(&array_meta) {
+            let v: Value = serde_json::from_slice(&text)
+                .map_err(|e| invalid(&array_meta, format!("not JSON: {e}")))?;
+            store.codec = Codec::of_meta(&v)
+                .ok_or_else(|| invalid(&array_meta, "codecs: neither zstd nor gzip"))?;
+        }
         store.recover()?;
         Ok(store)
     }
@@ -464,15 +620,23 @@ impl ZarrStore {
         self.state_dir().join(format!("{}_{}", tile[0], tile[1]))
     }
 
-    /// Path of a tile's chunk of `array` under the current span; an error naming the store
-    /// when the span does not hold the tile.
-    pub fn chunk_path(&self, array: &str, tile: [i64; 2]) -> Result<PathBuf, StoreError> {
-        let [row, col] = self.span.chunk_of(tile).ok_or_else(|| {
+    /// Path of height chunk `kc` of a tile's chunks of `array` under the current span; an
+    /// error naming the store when the span does not hold it.
+    pub fn chunk_path(&self, array: &str, tile: [i64; 2], kc: u32) -> Result<PathBuf, StoreError> {
+        let place = self
+            .span
+            .chunk_of(tile)
+            .and_then(|rc| Some((self.span.level_of(kc)?, rc)));
+        let (lev, [row, col]) = place.ok_or_else(|| {
             invalid(
                 &self.root,
                 format!(
-                    "tile {tile:?} lies outside the arrays (tiles {:?} + {:?})",
-                    self.span.tile_min, self.span.tiles
+                    "tile {tile:?}, height chunk {kc} lies outside the arrays (tiles {:?} + {:?}, \
+                     height chunks {} + {})",
+                    self.span.tile_min,
+                    self.span.tiles,
+                    self.span.level_chunk_min,
+                    self.span.level_chunks
                 ),
             )
         })?;
@@ -480,13 +644,13 @@ impl ZarrStore {
             .root
             .join(array)
             .join("c")
-            .join("0")
+            .join(lev.to_string())
             .join(row.to_string())
             .join(col.to_string()))
     }
 
-    fn pending_path(&self, array: &str, tile: [i64; 2]) -> Result<PathBuf, StoreError> {
-        let mut p = self.chunk_path(array, tile)?.into_os_string();
+    fn pending_path(&self, array: &str, tile: [i64; 2], kc: u32) -> Result<PathBuf, StoreError> {
+        let mut p = self.chunk_path(array, tile, kc)?.into_os_string();
         p.push(".pending");
         Ok(PathBuf::from(p))
     }
@@ -495,11 +659,23 @@ impl ZarrStore {
         let text = fs::read(path).map_err(io(path))?;
         let v: Value = serde_json::from_slice(&text)
             .map_err(|e| invalid(path, format!("tile record is not JSON: {e}")))?;
+        let chunks = match v.get("chunks") {
+            None => vec![0],
+            Some(c) => c
+                .as_array()
+                .and_then(|a| {
+                    a.iter()
+                        .map(|x| x.as_u64().and_then(|k| u32::try_from(k).ok()))
+                        .collect::<Option<Vec<u32>>>()
+                })
+                .ok_or_else(|| invalid(path, "tile record: `chunks` is not a list of levels"))?,
+        };
         Ok(TileRecord {
             watermark: v
                 .get("watermark")
                 .and_then(|x| x.as_u64())
                 .ok_or_else(|| invalid(path, "tile record has no `watermark`"))?,
+            chunks,
             pending: v.get("pending").and_then(|x| x.as_bool()).unwrap_or(false),
         })
     }
@@ -507,6 +683,12 @@ impl ZarrStore {
     fn parse_tile_name(name: &str) -> Option<[i64; 2]> {
         let (a, b) = name.split_once('_')?;
         Some([a.parse().ok()?, b.parse().ok()?])
+    }
+
+    /// `TX_TY_KC` (a staged chunk's name after its array).
+    fn parse_staged_name(name: &str) -> Option<([i64; 2], u32)> {
+        let (t, k) = name.rsplit_once('_')?;
+        Some((Self::parse_tile_name(t)?, k.parse().ok()?))
     }
 
     /// Completes committed tiles, discards uncommitted chunks, loads the watermarks.
@@ -523,24 +705,22 @@ impl ZarrStore {
                 let Some(tile) = Self::parse_tile_name(&name) else {
                     continue;
                 };
-                let rec = Self::read_record(&entry.path())?;
+                let mut rec = Self::read_record(&entry.path())?;
                 if rec.pending {
-                    for a in ARRAYS {
-                        let p = self.pending_path(a, tile)?;
-                        if p.exists() {
-                            let c = self.chunk_path(a, tile)?;
-                            fs::rename(&p, &c).map_err(io(&c))?;
+                    for &kc in &rec.chunks {
+                        for a in ARRAYS {
+                            let p = self.pending_path(a, tile, kc)?;
+                            if p.exists() {
+                                let c = self.chunk_path(a, tile, kc)?;
+                                fs::rename(&p, &c).map_err(io(&c))?;
+                            }
                         }
                     }
-                    write_atomic(
-                        &entry.path(),
-                        json!({"watermark": rec.watermark, "pending": false})
-                            .to_string()
-                            .as_bytes(),
-                    )?;
+                    rec.pending = false;
+                    write_atomic(&entry.path(), &rec.json())?;
                     self.recovered_commits += 1;
                 }
-                self.records.insert(tile, rec.watermark);
+                self.records.insert(tile, (rec.watermark, rec.chunks));
             }
         }
         // Pending chunks no record committed: an interrupted first step; the old chunk stays.
@@ -568,7 +748,10 @@ impl ZarrStore {
     /// merge): what a reader sees of a finished store. Writing again needs
     /// [`create_or_open`](Self::create_or_open), which puts the arrays back on the extent.
     pub fn fit(&mut self) -> Result<(), StoreError> {
-        let span = Span::around(&self.grid, self.records.keys().copied());
+        let span = Span::around(
+            &self.grid,
+            self.records.iter().map(|(t, (_, c))| (*t, c.as_slice())),
+        );
         self.relayout(span)
     }
 
@@ -576,12 +759,14 @@ impl ZarrStore {
     /// staging folder, under a journal: see the module documentation) and rewriting the
     /// metadata. Only between tile writes (no tile is pending).
     fn relayout(&mut self, span: Span) -> Result<(), StoreError> {
-        if let Some(t) = self.records.keys().find(|t| !span.contains(**t)) {
+        if let Some(t) = self.records.iter().find(|(t, (_, c))| {
+            !span.contains(**t) || c.iter().any(|k| span.level_of(*k).is_none())
+        }) {
             return Err(invalid(
                 &self.root,
                 format!(
-                    "tile {t:?} lies outside the span {:?} + {:?} the arrays are to take",
-                    span.tile_min, span.tiles
+                    "tile {:?} lies outside the span {:?} + {:?} the arrays are to take",
+                    t.0, span.tile_min, span.tiles
                 ),
             ));
         }
@@ -607,12 +792,16 @@ impl ZarrStore {
             // The metadata still names the old span: every chunk still at its old key goes to
             // staging, then the old chunk trees (nothing else is in them) are removed.
             fs::create_dir_all(&staging).map_err(io(&staging))?;
-            let mut tiles: Vec<[i64; 2]> = self.records.keys().copied().collect();
+            let mut tiles: Vec<([i64; 2], u32)> = self
+                .records
+                .iter()
+                .flat_map(|(t, (_, c))| c.iter().map(move |k| (*t, *k)))
+                .collect();
             tiles.sort_unstable();
-            for t in tiles {
+            for (t, kc) in tiles {
                 for a in ARRAYS {
-                    let from = self.chunk_path(a, t)?;
-                    let to = staging.join(format!("{a}.{}_{}", t[0], t[1]));
+                    let from = self.chunk_path(a, t, kc)?;
+                    let to = staging.join(format!("{a}.{}_{}_{kc}", t[0], t[1]));
                     match fs::rename(&from, &to) {
                         Ok(()) => {
                             if let Some(d) = from.parent() {
@@ -644,16 +833,20 @@ impl ZarrStore {
                 let from = entry.path();
                 let name = entry.file_name().to_string_lossy().to_string();
                 let place = name.split_once('.').and_then(|(a, t)| {
-                    let tile = Self::parse_tile_name(t)?;
+                    let (tile, kc) = Self::parse_staged_name(t)?;
                     let a = ARRAYS.iter().find(|x| **x == a)?;
-                    (self.records.contains_key(&tile) && self.span.contains(tile))
-                        .then_some((a, tile))
+                    let held = self
+                        .records
+                        .get(&tile)
+                        .is_some_and(|(_, c)| c.contains(&kc));
+                    (held && self.span.contains(tile) && self.span.level_of(kc).is_some())
+                        .then_some((a, tile, kc))
                 });
-                let Some((a, tile)) = place else {
+                let Some((a, tile, kc)) = place else {
                     fs::remove_file(&from).map_err(io(&from))?;
                     continue;
                 };
-                let to = self.chunk_path(a, tile)?;
+                let to = self.chunk_path(a, tile, kc)?;
                 let dir = to.parent().unwrap_or(&self.root).to_path_buf();
                 if !touched.contains(&dir) {
                     fs::create_dir_all(&dir).map_err(io(&dir))?;
@@ -674,7 +867,12 @@ impl ZarrStore {
 
     /// Watermark of a tile already in the store.
     pub fn watermark(&self, tile: [i64; 2]) -> Option<u64> {
-        self.records.get(&tile).copied()
+        self.records.get(&tile).map(|r| r.0)
+    }
+
+    /// Height chunks a tile of the store holds (ascending).
+    pub fn tile_chunks(&self, tile: [i64; 2]) -> Option<&[u32]> {
+        self.records.get(&tile).map(|r| r.1.as_slice())
     }
 
     /// Tiles in the store.
@@ -684,42 +882,51 @@ impl ZarrStore {
         t
     }
 
-    /// Reads a tile into `into` (which must have the grid's tile size); false when the store has
-    /// no such tile (`into` is then cleared).
+    /// Reads a tile into `into` (which must have the grid's tile shape); false when the store
+    /// has no such tile (`into` is then cleared).
     pub fn read_tile(&mut self, tile: [i64; 2], into: &mut TileData) -> Result<bool, StoreError> {
         into.clear();
-        if !self.records.contains_key(&tile) {
+        let Some((_, chunks)) = self.records.get(&tile) else {
             return Ok(false);
-        }
-        let n = self.grid.tile_voxels();
-        for a in ARRAYS {
-            let path = self.chunk_path(a, tile)?;
-            if !path.exists() {
-                continue; // all fill value
-            }
-            let f = File::open(&path).map_err(io(&path))?;
-            self.raw.clear();
-            GzDecoder::new(f)
-                .read_to_end(&mut self.raw)
-                .map_err(|e| invalid(&path, format!("chunk does not decompress: {e}")))?;
-            let width = if a == "intensity_sum" { 8 } else { 4 };
-            if self.raw.len() != n * width {
+        };
+        let chunks = chunks.clone();
+        let n = self.grid.chunk_voxels();
+        let order = DiskOrder::of(&self.grid);
+        for kc in chunks {
+            if kc as usize >= into.chunk_count() {
                 return Err(invalid(
-                    &path,
-                    format!(
-                        "chunk holds {} bytes, a tile of {n} voxels needs {}",
-                        self.raw.len(),
-                        n * width
-                    ),
+                    &self.record_path(tile),
+                    format!("height chunk {kc} lies above the grid"),
                 ));
             }
-            let order = DiskOrder::of(&self.grid);
-            let raw = &self.raw;
-            match a {
-                "intensity_sum" => order.read(raw, &mut into.sum_q, i64::from_le_bytes),
-                "sample_count" => order.read(raw, &mut into.samples, u32::from_le_bytes),
-                "pulse_count" => order.read(raw, &mut into.pulses, u32::from_le_bytes),
-                _ => order.read(raw, &mut into.max, f32::from_le_bytes),
+            for a in ARRAYS {
+                let path = self.chunk_path(a, tile, kc)?;
+                if !path.exists() {
+                    continue; // all fill value
+                }
+                let f = File::open(&path).map_err(io(&path))?;
+                self.codec
+                    .decode(f, &mut self.raw)
+                    .map_err(|e| invalid(&path, format!("chunk does not decompress: {e}")))?;
+                let width = if a == "intensity_sum" { 8 } else { 4 };
+                if self.raw.len() != n * width {
+                    return Err(invalid(
+                        &path,
+                        format!(
+                            "chunk holds {} bytes, a chunk of {n} voxels needs {}",
+                            self.raw.len(),
+                            n * width
+                        ),
+                    ));
+                }
+                let raw = &self.raw;
+                let c = into.chunk_mut(kc as usize);
+                match a {
+                    "intensity_sum" => order.read(raw, &mut c.sum_q, i64::from_le_bytes),
+                    "sample_count" => order.read(raw, &mut c.samples, u32::from_le_bytes),
+                    "pulse_count" => order.read(raw, &mut c.pulses, u32::from_le_bytes),
+                    _ => order.read(raw, &mut c.max, f32::from_le_bytes),
+                }
             }
         }
         Ok(true)
@@ -730,67 +937,120 @@ impl ZarrStore {
     /// through [`note_committed`](Self::note_committed). Its own records are not consulted.
     /// The span must not change while it writes (it does not: a run's span is the extent).
     pub fn tile_writer(&self) -> ZarrStore {
-        ZarrStore::at(&self.root, self.grid.clone(), self.info.clone(), self.span)
+        let mut w = ZarrStore::at(&self.root, self.grid.clone(), self.info.clone(), self.span);
+        w.codec = self.codec;
+        w
     }
 
-    /// Records a tile committed by a [`tile_writer`](Self::tile_writer) handle.
-    pub fn note_committed(&mut self, tile: [i64; 2], watermark: u64) {
-        self.records.insert(tile, watermark);
+    /// Records a tile committed by a [`tile_writer`](Self::tile_writer) handle, with what its
+    /// write cost.
+    pub fn note_committed(
+        &mut self,
+        tile: [i64; 2],
+        watermark: u64,
+        chunks: Vec<u32>,
+        cost: WriteCost,
+    ) {
+        self.records.insert(tile, (watermark, chunks));
         self.tiles_written += 1;
-        self.bytes_written += self.grid.tile_voxels() as u64 * 20;
+        self.chunks_written += cost.chunks;
+        self.bytes_written += cost.raw_bytes;
+        self.bytes_stored += cost.stored_bytes;
     }
 
-    /// Writes a tile with its watermark (see the module documentation for the protocol). The
-    /// arrays' span must hold the tile (a run's span is the whole extent).
+    /// Writes a tile with its watermark (see the module documentation for the protocol): the
+    /// height chunks it holds, nothing for empty air. The arrays' span must hold the tile (a
+    /// run's span is the whole extent). Returns the tile's height chunks and the write's cost.
     pub fn write_tile(
         &mut self,
         tile: [i64; 2],
         data: &TileData,
         watermark: u64,
-    ) -> Result<(), StoreError> {
-        self.chunk_path(ARRAYS[0], tile)?;
-        for a in ARRAYS {
-            self.raw.clear();
-            let order = DiskOrder::of(&self.grid);
-            match a {
-                "intensity_sum" => order.write(&data.sum_q, &mut self.raw, i64::to_le_bytes),
-                "sample_count" => order.write(&data.samples, &mut self.raw, u32::to_le_bytes),
-                "pulse_count" => order.write(&data.pulses, &mut self.raw, u32::to_le_bytes),
-                _ => order.write(&data.max, &mut self.raw, f32::to_le_bytes),
+    ) -> Result<(Vec<u32>, WriteCost), StoreError> {
+        if !self.span.contains(tile) {
+            return Err(invalid(
+                &self.root,
+                format!(
+                    "tile {tile:?} lies outside the arrays (tiles {:?} + {:?})",
+                    self.span.tile_min, self.span.tiles
+                ),
+            ));
+        }
+        // Chunks that an earlier write of the tile holds stay (a reopened tile was merged, so
+        // its chunks are a superset; listed anyway so that the record never loses one).
+        let mut chunks: Vec<u32> = data
+            .present()
+            .into_iter()
+            .filter(|k| data.chunk(*k as usize).is_some_and(|c| !c.is_blank()))
+            .collect();
+        if let Some((_, old)) = self.records.get(&tile) {
+            for k in old {
+                if !chunks.contains(k) {
+                    chunks.push(*k);
+                }
             }
-            self.bytes_written += self.raw.len() as u64;
-            self.packed.clear();
-            let mut enc = GzEncoder::new(std::mem::take(&mut self.packed), Compression::new(1));
-            let path = self.pending_path(a, tile)?;
-            enc.write_all(&self.raw).map_err(io(&path))?;
-            self.packed = enc.finish().map_err(io(&path))?;
-            let dir = path.parent().unwrap_or(&self.root).to_path_buf();
-            fs::create_dir_all(&dir).map_err(io(&dir))?;
-            write_file_synced(&path, &self.packed)?;
+            chunks.sort_unstable();
+        }
+        let order = DiskOrder::of(&self.grid);
+        let mut cost = WriteCost::default();
+        let mut dirs = BTreeSet::new();
+        let mut pending = Vec::with_capacity(chunks.len() * ARRAYS.len());
+        for &kc in &chunks {
+            let Some(c) = data.chunk(kc as usize) else {
+                continue; // held by the store already, not in memory: unchanged
+            };
+            for a in ARRAYS {
+                self.raw.clear();
+                match a {
+                    "intensity_sum" => order.write(&c.sum_q, &mut self.raw, i64::to_le_bytes),
+                    "sample_count" => order.write(&c.samples, &mut self.raw, u32::to_le_bytes),
+                    "pulse_count" => order.write(&c.pulses, &mut self.raw, u32::to_le_bytes),
+                    _ => order.write(&c.max, &mut self.raw, f32::to_le_bytes),
+                }
+                let path = self.pending_path(a, tile, kc)?;
+                self.codec
+                    .encode(&self.raw, &mut self.packed)
+                    .map_err(io(&path))?;
+                cost.raw_bytes += self.raw.len() as u64;
+                cost.stored_bytes += self.packed.len() as u64;
+                cost.chunks += 1;
+                let dir = path.parent().unwrap_or(&self.root).to_path_buf();
+                if dirs.insert(dir.clone()) {
+                    fs::create_dir_all(&dir).map_err(io(&dir))?;
+                }
+                let mut f = File::create(&path).map_err(io(&path))?;
+                f.write_all(&self.packed).map_err(io(&path))?;
+                pending.push((f, path, self.chunk_path(a, tile, kc)?));
+            }
+        }
+        // The chunks' data durable before the commit record: one syncfs, else a sync each.
+        if !pending.is_empty() && !syncfs(&self.root) {
+            for (f, path, _) in &pending {
+                f.sync_all().map_err(io(path))?;
+            }
         }
         let state = self.state_dir();
         fs::create_dir_all(&state).map_err(io(&state))?;
         let record = self.record_path(tile);
-        write_atomic(
-            &record,
-            json!({"watermark": watermark, "pending": true})
-                .to_string()
-                .as_bytes(),
-        )?;
-        for a in ARRAYS {
-            let (p, c) = (self.pending_path(a, tile)?, self.chunk_path(a, tile)?);
+        let mut rec = TileRecord {
+            watermark,
+            chunks: chunks.clone(),
+            pending: true,
+        };
+        write_atomic(&record, &rec.json())?;
+        for (f, p, c) in pending {
+            drop(f);
             fs::rename(&p, &c).map_err(io(&c))?;
         }
-        write_atomic(
-            &record,
-            json!({"watermark": watermark, "pending": false})
-                .to_string()
-                .as_bytes(),
-        )?;
+        rec.pending = false;
+        write_atomic(&record, &rec.json())?;
         sync_dir(&state);
-        self.records.insert(tile, watermark);
+        self.records.insert(tile, (watermark, chunks.clone()));
         self.tiles_written += 1;
-        Ok(())
+        self.chunks_written += cost.chunks;
+        self.bytes_written += cost.raw_bytes;
+        self.bytes_stored += cost.stored_bytes;
+        Ok((chunks, cost))
     }
 
     /// Rewrites the metadata documents (arrays, coordinates, then the root group with the
@@ -803,6 +1063,7 @@ impl ZarrStore {
         let t = g.tile_columns as u64;
         let corner = span.origin_m(g);
         let extent = g.extent_origin();
+        let z0 = span.z_bottom_m(g);
         let tm = g.tile_m();
         // Every node below the root, as its own `zarr.json` says, for the consolidated metadata.
         let mut nodes = serde_json::Map::new();
@@ -864,7 +1125,7 @@ impl ZarrStore {
                 json!(shape),
                 dt,
                 fill,
-                json!([shape[0], t, t]),
+                json!([g.chunk_levels(), t, t]),
                 json!(["z", "y", "x"]),
                 attrs,
             )?;
@@ -878,7 +1139,7 @@ impl ZarrStore {
             .map(|j| corner[1] + (j as f64 + 0.5) * g.voxel_size_m[1])
             .collect();
         let zs: Vec<f64> = (0..shape[0])
-            .map(|k| g.z_bottom_m + (k as f64 + 0.5) * g.voxel_size_m[2])
+            .map(|k| z0 + (k as f64 + 0.5) * g.voxel_size_m[2])
             .collect();
         for (name, vals, attrs) in [
             (
@@ -919,9 +1180,8 @@ impl ZarrStore {
             for v in &vals {
                 raw.extend_from_slice(&v.to_le_bytes());
             }
-            let mut enc = GzEncoder::new(Vec::new(), Compression::new(1));
-            enc.write_all(&raw).map_err(io(&path))?;
-            let packed = enc.finish().map_err(io(&path))?;
+            let mut packed = Vec::new();
+            self.codec.encode(&raw, &mut packed).map_err(io(&path))?;
             fs::create_dir_all(path.parent().unwrap_or(&self.root)).map_err(io(&path))?;
             write_atomic(&path, &packed)?;
         }
@@ -953,7 +1213,7 @@ impl ZarrStore {
                 "title": "fwlidar voxel tiles: calibrated full-waveform intensity per voxel",
                 "crs_wkt": self.info.crs_wkt,
                 "epsg": self.info.epsg,
-                "origin_m": [corner[0], corner[1], g.z_bottom_m],
+                "origin_m": [corner[0], corner[1], z0],
                 "extent_m": [
                     extent[0],
                     extent[1],
@@ -1005,7 +1265,7 @@ impl ZarrStore {
         } else {
             json!([
                 {"name": "bytes", "configuration": {"endian": "little"}},
-                {"name": "gzip", "configuration": {"level": 1}}
+                self.codec.meta()
             ])
         };
         let meta = json!({
@@ -1025,8 +1285,33 @@ impl ZarrStore {
     }
 }
 
-/// Between the in-memory order of a tile (`(j·T + i)·L + k`, columns contiguous) and the
-/// chunk's `[z, y, x]` order (`(k·T + j)·T + i`).
+/// What writing a tile cost.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WriteCost {
+    /// Chunk files written (arrays × height chunks).
+    pub chunks: u64,
+    /// Bytes through the compressor.
+    pub raw_bytes: u64,
+    /// Bytes written to disk.
+    pub stored_bytes: u64,
+}
+
+/// One `syncfs` of the file system holding `root` (Linux); false when unavailable or failed.
+fn syncfs(root: &Path) -> bool {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        if let Ok(d) = File::open(root) {
+            // SAFETY: `syncfs` only reads the descriptor, which `d` keeps open for the call.
+            return unsafe { libc::syncfs(d.as_raw_fd()) } == 0;
+        }
+    }
+    let _ = root;
+    false
+}
+
+/// Between the in-memory order of a height chunk (`(j·T + i)·H + kk`, columns contiguous) and
+/// the chunk's `[z, y, x]` order (`(kk·T + j)·T + i`).
 #[derive(Clone, Copy)]
 struct DiskOrder {
     side: usize,
@@ -1037,7 +1322,7 @@ impl DiskOrder {
     fn of(grid: &Grid) -> Self {
         DiskOrder {
             side: grid.tile_columns as usize,
-            levels: grid.levels as usize,
+            levels: grid.chunk_levels() as usize,
         }
     }
 
@@ -1078,7 +1363,7 @@ fn within(span: &Span, grid: &Grid) -> bool {
             grid.tile_min[a] as i128 + grid.tiles[a] as i128,
         );
         span.tiles[a] <= grid.tiles[a] && (empty || (lo >= elo && hi <= ehi))
-    })
+    }) && span.level_chunk_min as u64 + span.level_chunks as u64 <= grid.height_chunks() as u64
 }
 
 fn remove_pending(dir: &Path) -> Result<u64, StoreError> {
@@ -1124,7 +1409,7 @@ mod tests {
     }
 
     fn sample(n: usize, seed: u32) -> TileData {
-        let mut t = TileData::new(n);
+        let mut t = TileData::new(64, n / 64, 4);
         for i in 0..n {
             if (i as u32 ^ seed).is_multiple_of(3) {
                 t.deposit(i, i as i64 * 1000 - 7, i as f32 * 0.5);
@@ -1143,20 +1428,21 @@ mod tests {
         let mut s = ZarrStore::create_or_open(&root, g.clone(), info("a")).unwrap();
         let t = sample(n, 1);
         s.write_tile([1, 0], &t, 42).unwrap();
-        let mut back = TileData::new(n);
+        let mut back = TileData::new(64, n / 64, 4);
         assert!(s.read_tile([1, 0], &mut back).unwrap());
-        assert_eq!(back.sum_q, t.sum_q);
+        assert_eq!(back.dense().sum_q, t.dense().sum_q);
         assert!(!s.read_tile([0, 0], &mut back).unwrap());
         let mut s2 = ZarrStore::create_or_open(&root, g.clone(), info("a")).unwrap();
         assert_eq!(s2.watermark([1, 0]), Some(42));
         assert!(s2.read_tile([1, 0], &mut back).unwrap());
-        assert_eq!(back.sum_q, t.sum_q);
-        assert_eq!(back.samples, t.samples);
-        assert_eq!(back.pulses, t.pulses);
+        assert_eq!(back.dense().sum_q, t.dense().sum_q);
+        assert_eq!(back.dense().samples, t.dense().samples);
+        assert_eq!(back.dense().pulses, t.dense().pulses);
         assert!(
-            back.max
+            back.dense()
+                .max
                 .iter()
-                .zip(&t.max)
+                .zip(&t.dense().max)
                 .all(|(a, b)| a.to_bits() == b.to_bits())
         );
         // Another run or grid: refused, nothing changed.
@@ -1187,25 +1473,25 @@ mod tests {
         let rec = s.record_path([1, 0]);
         for a in ARRAYS {
             fs::rename(
-                s.chunk_path(a, [1, 0]).unwrap(),
-                s.pending_path(a, [1, 0]).unwrap(),
+                s.chunk_path(a, [1, 0], 0).unwrap(),
+                s.pending_path(a, [1, 0], 0).unwrap(),
             )
             .unwrap();
         }
         fs::write(&rec, br#"{"watermark": 20, "pending": true}"#).unwrap();
         // A crash before the commit record: pending chunks of tile (0,0) must be discarded.
         for a in ARRAYS {
-            fs::write(s.pending_path(a, [0, 0]).unwrap(), b"garbage").unwrap();
+            fs::write(s.pending_path(a, [0, 0], 0).unwrap(), b"garbage").unwrap();
         }
         let mut s2 = ZarrStore::open(&root).unwrap();
         assert_eq!(s2.recovered_commits, 1);
         assert_eq!(s2.discarded_pending, 4);
         assert_eq!(s2.watermark([1, 0]), Some(20));
-        let mut back = TileData::new(n);
+        let mut back = TileData::new(64, n / 64, 4);
         s2.read_tile([1, 0], &mut back).unwrap();
-        assert_eq!(back.sum_q, new.sum_q);
+        assert_eq!(back.dense().sum_q, new.dense().sum_q);
         s2.read_tile([0, 0], &mut back).unwrap();
-        assert_eq!(back.sum_q, old.sum_q);
+        assert_eq!(back.dense().sum_q, old.dense().sum_q);
         assert_eq!(s2.watermark([0, 0]), Some(10));
     }
 
@@ -1217,9 +1503,9 @@ mod tests {
         let n = g.tile_voxels();
         let mut s = ZarrStore::create_or_open(&root, g, info("a")).unwrap();
         s.write_tile([0, 0], &sample(n, 1), 1).unwrap();
-        let p = s.chunk_path("sample_count", [0, 0]).unwrap();
+        let p = s.chunk_path("sample_count", [0, 0], 0).unwrap();
         fs::write(&p, b"not gzip").unwrap();
-        let mut back = TileData::new(n);
+        let mut back = TileData::new(64, n / 64, 4);
         let e = s.read_tile([0, 0], &mut back).unwrap_err().to_string();
         assert!(
             e.contains("sample_count") && e.contains("decompress"),
@@ -1264,7 +1550,8 @@ mod tests {
 
     fn f64s(path: &Path) -> Vec<f64> {
         let mut raw = Vec::new();
-        GzDecoder::new(File::open(path).unwrap())
+        zstd::stream::Decoder::new(File::open(path).unwrap())
+            .unwrap()
             .read_to_end(&mut raw)
             .unwrap();
         raw.chunks_exact(8)
@@ -1289,12 +1576,12 @@ mod tests {
     }
 
     fn assert_holds_written(s: &mut ZarrStore, data: &[TileData]) {
-        let mut back = TileData::new(s.grid().tile_voxels());
+        let mut back = TileData::for_grid(s.grid());
         assert_eq!(s.tiles().len(), WRITTEN.len());
         for (t, d) in WRITTEN.iter().zip(data) {
             assert!(s.read_tile(*t, &mut back).unwrap(), "{t:?}");
-            assert_eq!(back.sum_q, d.sum_q, "{t:?}");
-            assert_eq!(back.samples, d.samples, "{t:?}");
+            assert_eq!(back.dense().sum_q, d.dense().sum_q, "{t:?}");
+            assert_eq!(back.dense().samples, d.dense().samples, "{t:?}");
         }
     }
 
@@ -1315,6 +1602,8 @@ mod tests {
             Span {
                 tile_min: [-3, -1],
                 tiles: [6, 4],
+                level_chunk_min: 0,
+                level_chunks: 1,
                 fitted: true
             }
         );
@@ -1407,7 +1696,7 @@ mod tests {
             s.fit().unwrap();
             files(&root)
         };
-        let target = Span::around(&wide_grid(), WRITTEN);
+        let target = Span::around(&wide_grid(), WRITTEN.iter().map(|t| (*t, &[0u32][..])));
         let journal = |s: &ZarrStore| {
             fs::write(s.journal_path(), serde_json::to_vec(&target).unwrap()).unwrap();
         };
@@ -1419,8 +1708,8 @@ mod tests {
         fs::create_dir_all(s.staging_dir()).unwrap();
         for a in ARRAYS {
             let t = WRITTEN[1];
-            let to = s.staging_dir().join(format!("{a}.{}_{}", t[0], t[1]));
-            fs::rename(s.chunk_path(a, t).unwrap(), to).unwrap();
+            let to = s.staging_dir().join(format!("{a}.{}_{}_0", t[0], t[1]));
+            fs::rename(s.chunk_path(a, t, 0).unwrap(), to).unwrap();
         }
         drop(s);
         let mut s = ZarrStore::open(&root).unwrap();
@@ -1436,8 +1725,8 @@ mod tests {
         fs::create_dir_all(s.staging_dir()).unwrap();
         for t in WRITTEN {
             for a in ARRAYS {
-                let to = s.staging_dir().join(format!("{a}.{}_{}", t[0], t[1]));
-                fs::rename(s.chunk_path(a, t).unwrap(), to).unwrap();
+                let to = s.staging_dir().join(format!("{a}.{}_{}_0", t[0], t[1]));
+                fs::rename(s.chunk_path(a, t, 0).unwrap(), to).unwrap();
             }
         }
         for a in ARRAYS {
@@ -1446,11 +1735,11 @@ mod tests {
         s.span = target;
         s.write_metadata().unwrap();
         let t = WRITTEN[2];
-        let to = s.chunk_path("pulse_count", t).unwrap();
+        let to = s.chunk_path("pulse_count", t, 0).unwrap();
         fs::create_dir_all(to.parent().unwrap()).unwrap();
         fs::rename(
             s.staging_dir()
-                .join(format!("pulse_count.{}_{}", t[0], t[1])),
+                .join(format!("pulse_count.{}_{}_0", t[0], t[1])),
             to,
         )
         .unwrap();
@@ -1469,13 +1758,13 @@ mod tests {
         assert_eq!(s.span().tiles, [0, 0]);
         let meta = json_of(&root.join("zarr.json"));
         let nodes = &meta["consolidated_metadata"]["metadata"];
-        assert_eq!(nodes["sample_count"]["shape"], json!([4, 0, 0]));
+        assert_eq!(nodes["sample_count"]["shape"], json!([0, 0, 0]));
         assert_eq!(nodes["x"]["shape"], json!([0]));
         assert!(
             !root.join("x/c/0").exists(),
             "no chunk for an empty coordinate"
         );
-        assert!(root.join("z/c/0").is_file());
+        assert!(!root.join("z/c/0").exists());
         let r = ZarrStore::open(&root).unwrap();
         assert!(r.tiles().is_empty());
     }

@@ -72,7 +72,8 @@ covered = np.zeros(counts.shape[1:], dtype=bool)
 per_tile = {}
 for tx, ty in tiles:
     row, col = ty - tmin[1], tx - tmin[0]
-    block = np.asarray(g["sample_count"].blocks[0, row, col])
+    # Every height chunk of the tile (absent ones read as fill).
+    block = np.asarray(g["sample_count"].blocks[:, row, col])
     window = counts[:, row * t:(row + 1) * t, col * t:(col + 1) * t]
     assert np.array_equal(block, window), (tx, ty)
     covered[row * t:(row + 1) * t, col * t:(col + 1) * t] = True
