@@ -652,7 +652,8 @@ fn print_voxels(r: &RunReport) {
     } else {
         println!(
             "  voxels.zarr: {} bins of {} pulses deposited ({} outside the grid); tiles {} opened, \
-             {} closed ({} early), {} merged with the store, at most {} open ({:.1} MB each){}",
+             {} closed ({} early), {} merged with the store, at most {} open ({} height chunks \
+             of {:.1} MB in memory at most); {:.0} MB compressed into {:.0} MB{}",
             d["bins_deposited"],
             d["pulses_deposited"],
             outside,
@@ -661,7 +662,10 @@ fn print_voxels(r: &RunReport) {
             u64_at(t, "closed_early"),
             u64_at(t, "merged"),
             u64_at(t, "peak_open"),
-            t["tile_bytes"].as_f64().unwrap_or(0.0) / 1e6,
+            u64_at(t, "peak_chunks"),
+            t["chunk_bytes"].as_f64().unwrap_or(0.0) / 1e6,
+            t["bytes_written"].as_f64().unwrap_or(0.0) / 1e6,
+            t["bytes_stored"].as_f64().unwrap_or(0.0) / 1e6,
             match u64_at(d, "bins_resumed") {
                 n if n > 0 => format!("; resumed: {n} bins already in the store"),
                 _ => String::new(),

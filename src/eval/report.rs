@@ -34,7 +34,8 @@ pub const CSV_COLUMNS: [&str; 16] = [
 pub struct Machine {
     /// Logical cores available to the process.
     pub cores: usize,
-    /// Pipeline workers on it (`cores − 1`, at least 1): what the rates are computed for.
+    /// Pipeline workers on it (one per core, as the runtime's default): what the rates are
+    /// computed for.
     pub workers: usize,
     /// CPU model, when known.
     pub cpu: Option<String>,
@@ -54,7 +55,7 @@ impl Machine {
         });
         Machine {
             cores,
-            workers: cores.saturating_sub(1).max(1),
+            workers: crate::pipeline::runner::resolve_workers(0),
             cpu,
         }
     }
@@ -158,8 +159,8 @@ pub fn markdown(
     let _ = writeln!(
         s,
         "- Machine: {} logical core(s){}; times are single-thread wall clock per pulse (one \
-         core), medians over pulses; pulse rates assume {} worker thread(s) (cores − 1, as the \
-         runtime uses) at the slowest case's median: rate = workers / time.\n",
+         core), medians over pulses; pulse rates assume {} worker thread(s) (one per core, as \
+         the runtime's default) at the slowest case's median: rate = workers / time.\n",
         machine.cores,
         machine
             .cpu

@@ -64,7 +64,7 @@ pub struct PipelineSpec {
 }
 
 impl PipelineSpec {
-    /// A spec from configured stages. `workers == 0` means one per core less one (at least 1).
+    /// A spec from configured stages. `workers == 0` means one per core (at least 1).
     pub fn from_config(
         workers: usize,
         queue_capacity: usize,
@@ -83,13 +83,17 @@ impl PipelineSpec {
     }
 }
 
-/// `0` → one worker per core less one for the source and sink threads, at least 1.
+/// `0` → one worker per core, at least 1. Measured (docs/performance.md, issue 18): the source
+/// and sink threads take a small share of a core each and hand pulses over in batches, so on
+/// 2 cores two workers beat one (27.5 k against 24.5 k pulses/s on the survey line with the
+/// embedded chain); the previous default, one per core less one, left a core half idle.
 pub fn resolve_workers(workers: usize) -> usize {
     if workers > 0 {
         return workers;
     }
-    let cores = thread::available_parallelism().map_or(1, |n| n.get());
-    cores.saturating_sub(1).max(1)
+    thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .max(1)
 }
 
 /// Live counters of a running pipeline, for progress bars and QC.
