@@ -464,25 +464,30 @@ impl Span<'_> {
                     continue;
                 }
                 let kc = k0 >> shift;
+                // The run: bins of this height chunk (OUTSIDE and NON_FINITE never match),
+                // found first so that the update loop below has no test but its own bound.
+                let mut e = b + 1;
+                while e < len && ks[e] >> shift == kc {
+                    e += 1;
+                }
                 let chunk = data.chunk_mut(kc as usize);
-                let n = chunk.sum_q.len();
-                // Equal lengths, stated once so that one comparison bounds every index below.
+                if col_base + h > chunk.sum_q.len() {
+                    // Not reached: a column of the tile is below T².
+                    counts.outside_heights += (e - b) as u64;
+                    b = e;
+                    continue;
+                }
+                // This column's `h` levels of the chunk, stated once so that the mask below
+                // bounds every index.
+                let range = col_base..col_base + h;
                 let (sum_q, samples, max, pulses) = (
-                    &mut chunk.sum_q[..n],
-                    &mut chunk.samples[..n],
-                    &mut chunk.max[..n],
-                    &mut chunk.pulses[..n],
+                    &mut chunk.sum_q[range.clone()],
+                    &mut chunk.samples[range.clone()],
+                    &mut chunk.max[range.clone()],
+                    &mut chunk.pulses[range],
                 );
-                // The run: bins of this height chunk (OUTSIDE and NON_FINITE never match).
-                while b < len && ks[b] >> shift == kc {
-                    let (k, q, value) = (ks[b], qs[b], vs[b]);
-                    let i = col_base + (k & mask) as usize;
-                    b += 1;
-                    if i >= n {
-                        // Not reached: a column of the tile is below T².
-                        counts.outside_heights += 1;
-                        continue;
-                    }
+                for ((&k, &q), &value) in ks[b..e].iter().zip(&qs[b..e]).zip(&vs[b..e]) {
+                    let i = (k & mask) as usize & (h - 1);
                     // Plain adds: 2^63 quanta or 2^32 samples in one voxel are out of reach;
                     // merging saturates.
                     sum_q[i] = sum_q[i].wrapping_add(q);
@@ -495,8 +500,9 @@ impl Span<'_> {
                         pulses[i] = pulses[i].wrapping_add(1);
                         prev = off;
                     }
-                    counts.deposited += 1;
                 }
+                counts.deposited += (e - b) as u64;
+                b = e;
             }
             j0 += len;
         }
