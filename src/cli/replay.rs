@@ -653,7 +653,7 @@ fn print_voxels(r: &RunReport) {
         println!(
             "  voxels.zarr: {} bins of {} pulses deposited ({} outside the grid); tiles {} opened, \
              {} closed ({} early), {} merged with the store, at most {} open ({} height chunks \
-             of {:.1} MB in memory at most); {:.0} MB compressed into {:.0} MB{}",
+             of {:.1} MB in memory at most); {:.1} MB compressed into {:.1} MB{}",
             d["bins_deposited"],
             d["pulses_deposited"],
             outside,
