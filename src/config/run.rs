@@ -137,8 +137,10 @@ impl Validate for NavigationConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PipelineConfig {
-    /// Worker threads running the per-pulse stages; 0 = one per core, at least 1 (measured best:
-    /// the source and sink threads take a small share of a core). Default 0.
+    /// Worker threads running the per-pulse stages; 0 = automatic: one per core for replay
+    /// (measured best: the source and sink threads take a small share of a core), one per core
+    /// less one on board (`fwlidar run`: a core for the receivers and the recorder), at least 1.
+    /// Default 0.
     #[serde(default)]
     pub workers: usize,
     /// Capacity of every edge, pulses. Default 1024.

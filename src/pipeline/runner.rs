@@ -96,6 +96,15 @@ pub fn resolve_workers(workers: usize) -> usize {
         .max(1)
 }
 
+/// Automatic workers of the on-board daemon: one per core less one, at least 1. Live input
+/// must never wait for processing: the core left over keeps the frame receivers and the
+/// recorder running when the chain falls behind (with every core a worker, UDP frames were
+/// lost before they were recorded).
+pub fn resolve_live_workers() -> usize {
+    let cores = thread::available_parallelism().map_or(1, |n| n.get());
+    cores.saturating_sub(1).max(1)
+}
+
 /// Live counters of a running pipeline, for progress bars and QC.
 ///
 /// Each counter has one writer thread and sits on its own cache line.
