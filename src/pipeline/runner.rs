@@ -83,10 +83,11 @@ impl PipelineSpec {
     }
 }
 
-/// `0` → one worker per core, at least 1. Measured (docs/performance.md, issue 18): the source
-/// and sink threads take a small share of a core each and hand pulses over in batches, so on
-/// 2 cores two workers beat one (27.5 k against 24.5 k pulses/s on the survey line with the
-/// embedded chain); the previous default, one per core less one, left a core half idle.
+/// `0` → one worker per core, at least 1 (replay; the daemon uses [`resolve_live_workers`]).
+/// Measured (docs/performance.md, issue 18): the source and sink threads take a small share of
+/// a core each and hand pulses over in batches, so on 2 cores the chain alone runs 1.7× faster
+/// with two workers than with one; the previous default, one per core less one, left a core
+/// half idle.
 pub fn resolve_workers(workers: usize) -> usize {
     if workers > 0 {
         return workers;
