@@ -72,10 +72,11 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from(&config.output.dir));
-    let input = open_input(&args.input, &config)?;
-    prepare_out_dir(&out_dir)?;
-    let spec = build_spec(&config, args.workers, &input.source.facts());
-    let sinks = build_sinks(&config, &spec, &input, &args.input, &out_dir)?;
+    let Prepared {
+        spec,
+        source,
+        sinks,
+    } = prepare(&args.input, &out_dir, &config, args.workers)?;
     let control = RunControl::default();
     install_signal_handlers(&control)?;
     tracing::info!(
@@ -85,7 +86,7 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         stages = ?spec.stage_names,
         "replay started"
     );
-    let mut report = run_with_progress(&spec, input.source, sinks, &config, &control, &args);
+    let mut report = run_with_progress(&spec, source, sinks, &config, &control, &args);
     report.warnings = run_warnings(&report, &config);
     finish(&report, &args.input, &out_dir)
 }
@@ -100,23 +101,53 @@ pub fn replay_quiet(
     config: &RunConfig,
     workers: Option<usize>,
 ) -> Result<RunReport, Failure> {
+    let Prepared {
+        spec,
+        source,
+        sinks,
+    } = prepare(input, out_dir, config, workers)?;
+    let control = RunControl::default();
+    Ok(run_pipeline(
+        &spec,
+        source,
+        sinks,
+        Box::new(nav_consumer(config)),
+        &control,
+        |_| {},
+    ))
+}
+
+/// What both [`run`] and [`replay_quiet`] set up: the input opened and georeferenced, the
+/// output folder prepared, the stages and the sinks.
+struct Prepared {
+    spec: PipelineSpec,
+    source: Box<dyn crate::source::Source>,
+    sinks: Box<dyn PulseSink>,
+}
+
+fn prepare(
+    input: &Path,
+    out_dir: &Path,
+    config: &RunConfig,
+    workers: Option<usize>,
+) -> Result<Prepared, Failure> {
     let opened = open_input(input, config)?;
     prepare_out_dir(out_dir)?;
     let spec = build_spec(config, workers, &opened.source.facts());
     let sinks = build_sinks(config, &spec, &opened, input, out_dir)?;
-    let nav = NavDecode::new(
+    Ok(Prepared {
+        spec,
+        source: opened.source,
+        sinks,
+    })
+}
+
+/// The navigation consumer of a replay: decodes the navigation bytes for the summary.
+fn nav_consumer(config: &RunConfig) -> NavDecode {
+    NavDecode::new(
         config.georeference.leap_seconds,
         config.navigation.earliest_days(),
-    );
-    let control = RunControl::default();
-    Ok(run_pipeline(
-        &spec,
-        opened.source,
-        sinks,
-        Box::new(nav),
-        &control,
-        |_| {},
-    ))
+    )
 }
 
 /// The opened input: the source (georeferenced per `[georeference]`), the DEM, and where the
@@ -303,11 +334,14 @@ fn run_with_progress(
             ));
         }
     };
-    let nav = NavDecode::new(
-        config.georeference.leap_seconds,
-        config.navigation.earliest_days(),
+    let report = run_pipeline(
+        spec,
+        source,
+        sinks,
+        Box::new(nav_consumer(config)),
+        control,
+        tick,
     );
-    let report = run_pipeline(spec, source, sinks, Box::new(nav), control, tick);
     if let Some(bar) = bar {
         bar.finish_and_clear();
     }
