@@ -78,7 +78,9 @@ pub struct VoxelConfig {
     /// deposit, snapped to tiles.
     #[serde(default)]
     pub extent_m: Option<[f64; 4]>,
-    /// Side of the automatic extent, metres. Default 8192.
+    /// Side of the automatic extent, metres. Default 1 000 000 (1000 km: any survey flown from
+    /// its first pulse; the extent costs nothing until a tile holds data, and a finished
+    /// store's arrays span only the tiles written).
     #[serde(default = "default_auto_extent")]
     pub auto_extent_m: f64,
     /// Tiles held in memory at most; beyond, the tile deposited least recently is closed early
@@ -123,7 +125,7 @@ fn default_tile_columns() -> u32 {
     32
 }
 fn default_auto_extent() -> f64 {
-    8192.0
+    1.0e6
 }
 fn default_max_open() -> usize {
     64
