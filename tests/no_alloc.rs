@@ -124,6 +124,7 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
                     ..DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
                         iterations: 2,
                         early_stop: None,
+                        accelerate: false,
                     }))
                 })),
             ]

@@ -129,8 +129,8 @@ fn quick_run_writes_sane_csv_markdown_and_svg() {
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
     assert_eq!(header, COLUMNS);
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
-    // 23 settings × 3 widths × 2 families.
-    assert_eq!(rows.len(), 23 * 3 * 2);
+    // 26 settings × 3 widths × 2 families.
+    assert_eq!(rows.len(), 26 * 3 * 2);
     let col = |name: &str| COLUMNS.iter().position(|c| *c == name).unwrap();
     let mut rmse: HashMap<(String, String, String, String), f64> = HashMap::new();
     for r in &rows {
@@ -157,7 +157,7 @@ fn quick_run_writes_sane_csv_markdown_and_svg() {
         );
     }
     let methods: Vec<&str> = rows.iter().map(|r| r[0]).collect();
-    for m in ["raw", "denoise", "rl", "gold", "wiener", "nnls"] {
+    for m in ["raw", "denoise", "rl", "rl_acc", "gold", "wiener", "nnls"] {
         assert!(methods.contains(&m), "{m} missing");
     }
     // Accuracy sanity on discrete surfaces: at 8 and 16 ns (the widths the seed deconvolved)

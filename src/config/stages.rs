@@ -419,6 +419,7 @@ mod tests {
         let bad = DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
             iterations: 0,
             early_stop: Some(-1.0),
+            accelerate: false,
         }));
         Validate::validate(&bad, "s", &mut v);
         assert_eq!(v.issues().len(), 2);

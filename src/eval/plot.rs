@@ -15,6 +15,7 @@ fn colour(method: &str) -> &'static str {
         "raw" => "#7f7f7f",
         "denoise" => "#17becf",
         "rl" => "#1f77b4",
+        "rl_acc" => "#9467bd",
         "gold" => "#ff7f0e",
         "wiener" => "#2ca02c",
         "nnls" => "#d62728",
@@ -23,10 +24,11 @@ fn colour(method: &str) -> &'static str {
 }
 
 /// Legend names of the methods.
-const METHODS: [(&str, &str); 6] = [
+const METHODS: [(&str, &str); 7] = [
     ("raw", "raw (no processing)"),
     ("denoise", "denoise only"),
     ("rl", "Richardson-Lucy (iterations)"),
+    ("rl_acc", "RL accelerated, Biggs-Andrews (iterations)"),
     ("gold", "Gold (iterations)"),
     ("wiener", "Wiener (noise scale)"),
     ("nnls", "NNLS (iteration cap)"),

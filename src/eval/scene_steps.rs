@@ -204,6 +204,7 @@ pub fn run_scene_steps(
             Some(MethodConfig::RichardsonLucy(RlConfig {
                 iterations: 20,
                 early_stop: None,
+                accelerate: false,
             })),
         ),
         (

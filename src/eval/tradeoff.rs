@@ -85,12 +85,15 @@ impl Setting {
 
 /// RL and Gold iteration counts of the sweep.
 pub const ITERATIONS: [u32; 6] = [5, 10, 20, 50, 100, 200];
+/// Accelerated RL (Biggs-Andrews) iteration counts of the sweep (method `rl_acc`).
+pub const ACCELERATED_ITERATIONS: [u32; 3] = [5, 8, 12];
 /// Wiener noise scales of the sweep (multiplier of the noise power; 1 = as estimated).
 pub const WIENER_NOISE_SCALES: [f32; 5] = [0.1, 1.0, 10.0, 100.0, 1000.0];
 /// NNLS outer-iteration caps of the sweep.
 pub const NNLS_CAPS: [u32; 4] = [10, 25, 50, 100];
 
-/// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], Wiener at
+/// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], accelerated RL at
+/// [`ACCELERATED_ITERATIONS`], Wiener at
 /// [`WIENER_NOISE_SCALES`] (cut-off 0.2 GHz, regularisation 1e-3), NNLS at [`NNLS_CAPS`]
 /// (tolerance: the default, 1e-6). Other parameters at their defaults.
 pub fn default_settings() -> Vec<Setting> {
@@ -113,6 +116,18 @@ pub fn default_settings() -> Vec<Setting> {
             processing: Processing::Deconvolve(MethodConfig::RichardsonLucy(RlConfig {
                 iterations: it,
                 early_stop: None,
+                accelerate: false,
+            })),
+        });
+    }
+    for it in ACCELERATED_ITERATIONS {
+        s.push(Setting {
+            method: "rl_acc",
+            parameter: format!("iterations={it}"),
+            processing: Processing::Deconvolve(MethodConfig::RichardsonLucy(RlConfig {
+                iterations: it,
+                early_stop: None,
+                accelerate: true,
             })),
         });
     }

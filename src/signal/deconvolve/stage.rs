@@ -922,6 +922,7 @@ mod tests {
             RlConfig {
                 iterations: 7,
                 early_stop: Some(1e-3),
+                accelerate: false,
             },
         )));
         for c in all {
