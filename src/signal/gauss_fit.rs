@@ -19,9 +19,10 @@
 //!    the factorisation never mixes);
 //! 3. clamp `p + δ` into the bounds and evaluate its residual sum of squares — `Σ (y − model)²`
 //!    over the union of the windows plus `Σ y²` outside them (prefix sums of `y²`, computed
-//!    once per fit), i.e. the same RSS over the whole segment; accept and divide λ by 10 when it
-//!    decreased, otherwise multiply λ by 10 and retry from the same normal equations (no new
-//!    Jacobian pass).
+//!    once per fit), i.e. the same RSS over the whole segment; the same pass stores the trial's
+//!    residual and Jacobian columns. Accept and divide λ by 10 when the RSS decreased (the
+//!    next normal equations are then only the dot products of those columns: one model pass
+//!    per trial step), otherwise multiply λ by 10 and retry from the same normal equations.
 //!
 //! Each trial step counts as one iteration; the caller's iteration cap bounds the work (one
 //! cost pass and at most one normal-equation pass per iteration, each linear in the samples
@@ -247,7 +248,8 @@ impl GaussFitter {
             acc += (v as f64) * (v as f64);
             *s = acc;
         }
-        let mut rss = self.normal_equations(y, comps);
+        let mut rss = self.windowed_rss(y, comps, true);
+        self.accumulate_normal_equations(k);
         let mut lambda = LAMBDA_START;
         let mut iterations = 0;
         let mut converged = false;
@@ -282,17 +284,20 @@ impl GaussFitter {
                 };
                 bounds.clamp(t);
             }
-            let new_rss = self.windowed_rss(y, &trial[..k], false);
+            // The trial's residual and Jacobian columns replace the current point's (its normal
+            // equations are already accumulated): if the step is accepted, only the dot products
+            // remain to be done.
+            let new_rss = self.windowed_rss(y, &trial[..k], true);
             if new_rss.is_finite() && new_rss < rss {
                 let relative = (rss - new_rss) / rss;
                 comps.copy_from_slice(&trial[..k]);
                 lambda = (lambda * 0.1).max(LAMBDA_MIN);
+                rss = new_rss;
                 if relative < RELATIVE_TOLERANCE {
-                    rss = new_rss;
                     converged = true;
                     break;
                 }
-                rss = self.normal_equations(y, comps);
+                self.accumulate_normal_equations(k);
             } else {
                 lambda *= 10.0;
                 if lambda > LAMBDA_MAX {
@@ -424,19 +429,26 @@ impl GaussFitter {
         rss + (self.y2[n] - self.y2[next])
     }
 
-    /// Accumulates `JᵀJ` (upper triangle) and `Jᵀr` at `comps` and returns the residual sum of
-    /// squares. `r = y − model`, so the Gauss-Newton step is `+ (JᵀJ)⁻¹ Jᵀr`. Only samples
-    /// inside a component's window enter its columns (its Jacobian is 0 elsewhere), and two
-    /// components couple only over the overlap of their windows; `self.first` records that
-    /// profile for the solve.
+    /// Accumulates `JᵀJ` and `Jᵀr` at `comps` and returns the residual sum of squares (the
+    /// fit's two steps in one, for tests).
+    #[cfg(test)]
     fn normal_equations(&mut self, y: &[f32], comps: &[Gaussian]) -> f64 {
-        let k = comps.len();
+        let rss = self.windowed_rss(y, comps, true);
+        self.accumulate_normal_equations(comps.len());
+        rss
+    }
+
+    /// Accumulates `JᵀJ` (upper triangle) and `Jᵀr` of `k` components from the Jacobian columns,
+    /// windows and residual left by `windowed_rss(…, true)`. `r = y − model`, so the
+    /// Gauss-Newton step is `+ (JᵀJ)⁻¹ Jᵀr`; only samples inside a component's window enter its
+    /// columns, two components couple only over the overlap of their windows, and `self.first`
+    /// records that profile for the solve.
+    fn accumulate_normal_equations(&mut self, k: usize) {
         let m = 3 * k;
         for row in self.jtj[..m].iter_mut() {
             row[..m].fill(0.0);
         }
         self.jtr[..m].fill(0.0);
-        let rss = self.windowed_rss(y, comps, true);
         let cap = self.capacity;
         let col = |j: usize, lo: usize, hi: usize| j * cap + lo..j * cap + hi + 1;
         for a in 0..k {
@@ -484,7 +496,6 @@ impl GaussFitter {
                 self.first[3 * a + p] = 3 * first;
             }
         }
-        rss
     }
 
     /// Solves `(JᵀJ + λ·D) δ = Jᵀr` for the first `m` parameters into `self.step`, with
