@@ -21,7 +21,9 @@
 //!    residual `y − model` peaks above the detection threshold a component is added there (two
 //!    echoes closer than about 2σ merge into one maximum, which a local-maximum detector cannot
 //!    split) and all components are refitted; if the new component is pruned, the previous
-//!    solution is kept and refinement stops.
+//!    solution is kept and refinement stops. Refinement also stops when the residual peaks
+//!    within one σ of a component the last fit pruned (the fit already found nothing
+//!    significant there; refitting it would almost always prune the new component again).
 //!
 //! All Levenberg-Marquardt runs of one segment share one budget of
 //! [`DecomposeConfig::max_iterations`] trial steps (the first fit at most half of it when
@@ -292,6 +294,8 @@ impl Decomposer {
         }
         let budget = cfg.max_iterations;
         let mut used = 0;
+        // Components the last fit pruned, and their count.
+        let mut pruned = ([Gaussian::default(); MAX_COMPONENTS], 0usize);
         // With refinement enabled the first fit gets half the budget: a slowly creeping fit
         // (typically a component on a noise spike) must not starve the refinement.
         let first_budget = if cfg.refine_passes > 0 {
@@ -304,7 +308,7 @@ impl Decomposer {
                 .fitter
                 .fit(y, &mut comps[..k], &bounds, first_budget)
                 .iterations;
-            k = prune(&mut comps, k, threshold as f64);
+            k = prune(&mut comps, k, threshold as f64, &mut pruned);
         }
 
         for _ in 0..cfg.refine_passes {
@@ -323,6 +327,11 @@ impl Decomposer {
             }
             // Like the peak detector, the residual's first and last samples are no peaks.
             if res[best] < threshold || best == 0 || best + 1 == n {
+                break;
+            }
+            // At a component the last fit pruned the refit would most likely prune the new one
+            // again (and the previous solution be kept): a whole fit for nothing.
+            if near_pruned(&pruned.0[..pruned.1], best) {
                 break;
             }
             let before = comps;
@@ -356,7 +365,7 @@ impl Decomposer {
                 .fitter
                 .fit(y, &mut comps[..k], &bounds, budget - used)
                 .iterations;
-            k = prune(&mut comps, k, threshold as f64);
+            k = prune(&mut comps, k, threshold as f64, &mut pruned);
             if k <= k_before {
                 comps = before;
                 k = k_before;
@@ -388,15 +397,32 @@ impl Decomposer {
 }
 
 /// Drops components with amplitude below `threshold`, keeping order; returns the new count.
-fn prune(comps: &mut [Gaussian; MAX_COMPONENTS], k: usize, threshold: f64) -> usize {
+/// The dropped ones go to `pruned` (its count reset first).
+fn prune(
+    comps: &mut [Gaussian; MAX_COMPONENTS],
+    k: usize,
+    threshold: f64,
+    pruned: &mut ([Gaussian; MAX_COMPONENTS], usize),
+) -> usize {
     let mut kept = 0;
+    pruned.1 = 0;
     for i in 0..k {
         if comps[i].amplitude >= threshold {
             comps[kept] = comps[i];
             kept += 1;
+        } else {
+            pruned.0[pruned.1] = comps[i];
+            pruned.1 += 1;
         }
     }
     kept
+}
+
+/// Whether sample `i` lies within one σ (at least one bin) of the centre of one of `pruned`.
+fn near_pruned(pruned: &[Gaussian], i: usize) -> bool {
+    pruned
+        .iter()
+        .any(|g| (g.center_bins - i as f64).abs() <= g.sigma_bins.max(1.0))
 }
 
 /// Half width at half maximum around the peak at `i`, bins. Each side is walked until the
@@ -716,6 +742,42 @@ mod tests {
             assert!(g.amplitude >= 0.0, "{g:?}");
         }
         assert!(stats.iterations <= 30);
+    }
+
+    #[test]
+    fn refinement_skips_places_of_pruned_components() {
+        let pruned = [Gaussian {
+            amplitude: 1.0,
+            center_bins: 50.4,
+            sigma_bins: 3.0,
+        }];
+        assert!(near_pruned(&pruned, 50));
+        assert!(near_pruned(&pruned, 53));
+        assert!(near_pruned(&pruned, 48));
+        assert!(!near_pruned(&pruned, 54));
+        assert!(!near_pruned(&pruned, 47));
+        assert!(!near_pruned(&[], 50));
+        // A narrow one still covers the neighbouring bins.
+        let narrow = [Gaussian {
+            sigma_bins: 0.5,
+            ..pruned[0]
+        }];
+        assert!(near_pruned(&narrow, 51) && !near_pruned(&narrow, 52));
+        // `prune` records what it drops, and only that.
+        let mut comps = [Gaussian::default(); MAX_COMPONENTS];
+        for (i, a) in [5.0, 0.5, 7.0, 0.2].into_iter().enumerate() {
+            comps[i] = Gaussian {
+                amplitude: a,
+                center_bins: 10.0 * i as f64,
+                sigma_bins: 2.0,
+            };
+        }
+        let mut dropped = ([Gaussian::default(); MAX_COMPONENTS], 3);
+        assert_eq!(prune(&mut comps, 4, 1.0, &mut dropped), 2);
+        assert_eq!(dropped.1, 2);
+        assert_eq!(dropped.0[0].center_bins, 10.0);
+        assert_eq!(dropped.0[1].center_bins, 30.0);
+        assert_eq!((comps[0].amplitude, comps[1].amplitude), (5.0, 7.0));
     }
 
     #[test]
