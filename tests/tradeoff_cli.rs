@@ -116,7 +116,7 @@ fn quick_run_writes_sane_csv_markdown_and_svg() {
     let o = fwlidar(&["tradeoff", "--quick", "--out", out.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
-    assert!(err.contains("[138/138]"), "progress on stderr: {err}");
+    assert!(err.contains("[156/156]"), "progress on stderr: {err}");
 
     for f in ["tradeoff.csv", "tradeoff.md", "tradeoff.svg"] {
         assert!(out.join(f).is_file(), "{f} missing");

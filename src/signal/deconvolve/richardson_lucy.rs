@@ -275,7 +275,11 @@ fn accelerated(
     for it in 0..config.iterations {
         // The predicted point p = max(x + α (x − x_prev), 0), guarded like σ.
         let a = alpha as f32;
-        for ((p, &xi), &xp) in sigma[pad..pad + n].iter_mut().zip(x.iter()).zip(x_prev.iter()) {
+        for ((p, &xi), &xp) in sigma[pad..pad + n]
+            .iter_mut()
+            .zip(x.iter())
+            .zip(x_prev.iter())
+        {
             let v = (xi + a * (xi - xp)).clamp(0.0, ESTIMATE_CAP);
             *p = if v < FLUSH { 0.0 } else { v };
         }
