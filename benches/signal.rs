@@ -13,12 +13,12 @@
 mod waveforms;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use fwlidar::config::RunConfig;
+use fwlidar::pipeline::registry::StageConfig;
 use fwlidar::pipeline::{DropCounts, Emitter, Stage};
 use fwlidar::pulse::{FittedReturn, Pulse, PulsePool, SegmentKind};
 use fwlidar::signal::denoise::LowPass;
 use fwlidar::signal::{Calibrate, CalibrateConfig, Denoise, DenoiseConfig};
-use fwlidar::config::RunConfig;
-use fwlidar::pipeline::registry::StageConfig;
 use fwlidar::sim::world::WorldSim;
 use fwlidar::sim::world::scene::WorldScene;
 use std::hint::black_box;

@@ -11,12 +11,19 @@
 //!    [`CLIP_ITERATIONS`] rounds). Returns are positive-going, so clipping only the upper side
 //!    strips them while leaving the symmetric noise around the floor, whose median is unbiased
 //!    (a plain "median of the lower half" would sit half a noise amplitude below the floor).
+//!    Counts spanning at most [`HISTOGRAM_RANGE`] values (and no more than eight per sample)
+//!    get the clipped median from a histogram, in O(n + range) per round, other segments from
+//!    a sorted copy; both give the same value bit for bit (integer counts, integer or
+//!    half-integer medians and deviations are exact in `f32`).
 //! 2. **Counts to volts** (`offset_v + gain × counts`); with [`DenoiseConfig::level_shift`] the
 //!    baseline is subtracted *before* the FFT (the seed's level shift).
 //! 3. **Low-pass**: the segment is zero-padded to twice its length (so the FFT's circular
 //!    convolution does not wrap the end of the record onto its start), transformed with a real
 //!    FFT, every bin with frequency `k / (m × sample_ns)` GHz above the cut-off is zeroed
-//!    (`m` = padded length), transformed back and normalised by `m`. The zero padding is what
+//!    (`m` = padded length), transformed back and normalised by `m`. The real FFTs are
+//!    `realfft`'s even-length algorithm (a complex FFT of the `m/2` packed sample pairs and a
+//!    twiddle pass over the bin pairs), with its two twiddle passes and the zeroing fused into
+//!    one pass here; the result is bit for bit the same. The zero padding is what
 //!    makes the level shift matter, exactly as in the seed: the recording's on/off edge is a
 //!    step from the pedestal to zero that rings (Gibbs) unless the pedestal was removed first.
 //!    With `filter = "fir"` the low-pass is instead a symmetric (zero-phase) Kaiser-windowed
@@ -50,8 +57,8 @@
 //! [`StageError`]. Call [`DenoiseConfig::validate`] (or [`Denoise::try_new`]) to catch it early.
 //!
 //! Work per pulse is bounded (two FFTs of twice the segment length, or one FIR of at most
-//! `2 × MAX_FIR_HALF + 1` taps, a sort of at most
-//! `max_samples` counts and a fixed number of clipping rounds per segment) and, after the first
+//! `2 × MAX_FIR_HALF + 1` taps, a sort of at most `max_samples` counts or a histogram of at
+//! most [`HISTOGRAM_RANGE`] bins, and a fixed number of clipping rounds per segment) and, after the first
 //! pulse of each segment length, does not allocate: FFT plans are cached by length and every
 //! buffer is a field sized from `max_samples` when the stage is built (the FIR's taps too,
 //! redesigned in place when the sample interval changes).
@@ -68,6 +75,11 @@ use crate::signal::deconvolve::direct::convolve_padded;
 
 /// Maximum number of upper-clipping rounds of the robust baseline estimate.
 pub const CLIP_ITERATIONS: usize = 5;
+
+/// Largest value range (`max − min + 1` counts) of a segment whose upper-clipped median is taken
+/// from a histogram of its counts instead of a sorted copy (the same result: see
+/// [`clipped_median_histogram`]).
+const HISTOGRAM_RANGE: usize = 4096;
 
 /// Clipping threshold of the robust baseline estimate, in robust standard deviations
 /// (1.4826 × MAD).
@@ -266,6 +278,8 @@ pub struct Denoise {
     sorted: Vec<u16>,
     /// Absolute deviations for the MAD, `max_samples` values, counts.
     deviations: Vec<f32>,
+    /// Histogram of a segment's counts for the upper-clipped median, [`HISTOGRAM_RANGE`] bins.
+    histogram: Vec<u32>,
     /// Sorted copy of a segment in volts for [`Denoise::denoise_segment`]; empty until its
     /// first call (the pipeline stage never needs it), then `max_samples` values.
     sorted_v: Vec<f32>,
@@ -291,6 +305,7 @@ impl Denoise {
             scratch: vec![Complex::new(0.0, 0.0); 2 * max],
             sorted: vec![0; max],
             deviations: vec![0.0; max],
+            histogram: vec![0; HISTOGRAM_RANGE],
             sorted_v: Vec::new(),
             fir: Vec::with_capacity(2 * MAX_FIR_HALF + 1),
             fir_sample_ns: f64::NAN,
@@ -312,8 +327,9 @@ impl Denoise {
     /// Capacities of the internal buffers and the number of cached plans (for the no-allocation
     /// test).
     #[cfg(test)]
-    fn buffer_capacities(&self) -> [usize; 7] {
+    fn buffer_capacities(&self) -> [usize; 8] {
         [
+            self.histogram.capacity(),
             self.fir.capacity(),
             self.time.capacity(),
             self.spectrum.capacity(),
@@ -347,8 +363,22 @@ impl Denoise {
         self.plans.len() - 1
     }
 
-    /// Robust baseline of `counts` (non-empty, at most `max_samples` long), counts.
+    /// Robust baseline of `counts` (non-empty, at most `max_samples` long), counts. The
+    /// upper-clipped median comes from a histogram when the counts span at most
+    /// [`HISTOGRAM_RANGE`] values and no more than eight per sample (otherwise sorting is
+    /// cheaper); either way the result is the same.
     fn baseline_counts(&mut self, counts: &[u16]) -> f32 {
+        let p = self.config.pretrigger_samples;
+        let n = counts.len();
+        if !(p > 0 && n >= p.saturating_mul(4)) {
+            let (lo, hi) = counts
+                .iter()
+                .fold((u16::MAX, 0u16), |(lo, hi), &c| (lo.min(c), hi.max(c)));
+            let range = (hi - lo) as usize + 1;
+            if range <= HISTOGRAM_RANGE && range <= 8 * n {
+                return clipped_median_histogram(counts, lo, &mut self.histogram[..range]);
+            }
+        }
         robust_baseline(
             counts,
             &mut self.sorted,
@@ -632,8 +662,14 @@ fn pair_block<const L: usize>(
         br[l] = hi[L - 1 - l].re;
         bi[l] = hi[L - 1 - l].im;
     }
-    let (fr, fi) = (&tw.fwd_re[k0 - 1..k0 - 1 + L], &tw.fwd_im[k0 - 1..k0 - 1 + L]);
-    let (ir, ii) = (&tw.inv_re[k0 - 1..k0 - 1 + L], &tw.inv_im[k0 - 1..k0 - 1 + L]);
+    let (fr, fi) = (
+        &tw.fwd_re[k0 - 1..k0 - 1 + L],
+        &tw.fwd_im[k0 - 1..k0 - 1 + L],
+    );
+    let (ir, ii) = (
+        &tw.inv_re[k0 - 1..k0 - 1 + L],
+        &tw.inv_im[k0 - 1..k0 - 1 + L],
+    );
     for l in 0..L {
         let k = k0 + l;
         // Forward post-processing (realfft RealToComplexEven).
@@ -764,6 +800,98 @@ fn robust_baseline<T: Copy + Into<f32>>(
         }
         kept = new_kept;
         median = median_sorted(&s[..kept]);
+    }
+    median
+}
+
+/// The upper-clipped median of `counts` (non-empty, every count in `lo .. lo + hist.len()`)
+/// as [`robust_baseline`] computes it from a sorted copy, from a histogram instead (`hist` is
+/// the work buffer): the sorted copy is the histogram read in order, so the value of rank `r`
+/// is the first bin whose cumulative count exceeds `r`; the kept samples (a prefix of the
+/// sorted copy) are the histogram up to a bin, that bin possibly in part; the MAD (rank
+/// `kept / 2` of the absolute deviations) is found by walking outwards from the median, the
+/// nearer side first, since the deviations grow away from it on both sides. Counts, medians
+/// (integers or halves) and deviations are exact in `f32`, and the limit is the same `f32`
+/// expression, so the result is bit for bit the sort's. O(n + range) per round.
+fn clipped_median_histogram(counts: &[u16], lo: u16, hist: &mut [u32]) -> f32 {
+    hist.fill(0);
+    for &c in counts {
+        hist[(c - lo) as usize] += 1;
+    }
+    let value = |i: usize| (lo as usize + i) as f32;
+    // Bin of the value of rank `r` among all the counts.
+    let rank_bin = |hist: &[u32], r: usize| {
+        let mut cum = 0usize;
+        for (i, &h) in hist.iter().enumerate() {
+            cum += h as usize;
+            if cum > r {
+                return i;
+            }
+        }
+        hist.len() - 1
+    };
+    let median_of = |hist: &[u32], kept: usize| {
+        if kept % 2 == 1 {
+            value(rank_bin(hist, kept / 2))
+        } else {
+            0.5 * (value(rank_bin(hist, kept / 2 - 1)) + value(rank_bin(hist, kept / 2)))
+        }
+    };
+    let mut kept = counts.len();
+    let mut median = median_of(hist, kept);
+    for _ in 0..CLIP_ITERATIONS {
+        // The kept samples: bins below `last` whole, `last_count` of bin `last`.
+        let last = rank_bin(hist, kept - 1);
+        let last_count = kept - hist[..last].iter().map(|&h| h as usize).sum::<usize>();
+        let eff = |i: usize| match i.cmp(&last) {
+            std::cmp::Ordering::Less => hist[i] as usize,
+            std::cmp::Ordering::Equal => last_count,
+            std::cmp::Ordering::Greater => 0,
+        };
+        // Walk outwards from the median: `left` down from the last bin not above it, `right`
+        // up from the next one, taking the smaller deviation first.
+        let wanted = kept / 2;
+        let mut left = Some((median - lo as f32).floor() as usize);
+        let mut right = left.map_or(0, |l| l + 1);
+        let mut seen = 0usize;
+        let mad = loop {
+            let dl = left.map(|l| (value(l) - median).abs());
+            let dr = (right <= last).then(|| (value(right) - median).abs());
+            let (d, count) = match (dl, dr) {
+                (Some(a), Some(b)) if b < a => {
+                    right += 1;
+                    (b, eff(right - 1))
+                }
+                (Some(a), _) => {
+                    let l = left.expect("some");
+                    left = l.checked_sub(1);
+                    (a, eff(l))
+                }
+                (None, Some(b)) => {
+                    right += 1;
+                    (b, eff(right - 1))
+                }
+                (None, None) => unreachable!("the kept samples hold rank kept / 2"),
+            };
+            seen += count;
+            if seen > wanted {
+                break d;
+            }
+        };
+        let limit = median + CLIP_SIGMAS * MAD_TO_SIGMA * mad;
+        let mut at_most = 0usize;
+        for (i, &h) in hist.iter().enumerate() {
+            if value(i) > limit {
+                break;
+            }
+            at_most += h as usize;
+        }
+        let new_kept = at_most.min(kept).max(1);
+        if new_kept == kept {
+            break;
+        }
+        kept = new_kept;
+        median = median_of(hist, kept);
     }
     median
 }
@@ -993,6 +1121,85 @@ mod tests {
             let got = lowpass_stage(&mut stage, &x, 1.0);
             for (a, b) in got.iter().zip(&want) {
                 proptest::prop_assert_eq!(a.to_bits(), b.to_bits());
+            }
+        }
+    }
+
+    /// The sort-based robust baseline of `counts` (the reference).
+    fn baseline_by_sorting(counts: &[u16], pretrigger: usize) -> f32 {
+        let mut sorted = vec![0u16; counts.len()];
+        let mut deviations = vec![0.0f32; counts.len()];
+        robust_baseline(
+            counts,
+            &mut sorted,
+            &mut deviations,
+            pretrigger,
+            <[u16]>::sort_unstable,
+        )
+    }
+
+    #[test]
+    fn histogram_baseline_is_bit_for_bit_the_sorted_one() {
+        let mut rng = ChaCha8Rng::seed_from_u64(43);
+        let mut stages: Vec<Denoise> = [0usize, 1, 8, 100_000]
+            .iter()
+            .map(|&pretrigger_samples| {
+                Denoise::new(DenoiseConfig {
+                    pretrigger_samples,
+                    ..Default::default()
+                })
+            })
+            .collect();
+        let mut cases: Vec<Vec<u16>> = Vec::new();
+        // Up to 300 samples, and long enough for a 4096-count span to use the histogram.
+        for n in (1..=300usize).chain([512, 513, 1000, 4096]) {
+            // 8-bit digitizer noise on a pedestal, with and without returns.
+            let noise: Vec<u16> = (0..n).map(|_| rng.random_range(9u16..=15)).collect();
+            let mut with_returns = noise.clone();
+            for _ in 0..rng.random_range(0..4usize) {
+                let at = rng.random_range(0..n);
+                let a = rng.random_range(5.0..250.0f64);
+                for (i, v) in with_returns.iter_mut().enumerate() {
+                    let d = (i as f64 - at as f64) / 3.0;
+                    *v = (*v as f64 + a * (-0.5 * d * d).exp()).min(255.0) as u16;
+                }
+            }
+            cases.push(noise);
+            cases.push(with_returns);
+            cases.push(vec![rng.random_range(0..=u16::MAX); n]); // all equal
+            cases.push(
+                (0..n)
+                    .map(|_| [7u16, 8][rng.random_range(0..2usize)])
+                    .collect(),
+            );
+            // Wide ranges: the sort fallback, and either side of the histogram's limit.
+            cases.push((0..n).map(|_| rng.random_range(0..=u16::MAX)).collect());
+            for span in [4095u16, 4096] {
+                let mut v: Vec<u16> = (0..n).map(|_| 60000 + rng.random_range(0..=20)).collect();
+                v[0] = 60000;
+                if n > 1 {
+                    v[n - 1] = 60000 + span - 1;
+                }
+                cases.push(v);
+            }
+            // Saturated returns and extremes.
+            cases.push(
+                (0..n)
+                    .map(|i| if i % 5 == 0 { u16::MAX } else { 3 })
+                    .collect(),
+            );
+            cases.push((0..n).map(|i| (i % 2) as u16 * u16::MAX).collect());
+        }
+        for counts in &cases {
+            for stage in stages.iter_mut() {
+                let p = stage.config.pretrigger_samples;
+                let want = baseline_by_sorting(counts, p);
+                let got = stage.baseline_counts(counts);
+                assert_eq!(
+                    got.to_bits(),
+                    want.to_bits(),
+                    "pretrigger {p}, counts {counts:?}: {got} vs {want}"
+                );
             }
         }
     }
