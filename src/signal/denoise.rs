@@ -79,7 +79,7 @@ pub const CLIP_ITERATIONS: usize = 5;
 /// Largest value range (`max − min + 1` counts) of a segment whose upper-clipped median is taken
 /// from a histogram of its counts instead of a sorted copy (the same result: see
 /// [`clipped_median_histogram`]).
-const HISTOGRAM_RANGE: usize = 4096;
+pub const HISTOGRAM_RANGE: usize = 4096;
 
 /// Clipping threshold of the robust baseline estimate, in robust standard deviations
 /// (1.4826 × MAD).
