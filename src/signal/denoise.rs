@@ -32,8 +32,10 @@
 //!    1 ns), designed once per sample interval and convolved directly with the segment
 //!    extended by zeros (the same edge convention as the zero-padded FFT, hence the same role
 //!    of the level shift). It keeps the noise level's meaning (white noise keeps the fraction
-//!    `2·fc` of its power, as behind the brick wall) and costs about 40 % of the FFT path, but
-//!    it is not the same filter: its transition band attenuates 0.155–0.2 GHz and leaks
+//!    `2·fc` of its power, as behind the brick wall) and costs less than the FFT path (about
+//!    40 % of it before the FFT's twiddle passes were fused, about half to three quarters
+//!    since: bench `denoise_fir_outgoing64_return256_1ns`, 2026-11-25), but it is not the
+//!    same filter: its transition band attenuates 0.155–0.2 GHz and leaks
 //!    0.2–0.245 GHz. Measured with `fwlidar tradeoff` it moves true detections by up to −2.4 %
 //!    (denoise only, extended 16 ns), so the FFT stays the default.
 //! 4. Without the level shift the baseline is subtracted *after* filtering, so
@@ -139,7 +141,7 @@ pub struct DenoiseConfig {
     /// How the low-pass is applied: `"fft"` (the seed's zero-padded FFT with every bin above
     /// the cut-off zeroed; the default) or `"fir"` (a 35-tap Kaiser-windowed sinc at 0.2 GHz
     /// and 1 ns, designed once per sample interval and convolved in the time domain: about
-    /// 2.5 × cheaper, but not the same filter). See the module documentation.
+    /// 1.5–2 × cheaper, but not the same filter). See the module documentation.
     #[serde(default)]
     pub filter: LowPass,
 }
