@@ -1,14 +1,34 @@
 //! Benchmarks of the per-pulse signal stages.
+//!
+//! - `denoise_outgoing64_return256_1ns` (and its FIR variant): one CAO-like pulse, again and
+//!   again;
+//! - `denoise_survey_line/all_pulses`: the survey line's mix, [`MIX_PULSES`] pulses of
+//!   `config/scenes/survey_line.toml` (every [`MIX_STRIDE`]-th of the scene's first pulses, as
+//!   many again over the stand of trees; 34-sample outgoing and 256-sample return segments)
+//!   through the replay chain's denoise stage (`config/replay.toml`). Criterion reports the
+//!   time per pass; the bench also prints the mean, p50 and p99 of single-pulse timings (three
+//!   passes, `Instant` per pulse), the figure issue 18 asks about.
 
 #[path = "common/waveforms.rs"]
 mod waveforms;
 
-use criterion::{Criterion, criterion_group, criterion_main};
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use fwlidar::config::RunConfig;
+use fwlidar::pipeline::registry::StageConfig;
 use fwlidar::pipeline::{DropCounts, Emitter, Stage};
 use fwlidar::pulse::{FittedReturn, Pulse, PulsePool, SegmentKind};
 use fwlidar::signal::denoise::LowPass;
 use fwlidar::signal::{Calibrate, CalibrateConfig, Denoise, DenoiseConfig};
+use fwlidar::sim::world::WorldSim;
+use fwlidar::sim::world::scene::WorldScene;
 use std::hint::black_box;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// Pulses per half of the survey-line mix.
+const MIX_PULSES: usize = 2500;
+/// Every this many pulses of the scene is kept (spreads the mix over the scan pattern).
+const MIX_STRIDE: usize = 40;
 
 /// A CAO-like pulse at 1 ns sampling: a 64-sample outgoing pulse (16 ns FWHM) and a 256-sample
 /// return with two surfaces on a 12 DN baseline, with a little deterministic ripple as noise.
@@ -132,5 +152,103 @@ fn calibrate(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, denoise, calibrate);
+/// Survey-line pulses (`count` of them, every `MIX_STRIDE`-th, the line starting at
+/// `start_east_m` or where the scene starts it), raw as `fwlidar simulate` writes them.
+fn simulate(count: usize, start_east_m: Option<f64>) -> Vec<Pulse> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/scenes/survey_line.toml");
+    let (mut scene, sensor) = WorldScene::load(&path).unwrap();
+    scene.flight.max_pulses = None;
+    if let Some(e) = start_east_m {
+        scene.flight.lines[0].start_m = [e, 0.0];
+    }
+    let mut sim = WorldSim::new(&scene, &sensor, path.parent().unwrap()).unwrap();
+    let mut out = Vec::with_capacity(count);
+    let (mut p, mut t) = (Pulse::default(), Default::default());
+    let mut i = 0usize;
+    while out.len() < count {
+        match sim.fill_next(&mut p, &mut t) {
+            None => break,
+            Some(false) => continue,
+            Some(true) => {}
+        }
+        if i.is_multiple_of(MIX_STRIDE) {
+            out.push(p.clone());
+        }
+        i += 1;
+    }
+    out
+}
+
+/// The replay chain's denoise stage configuration (`config/replay.toml`).
+fn replay_denoise() -> StageConfig {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/replay.toml");
+    let cfg: RunConfig = toml::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    cfg.pipeline
+        .stages
+        .iter()
+        .find(|s| s.kind() == "denoise")
+        .expect("config/replay.toml has a denoise stage")
+        .clone()
+}
+
+/// The denoise stage on the survey line's mix of pulses (per-pulse figures printed).
+fn denoise_survey_line(c: &mut Criterion) {
+    let mut pulses = simulate(MIX_PULSES, None);
+    pulses.extend(simulate(MIX_PULSES, Some(-100.0)));
+    let outgoing = pulses[0].segments[0].len;
+    let ret = pulses[0].segments.get(1).map_or(0, |s| s.len);
+    let mut stage = replay_denoise().build();
+    let pool = PulsePool::new(4);
+    let mut slots: Vec<Option<Box<Pulse>>> =
+        pulses.into_iter().map(|p| Some(Box::new(p))).collect();
+    let (mut out, mut dropped, mut errors) = (Vec::with_capacity(1), DropCounts::default(), 0u64);
+    // One stage call, the pulse coming back into its slot (no allocation).
+    let mut one = |stage: &mut dyn Stage, slot: &mut Option<Box<Pulse>>| {
+        let p = slot.take().expect("the pulse comes back every pass");
+        let mut em = Emitter::new(&mut out, &pool, &mut dropped, &mut errors);
+        stage.process(black_box(p), &mut em).expect("denoise");
+        *slot = out.pop();
+        assert!(slot.is_some(), "denoise dropped a pulse");
+    };
+    for s in slots.iter_mut() {
+        one(stage.as_mut(), s);
+    }
+    let mut times: Vec<u64> = Vec::with_capacity(3 * slots.len());
+    for _ in 0..3 {
+        for s in slots.iter_mut() {
+            let t0 = Instant::now();
+            one(stage.as_mut(), s);
+            times.push(t0.elapsed().as_nanos() as u64);
+        }
+    }
+    times.sort_unstable();
+    let q = |f: f64| times[((times.len() - 1) as f64 * f).round() as usize] as f64 / 1e3;
+    let mean = times.iter().sum::<u64>() as f64 / times.len() as f64 / 1e3;
+    println!(
+        "denoise_survey_line: {} pulses (outgoing {outgoing}, return {ret} samples): per pulse \
+         mean {mean:.3} µs, p50 {:.3} µs, p99 {:.3} µs, p99.9 {:.3} µs",
+        slots.len(),
+        q(0.5),
+        q(0.99),
+        q(0.999)
+    );
+    let mut g = c.benchmark_group("denoise_survey_line");
+    g.throughput(Throughput::Elements(slots.len() as u64));
+    g.bench_function("all_pulses", |b| {
+        b.iter_custom(|iters| {
+            let mut total = Duration::ZERO;
+            for _ in 0..iters {
+                let t0 = Instant::now();
+                for s in slots.iter_mut() {
+                    one(stage.as_mut(), s);
+                }
+                total += t0.elapsed();
+            }
+            total
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, denoise, denoise_survey_line, calibrate);
 criterion_main!(benches);

@@ -11,12 +11,19 @@
 //!    [`CLIP_ITERATIONS`] rounds). Returns are positive-going, so clipping only the upper side
 //!    strips them while leaving the symmetric noise around the floor, whose median is unbiased
 //!    (a plain "median of the lower half" would sit half a noise amplitude below the floor).
+//!    Counts spanning at most [`HISTOGRAM_RANGE`] values (and no more than eight per sample)
+//!    get the clipped median from a histogram, in O(n + range) per round, other segments from
+//!    a sorted copy; both give the same value bit for bit (integer counts, integer or
+//!    half-integer medians and deviations are exact in `f32`).
 //! 2. **Counts to volts** (`offset_v + gain × counts`); with [`DenoiseConfig::level_shift`] the
 //!    baseline is subtracted *before* the FFT (the seed's level shift).
 //! 3. **Low-pass**: the segment is zero-padded to twice its length (so the FFT's circular
 //!    convolution does not wrap the end of the record onto its start), transformed with a real
 //!    FFT, every bin with frequency `k / (m × sample_ns)` GHz above the cut-off is zeroed
-//!    (`m` = padded length), transformed back and normalised by `m`. The zero padding is what
+//!    (`m` = padded length), transformed back and normalised by `m`. The real FFTs are
+//!    `realfft`'s even-length algorithm (a complex FFT of the `m/2` packed sample pairs and a
+//!    twiddle pass over the bin pairs), with its two twiddle passes and the zeroing fused into
+//!    one pass here; the result is bit for bit the same. The zero padding is what
 //!    makes the level shift matter, exactly as in the seed: the recording's on/off edge is a
 //!    step from the pedestal to zero that rings (Gibbs) unless the pedestal was removed first.
 //!    With `filter = "fir"` the low-pass is instead a symmetric (zero-phase) Kaiser-windowed
@@ -25,8 +32,10 @@
 //!    1 ns), designed once per sample interval and convolved directly with the segment
 //!    extended by zeros (the same edge convention as the zero-padded FFT, hence the same role
 //!    of the level shift). It keeps the noise level's meaning (white noise keeps the fraction
-//!    `2·fc` of its power, as behind the brick wall) and costs about 40 % of the FFT path, but
-//!    it is not the same filter: its transition band attenuates 0.155–0.2 GHz and leaks
+//!    `2·fc` of its power, as behind the brick wall) and costs less than the FFT path (about
+//!    40 % of it before the FFT's twiddle passes were fused, about half to three quarters
+//!    since: bench `denoise_fir_outgoing64_return256_1ns`, 2026-11-25), but it is not the
+//!    same filter: its transition band attenuates 0.155–0.2 GHz and leaks
 //!    0.2–0.245 GHz. Measured with `fwlidar tradeoff` it moves true detections by up to −2.4 %
 //!    (denoise only, extended 16 ns), so the FFT stays the default.
 //! 4. Without the level shift the baseline is subtracted *after* filtering, so
@@ -50,8 +59,8 @@
 //! [`StageError`]. Call [`DenoiseConfig::validate`] (or [`Denoise::try_new`]) to catch it early.
 //!
 //! Work per pulse is bounded (two FFTs of twice the segment length, or one FIR of at most
-//! `2 × MAX_FIR_HALF + 1` taps, a sort of at most
-//! `max_samples` counts and a fixed number of clipping rounds per segment) and, after the first
+//! `2 × MAX_FIR_HALF + 1` taps, a sort of at most `max_samples` counts or a histogram of at
+//! most [`HISTOGRAM_RANGE`] bins, and a fixed number of clipping rounds per segment) and, after the first
 //! pulse of each segment length, does not allocate: FFT plans are cached by length and every
 //! buffer is a field sized from `max_samples` when the stage is built (the FIR's taps too,
 //! redesigned in place when the sample interval changes).
@@ -59,7 +68,7 @@
 use std::sync::Arc;
 
 use realfft::num_complex::Complex;
-use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
+use rustfft::{Fft, FftPlanner};
 use serde::{Deserialize, Serialize};
 
 use crate::pipeline::stage::{Emitter, Stage, StageError};
@@ -68,6 +77,11 @@ use crate::signal::deconvolve::direct::convolve_padded;
 
 /// Maximum number of upper-clipping rounds of the robust baseline estimate.
 pub const CLIP_ITERATIONS: usize = 5;
+
+/// Largest value range (`max − min + 1` counts) of a segment whose upper-clipped median is taken
+/// from a histogram of its counts instead of a sorted copy (the same result: see
+/// [`clipped_median_histogram`]).
+pub const HISTOGRAM_RANGE: usize = 4096;
 
 /// Clipping threshold of the robust baseline estimate, in robust standard deviations
 /// (1.4826 × MAD).
@@ -127,7 +141,7 @@ pub struct DenoiseConfig {
     /// How the low-pass is applied: `"fft"` (the seed's zero-padded FFT with every bin above
     /// the cut-off zeroed; the default) or `"fir"` (a 35-tap Kaiser-windowed sinc at 0.2 GHz
     /// and 1 ns, designed once per sample interval and convolved in the time domain: about
-    /// 2.5 × cheaper, but not the same filter). See the module documentation.
+    /// 1.5–2 × cheaper, but not the same filter). See the module documentation.
     #[serde(default)]
     pub filter: LowPass,
 }
@@ -185,14 +199,60 @@ impl DenoiseConfig {
     }
 }
 
-/// A forward/inverse real FFT pair planned for one padded length.
+/// The real FFT pair (forward and inverse) planned for one padded length `m`, as the classic
+/// even-length real FFT: the `m` real samples packed pairwise into `m / 2` complex values, a
+/// complex FFT of that length, and a twiddle pass over the bin pairs `(k, m/2 − k)` that turns
+/// the packed transform into the real signal's spectrum (forward) or back (inverse). The
+/// twiddles and the order of every operation are those of `realfft` 3.5 (`RealToComplexEven`
+/// and `ComplexToRealEven`), so the results are bit for bit what `realfft` gives (checked by
+/// a test); owning the twiddle pass lets the stage fuse forward post-processing, brick wall and
+/// inverse pre-processing into one vectorisable pass ([`brick_wall_packed`]).
 struct Plan {
     /// Real length of the transform (twice the segment length), samples.
     len: usize,
-    forward: Arc<dyn RealToComplex<f32>>,
-    inverse: Arc<dyn ComplexToReal<f32>>,
-    /// Scratch length needed by either direction, complex values.
+    /// Complex FFTs of `len / 2` points.
+    forward: Arc<dyn Fft<f32>>,
+    inverse: Arc<dyn Fft<f32>>,
+    /// Scratch length needed by either direction (out of place), complex values.
     scratch_len: usize,
+    /// Twiddles of the bin pair `(k, len/2 − k)` at index `k − 1`, `k = 1 ..= (len/2 − 1)/2`.
+    twiddles: PairTwiddles,
+}
+
+/// Twiddles of the real-FFT pair passes, structure of arrays (index `k − 1` for bin pair
+/// `(k, m/2 − k)`, `m` the real length): `w_k = exp(−2πi·k/m)` rounded to `f32`, halved for
+/// the forward pass, conjugated for the inverse pass (as `realfft` computes them).
+struct PairTwiddles {
+    fwd_re: Vec<f32>,
+    fwd_im: Vec<f32>,
+    inv_re: Vec<f32>,
+    inv_im: Vec<f32>,
+}
+
+impl PairTwiddles {
+    fn new(m: usize) -> Self {
+        let pairs = (m / 2).saturating_sub(1) / 2;
+        let w = |k: usize| {
+            let angle = -2.0 * std::f64::consts::PI / m as f64 * k as f64;
+            (angle.cos() as f32, angle.sin() as f32)
+        };
+        let (mut t, k) = (
+            PairTwiddles {
+                fwd_re: Vec::with_capacity(pairs),
+                fwd_im: Vec::with_capacity(pairs),
+                inv_re: Vec::with_capacity(pairs),
+                inv_im: Vec::with_capacity(pairs),
+            },
+            1..=pairs,
+        );
+        for (re, im) in k.map(w) {
+            t.fwd_re.push(re * 0.5);
+            t.fwd_im.push(im * 0.5);
+            t.inv_re.push(re);
+            t.inv_im.push(-im);
+        }
+        t
+    }
 }
 
 /// Baseline and noise sums of one filtered segment.
@@ -206,12 +266,13 @@ struct SegmentResult {
 /// The denoise stage.
 pub struct Denoise {
     config: DenoiseConfig,
-    planner: RealFftPlanner<f32>,
+    planner: FftPlanner<f32>,
     /// Plans cached by padded length (few distinct lengths per sensor: a linear search).
     plans: Vec<Plan>,
     /// Time-domain work buffer, `2 × max_samples` values (segment plus zero padding), volts.
     time: Vec<f32>,
-    /// Spectrum work buffer, `max_samples + 1` bins.
+    /// Spectrum work buffer, `max_samples + 1` bins (the packed complex FFT's output, then the
+    /// inverse's prepared input).
     spectrum: Vec<Complex<f32>>,
     /// FFT scratch, grown (only) when a newly planned length needs more.
     scratch: Vec<Complex<f32>>,
@@ -219,6 +280,8 @@ pub struct Denoise {
     sorted: Vec<u16>,
     /// Absolute deviations for the MAD, `max_samples` values, counts.
     deviations: Vec<f32>,
+    /// Histogram of a segment's counts for the upper-clipped median, [`HISTOGRAM_RANGE`] bins.
+    histogram: Vec<u32>,
     /// Sorted copy of a segment in volts for [`Denoise::denoise_segment`]; empty until its
     /// first call (the pipeline stage never needs it), then `max_samples` values.
     sorted_v: Vec<f32>,
@@ -236,7 +299,7 @@ impl Denoise {
     pub fn new(config: DenoiseConfig) -> Self {
         let max = config.max_samples;
         Denoise {
-            planner: RealFftPlanner::new(),
+            planner: FftPlanner::new(),
             plans: Vec::with_capacity(8),
             // FFT: segment plus as many zeros; FIR: the filter's length of zeros on both sides.
             time: vec![0.0; (2 * max).max(max + 2 * (2 * MAX_FIR_HALF + 1))],
@@ -244,6 +307,7 @@ impl Denoise {
             scratch: vec![Complex::new(0.0, 0.0); 2 * max],
             sorted: vec![0; max],
             deviations: vec![0.0; max],
+            histogram: vec![0; HISTOGRAM_RANGE],
             sorted_v: Vec::new(),
             fir: Vec::with_capacity(2 * MAX_FIR_HALF + 1),
             fir_sample_ns: f64::NAN,
@@ -265,8 +329,9 @@ impl Denoise {
     /// Capacities of the internal buffers and the number of cached plans (for the no-allocation
     /// test).
     #[cfg(test)]
-    fn buffer_capacities(&self) -> [usize; 7] {
+    fn buffer_capacities(&self) -> [usize; 8] {
         [
+            self.histogram.capacity(),
             self.fir.capacity(),
             self.time.capacity(),
             self.spectrum.capacity(),
@@ -282,9 +347,11 @@ impl Denoise {
         if let Some(i) = self.plans.iter().position(|p| p.len == len) {
             return i;
         }
-        let forward = self.planner.plan_fft_forward(len);
-        let inverse = self.planner.plan_fft_inverse(len);
-        let scratch_len = forward.get_scratch_len().max(inverse.get_scratch_len());
+        let forward = self.planner.plan_fft_forward(len / 2);
+        let inverse = self.planner.plan_fft_inverse(len / 2);
+        let scratch_len = forward
+            .get_outofplace_scratch_len()
+            .max(inverse.get_outofplace_scratch_len());
         if self.scratch.len() < scratch_len {
             self.scratch.resize(scratch_len, Complex::new(0.0, 0.0));
         }
@@ -293,12 +360,27 @@ impl Denoise {
             forward,
             inverse,
             scratch_len,
+            twiddles: PairTwiddles::new(len),
         });
         self.plans.len() - 1
     }
 
-    /// Robust baseline of `counts` (non-empty, at most `max_samples` long), counts.
+    /// Robust baseline of `counts` (non-empty, at most `max_samples` long), counts. The
+    /// upper-clipped median comes from a histogram when the counts span at most
+    /// [`HISTOGRAM_RANGE`] values and no more than eight per sample (otherwise sorting is
+    /// cheaper); either way the result is the same.
     fn baseline_counts(&mut self, counts: &[u16]) -> f32 {
+        let p = self.config.pretrigger_samples;
+        let n = counts.len();
+        if !(p > 0 && n >= p.saturating_mul(4)) {
+            let (lo, hi) = counts
+                .iter()
+                .fold((u16::MAX, 0u16), |(lo, hi), &c| (lo.min(c), hi.max(c)));
+            let range = (hi - lo) as usize + 1;
+            if range <= HISTOGRAM_RANGE && range <= 8 * n {
+                return clipped_median_histogram(counts, lo, &mut self.histogram[..range]);
+            }
+        }
         robust_baseline(
             counts,
             &mut self.sorted,
@@ -308,20 +390,19 @@ impl Denoise {
         )
     }
 
-    /// Low-passes `self.time[..n]` in place (`self.time[n..2n]` must be zero): real FFT of the
-    /// zero-padded `2n` samples, bins above the cut-off zeroed, inverse FFT and `1/(2n)`
-    /// normalisation. `sample_ns` in ns.
-    fn lowpass_time(&mut self, n: usize, sample_ns: f64) {
+    /// Low-passes `self.time[..n]` into `out[..n]` (`self.time[n..2n]` must be zero): real
+    /// FFT of the zero-padded `2n` samples, bins above the cut-off zeroed, inverse FFT and
+    /// `1/(2n)` normalisation. `sample_ns` in ns. `self.time[..2n]` is overwritten.
+    fn lowpass_time(&mut self, n: usize, sample_ns: f64, out: &mut [f32]) {
         let m = 2 * n;
         let plan_i = self.plan_index(m);
         let plan = &self.plans[plan_i];
-        let time = &mut self.time[..m];
+        let packed = as_complex(&mut self.time[..m]);
         let bins = m / 2 + 1;
         let spectrum = &mut self.spectrum[..bins];
         let scratch = &mut self.scratch[..plan.scratch_len];
         plan.forward
-            .process_with_scratch(time, spectrum, scratch)
-            .expect("buffer lengths match the plan");
+            .process_outofplace_with_scratch(packed, &mut spectrum[..n], scratch);
 
         // Keep bin k while k / (m * sample_ns) <= cutoff_ghz.
         let keep = (self.config.cutoff_ghz * m as f64 * sample_ns).floor();
@@ -330,17 +411,12 @@ impl Denoise {
         } else {
             keep as usize + 1
         };
-        spectrum[first_zeroed..].fill(Complex::new(0.0, 0.0));
-        // A real signal's DC and Nyquist bins are real; clear rounding residue so the inverse
-        // transform accepts them.
-        spectrum[0].im = 0.0;
-        spectrum[bins - 1].im = 0.0;
+        brick_wall_packed(spectrum, &plan.twiddles, first_zeroed);
         plan.inverse
-            .process_with_scratch(spectrum, time, scratch)
-            .expect("buffer lengths match the plan");
+            .process_outofplace_with_scratch(&mut spectrum[..n], packed, scratch);
         let scale = 1.0 / m as f32;
-        for t in &mut time[..n] {
-            *t *= scale;
+        for (o, &t) in out[..n].iter_mut().zip(&self.time[..n]) {
+            *o = t * scale;
         }
     }
 
@@ -367,8 +443,7 @@ impl Denoise {
         match self.config.filter {
             LowPass::Fft => {
                 self.time[n..2 * n].fill(0.0);
-                self.lowpass_time(n, sample_ns);
-                out[..n].copy_from_slice(&self.time[..n]);
+                self.lowpass_time(n, sample_ns, out);
             }
             LowPass::Fir => {
                 let pad = self.fir.len();
@@ -382,7 +457,8 @@ impl Denoise {
     }
 
     /// Filters one non-empty segment of at most `max_samples` counts into `out` (same length,
-    /// volts above the baseline). `gain` in V/DN, `offset` in V, `sample_ns` in ns.
+    /// volts above the baseline). `gain` in V/DN, `offset` in V, `sample_ns` in ns. The
+    /// residual sum is only computed with `residual` (return segments; 0 otherwise).
     fn filter_segment(
         &mut self,
         counts: &[u16],
@@ -390,6 +466,7 @@ impl Denoise {
         gain: f32,
         offset: f32,
         sample_ns: f64,
+        residual: bool,
     ) -> SegmentResult {
         let n = counts.len();
         let baseline_dn = self.baseline_counts(counts);
@@ -407,11 +484,18 @@ impl Denoise {
 
         let post_shift = baseline_v - shift;
         let mut abs_sum = 0.0f32;
-        for (o, &c) in out.iter_mut().zip(counts) {
-            let smoothed = *o - post_shift;
-            let raw = offset + gain * c as f32 - baseline_v;
-            abs_sum += (raw - smoothed).abs();
-            *o = smoothed;
+        if residual {
+            // A sequential f32 sum (its rounding is part of the output).
+            for (o, &c) in out.iter_mut().zip(counts) {
+                let smoothed = *o - post_shift;
+                let raw = offset + gain * c as f32 - baseline_v;
+                abs_sum += (raw - smoothed).abs();
+                *o = smoothed;
+            }
+        } else {
+            for o in out.iter_mut() {
+                *o -= post_shift;
+            }
         }
         let abs_sum = abs_sum as f64;
         SegmentResult {
@@ -497,6 +581,132 @@ impl Denoise {
             baseline_v,
             noise_v: (abs_sum / n as f64) as f32,
         })
+    }
+}
+
+/// `values` (even length) as `values.len() / 2` complex values, pairs `(re, im)`.
+fn as_complex(values: &mut [f32]) -> &mut [Complex<f32>] {
+    assert!(values.len().is_multiple_of(2));
+    // SAFETY: `Complex<f32>` is `#[repr(C)]` with fields `re, im`, the alignment of `f32`; the
+    // new slice covers exactly the same memory and borrows it mutably for the same lifetime.
+    unsafe {
+        std::slice::from_raw_parts_mut(values.as_mut_ptr().cast::<Complex<f32>>(), values.len() / 2)
+    }
+}
+
+/// Bin pairs of [`brick_wall_packed`] handled together (vectorised by the compiler).
+const PAIR_LANES: usize = 8;
+
+/// One pass over the spectrum of a packed real FFT of real length `m` (`spec` holds `m/2 + 1`
+/// values, the first `m/2` being the complex FFT of the packed samples): the forward real-FFT
+/// post-processing (the real signal's spectrum), every bin from `first_zeroed` on set to zero
+/// (the brick wall), and the inverse real-FFT pre-processing, so that `spec[..m/2]` is ready
+/// for the inverse complex FFT. Each bin pair `(k, m/2 − k)` goes through exactly the
+/// operations of `realfft` 3.5's two passes (and a zeroed bin is a `+0` value, as after
+/// `fill`), so the result is bit for bit that of the separate passes; fused, each value is
+/// loaded and stored once and the pairs are processed [`PAIR_LANES`] at a time.
+fn brick_wall_packed(spec: &mut [Complex<f32>], tw: &PairTwiddles, first_zeroed: usize) {
+    let h = spec.len() - 1;
+    let zero = Complex::new(0.0f32, 0.0);
+    // DC and Nyquist bins (both real), from the packed DC value.
+    let z0 = spec[0];
+    let mut x0 = Complex::new(z0.re + z0.im, 0.0);
+    let mut xh = Complex::new(z0.re - z0.im, 0.0);
+    if first_zeroed == 0 {
+        x0 = zero;
+    }
+    if h >= first_zeroed {
+        xh = zero;
+    }
+    let sum = x0 + xh;
+    let diff = x0 - xh;
+    spec[0] = Complex::new(sum.re - sum.im, diff.re - diff.im);
+    spec[h] = xh;
+    let pairs = h.saturating_sub(1) / 2;
+    let mut k = 1;
+    while k + PAIR_LANES <= pairs + 1 {
+        pair_block::<PAIR_LANES>(spec, tw, k, first_zeroed);
+        k += PAIR_LANES;
+    }
+    while k <= pairs {
+        pair_block::<1>(spec, tw, k, first_zeroed);
+        k += 1;
+    }
+    if h.is_multiple_of(2) && h > 0 {
+        // The centre bin pairs with itself.
+        let c = h / 2;
+        let mut x = Complex::new(spec[c].re, -spec[c].im);
+        if c >= first_zeroed {
+            x = zero;
+        }
+        let doubled = x + x;
+        spec[c] = doubled.conj();
+    }
+}
+
+/// The bin pairs `(k, h − k)` for `k` in `k0 .. k0 + L` of [`brick_wall_packed`] (`h` =
+/// `spec.len() − 1`).
+#[inline(always)]
+fn pair_block<const L: usize>(
+    spec: &mut [Complex<f32>],
+    tw: &PairTwiddles,
+    k0: usize,
+    first_zeroed: usize,
+) {
+    let h = spec.len() - 1;
+    let (mut ar, mut ai, mut br, mut bi) = ([0.0f32; L], [0.0f32; L], [0.0f32; L], [0.0f32; L]);
+    // Low bins ascending, their partners descending.
+    let lo = &spec[k0..k0 + L];
+    let hi = &spec[h + 1 - k0 - L..=h - k0];
+    for l in 0..L {
+        ar[l] = lo[l].re;
+        ai[l] = lo[l].im;
+        br[l] = hi[L - 1 - l].re;
+        bi[l] = hi[L - 1 - l].im;
+    }
+    let (fr, fi) = (
+        &tw.fwd_re[k0 - 1..k0 - 1 + L],
+        &tw.fwd_im[k0 - 1..k0 - 1 + L],
+    );
+    let (ir, ii) = (
+        &tw.inv_re[k0 - 1..k0 - 1 + L],
+        &tw.inv_im[k0 - 1..k0 - 1 + L],
+    );
+    for l in 0..L {
+        let k = k0 + l;
+        // Forward post-processing (realfft RealToComplexEven).
+        let (sum_re, sum_im) = (ar[l] + br[l], ai[l] + bi[l]);
+        let (diff_re, diff_im) = (ar[l] - br[l], ai[l] - bi[l]);
+        let half_sum_re = 0.5 * sum_re;
+        let half_diff_im = 0.5 * diff_im;
+        let out_re = sum_im * fr[l] + diff_re * fi[l];
+        let out_im = sum_im * fi[l] - diff_re * fr[l];
+        let (mut xk_re, mut xk_im) = (half_sum_re + out_re, half_diff_im + out_im);
+        let (mut xj_re, mut xj_im) = (half_sum_re - out_re, out_im - half_diff_im);
+        // Brick wall.
+        if k >= first_zeroed {
+            (xk_re, xk_im) = (0.0, 0.0);
+        }
+        if h - k >= first_zeroed {
+            (xj_re, xj_im) = (0.0, 0.0);
+        }
+        // Inverse pre-processing (realfft ComplexToRealEven).
+        let (sum_re, sum_im) = (xk_re + xj_re, xk_im + xj_im);
+        let (diff_re, diff_im) = (xk_re - xj_re, xk_im - xj_im);
+        let out_re = sum_im * ir[l] + diff_re * ii[l];
+        let out_im = sum_im * ii[l] - diff_re * ir[l];
+        ar[l] = sum_re - out_re;
+        ai[l] = diff_im - out_im;
+        br[l] = sum_re + out_re;
+        bi[l] = -out_im - diff_im;
+    }
+    let lo = &mut spec[k0..k0 + L];
+    for l in 0..L {
+        lo[l] = Complex::new(ar[l], ai[l]);
+    }
+    let hi = &mut spec[h + 1 - k0 - L..=h - k0];
+    for l in 0..L {
+        hi[L - 1 - l] = Complex::new(br[l], bi[l]);
     }
 }
 
@@ -596,6 +806,98 @@ fn robust_baseline<T: Copy + Into<f32>>(
     median
 }
 
+/// The upper-clipped median of `counts` (non-empty, every count in `lo .. lo + hist.len()`)
+/// as [`robust_baseline`] computes it from a sorted copy, from a histogram instead (`hist` is
+/// the work buffer): the sorted copy is the histogram read in order, so the value of rank `r`
+/// is the first bin whose cumulative count exceeds `r`; the kept samples (a prefix of the
+/// sorted copy) are the histogram up to a bin, that bin possibly in part; the MAD (rank
+/// `kept / 2` of the absolute deviations) is found by walking outwards from the median, the
+/// nearer side first, since the deviations grow away from it on both sides. Counts, medians
+/// (integers or halves) and deviations are exact in `f32`, and the limit is the same `f32`
+/// expression, so the result is bit for bit the sort's. O(n + range) per round.
+fn clipped_median_histogram(counts: &[u16], lo: u16, hist: &mut [u32]) -> f32 {
+    hist.fill(0);
+    for &c in counts {
+        hist[(c - lo) as usize] += 1;
+    }
+    let value = |i: usize| (lo as usize + i) as f32;
+    // Bin of the value of rank `r` among all the counts.
+    let rank_bin = |hist: &[u32], r: usize| {
+        let mut cum = 0usize;
+        for (i, &h) in hist.iter().enumerate() {
+            cum += h as usize;
+            if cum > r {
+                return i;
+            }
+        }
+        hist.len() - 1
+    };
+    let median_of = |hist: &[u32], kept: usize| {
+        if kept % 2 == 1 {
+            value(rank_bin(hist, kept / 2))
+        } else {
+            0.5 * (value(rank_bin(hist, kept / 2 - 1)) + value(rank_bin(hist, kept / 2)))
+        }
+    };
+    let mut kept = counts.len();
+    let mut median = median_of(hist, kept);
+    for _ in 0..CLIP_ITERATIONS {
+        // The kept samples: bins below `last` whole, `last_count` of bin `last`.
+        let last = rank_bin(hist, kept - 1);
+        let last_count = kept - hist[..last].iter().map(|&h| h as usize).sum::<usize>();
+        let eff = |i: usize| match i.cmp(&last) {
+            std::cmp::Ordering::Less => hist[i] as usize,
+            std::cmp::Ordering::Equal => last_count,
+            std::cmp::Ordering::Greater => 0,
+        };
+        // Walk outwards from the median: `left` down from the last bin not above it, `right`
+        // up from the next one, taking the smaller deviation first.
+        let wanted = kept / 2;
+        let mut left = Some((median - lo as f32).floor() as usize);
+        let mut right = left.map_or(0, |l| l + 1);
+        let mut seen = 0usize;
+        let mad = loop {
+            let dl = left.map(|l| (value(l) - median).abs());
+            let dr = (right <= last).then(|| (value(right) - median).abs());
+            let (d, count) = match (dl, dr) {
+                (Some(a), Some(b)) if b < a => {
+                    right += 1;
+                    (b, eff(right - 1))
+                }
+                (Some(a), _) => {
+                    let l = left.expect("some");
+                    left = l.checked_sub(1);
+                    (a, eff(l))
+                }
+                (None, Some(b)) => {
+                    right += 1;
+                    (b, eff(right - 1))
+                }
+                (None, None) => unreachable!("the kept samples hold rank kept / 2"),
+            };
+            seen += count;
+            if seen > wanted {
+                break d;
+            }
+        };
+        let limit = median + CLIP_SIGMAS * MAD_TO_SIGMA * mad;
+        let mut at_most = 0usize;
+        for (i, &h) in hist.iter().enumerate() {
+            if value(i) > limit {
+                break;
+            }
+            at_most += h as usize;
+        }
+        let new_kept = at_most.min(kept).max(1);
+        if new_kept == kept {
+            break;
+        }
+        kept = new_kept;
+        median = median_of(hist, kept);
+    }
+    median
+}
+
 /// Median of sorted values (mean of the two middle values for an even count).
 fn median_sorted<T: Copy + Into<f32>>(s: &[T]) -> f32 {
     let n = s.len();
@@ -668,8 +970,14 @@ impl Stage for Denoise {
                 continue;
             }
             let r = seg.range();
-            let res =
-                self.filter_segment(&p.raw[r.clone()], &mut p.signal[r], gain, offset, sample_ns);
+            let res = self.filter_segment(
+                &p.raw[r.clone()],
+                &mut p.signal[r],
+                gain,
+                offset,
+                sample_ns,
+                seg.kind == SegmentKind::Return,
+            );
             match seg.kind {
                 SegmentKind::Return => {
                     return_samples += seg.len as usize;
@@ -714,6 +1022,188 @@ mod tests {
             values.iter().map(|v| v.round().clamp(0.0, 65535.0) as u16),
         );
         p
+    }
+
+    /// The low-pass as the stage computed it through `realfft` (before the fused twiddle
+    /// pass): `x` zero-padded to `2n`, real FFT, bins from the first above `cutoff_ghz`
+    /// zeroed, inverse real FFT, `1/(2n)`.
+    fn lowpass_realfft(x: &[f32], cutoff_ghz: f64, sample_ns: f64) -> Vec<f32> {
+        use realfft::RealFftPlanner;
+        let n = x.len();
+        let m = 2 * n;
+        let mut planner = RealFftPlanner::<f32>::new();
+        let forward = planner.plan_fft_forward(m);
+        let inverse = planner.plan_fft_inverse(m);
+        let mut time = vec![0.0f32; m];
+        time[..n].copy_from_slice(x);
+        let mut spectrum = forward.make_output_vec();
+        forward.process(&mut time, &mut spectrum).unwrap();
+        let bins = n + 1;
+        let keep = (cutoff_ghz * m as f64 * sample_ns).floor();
+        let first_zeroed = if keep >= (bins - 1) as f64 {
+            bins
+        } else {
+            keep as usize + 1
+        };
+        spectrum[first_zeroed..].fill(Complex::new(0.0, 0.0));
+        spectrum[0].im = 0.0;
+        spectrum[bins - 1].im = 0.0;
+        inverse.process(&mut spectrum, &mut time).unwrap();
+        let scale = 1.0 / m as f32;
+        time[..n].iter().map(|&t| t * scale).collect()
+    }
+
+    /// The stage's FFT low-pass of `x` (through a stage built for `cutoff_ghz`).
+    fn lowpass_stage(stage: &mut Denoise, x: &[f32], sample_ns: f64) -> Vec<f32> {
+        let n = x.len();
+        stage.time[..n].copy_from_slice(x);
+        let mut out = vec![f32::NAN; n];
+        stage.smooth(n, sample_ns, &mut out);
+        out
+    }
+
+    fn assert_bits_equal(a: &[f32], b: &[f32], what: &str) {
+        assert_eq!(a.len(), b.len());
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert_eq!(x.to_bits(), y.to_bits(), "{what}: sample {i}: {x} vs {y}");
+        }
+    }
+
+    #[test]
+    fn fused_fft_low_pass_is_bit_for_bit_the_realfft_one() {
+        let mut rng = ChaCha8Rng::seed_from_u64(41);
+        // (cut-off GHz, sample interval ns): the survey line's, near Nyquist, low, coarser.
+        let settings = [(0.2, 1.0), (0.49, 1.0), (0.03, 1.0), (0.1, 2.0), (0.5, 0.5)];
+        let mut lengths: Vec<usize> = (1..=300).collect();
+        lengths.extend([34, 256, 383, 512, 1000, 1023, 2048, 4096]);
+        for &(cutoff_ghz, sample_ns) in &settings {
+            let mut stage = Denoise::new(DenoiseConfig {
+                cutoff_ghz,
+                ..Default::default()
+            });
+            for &n in &lengths {
+                for kind in 0..4 {
+                    let x: Vec<f32> = (0..n)
+                        .map(|i| match kind {
+                            // Level-shifted digitizer noise with a return.
+                            0 => {
+                                let d = (i as f32 - n as f32 / 3.0) / 3.0;
+                                0.004 * (rng.random_range(-3i32..=3) as f32)
+                                    + 0.5 * (-0.5 * d * d).exp()
+                            }
+                            // Wide-range values.
+                            1 => rng.random_range(-1e4f32..1e4),
+                            // A constant (the pedestal without the level shift).
+                            2 => 30.0,
+                            // Steps and zeros.
+                            _ => [0.0, -0.0, 1.0, 65535.0][rng.random_range(0..4usize)],
+                        })
+                        .collect();
+                    let want = lowpass_realfft(&x, cutoff_ghz, sample_ns);
+                    let got = lowpass_stage(&mut stage, &x, sample_ns);
+                    assert_bits_equal(
+                        &got,
+                        &want,
+                        &format!("n {n}, kind {kind}, {cutoff_ghz} GHz, {sample_ns} ns"),
+                    );
+                }
+            }
+        }
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(64))]
+        #[test]
+        fn fused_fft_low_pass_matches_realfft_on_any_segment(
+            x in proptest::collection::vec(-70000.0f32..70000.0, 1..700),
+            cutoff_ghz in 0.001f64..0.499,
+        ) {
+            let mut stage = Denoise::new(DenoiseConfig { cutoff_ghz, ..Default::default() });
+            let want = lowpass_realfft(&x, cutoff_ghz, 1.0);
+            let got = lowpass_stage(&mut stage, &x, 1.0);
+            for (a, b) in got.iter().zip(&want) {
+                proptest::prop_assert_eq!(a.to_bits(), b.to_bits());
+            }
+        }
+    }
+
+    /// The sort-based robust baseline of `counts` (the reference).
+    fn baseline_by_sorting(counts: &[u16], pretrigger: usize) -> f32 {
+        let mut sorted = vec![0u16; counts.len()];
+        let mut deviations = vec![0.0f32; counts.len()];
+        robust_baseline(
+            counts,
+            &mut sorted,
+            &mut deviations,
+            pretrigger,
+            <[u16]>::sort_unstable,
+        )
+    }
+
+    #[test]
+    fn histogram_baseline_is_bit_for_bit_the_sorted_one() {
+        let mut rng = ChaCha8Rng::seed_from_u64(43);
+        let mut stages: Vec<Denoise> = [0usize, 1, 8, 100_000]
+            .iter()
+            .map(|&pretrigger_samples| {
+                Denoise::new(DenoiseConfig {
+                    pretrigger_samples,
+                    ..Default::default()
+                })
+            })
+            .collect();
+        let mut cases: Vec<Vec<u16>> = Vec::new();
+        // Up to 300 samples, and long enough for a 4096-count span to use the histogram.
+        for n in (1..=300usize).chain([512, 513, 1000, 4096]) {
+            // 8-bit digitizer noise on a pedestal, with and without returns.
+            let noise: Vec<u16> = (0..n).map(|_| rng.random_range(9u16..=15)).collect();
+            let mut with_returns = noise.clone();
+            for _ in 0..rng.random_range(0..4usize) {
+                let at = rng.random_range(0..n);
+                let a = rng.random_range(5.0..250.0f64);
+                for (i, v) in with_returns.iter_mut().enumerate() {
+                    let d = (i as f64 - at as f64) / 3.0;
+                    *v = (*v as f64 + a * (-0.5 * d * d).exp()).min(255.0) as u16;
+                }
+            }
+            cases.push(noise);
+            cases.push(with_returns);
+            cases.push(vec![rng.random_range(0..=u16::MAX); n]); // all equal
+            cases.push(
+                (0..n)
+                    .map(|_| [7u16, 8][rng.random_range(0..2usize)])
+                    .collect(),
+            );
+            // Wide ranges: the sort fallback, and either side of the histogram's limit.
+            cases.push((0..n).map(|_| rng.random_range(0..=u16::MAX)).collect());
+            for span in [4095u16, 4096] {
+                let mut v: Vec<u16> = (0..n).map(|_| 60000 + rng.random_range(0..=20)).collect();
+                v[0] = 60000;
+                if n > 1 {
+                    v[n - 1] = 60000 + span - 1;
+                }
+                cases.push(v);
+            }
+            // Saturated returns and extremes.
+            cases.push(
+                (0..n)
+                    .map(|i| if i % 5 == 0 { u16::MAX } else { 3 })
+                    .collect(),
+            );
+            cases.push((0..n).map(|i| (i % 2) as u16 * u16::MAX).collect());
+        }
+        for counts in &cases {
+            for stage in stages.iter_mut() {
+                let p = stage.config.pretrigger_samples;
+                let want = baseline_by_sorting(counts, p);
+                let got = stage.baseline_counts(counts);
+                assert_eq!(
+                    got.to_bits(),
+                    want.to_bits(),
+                    "pretrigger {p}, counts {counts:?}: {got} vs {want}"
+                );
+            }
+        }
     }
 
     fn denoise_one(config: DenoiseConfig, pulse: Pulse) -> Box<Pulse> {
