@@ -21,8 +21,18 @@
 //! Every data array has chunk shape `[H, T, T]` (`H` = the grid's `chunk_levels`): a chunk is
 //! the `T × T` columns of one tile over `H` levels, chunk key `c/LEV/ROW/COL`. Only chunks that
 //! hold a deposit exist; a missing chunk is all fill value (Zarr's rule, which zarr-python and
-//! xarray follow), so empty air is neither held in memory nor compressed nor written. Codecs:
-//! `bytes` (little endian) then `zstd` (level 1; stores of the gzip era are still read).
+//! xarray follow), so empty air is neither held in memory nor compressed nor written.
+//!
+//! **Sharding** ([`Layout`]). Each chunk file is a shard (Zarr v3 `sharding_indexed`): inner
+//! chunks of `[H, B, B]` voxels (`B` = [`INNER_COLUMNS`], 8, or the largest divisor of `T`
+//! below it), each `bytes` (little endian) then `zstd` level 1, back to back, then the index:
+//! per inner chunk in C order `(offset, nbytes)` as little-endian `u64`, `2^64 − 1` twice for
+//! an inner chunk not stored (`index_codecs [bytes]`, stated in the metadata; no checksum,
+//! which zarr-python 3 accepts; a `crc32c` index is read too). An inner chunk is stored when a
+//! sample or a pass landed in it, decided for the four arrays together, so a sparse flight line
+//! compresses and writes the few blocks of columns its pulses touched, not the whole tile.
+//! Stores of earlier versions — one `bytes` + `zstd` (or `gzip`) chunk per file — are read,
+//! merged and resumed in their own layout (the array metadata says which).
 //!
 //! **The arrays' span** ([`Span`]): chunk `(LEV, ROW, COL)` is height chunk
 //! `span.level_chunk_min + LEV` of tile `span.tile_min + (COL, ROW)`.
@@ -34,7 +44,7 @@
 //! rewritten, then the chunks go to their new keys; a journal (`fwlidar_state/relayout`, the
 //! target span) written before the first move lets the next open finish a move cut short.
 //!
-//! **Crash safety.** A tile's chunks (four arrays × its height chunks) are written under
+//! **Crash safety.** A tile's chunks (four arrays × its height chunks; each a whole shard) are written under
 //! `KEY.pending` and synced (one `syncfs` on Linux); then its record `fwlidar_state/tiles/TX_TY`
 //! is replaced atomically by `{watermark, chunks, pending: true}` (the commit point; `chunks`
 //! lists the height chunks the tile holds, ascending); then the pending chunks are renamed into
@@ -519,7 +529,11 @@ impl Layout {
             .unwrap_or_default();
         let t = grid.tile_columns as u64;
         let inner = match shape[..] {
-            [h, a, b] if h == grid.chunk_levels() as u64 && a == b && a > 0 && t % a == 0 => a,
+            [h, a, b]
+                if h == grid.chunk_levels() as u64 && a == b && a > 0 && t.is_multiple_of(a) =>
+            {
+                a
+            }
             _ => {
                 return Err(format!(
                     "sharding_indexed.chunk_shape {shape:?}: not [{}, b, b] with b dividing {t}",
