@@ -774,7 +774,8 @@ fn far_heights_land_in_sparse_zstd_chunks_that_zarr_python_reads_back() {
 import sys, json, numpy as np, xarray as xr, zarr
 ds = xr.open_zarr(sys.argv[1])
 codecs = zarr.open_array(sys.argv[1] + "/sample_count").metadata.codecs
-assert any(type(c).__name__ == "ZstdCodec" for c in codecs), codecs
+assert type(codecs[0]).__name__ == "ShardingCodec", codecs
+assert any(type(c).__name__ == "ZstdCodec" for c in codecs[0].codecs), codecs
 n = ds.sample_count
 hits = np.argwhere(n.values > 0)
 out = []
@@ -803,4 +804,173 @@ print(json.dumps(out))
             assert!((a - b).abs() < 1e-6, "{got:?} vs {want:?}");
         }
     }
+}
+
+/// Every voxel holding a sample or a pass, as `[k, j, i, sum_q, samples, max, pulses]` in the
+/// fitted arrays' indices, from the Rust reader.
+fn voxels_of(s: &mut ZarrStore) -> Vec<[f64; 7]> {
+    let g = s.grid().clone();
+    let span = *s.span();
+    let (t, l, h) = (
+        g.tile_columns as usize,
+        g.levels as usize,
+        g.chunk_levels() as usize,
+    );
+    let mut out = Vec::new();
+    for (tile, d) in s.read_all().unwrap() {
+        let (ox, oy) = (
+            (tile[0] - span.tile_min[0]) as usize * t,
+            (tile[1] - span.tile_min[1]) as usize * t,
+        );
+        for kc in d.present() {
+            let c = d.chunk(kc as usize).unwrap();
+            for idx in 0..c.len() {
+                let (col, k) = (idx / h, kc as usize * h + idx % h);
+                if k < l && (c.samples[idx] > 0 || c.pulses[idx] > 0) {
+                    let max = if c.max[idx].is_nan() {
+                        -1.0
+                    } else {
+                        c.max[idx] as f64
+                    };
+                    out.push([
+                        (k - span.level_chunk_min as usize * h) as f64,
+                        (oy + col / t) as f64,
+                        (ox + col % t) as f64,
+                        c.sum_q[idx] as f64,
+                        c.samples[idx] as f64,
+                        max,
+                        c.pulses[idx] as f64,
+                    ]);
+                }
+            }
+        }
+    }
+    out.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    out
+}
+
+/// zarr-python's view of the same voxels (and that every other voxel is fill value); with
+/// `unshard`, it first rewrites the four data arrays unsharded (one zstd chunk per tile and
+/// height chunk, as fwlidar wrote stores before sharding).
+const ZARR_VOXELS: &str = r#"
+import sys, json, numpy as np, zarr
+from zarr.codecs import ZstdCodec
+root, mode = sys.argv[1], sys.argv[2]
+names = ["intensity_sum", "sample_count", "intensity_max", "pulse_count"]
+if mode == "unshard":
+    for a in names:
+        old = zarr.open_array(root + "/" + a)
+        data, attrs = old[:], dict(old.attrs)
+        new = zarr.create_array(root + "/" + a, shape=old.shape, chunks=old.metadata.chunk_grid.chunk_shape,
+                                dtype=old.dtype, fill_value=old.metadata.fill_value,
+                                compressors=[ZstdCodec(level=1)], dimension_names=["z", "y", "x"],
+                                attributes=attrs, overwrite=True)
+        new[:] = data
+else:
+    c = zarr.open_array(root + "/sample_count").metadata.codecs
+    assert len(c) == 1 and type(c[0]).__name__ == "ShardingCodec", c
+    assert tuple(c[0].chunk_shape) == (64, 8, 8), c
+    assert [type(x).__name__ for x in c[0].index_codecs] == ["BytesCodec"], c
+s, n, m, p = (zarr.open_array(root + "/" + a)[:] for a in names)
+held = (n > 0) | (p > 0)
+assert (s[~held] == 0).all() and np.isnan(m[~held]).all()
+out = [[int(k), int(j), int(i), int(s[k, j, i]), int(n[k, j, i]),
+        -1.0 if np.isnan(m[k, j, i]) else float(m[k, j, i]), int(p[k, j, i])]
+       for k, j, i in np.argwhere(held)]
+print(json.dumps(out))
+"#;
+
+fn zarr_voxels(root: &Path, mode: &str) -> Vec<[f64; 7]> {
+    let o = Command::new(python())
+        .arg("-c")
+        .arg(ZARR_VOXELS)
+        .arg(root)
+        .arg(mode)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let mut v: Vec<[f64; 7]> = serde_json::from_slice(&o.stdout).unwrap();
+    v.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    v
+}
+
+/// A sparse store (a few columns of two tiles) holds in each shard only the inner chunks where
+/// a sample or a pass landed, the same ones in all four arrays (a pass-only block too);
+/// zarr-python reads exactly the voxels the Rust reader reads. Rewritten by zarr-python in the
+/// unsharded layout of earlier versions, the store reads the same in Rust.
+#[test]
+fn a_sparse_store_holds_only_the_inner_chunks_with_data_and_old_stores_still_read() {
+    use fwlidar::voxel::grid::{Grid, VoxelConfig};
+    use fwlidar::voxel::zarr::{ARRAYS, StoreInfo};
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("v.zarr");
+    let cfg = VoxelConfig {
+        enabled: true,
+        extent_m: Some([0.0, 0.0, 32.0, 16.0]),
+        ..VoxelConfig::default()
+    };
+    let grid = Grid::new(&cfg, [0.0, 0.0]);
+    assert_eq!((grid.tile_columns, grid.chunk_levels()), (32, 64));
+    let mut s = ZarrStore::create_or_open(
+        &root,
+        grid.clone(),
+        StoreInfo {
+            crs_wkt: None,
+            epsg: Some(32736),
+            intensity_units: "V".into(),
+            run_key: "sparse".into(),
+            configuration: String::new(),
+        },
+    )
+    .unwrap();
+    let l = grid.levels as usize;
+    let k = ((12.0 - grid.z_bottom_m) / grid.voxel_size_m[2]).floor() as usize;
+    let k = k - k % 64 + 10; // 10 levels into its height chunk
+    let mut a = TileData::for_grid(&grid);
+    // Tile (0, 0): column (i=3, j=1) in inner chunk 0, a deposit and a pass; column
+    // (i=17, j=30) in inner chunk 3·4 + 2 = 14, a pass only.
+    a.deposit((32 + 3) * l + k, 2_500_000, 2.5);
+    a.deposit((32 + 3) * l + k + 1, -400, -0.0004);
+    a.pass((32 + 3) * l + k);
+    a.pass((30 * 32 + 17) * l + k + 5);
+    // Tile (1, 0): column (i=9, j=9), inner chunk 5, the next height chunk.
+    let mut b = TileData::for_grid(&grid);
+    b.deposit((9 * 32 + 9) * l + k + 64, 3_000_000, 3.0);
+    s.write_tile([0, 0], &a, 1).unwrap();
+    s.write_tile([1, 0], &b, 2).unwrap();
+    s.fit().unwrap();
+    let kc = (k / 64) as u32;
+    for (tile, kcs, blocks) in [
+        ([0, 0], vec![kc], vec![0, 14]),
+        ([1, 0], vec![kc + 1], vec![5]),
+    ] {
+        for a in ARRAYS {
+            let p = s.chunk_path(a, tile, kcs[0]).unwrap();
+            let bytes = std::fs::read(&p).unwrap();
+            let index: Vec<u64> = bytes[bytes.len() - 16 * 16..]
+                .chunks_exact(8)
+                .map(|w| u64::from_le_bytes(w.try_into().unwrap()))
+                .collect();
+            let present: Vec<usize> = (0..16).filter(|b| index[2 * b] != u64::MAX).collect();
+            assert_eq!(present, blocks, "{a} {tile:?}");
+            let data: u64 = present.iter().map(|b| index[2 * b + 1]).sum();
+            assert_eq!(bytes.len() as u64, data + 16 * 16, "{a} {tile:?}");
+            // A 64 × 8 × 8 inner chunk of nearly nothing compresses far below its 16 KB.
+            assert!(
+                data < 400 * present.len() as u64,
+                "{a} {tile:?}: {data} bytes"
+            );
+        }
+    }
+    let rust = voxels_of(&mut s);
+    assert_eq!(rust.len(), 4, "{rust:?}");
+    let py = zarr_voxels(&root, "sharded");
+    assert_eq!(py, rust);
+    // The layout of earlier versions, as zarr-python writes it: read the same.
+    drop(s);
+    assert_eq!(zarr_voxels(&root, "unshard"), rust);
+    let meta = std::fs::read_to_string(root.join("sample_count/zarr.json")).unwrap();
+    assert!(!meta.contains("sharding_indexed"), "{meta}");
+    let mut old = ZarrStore::open(&root).unwrap();
+    assert_eq!(voxels_of(&mut old), rust);
 }

@@ -687,7 +687,8 @@ fn print_voxels(r: &RunReport) {
         println!(
             "  voxels.zarr: {} bins of {} pulses deposited ({} outside the grid); tiles {} opened, \
              {} closed ({} early), {} merged with the store, at most {} open ({} height chunks \
-             of {:.1} MB in memory at most); {:.1} MB compressed into {:.1} MB{}",
+             of {:.1} MB in memory at most); {:.1} MB compressed into {:.1} MB ({} chunk files, \
+             {} inner chunks){}",
             d["bins_deposited"],
             d["pulses_deposited"],
             outside,
@@ -700,6 +701,8 @@ fn print_voxels(r: &RunReport) {
             t["chunk_bytes"].as_f64().unwrap_or(0.0) / 1e6,
             t["bytes_written"].as_f64().unwrap_or(0.0) / 1e6,
             t["bytes_stored"].as_f64().unwrap_or(0.0) / 1e6,
+            u64_at(t, "chunks_written"),
+            u64_at(t, "inner_chunks_written"),
             match u64_at(d, "bins_resumed") {
                 n if n > 0 => format!("; resumed: {n} bins already in the store"),
                 _ => String::new(),

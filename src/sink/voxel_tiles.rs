@@ -274,6 +274,7 @@ impl PulseSink for VoxelTilesSink {
             v["tiles"]["bytes_written"] = s.bytes_written.into();
             v["tiles"]["bytes_stored"] = s.bytes_stored.into();
             v["tiles"]["chunks_written"] = s.chunks_written.into();
+            v["tiles"]["inner_chunks_written"] = s.inner_chunks_written.into();
             v["tiles"]["in_store"] = s.tiles().len().into();
             v["tiles"]["recovered_commits"] = s.recovered_commits.into();
             v["grid"] = serde_json::json!({

@@ -21,8 +21,18 @@
 //! Every data array has chunk shape `[H, T, T]` (`H` = the grid's `chunk_levels`): a chunk is
 //! the `T × T` columns of one tile over `H` levels, chunk key `c/LEV/ROW/COL`. Only chunks that
 //! hold a deposit exist; a missing chunk is all fill value (Zarr's rule, which zarr-python and
-//! xarray follow), so empty air is neither held in memory nor compressed nor written. Codecs:
-//! `bytes` (little endian) then `zstd` (level 1; stores of the gzip era are still read).
+//! xarray follow), so empty air is neither held in memory nor compressed nor written.
+//!
+//! **Sharding** ([`Layout`]). Each chunk file is a shard (Zarr v3 `sharding_indexed`): inner
+//! chunks of `[H, B, B]` voxels (`B` = [`INNER_COLUMNS`], 8, or the largest divisor of `T`
+//! below it), each `bytes` (little endian) then `zstd` level 1, back to back, then the index:
+//! per inner chunk in C order `(offset, nbytes)` as little-endian `u64`, `2^64 − 1` twice for
+//! an inner chunk not stored (`index_codecs [bytes]`, stated in the metadata; no checksum,
+//! which zarr-python 3 accepts; a `crc32c` index is read too). An inner chunk is stored when a
+//! sample or a pass landed in it, decided for the four arrays together, so a sparse flight line
+//! compresses and writes the few blocks of columns its pulses touched, not the whole tile.
+//! Stores of earlier versions — one `bytes` + `zstd` (or `gzip`) chunk per file — are read,
+//! merged and resumed in their own layout (the array metadata says which).
 //!
 //! **The arrays' span** ([`Span`]): chunk `(LEV, ROW, COL)` is height chunk
 //! `span.level_chunk_min + LEV` of tile `span.tile_min + (COL, ROW)`.
@@ -34,7 +44,7 @@
 //! rewritten, then the chunks go to their new keys; a journal (`fwlidar_state/relayout`, the
 //! target span) written before the first move lets the next open finish a move cut short.
 //!
-//! **Crash safety.** A tile's chunks (four arrays × its height chunks) are written under
+//! **Crash safety.** A tile's chunks (four arrays × its height chunks; each a whole shard) are written under
 //! `KEY.pending` and synced (one `syncfs` on Linux); then its record `fwlidar_state/tiles/TX_TY`
 //! is replaced atomically by `{watermark, chunks, pending: true}` (the commit point; `chunks`
 //! lists the height chunks the tile holds, ascending); then the pending chunks are renamed into
@@ -339,6 +349,63 @@ impl Codec {
         Ok(())
     }
 
+    /// Compresses `raw` into `out` (cleared), zstd with the context `zc` (made on first use and
+    /// reused: an inner chunk is small, a fresh context each would cost more than the data).
+    fn encode_block(
+        self,
+        zc: &mut Option<zstd::bulk::Compressor<'static>>,
+        raw: &[u8],
+        out: &mut Vec<u8>,
+    ) -> std::io::Result<()> {
+        match self {
+            Codec::Zstd(level) => {
+                let c = match zc {
+                    Some(c) => c,
+                    None => zc.insert(zstd::bulk::Compressor::new(level)?),
+                };
+                out.clear();
+                out.reserve(zstd::zstd_safe::compress_bound(raw.len()));
+                c.compress_to_buffer(raw, out)?;
+                Ok(())
+            }
+            Codec::Gzip(_) => self.encode(raw, out),
+        }
+    }
+
+    /// Decompresses `packed` into `out` (cleared), which must come to `expect` bytes (more is
+    /// an error, and never allocated).
+    fn decode_block(
+        self,
+        zd: &mut Option<zstd::bulk::Decompressor<'static>>,
+        packed: &[u8],
+        expect: usize,
+        out: &mut Vec<u8>,
+    ) -> std::io::Result<()> {
+        out.clear();
+        out.reserve(expect);
+        match self {
+            Codec::Zstd(_) => {
+                let d = match zd {
+                    Some(d) => d,
+                    None => zd.insert(zstd::bulk::Decompressor::new()?),
+                };
+                d.decompress_to_buffer(packed, out)?;
+            }
+            Codec::Gzip(_) => {
+                GzDecoder::new(packed)
+                    .take(expect as u64 + 1)
+                    .read_to_end(out)?;
+            }
+        }
+        if out.len() != expect {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                format!("{} bytes, an inner chunk needs {expect}", out.len()),
+            ));
+        }
+        Ok(())
+    }
+
     fn decode(self, file: File, out: &mut Vec<u8>) -> std::io::Result<()> {
         out.clear();
         match self {
@@ -353,6 +420,173 @@ impl Codec {
     }
 }
 
+/// Columns along each side of a shard's inner chunk (of the tile's `T`; the largest divisor of
+/// `T` not above this when 8 does not divide it). Chosen by measurement (docs/performance.md):
+/// 8 × 8 columns × `H` levels is 16 KB of `u32`, large enough for zstd and small enough that a
+/// sparse flight line's tile chunk encodes only the few blocks its pulses touched.
+pub const INNER_COLUMNS: u32 = 8;
+
+/// How the data arrays' chunks are stored.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Layout {
+    /// Each chunk one compressed block (stores of earlier versions).
+    Plain(Codec),
+    /// Each chunk a shard (Zarr's `sharding_indexed` codec, what this version writes): inner
+    /// chunks of `[H, inner, inner]` voxels in C order, each `bytes` (little endian) then
+    /// `codec`, absent when none of the voxel's four arrays holds anything in it; then the index,
+    /// `(offset, nbytes)` as little-endian `u64` per inner chunk (`2^64 − 1` twice: absent),
+    /// followed by its CRC-32C when `index_crc`.
+    Sharded {
+        /// Columns along each side of an inner chunk (divides `T`).
+        inner: u32,
+        /// Compression of each inner chunk.
+        codec: Codec,
+        /// The index ends with its CRC-32C (Zarr's `crc32c` index codec).
+        index_crc: bool,
+    },
+}
+
+/// Greatest common divisor (both positive).
+fn gcd(a: u32, b: u32) -> u32 {
+    if b == 0 { a } else { gcd(b, a % b) }
+}
+
+impl Layout {
+    /// The layout this version writes on `grid`: shards of `INNER_COLUMNS`-wide inner chunks,
+    /// zstd level 1, the index without a checksum (zarr-python 3 reads `[bytes]` alone).
+    pub fn for_grid(grid: &Grid) -> Layout {
+        Layout::Sharded {
+            inner: gcd(grid.tile_columns.max(1), INNER_COLUMNS),
+            codec: Codec::WRITE,
+            index_crc: false,
+        }
+    }
+
+    /// The compression of the data (of each inner chunk when sharded); the coordinates use it.
+    pub fn codec(self) -> Codec {
+        match self {
+            Layout::Plain(c) | Layout::Sharded { codec: c, .. } => c,
+        }
+    }
+
+    /// Columns along each side of the blocks a chunk is encoded in (`T` when not sharded).
+    fn block(self, grid: &Grid) -> usize {
+        match self {
+            Layout::Plain(_) => grid.tile_columns as usize,
+            Layout::Sharded { inner, .. } => inner as usize,
+        }
+    }
+
+    /// The data arrays' `codecs` metadata.
+    fn meta(self, grid: &Grid) -> Value {
+        let bytes = json!({"name": "bytes", "configuration": {"endian": "little"}});
+        match self {
+            Layout::Plain(c) => json!([bytes, c.meta()]),
+            Layout::Sharded {
+                inner,
+                codec,
+                index_crc,
+            } => {
+                let mut index = vec![bytes.clone()];
+                if index_crc {
+                    index.push(json!({"name": "crc32c"}));
+                }
+                json!([{
+                    "name": "sharding_indexed",
+                    "configuration": {
+                        "chunk_shape": [grid.chunk_levels(), inner, inner],
+                        "codecs": [bytes, codec.meta()],
+                        "index_codecs": index,
+                        "index_location": "end",
+                    }
+                }])
+            }
+        }
+    }
+
+    /// The layout an array's metadata `v` states, for chunks of `grid`; what is not understood
+    /// is named.
+    fn of_meta(v: &Value, grid: &Grid) -> Result<Layout, String> {
+        let codecs = v
+            .get("codecs")
+            .and_then(Value::as_array)
+            .ok_or("no `codecs` list")?;
+        let Some(shard) = codecs
+            .iter()
+            .find(|c| c.get("name").and_then(Value::as_str) == Some("sharding_indexed"))
+        else {
+            return Codec::of_meta(v)
+                .map(Layout::Plain)
+                .ok_or_else(|| "codecs: neither zstd nor gzip nor sharding_indexed".into());
+        };
+        let cfg = shard
+            .get("configuration")
+            .ok_or("sharding_indexed: no `configuration`")?;
+        let shape: Vec<u64> = cfg
+            .get("chunk_shape")
+            .and_then(Value::as_array)
+            .map(|a| a.iter().filter_map(Value::as_u64).collect())
+            .unwrap_or_default();
+        let t = grid.tile_columns as u64;
+        let inner = match shape[..] {
+            [h, a, b]
+                if h == grid.chunk_levels() as u64 && a == b && a > 0 && t.is_multiple_of(a) =>
+            {
+                a
+            }
+            _ => {
+                return Err(format!(
+                    "sharding_indexed.chunk_shape {shape:?}: not [{}, b, b] with b dividing {t}",
+                    grid.chunk_levels()
+                ));
+            }
+        };
+        let codec = Codec::of_meta(cfg)
+            .ok_or("sharding_indexed.codecs: neither zstd nor gzip".to_string())?;
+        let names: Vec<&str> = cfg
+            .get("index_codecs")
+            .and_then(Value::as_array)
+            .map(|a| {
+                a.iter()
+                    .filter_map(|c| c.get("name").and_then(Value::as_str))
+                    .collect()
+            })
+            .unwrap_or_else(|| vec!["bytes", "crc32c"]);
+        let endian = cfg
+            .get("index_codecs")
+            .and_then(Value::as_array)
+            .and_then(|a| a.first())
+            .and_then(|c| c.get("configuration"))
+            .and_then(|c| c.get("endian"))
+            .and_then(Value::as_str)
+            .unwrap_or("little");
+        let index_crc = match (&names[..], endian) {
+            (["bytes"], "little") => false,
+            (["bytes", "crc32c"], "little") => true,
+            _ => {
+                return Err(format!(
+                    "sharding_indexed.index_codecs {names:?} ({endian} endian): not bytes \
+                     (little endian) with an optional crc32c"
+                ));
+            }
+        };
+        let location = cfg
+            .get("index_location")
+            .and_then(Value::as_str)
+            .unwrap_or("end");
+        if location != "end" {
+            return Err(format!(
+                "sharding_indexed.index_location {location:?}: only \"end\" is read"
+            ));
+        }
+        Ok(Layout::Sharded {
+            inner: inner as u32,
+            codec,
+            index_crc,
+        })
+    }
+}
+
 /// An open store.
 pub struct ZarrStore {
     root: PathBuf,
@@ -361,16 +595,25 @@ pub struct ZarrStore {
     /// Reused encode/decode buffers.
     raw: Vec<u8>,
     packed: Vec<u8>,
+    /// One shard as it is assembled or read.
+    shard: Vec<u8>,
+    /// Per block of a height chunk: whether it holds anything (the four arrays together).
+    blocks: Vec<bool>,
+    /// Reused zstd contexts.
+    zc: Option<zstd::bulk::Compressor<'static>>,
+    zd: Option<zstd::bulk::Decompressor<'static>>,
     /// The tiles the data arrays span.
     span: Span,
-    /// How chunks are compressed.
-    codec: Codec,
+    /// How chunks are laid out and compressed.
+    layout: Layout,
     /// Committed tiles: watermark and height chunks.
     records: HashMap<[i64; 2], (u64, Vec<u32>)>,
     /// Tiles written (for the summary).
     pub tiles_written: u64,
-    /// Chunks written (all four arrays).
+    /// Chunk (shard) files written (all four arrays).
     pub chunks_written: u64,
+    /// Inner chunks encoded (all four arrays; equal to `chunks_written` when not sharded).
+    pub inner_chunks_written: u64,
     /// Bytes of uncompressed chunk data written (what went through the compressor).
     pub bytes_written: u64,
     /// Bytes of compressed chunk data written (on disk).
@@ -460,17 +703,23 @@ impl ZarrStore {
 
     /// A store at `root` with nothing read or written yet, its arrays spanning `span`.
     fn at(root: &Path, grid: Grid, info: StoreInfo, span: Span) -> Self {
+        let layout = Layout::for_grid(&grid);
         ZarrStore {
             root: root.to_path_buf(),
             grid,
             info,
+            layout,
             span,
-            codec: Codec::WRITE,
             raw: Vec::new(),
             packed: Vec::new(),
+            shard: Vec::new(),
+            blocks: Vec::new(),
+            zc: None,
+            zd: None,
             records: Default::default(),
             tiles_written: 0,
             chunks_written: 0,
+            inner_chunks_written: 0,
             bytes_written: 0,
             bytes_stored: 0,
             recovered_commits: 0,
@@ -595,8 +844,8 @@ impl ZarrStore {
         if let Ok(text) = fs::read(&array_meta) {
             let v: Value = serde_json::from_slice(&text)
                 .map_err(|e| invalid(&array_meta, format!("not JSON: {e}")))?;
-            store.codec = Codec::of_meta(&v)
-                .ok_or_else(|| invalid(&array_meta, "codecs: neither zstd nor gzip"))?;
+            store.layout =
+                Layout::of_meta(&v, &store.grid).map_err(|what| invalid(&array_meta, what))?;
         }
         store.recover()?;
         Ok(store)
@@ -890,8 +1139,7 @@ impl ZarrStore {
             return Ok(false);
         };
         let chunks = chunks.clone();
-        let n = self.grid.chunk_voxels();
-        let order = DiskOrder::of(&self.grid);
+        let order = DiskOrder::of(&self.grid, self.layout);
         for kc in chunks {
             if kc as usize >= into.chunk_count() {
                 return Err(invalid(
@@ -904,32 +1152,97 @@ impl ZarrStore {
                 if !path.exists() {
                     continue; // all fill value
                 }
-                let f = File::open(&path).map_err(io(&path))?;
-                self.codec
-                    .decode(f, &mut self.raw)
-                    .map_err(|e| invalid(&path, format!("chunk does not decompress: {e}")))?;
-                let width = if a == "intensity_sum" { 8 } else { 4 };
-                if self.raw.len() != n * width {
-                    return Err(invalid(
-                        &path,
-                        format!(
-                            "chunk holds {} bytes, a chunk of {n} voxels needs {}",
-                            self.raw.len(),
-                            n * width
-                        ),
-                    ));
-                }
-                let raw = &self.raw;
-                let c = into.chunk_mut(kc as usize);
-                match a {
-                    "intensity_sum" => order.read(raw, &mut c.sum_q, i64::from_le_bytes),
-                    "sample_count" => order.read(raw, &mut c.samples, u32::from_le_bytes),
-                    "pulse_count" => order.read(raw, &mut c.pulses, u32::from_le_bytes),
-                    _ => order.read(raw, &mut c.max, f32::from_le_bytes),
-                }
+                self.read_chunk(&path, a, order, into.chunk_mut(kc as usize))?;
             }
         }
         Ok(true)
+    }
+
+    /// Reads the chunk file `path` of array `a` into `c`, by the store's layout: a shard's
+    /// inner chunks (absent ones stay fill value), or one compressed chunk.
+    fn read_chunk(
+        &mut self,
+        path: &Path,
+        a: &str,
+        order: DiskOrder,
+        c: &mut super::tile::Chunk,
+    ) -> Result<(), StoreError> {
+        let width = if a == "intensity_sum" { 8 } else { 4 };
+        let expect = order.block_voxels() * width;
+        let blocks = order.blocks() * order.blocks();
+        let bad = |what: String| invalid(path, what);
+        let mut fill = |raw: &[u8], blk: usize| match a {
+            "intensity_sum" => order.read(raw, blk, &mut c.sum_q, i64::from_le_bytes),
+            "sample_count" => order.read(raw, blk, &mut c.samples, u32::from_le_bytes),
+            "pulse_count" => order.read(raw, blk, &mut c.pulses, u32::from_le_bytes),
+            _ => order.read(raw, blk, &mut c.max, f32::from_le_bytes),
+        };
+        match self.layout {
+            Layout::Plain(codec) => {
+                let f = File::open(path).map_err(io(path))?;
+                codec
+                    .decode(f, &mut self.raw)
+                    .map_err(|e| bad(format!("chunk does not decompress: {e}")))?;
+                if self.raw.len() != expect {
+                    return Err(bad(format!(
+                        "chunk holds {} bytes, a chunk of {} voxels needs {expect}",
+                        self.raw.len(),
+                        order.block_voxels()
+                    )));
+                }
+                fill(&self.raw, 0);
+            }
+            Layout::Sharded {
+                codec, index_crc, ..
+            } => {
+                let mut f = File::open(path).map_err(io(path))?;
+                self.shard.clear();
+                f.read_to_end(&mut self.shard).map_err(io(path))?;
+                let index_len = blocks * 16 + if index_crc { 4 } else { 0 };
+                let Some(data_len) = self.shard.len().checked_sub(index_len) else {
+                    return Err(bad(format!(
+                        "shard of {} bytes is shorter than its index ({index_len} bytes)",
+                        self.shard.len()
+                    )));
+                };
+                let (data, index) = self.shard.split_at(data_len);
+                let entries = &index[..blocks * 16];
+                if index_crc {
+                    let stored =
+                        u32::from_le_bytes(index[blocks * 16..].try_into().unwrap_or_default());
+                    if crc32c::crc32c(entries) != stored {
+                        return Err(bad("shard index: CRC-32C does not match".into()));
+                    }
+                }
+                for (blk, e) in entries.chunks_exact(16).enumerate() {
+                    let word =
+                        |i: usize| u64::from_le_bytes(e[i..i + 8].try_into().unwrap_or_default());
+                    let (off, n) = (word(0), word(8));
+                    if off == u64::MAX && n == u64::MAX {
+                        continue; // all fill value
+                    }
+                    let range = usize::try_from(off)
+                        .ok()
+                        .zip(usize::try_from(n).ok())
+                        .and_then(|(o, n)| Some(o..o.checked_add(n)?))
+                        .filter(|r| r.end <= data.len())
+                        .ok_or_else(|| {
+                            bad(format!(
+                                "shard index: inner chunk {blk} at {off} + {n} bytes lies \
+                                 outside the shard's {} bytes of data",
+                                data.len()
+                            ))
+                        })?;
+                    codec
+                        .decode_block(&mut self.zd, &data[range], expect, &mut self.raw)
+                        .map_err(|e| {
+                            bad(format!("inner chunk {blk}: chunk does not decompress: {e}"))
+                        })?;
+                    fill(&self.raw, blk);
+                }
+            }
+        }
+        Ok(())
     }
 
     /// A second handle on the same store for a writer thread: it writes tiles with
@@ -938,7 +1251,7 @@ impl ZarrStore {
     /// The span must not change while it writes (it does not: a run's span is the extent).
     pub fn tile_writer(&self) -> ZarrStore {
         let mut w = ZarrStore::at(&self.root, self.grid.clone(), self.info.clone(), self.span);
-        w.codec = self.codec;
+        w.layout = self.layout;
         w
     }
 
@@ -954,6 +1267,7 @@ impl ZarrStore {
         self.records.insert(tile, (watermark, chunks));
         self.tiles_written += 1;
         self.chunks_written += cost.chunks;
+        self.inner_chunks_written += cost.inner_chunks;
         self.bytes_written += cost.raw_bytes;
         self.bytes_stored += cost.stored_bytes;
     }
@@ -991,7 +1305,7 @@ impl ZarrStore {
             }
             chunks.sort_unstable();
         }
-        let order = DiskOrder::of(&self.grid);
+        let order = DiskOrder::of(&self.grid, self.layout);
         let mut cost = WriteCost::default();
         let mut dirs = BTreeSet::new();
         let mut pending = Vec::with_capacity(chunks.len() * ARRAYS.len());
@@ -999,27 +1313,24 @@ impl ZarrStore {
             let Some(c) = data.chunk(kc as usize) else {
                 continue; // held by the store already, not in memory: unchanged
             };
-            for a in ARRAYS {
-                self.raw.clear();
-                match a {
-                    "intensity_sum" => order.write(&c.sum_q, &mut self.raw, i64::to_le_bytes),
-                    "sample_count" => order.write(&c.samples, &mut self.raw, u32::to_le_bytes),
-                    "pulse_count" => order.write(&c.pulses, &mut self.raw, u32::to_le_bytes),
-                    _ => order.write(&c.max, &mut self.raw, f32::to_le_bytes),
+            match self.layout {
+                Layout::Plain(_) => {
+                    self.blocks.clear();
+                    self.blocks.push(true);
                 }
+                Layout::Sharded { .. } => order.occupied(c, &mut self.blocks),
+            }
+            for a in ARRAYS {
                 let path = self.pending_path(a, tile, kc)?;
-                self.codec
-                    .encode(&self.raw, &mut self.packed)
+                self.encode_chunk(c, a, order, &mut cost)
                     .map_err(io(&path))?;
-                cost.raw_bytes += self.raw.len() as u64;
-                cost.stored_bytes += self.packed.len() as u64;
                 cost.chunks += 1;
                 let dir = path.parent().unwrap_or(&self.root).to_path_buf();
                 if dirs.insert(dir.clone()) {
                     fs::create_dir_all(&dir).map_err(io(&dir))?;
                 }
                 let mut f = File::create(&path).map_err(io(&path))?;
-                f.write_all(&self.packed).map_err(io(&path))?;
+                f.write_all(&self.shard).map_err(io(&path))?;
                 pending.push((f, path, self.chunk_path(a, tile, kc)?));
             }
         }
@@ -1048,9 +1359,60 @@ impl ZarrStore {
         self.records.insert(tile, (watermark, chunks.clone()));
         self.tiles_written += 1;
         self.chunks_written += cost.chunks;
+        self.inner_chunks_written += cost.inner_chunks;
         self.bytes_written += cost.raw_bytes;
         self.bytes_stored += cost.stored_bytes;
         Ok((chunks, cost))
+    }
+
+    /// Encodes array `a` of height chunk `c` into `self.shard` by the store's layout: the blocks
+    /// `self.blocks` marks, each compressed, then (sharded) the index; adds what it cost.
+    fn encode_chunk(
+        &mut self,
+        c: &super::tile::Chunk,
+        a: &str,
+        order: DiskOrder,
+        cost: &mut WriteCost,
+    ) -> std::io::Result<()> {
+        self.shard.clear();
+        let mut index = Vec::new();
+        for blk in 0..self.blocks.len() {
+            if !self.blocks[blk] {
+                index.push((u64::MAX, u64::MAX));
+                continue;
+            }
+            self.raw.clear();
+            match a {
+                "intensity_sum" => order.write(&c.sum_q, blk, &mut self.raw, i64::to_le_bytes),
+                "sample_count" => order.write(&c.samples, blk, &mut self.raw, u32::to_le_bytes),
+                "pulse_count" => order.write(&c.pulses, blk, &mut self.raw, u32::to_le_bytes),
+                _ => order.write(&c.max, blk, &mut self.raw, f32::to_le_bytes),
+            }
+            let codec = self.layout.codec();
+            match self.layout {
+                Layout::Plain(_) => codec.encode(&self.raw, &mut self.packed)?,
+                Layout::Sharded { .. } => {
+                    codec.encode_block(&mut self.zc, &self.raw, &mut self.packed)?
+                }
+            }
+            index.push((self.shard.len() as u64, self.packed.len() as u64));
+            self.shard.extend_from_slice(&self.packed);
+            cost.raw_bytes += self.raw.len() as u64;
+            cost.inner_chunks += 1;
+        }
+        if let Layout::Sharded { index_crc, .. } = self.layout {
+            let at = self.shard.len();
+            for (o, n) in index {
+                self.shard.extend_from_slice(&o.to_le_bytes());
+                self.shard.extend_from_slice(&n.to_le_bytes());
+            }
+            if index_crc {
+                let crc = crc32c::crc32c(&self.shard[at..]);
+                self.shard.extend_from_slice(&crc.to_le_bytes());
+            }
+        }
+        cost.stored_bytes += self.shard.len() as u64;
+        Ok(())
     }
 
     /// Rewrites the metadata documents (arrays, coordinates, then the root group with the
@@ -1181,7 +1543,10 @@ impl ZarrStore {
                 raw.extend_from_slice(&v.to_le_bytes());
             }
             let mut packed = Vec::new();
-            self.codec.encode(&raw, &mut packed).map_err(io(&path))?;
+            self.layout
+                .codec()
+                .encode(&raw, &mut packed)
+                .map_err(io(&path))?;
             fs::create_dir_all(path.parent().unwrap_or(&self.root)).map_err(io(&path))?;
             write_atomic(&path, &packed)?;
         }
@@ -1262,10 +1627,12 @@ impl ZarrStore {
         fs::create_dir_all(&dir).map_err(io(&dir))?;
         let codecs = if data_type == "int32" && shape == json!([]) {
             json!([{"name": "bytes", "configuration": {"endian": "little"}}])
+        } else if ARRAYS.contains(&name) {
+            self.layout.meta(&self.grid)
         } else {
             json!([
                 {"name": "bytes", "configuration": {"endian": "little"}},
-                self.codec.meta()
+                self.layout.codec().meta()
             ])
         };
         let meta = json!({
@@ -1288,8 +1655,10 @@ impl ZarrStore {
 /// What writing a tile cost.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct WriteCost {
-    /// Chunk files written (arrays × height chunks).
+    /// Chunk (shard) files written (arrays × height chunks).
     pub chunks: u64,
+    /// Inner chunks encoded (arrays × blocks holding data; `chunks` when not sharded).
+    pub inner_chunks: u64,
     /// Bytes through the compressor.
     pub raw_bytes: u64,
     /// Bytes written to disk.
@@ -1311,39 +1680,97 @@ fn syncfs(root: &Path) -> bool {
 }
 
 /// Between the in-memory order of a height chunk (`(j·T + i)·H + kk`, columns contiguous) and
-/// the chunk's `[z, y, x]` order (`(kk·T + j)·T + i`).
+/// the `[z, y, x]` order of a block of it: block `(bj, bi)` of `B × B` columns holds voxel
+/// `(kk, jj, ii)` at `(kk·B + jj)·B + ii`, column `(bj·B + jj)·T + bi·B + ii`. An unsharded
+/// chunk is the one block `B = T`; a shard's inner chunks are its blocks in C order.
 #[derive(Clone, Copy)]
 struct DiskOrder {
     side: usize,
     levels: usize,
+    block: usize,
 }
 
 impl DiskOrder {
-    fn of(grid: &Grid) -> Self {
+    fn of(grid: &Grid, layout: Layout) -> Self {
         DiskOrder {
             side: grid.tile_columns as usize,
             levels: grid.chunk_levels() as usize,
+            block: layout.block(grid).max(1),
         }
     }
 
-    /// Appends `mem` to `out` in chunk order, little endian.
-    fn write<T: Copy, const N: usize>(self, mem: &[T], out: &mut Vec<u8>, enc: fn(T) -> [u8; N]) {
-        let (t, l) = (self.side, self.levels);
-        out.reserve(mem.len() * N);
+    /// Blocks along each side.
+    fn blocks(self) -> usize {
+        self.side / self.block
+    }
+
+    /// Voxels of a block.
+    fn block_voxels(self) -> usize {
+        self.block * self.block * self.levels
+    }
+
+    /// Column of the first voxel of each row `jj` of block `b` (C order of blocks).
+    fn row_start(self, b: usize, jj: usize) -> usize {
+        let n = self.blocks();
+        let (bj, bi) = (b / n, b % n);
+        (bj * self.block + jj) * self.side + bi * self.block
+    }
+
+    /// Marks in `out` (one entry per block) the blocks of `c` where a sample or a pass landed:
+    /// the blocks to encode, the same for all four arrays.
+    fn occupied(self, c: &super::tile::Chunk, out: &mut Vec<bool>) {
+        let (b, h) = (self.block, self.levels);
+        out.clear();
+        out.extend((0..self.blocks() * self.blocks()).map(|blk| {
+            (0..b).any(|jj| {
+                let r = self.row_start(blk, jj) * h..(self.row_start(blk, jj) + b) * h;
+                let s = c.samples.get(r.clone()).unwrap_or(&[]);
+                let p = c.pulses.get(r).unwrap_or(&[]);
+                // OR-reduced (vectorises) rather than a search that stops early.
+                s.iter().fold(0, |a, x| a | x) | p.iter().fold(0, |a, x| a | x) != 0
+            })
+        }));
+    }
+
+    /// Appends block `blk` of `mem` to `out` in `[z, y, x]` order, little endian.
+    fn write<T: Copy, const N: usize>(
+        self,
+        mem: &[T],
+        blk: usize,
+        out: &mut Vec<u8>,
+        enc: fn(T) -> [u8; N],
+    ) {
+        let (b, l) = (self.block, self.levels);
+        out.reserve(self.block_voxels() * N);
         for k in 0..l {
-            for col in 0..t * t {
-                out.extend_from_slice(&enc(mem[col * l + k]));
+            for jj in 0..b {
+                let c0 = self.row_start(blk, jj);
+                for col in c0..c0 + b {
+                    out.extend_from_slice(&enc(mem[col * l + k]));
+                }
             }
         }
     }
 
-    /// Fills `mem` from chunk-order bytes `raw` (of the right length).
-    fn read<T: Copy, const N: usize>(self, raw: &[u8], mem: &mut [T], dec: fn([u8; N]) -> T) {
-        let (t, l) = (self.side, self.levels);
-        for (n, b) in raw.chunks_exact(N).enumerate() {
-            let (k, col) = (n / (t * t), n % (t * t));
-            if let (Some(d), Ok(bytes)) = (mem.get_mut(col * l + k), b.try_into()) {
-                *d = dec(bytes);
+    /// Fills block `blk` of `mem` from `[z, y, x]`-order bytes `raw` (of the block's length).
+    fn read<T: Copy, const N: usize>(
+        self,
+        raw: &[u8],
+        blk: usize,
+        mem: &mut [T],
+        dec: fn([u8; N]) -> T,
+    ) {
+        let (b, l) = (self.block, self.levels);
+        let mut it = raw.chunks_exact(N);
+        for k in 0..l {
+            for jj in 0..b {
+                let c0 = self.row_start(blk, jj);
+                for col in c0..c0 + b {
+                    let Some(bytes) = it.next() else { return };
+                    if let (Some(d), Ok(bytes)) = (mem.get_mut(col * l + k), bytes.try_into()) {
+                        *d = dec(bytes);
+                    }
+                }
             }
         }
     }
@@ -1504,13 +1931,170 @@ mod tests {
         let mut s = ZarrStore::create_or_open(&root, g, info("a")).unwrap();
         s.write_tile([0, 0], &sample(n, 1), 1).unwrap();
         let p = s.chunk_path("sample_count", [0, 0], 0).unwrap();
-        fs::write(&p, b"not gzip").unwrap();
+        let good = fs::read(&p).unwrap();
         let mut back = TileData::new(64, n / 64, 4);
+        // Shorter than the shard index.
+        fs::write(&p, b"not zstd").unwrap();
+        let e = s.read_tile([0, 0], &mut back).unwrap_err().to_string();
+        assert!(e.contains("sample_count") && e.contains("index"), "{e}");
+        // The index intact, the inner chunk garbled.
+        let mut bad = good.clone();
+        bad[..8].copy_from_slice(b"not zstd");
+        fs::write(&p, &bad).unwrap();
         let e = s.read_tile([0, 0], &mut back).unwrap_err().to_string();
         assert!(
             e.contains("sample_count") && e.contains("decompress"),
             "{e}"
         );
+        // An index entry pointing past the data.
+        let mut bad = good;
+        let at = bad.len() - 16;
+        bad[at..at + 8].copy_from_slice(&(1u64 << 40).to_le_bytes());
+        fs::write(&p, &bad).unwrap();
+        let e = s.read_tile([0, 0], &mut back).unwrap_err().to_string();
+        assert!(e.contains("outside the shard"), "{e}");
+    }
+
+    /// Tiles of 32 × 32 columns, 4 levels: shards of 4 × 4 inner chunks of 8 × 8 columns.
+    fn shard_grid() -> Grid {
+        Grid::new(
+            &VoxelConfig {
+                extent_m: Some([0.0, 0.0, 32.0, 16.0]),
+                z_range_m: [0.0, 0.6],
+                tile_columns: 32,
+                ..VoxelConfig::default()
+            },
+            [0.0, 0.0],
+        )
+    }
+
+    /// A tile of `g` with deposits and passes in every third voxel (by `seed`).
+    fn sample_for(g: &Grid, seed: u32) -> TileData {
+        let mut t = TileData::for_grid(g);
+        for i in 0..g.tile_voxels() {
+            if (i as u32 ^ seed).is_multiple_of(3) {
+                t.deposit(i, i as i64 * 1000 - 7, i as f32 * 0.5);
+                t.pass(i);
+            }
+        }
+        t
+    }
+
+    /// The same accumulators, bit for bit (maxima included).
+    fn assert_same(a: &TileData, b: &TileData) {
+        let (a, b) = (a.dense(), b.dense());
+        assert_eq!(a.sum_q, b.sum_q);
+        assert_eq!(a.samples, b.samples);
+        assert_eq!(a.pulses, b.pulses);
+        let bits = |m: &[f32]| m.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&a.max), bits(&b.max));
+    }
+
+    /// The `(offset, nbytes)` entries of a shard's index (no checksum).
+    fn shard_index(path: &Path, blocks: usize) -> Vec<(u64, u64)> {
+        let b = fs::read(path).unwrap();
+        b[b.len() - blocks * 16..]
+            .chunks_exact(16)
+            .map(|e| {
+                (
+                    u64::from_le_bytes(e[..8].try_into().unwrap()),
+                    u64::from_le_bytes(e[8..].try_into().unwrap()),
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_sparse_tile_encodes_only_the_inner_chunks_holding_data_in_all_four_arrays() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("v.zarr");
+        let g = shard_grid();
+        assert_eq!(
+            Layout::for_grid(&g),
+            Layout::Sharded {
+                inner: 8,
+                codec: Codec::Zstd(1),
+                index_crc: false
+            }
+        );
+        let l = g.levels as usize;
+        let mut s = ZarrStore::create_or_open(&root, g.clone(), info("a")).unwrap();
+        let mut t = TileData::for_grid(&g);
+        // Column (i=3, j=1): block (0, 0); column (i=17, j=30): block (3, 2), a pass only.
+        t.deposit((32 + 3) * l + 2, 77, 7.5);
+        t.pass((32 + 3) * l + 2);
+        t.pass((30 * 32 + 17) * l + 1);
+        let (chunks, cost) = s.write_tile([0, 0], &t, 3).unwrap();
+        assert_eq!(chunks, vec![0]);
+        assert_eq!(cost.chunks, 4, "one shard per array");
+        assert_eq!(cost.inner_chunks, 8, "two inner chunks per array");
+        let inner_raw = 8 * 8 * g.chunk_levels() as u64;
+        assert_eq!(cost.raw_bytes, 2 * inner_raw * (8 + 4 + 4 + 4));
+        let mut stored = 0;
+        for a in ARRAYS {
+            let p = s.chunk_path(a, [0, 0], 0).unwrap();
+            stored += fs::metadata(&p).unwrap().len();
+            let idx = shard_index(&p, 16);
+            let present: Vec<usize> = (0..16).filter(|b| idx[*b].0 != u64::MAX).collect();
+            assert_eq!(present, vec![0, 3 * 4 + 2], "{a}");
+            for (b, (o, n)) in idx.iter().enumerate() {
+                if !present.contains(&b) {
+                    assert_eq!((*o, *n), (u64::MAX, u64::MAX));
+                }
+            }
+            // Inner chunks back to back from the shard's start, then the index.
+            let (o0, n0) = idx[0];
+            let (o1, n1) = idx[14];
+            assert_eq!((o0, o1), (0, n0));
+            assert_eq!(fs::metadata(&p).unwrap().len(), n0 + n1 + 16 * 16);
+        }
+        assert_eq!(cost.stored_bytes, stored);
+        let mut back = TileData::for_grid(&g);
+        assert!(s.read_tile([0, 0], &mut back).unwrap());
+        assert_same(&back, &t);
+    }
+
+    #[test]
+    fn stores_of_earlier_layouts_are_read_and_resumed_in_their_own_layout() {
+        for old in [Layout::Plain(Codec::Zstd(1)), Layout::Plain(Codec::Gzip(1))] {
+            let dir = tempfile::tempdir().unwrap();
+            let root = dir.path().join("v.zarr");
+            let g = shard_grid();
+            let mut s = ZarrStore::create_or_open(&root, g.clone(), info("a")).unwrap();
+            // As an earlier version wrote it: one compressed chunk per file.
+            s.layout = old;
+            s.write_metadata().unwrap();
+            let a = sample_for(&g, 1);
+            s.write_tile([0, 0], &a, 4).unwrap();
+            let p = s.chunk_path("sample_count", [0, 0], 0).unwrap();
+            let mut raw = Vec::new();
+            match old.codec() {
+                Codec::Zstd(_) => zstd::stream::Decoder::new(File::open(&p).unwrap())
+                    .unwrap()
+                    .read_to_end(&mut raw)
+                    .unwrap(),
+                Codec::Gzip(_) => GzDecoder::new(File::open(&p).unwrap())
+                    .read_to_end(&mut raw)
+                    .unwrap(),
+            };
+            assert_eq!(raw.len(), g.chunk_voxels() * 4, "{old:?}: a whole chunk");
+            drop(s);
+            // Read as it is; a resumed run writes on in the store's layout.
+            let mut s = ZarrStore::create_or_open(&root, g.clone(), info("a")).unwrap();
+            assert_eq!(s.layout, old);
+            let mut back = TileData::for_grid(&g);
+            assert!(s.read_tile([0, 0], &mut back).unwrap());
+            assert_same(&back, &a);
+            let b = sample_for(&g, 2);
+            s.write_tile([1, 0], &b, 5).unwrap();
+            s.fit().unwrap();
+            let mut r = ZarrStore::open(&root).unwrap();
+            assert_eq!(r.layout, old);
+            assert!(r.read_tile([1, 0], &mut back).unwrap());
+            assert_same(&back, &b);
+            assert!(r.read_tile([0, 0], &mut back).unwrap());
+            assert_same(&back, &a);
+        }
     }
 
     /// A grid of 4 m tiles over [-32, 32)² m (16 × 16 tiles).

@@ -107,10 +107,14 @@ z_canopy = z[z >= 7.5][np.argmax(high)]
 assert abs(z_ground - 0.27) < 0.5, z_ground
 assert abs(z_canopy - 15.27) < 0.5, z_canopy
 
-# zarr-python directly: chunk = tile.
+# zarr-python directly: shard = tile (its columns over one height chunk), inner chunks of
+# 8 x 8 columns (or fewer: a divisor of the tile's columns).
 g = zarr.open_group(f"{out}/voxels.zarr", mode="r")
 a = g["sample_count"]
-assert a.chunks[1] == a.chunks[2] == ds.attrs["tile_columns"]
+assert a.shards is not None, a.metadata.codecs
+assert a.shards[1] == a.shards[2] == ds.attrs["tile_columns"], a.shards
+assert a.chunks[1] == a.chunks[2] and a.shards[1] % a.chunks[1] == 0, a.chunks
+assert a.chunks[1] == min(8, ds.attrs["tile_columns"]) or 8 % a.chunks[1] == 0, a.chunks
 print(
     json.dumps(
         {
