@@ -16,6 +16,8 @@
 //! (`pulse,segment,position_bins,amplitude,sigma_bins`) and every truth scatterer of the same
 //! pulses (`FILE.truth`: `pulse,return_start_ns,range_m,amplitude_dn`) for comparing two builds.
 
+#[path = "common/survey.rs"]
+mod survey;
 #[path = "common/waveforms.rs"]
 mod waveforms;
 
@@ -32,8 +34,7 @@ use fwlidar::pipeline::testing::run_stage;
 use fwlidar::pulse::{Pulse, PulsePool, SegmentKind};
 use fwlidar::signal::DecomposeConfig;
 use fwlidar::signal::decompose::Decomposer;
-use fwlidar::sim::world::scene::WorldScene;
-use fwlidar::sim::world::{ShotTruth, WorldSim};
+use fwlidar::sim::world::ShotTruth;
 
 /// Pulses per half of the survey-line mix.
 const MIX_PULSES: usize = 2500;
@@ -63,28 +64,7 @@ fn three_echoes() -> Vec<f32> {
 /// Survey-line pulses (`count` of them, every `MIX_STRIDE`-th, the line starting at
 /// `start_east_m` or where the scene starts it) with their truth.
 fn simulate(count: usize, start_east_m: Option<f64>) -> Vec<(Pulse, ShotTruth)> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/scenes/survey_line.toml");
-    let (mut scene, sensor) = WorldScene::load(&path).unwrap();
-    scene.flight.max_pulses = None;
-    if let Some(e) = start_east_m {
-        scene.flight.lines[0].start_m = [e, 0.0];
-    }
-    let mut sim = WorldSim::new(&scene, &sensor, path.parent().unwrap()).unwrap();
-    let mut out = Vec::with_capacity(count);
-    let (mut p, mut t) = (Pulse::default(), ShotTruth::default());
-    let mut i = 0usize;
-    while out.len() < count {
-        match sim.fill_next(&mut p, &mut t) {
-            None => break,
-            Some(false) => continue,
-            Some(true) => {}
-        }
-        if i.is_multiple_of(MIX_STRIDE) {
-            out.push((p.clone(), t.clone()));
-        }
-        i += 1;
-    }
-    out
+    survey::survey_line_pulses(count, MIX_STRIDE, start_east_m)
 }
 
 /// The replay chain's stage configurations (`config/replay.toml`): denoise, deconvolve and
