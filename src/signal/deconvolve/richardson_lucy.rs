@@ -174,6 +174,24 @@ impl Epilogue for Ratio<'_> {
     }
 }
 
+/// One convolution pass: `ratio[pad..pad + n] = y / (k ⊛ σ)` (the [`Ratio`] epilogue), with
+/// `σ` and `ratio` padded by `pad` zeros on both sides and `n = y.len()`.
+#[inline(always)]
+fn ratio_pass(sigma: &[f32], pad: usize, k: &Kernel, yn: &[f32], ratio: &mut [f32]) {
+    let n = yn.len();
+    convolve_padded_with(
+        sigma,
+        pad,
+        &k.taps,
+        k.center,
+        n,
+        Ratio {
+            y: yn,
+            ratio: &mut ratio[pad..pad + n],
+        },
+    );
+}
+
 /// Epilogue of the correlation `k ⋆ ratio` (no early stop): `σ ← flush(min(σ · max(c, 0),
 /// cap))`.
 struct Update<'a> {
@@ -283,17 +301,7 @@ fn accelerated(
             let v = (xi + a * (xi - xp)).clamp(0.0, ESTIMATE_CAP);
             *p = if v < FLUSH { 0.0 } else { v };
         }
-        convolve_padded_with(
-            sigma,
-            pad,
-            &k.taps,
-            k.center,
-            n,
-            Ratio {
-                y: yn,
-                ratio: &mut ratio[pad..pad + n],
-            },
-        );
+        ratio_pass(sigma, pad, k, yn, ratio);
         // x_{k+1} = RL(p) and g = x_{k+1} − p, formed in the correlation's epilogue.
         let mut sums = AccSums::default();
         correlate_padded_with(
@@ -388,17 +396,7 @@ impl Deconvolver for RichardsonLucy {
         for _ in 0..self.config.iterations {
             // The ratio y / (k ⊛ σ) is formed from each block of sums while it is in
             // registers.
-            convolve_padded_with(
-                sigma,
-                pad,
-                &k.taps,
-                k.center,
-                n,
-                Ratio {
-                    y: yn,
-                    ratio: &mut ratio[pad..pad + n],
-                },
-            );
+            ratio_pass(sigma, pad, k, yn, ratio);
             stats.iterations += 1;
             let Some(tol) = self.config.early_stop else {
                 // No early stop: σ is updated from each block of the correction `k ⋆ ratio`
