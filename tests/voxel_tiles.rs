@@ -718,34 +718,44 @@ fn a_full_disk_stops_the_replay_with_an_error_naming_the_file() {
     );
 }
 
-/// On the default grid (every height on Earth, sparse height chunks) bins far above and below
-/// any former fixed range land; only the height chunks holding them exist on disk (empty air is
-/// absent); and zarr-python reads the zstd store back equal to what was deposited.
-#[test]
-fn far_heights_land_in_sparse_zstd_chunks_that_zarr_python_reads_back() {
+/// A new store at `root` on the default grid (every height, sparse chunks, sharded) over two
+/// 16 m tiles, `[0, 0, 32, 16]` m, with run key `run_key`.
+fn two_tile_default_store(
+    root: &std::path::Path,
+    run_key: &str,
+) -> (fwlidar::voxel::grid::Grid, ZarrStore) {
     use fwlidar::voxel::grid::{Grid, VoxelConfig};
     use fwlidar::voxel::zarr::StoreInfo;
-    let dir = tempfile::tempdir().unwrap();
-    let root = dir.path().join("v.zarr");
     let cfg = VoxelConfig {
         enabled: true,
         extent_m: Some([0.0, 0.0, 32.0, 16.0]),
         ..VoxelConfig::default()
     };
     let grid = Grid::new(&cfg, [0.0, 0.0]);
-    assert_eq!(grid.chunk_levels(), 64);
-    let mut s = ZarrStore::create_or_open(
-        &root,
+    let s = ZarrStore::create_or_open(
+        root,
         grid.clone(),
         StoreInfo {
             crs_wkt: None,
             epsg: Some(32736),
             intensity_units: "V".into(),
-            run_key: "far".into(),
+            run_key: run_key.into(),
             configuration: String::new(),
         },
     )
     .unwrap();
+    (grid, s)
+}
+
+/// On the default grid (every height on Earth, sparse height chunks) bins far above and below
+/// any former fixed range land; only the height chunks holding them exist on disk (empty air is
+/// absent); and zarr-python reads the zstd store back equal to what was deposited.
+#[test]
+fn far_heights_land_in_sparse_zstd_chunks_that_zarr_python_reads_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("v.zarr");
+    let (grid, mut s) = two_tile_default_store(&root, "far");
+    assert_eq!(grid.chunk_levels(), 64);
     let level = |z: f64| ((z - grid.z_bottom_m) / grid.voxel_size_m[2]).floor() as usize;
     let l = grid.levels as usize;
     // Column (i=3, j=5) of tile (0, 0): a bin at 8500 m and one at -900 m; tile (1, 0): 12 m.
@@ -900,29 +910,11 @@ fn zarr_voxels(root: &Path, mode: &str) -> Vec<[f64; 7]> {
 /// unsharded layout of earlier versions, the store reads the same in Rust.
 #[test]
 fn a_sparse_store_holds_only_the_inner_chunks_with_data_and_old_stores_still_read() {
-    use fwlidar::voxel::grid::{Grid, VoxelConfig};
-    use fwlidar::voxel::zarr::{ARRAYS, StoreInfo};
+    use fwlidar::voxel::zarr::ARRAYS;
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().join("v.zarr");
-    let cfg = VoxelConfig {
-        enabled: true,
-        extent_m: Some([0.0, 0.0, 32.0, 16.0]),
-        ..VoxelConfig::default()
-    };
-    let grid = Grid::new(&cfg, [0.0, 0.0]);
+    let (grid, mut s) = two_tile_default_store(&root, "sparse");
     assert_eq!((grid.tile_columns, grid.chunk_levels()), (32, 64));
-    let mut s = ZarrStore::create_or_open(
-        &root,
-        grid.clone(),
-        StoreInfo {
-            crs_wkt: None,
-            epsg: Some(32736),
-            intensity_units: "V".into(),
-            run_key: "sparse".into(),
-            configuration: String::new(),
-        },
-    )
-    .unwrap();
     let l = grid.levels as usize;
     let k = ((12.0 - grid.z_bottom_m) / grid.voxel_size_m[2]).floor() as usize;
     let k = k - k % 64 + 10; // 10 levels into its height chunk
