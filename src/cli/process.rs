@@ -18,8 +18,8 @@ use crate::cli::Failure;
 use crate::format::table::{Table, TableFormat, read_table, write_table};
 use crate::pulse::FittedReturn;
 use crate::signal::decompose::{DecomposeConfig, Decomposer};
-use crate::signal::deconvolve::MethodConfig;
 use crate::signal::deconvolve::response::response_from_flat_target;
+use crate::signal::deconvolve::{Deconvolver, MethodConfig, Targeted};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::kernel::{Kernel, remove_baseline};
 use crate::sink::atomic_file::AtomicFile;
@@ -98,6 +98,12 @@ pub struct ProcessArgs {
     /// Iteration budget of iterative methods (the method's default when absent).
     #[arg(long)]
     pub iterations: Option<u32>,
+    /// Deliver the result as seen by a Gaussian target pulse of this FWHM, ns (e.g. 2), not as
+    /// spikes: RL, Gold and Wiener deconvolve by the kernel that maps the target pulse to the
+    /// system pulse, NNLS draws its spikes as the target pulse (see `docs/signal.md`). With
+    /// `--response` and `--kernel` it applies to the last step (the kernel).
+    #[arg(long)]
+    pub target_fwhm_ns: Option<f64>,
     /// Sample interval, ns.
     #[arg(long, default_value_t = 1.0)]
     pub sample_ns: f64,
@@ -361,6 +367,15 @@ fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
             "--iterations has no meaning with --method none",
         ));
     }
+    if let Some(f) = args.target_fwhm_ns {
+        if args.method == ProcessMethod::None {
+            return Err(Failure::usage(
+                "--target-fwhm-ns has no meaning with --method none",
+            ));
+        }
+        crate::signal::deconvolve::target::check_target_fwhm("--target-fwhm-ns", f)
+            .map_err(Failure::usage)?;
+    }
     if args.kernel_per_row && args.kernel.is_none() {
         return Err(Failure::usage("--kernel-per-row needs --kernel"));
     }
@@ -447,7 +462,14 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
             ..Default::default()
         })
     });
-    let mut deconvolver = method.map(|m| m.build(max_samples, max_taps));
+    let mut deconvolver = method.map(|m| {
+        Targeted::new(
+            m.build(max_samples, max_taps),
+            args.target_fwhm_ns,
+            max_samples,
+            max_taps,
+        )
+    });
     let mut decomposer = args
         .returns
         .as_ref()
@@ -530,7 +552,9 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
                     }
                     Some(h) => {
                         let f = &mut first[..len];
-                        dec.run(w, h, noise_v, args.sample_ns, f).map_err(fail)?;
+                        dec.plain()
+                            .run(w, h, noise_v, args.sample_ns, f)
+                            .map_err(fail)?;
                         f
                     }
                     None => w,
@@ -648,6 +672,7 @@ mod tests {
             method: ProcessMethod::Rl,
             iterations: None,
             sample_ns: 1.0,
+            target_fwhm_ns: None,
             cutoff_ghz: 0.2,
             kernel_per_row: false,
             no_denoise: false,
@@ -700,6 +725,7 @@ mod tests {
             method: a.method,
             iterations: a.iterations,
             sample_ns: a.sample_ns,
+            target_fwhm_ns: a.target_fwhm_ns,
             cutoff_ghz: a.cutoff_ghz,
             kernel_per_row: a.kernel_per_row,
             no_denoise: a.no_denoise,

@@ -49,6 +49,34 @@ pub struct ReplayArgs {
     /// 'pipeline.stages[1].max_taps=128'`. Repeatable; a later one wins.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub sets: Vec<String>,
+    /// Deconvolve to a Gaussian target pulse of this FWHM, ns (e.g. 2): sets `target_fwhm_ns`
+    /// of the configuration's last deconvolve stage (the one by the outgoing pulse; see
+    /// `docs/signal.md`). Refused when the configuration has no deconvolve stage.
+    #[arg(long)]
+    pub target_fwhm_ns: Option<f64>,
+}
+
+/// Sets `target_fwhm_ns` of the last deconvolve stage of `config` (`--target-fwhm-ns`).
+pub fn set_target_fwhm(config: &mut RunConfig, fwhm_ns: f64) -> Result<(), Failure> {
+    use crate::pipeline::registry::StageConfig;
+    crate::signal::deconvolve::target::check_target_fwhm("--target-fwhm-ns", fwhm_ns)
+        .map_err(Failure::usage)?;
+    let last = config
+        .pipeline
+        .stages
+        .iter_mut()
+        .rev()
+        .find_map(|s| match s {
+            StageConfig::Deconvolve(c) => Some(c),
+            _ => None,
+        })
+        .ok_or_else(|| {
+            Failure::usage(
+                "--target-fwhm-ns needs a deconvolve stage in the run configuration, and it has none",
+            )
+        })?;
+    last.target_fwhm_ns = Some(fwhm_ns);
+    Ok(())
 }
 
 /// Registers SIGINT and SIGTERM: the first sets `control.stop` (clean shutdown, every sink
@@ -66,8 +94,12 @@ pub fn install_signal_handlers(control: &RunControl) -> Result<(), Failure> {
 /// Runs `fwlidar replay`: open the input, build the stages and the sinks, run with a progress
 /// bar, then report (summary.json, the one-screen summary, the warnings).
 pub fn run(args: ReplayArgs) -> Result<(), Failure> {
-    let config: RunConfig = crate::config::load_run_config_with(args.config.as_deref(), &args.sets)
-        .map_err(Failure::usage)?;
+    let mut config: RunConfig =
+        crate::config::load_run_config_with(args.config.as_deref(), &args.sets)
+            .map_err(Failure::usage)?;
+    if let Some(f) = args.target_fwhm_ns {
+        set_target_fwhm(&mut config, f)?;
+    }
     let out_dir = args
         .out
         .clone()

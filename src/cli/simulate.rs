@@ -427,6 +427,7 @@ fn voxelise_truth(truth: &Path, dir: &Path) -> Result<(), Failure> {
         workers: Some(1),
         no_progress: true,
         sets: Vec::new(),
+        target_fwhm_ns: None,
     })
 }
 

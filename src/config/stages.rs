@@ -172,6 +172,9 @@ impl Validate for DeconvolveConfig {
                 );
             }
         }
+        if let Some(f) = self.target_fwhm_ns {
+            v.positive(f, field(path, "target_fwhm_ns"));
+        }
         if let Some(gate) = &self.gate {
             match gate.validate(&self.method) {
                 Ok(()) => {}

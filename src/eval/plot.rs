@@ -19,12 +19,15 @@ fn colour(method: &str) -> &'static str {
         "gold" => "#ff7f0e",
         "wiener" => "#2ca02c",
         "nnls" => "#d62728",
+        "rl_2ns" => "#e377c2",
+        "wiener_2ns" => "#bcbd22",
+        "nnls_2ns" => "#8c564b",
         _ => "#000000",
     }
 }
 
 /// Legend names of the methods.
-const METHODS: [(&str, &str); 7] = [
+const METHODS: [(&str, &str); 10] = [
     ("raw", "raw (no processing)"),
     ("denoise", "denoise only"),
     ("rl", "Richardson-Lucy (iterations)"),
@@ -32,6 +35,9 @@ const METHODS: [(&str, &str); 7] = [
     ("gold", "Gold (iterations)"),
     ("wiener", "Wiener (noise scale)"),
     ("nnls", "NNLS (iteration cap)"),
+    ("rl_2ns", "RL to the 2 ns pulse (iterations)"),
+    ("wiener_2ns", "Wiener to the 2 ns pulse (noise scale)"),
+    ("nnls_2ns", "NNLS drawn as the 2 ns pulse (cap)"),
 ];
 
 fn escape(s: &str) -> String {

@@ -19,11 +19,13 @@ use crate::eval::metrics::{
 };
 use crate::signal::deconvolve::{
     DeconvError, Deconvolver, Gate, Gated, GoldConfig, MethodConfig, NnlsConfig, RlConfig,
-    WienerConfig,
+    Targeted, WienerConfig,
 };
 use crate::signal::denoise::{Denoise, DenoiseConfig, DenoiseError};
 use crate::signal::kernel::{Kernel, convolve_same};
-use crate::sim::truth::{TruthError, TruthFamily, TruthGenerator, TruthPulse, gaussian_pulse};
+use crate::sim::truth::{
+    TRUTH_FWHM_NS, TruthError, TruthFamily, TruthGenerator, TruthPulse, gaussian_pulse,
+};
 
 /// Pulses processed untimed before the timed loop of every case.
 const WARMUP_PULSES: usize = 8;
@@ -70,6 +72,9 @@ pub struct Setting {
     pub parameter: String,
     /// What to run.
     pub processing: Processing,
+    /// Deconvolve to this Gaussian target pulse, FWHM ns (the truth's 2 ns in the sweep's
+    /// `*_2ns` families; see [`Targeted`]); `None`: as the method gives it.
+    pub target_fwhm_ns: Option<f64>,
 }
 
 impl Setting {
@@ -91,22 +96,33 @@ pub const ACCELERATED_ITERATIONS: [u32; 3] = [5, 8, 12];
 pub const WIENER_NOISE_SCALES: [f32; 5] = [0.1, 1.0, 10.0, 100.0, 1000.0];
 /// NNLS outer-iteration caps of the sweep.
 pub const NNLS_CAPS: [u32; 4] = [10, 25, 50, 100];
+/// RL iteration counts of the sweep's deconvolution to the truth's 2 ns pulse (`rl_2ns`).
+pub const TARGET_ITERATIONS: [u32; 4] = [5, 10, 20, 50];
+/// Wiener noise scales of the sweep's deconvolution to the 2 ns pulse (`wiener_2ns`).
+pub const TARGET_WIENER_NOISE_SCALES: [f32; 3] = [1.0, 10.0, 100.0];
+/// NNLS caps of the sweep's synthesis with the 2 ns pulse (`nnls_2ns`).
+pub const TARGET_NNLS_CAPS: [u32; 2] = [25, 50];
 
 /// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], accelerated RL at
 /// [`ACCELERATED_ITERATIONS`], Wiener at
 /// [`WIENER_NOISE_SCALES`] (cut-off 0.2 GHz, regularisation 1e-3), NNLS at [`NNLS_CAPS`]
-/// (tolerance: the default, 1e-6). Other parameters at their defaults.
+/// (tolerance: the default, 1e-6), then the same methods delivering their result as seen by the
+/// truth's 2 ns pulse (`target_fwhm_ns = 2`): RL at [`TARGET_ITERATIONS`] (`rl_2ns`), Wiener at
+/// [`TARGET_WIENER_NOISE_SCALES`] (`wiener_2ns`), NNLS at [`TARGET_NNLS_CAPS`] (`nnls_2ns`).
+/// Other parameters at their defaults.
 pub fn default_settings() -> Vec<Setting> {
     let mut s = vec![
         Setting {
             method: "raw",
             parameter: String::new(),
             processing: Processing::Raw,
+            target_fwhm_ns: None,
         },
         Setting {
             method: "denoise",
             parameter: String::new(),
             processing: Processing::Denoise,
+            target_fwhm_ns: None,
         },
     ];
     for it in ITERATIONS {
@@ -118,6 +134,7 @@ pub fn default_settings() -> Vec<Setting> {
                 early_stop: None,
                 accelerate: false,
             })),
+            target_fwhm_ns: None,
         });
     }
     for it in ACCELERATED_ITERATIONS {
@@ -129,6 +146,7 @@ pub fn default_settings() -> Vec<Setting> {
                 early_stop: None,
                 accelerate: true,
             })),
+            target_fwhm_ns: None,
         });
     }
     for it in ITERATIONS {
@@ -139,6 +157,7 @@ pub fn default_settings() -> Vec<Setting> {
                 iterations: it,
                 ..GoldConfig::default()
             })),
+            target_fwhm_ns: None,
         });
     }
     for ns in WIENER_NOISE_SCALES {
@@ -149,6 +168,7 @@ pub fn default_settings() -> Vec<Setting> {
                 noise_scale: ns,
                 ..WienerConfig::default()
             })),
+            target_fwhm_ns: None,
         });
     }
     for cap in NNLS_CAPS {
@@ -159,6 +179,42 @@ pub fn default_settings() -> Vec<Setting> {
                 max_iterations: cap,
                 ..NnlsConfig::default()
             })),
+            target_fwhm_ns: None,
+        });
+    }
+    // Deconvolution to the truth's own pulse (2 ns): the reduced kernel for RL and Wiener,
+    // synthesis with the target for NNLS.
+    for it in TARGET_ITERATIONS {
+        s.push(Setting {
+            method: "rl_2ns",
+            parameter: format!("iterations={it}"),
+            processing: Processing::Deconvolve(MethodConfig::RichardsonLucy(RlConfig {
+                iterations: it,
+                ..RlConfig::default()
+            })),
+            target_fwhm_ns: Some(TRUTH_FWHM_NS),
+        });
+    }
+    for ns in TARGET_WIENER_NOISE_SCALES {
+        s.push(Setting {
+            method: "wiener_2ns",
+            parameter: format!("noise_scale={ns}"),
+            processing: Processing::Deconvolve(MethodConfig::Wiener(WienerConfig {
+                noise_scale: ns,
+                ..WienerConfig::default()
+            })),
+            target_fwhm_ns: Some(TRUTH_FWHM_NS),
+        });
+    }
+    for cap in TARGET_NNLS_CAPS {
+        s.push(Setting {
+            method: "nnls_2ns",
+            parameter: format!("max_iterations={cap}"),
+            processing: Processing::Deconvolve(MethodConfig::Nnls(NnlsConfig {
+                max_iterations: cap,
+                ..NnlsConfig::default()
+            })),
+            target_fwhm_ns: Some(TRUTH_FWHM_NS),
         });
     }
     s
@@ -321,7 +377,7 @@ pub struct Progress<'a> {
 /// The processing objects of one setting, built for one kernel size.
 struct Runner {
     denoise: Option<Denoise>,
-    deconv: Option<Gated>,
+    deconv: Option<Targeted>,
     denoised: Vec<f32>,
 }
 
@@ -336,7 +392,13 @@ impl Runner {
         };
         let deconv = match &setting.processing {
             // The deconvolve stage's own code: the method behind its default echo-window gate.
-            Processing::Deconvolve(m) => Some(Gated::build(m, Gate::default_for(m), bins, taps)),
+            // (to the setting's target pulse, if any).
+            Processing::Deconvolve(m) => Some(Targeted::new(
+                Box::new(Gated::build(m, Gate::default_for(m), bins, taps)),
+                setting.target_fwhm_ns,
+                bins,
+                taps,
+            )),
             _ => None,
         };
         Runner {

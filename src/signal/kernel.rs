@@ -251,6 +251,15 @@ pub enum KernelError {
         /// Noise standard deviation.
         noise: f32,
     },
+    /// A Gaussian pulse's FWHM or sample interval is not a positive finite number, or the
+    /// pulse spans more than 1000 samples per FWHM.
+    #[error("a Gaussian pulse of FWHM {fwhm_ns} ns at {sample_ns} ns per sample is not usable")]
+    BadGaussian {
+        /// FWHM, ns.
+        fwhm_ns: f64,
+        /// Sample interval, ns.
+        sample_ns: f64,
+    },
     /// More taps than the buffers were sized for.
     #[error("kernel of {len} taps exceeds the maximum of {max}")]
     TooLong {
@@ -408,6 +417,33 @@ impl Kernel {
         self.taps
             .extend(taps.iter().map(|&v| (v as f64 / sum) as f32));
         self.center = center;
+        Ok(())
+    }
+
+    /// Sets the kernel to a sampled Gaussian pulse of full width at half maximum `fwhm_ns`
+    /// (ns) at `sample_ns` (ns per sample): taps `exp(−½ (j/s)²)` for `|j| ≤ ⌈3.5 s⌉`
+    /// (`s = fwhm / (2√(2 ln 2))` in samples, at least one tap either side), normalised to unit
+    /// sum (in f64), centred on the middle tap. The simulator's pulses and the target pulse of
+    /// [`target`](crate::signal::deconvolve::target) are this kernel. Allocates only when the
+    /// pulse needs more taps than the buffer holds.
+    pub fn set_gaussian(&mut self, fwhm_ns: f64, sample_ns: f64) -> Result<(), KernelError> {
+        if !(fwhm_ns.is_finite() && fwhm_ns > 0.0 && sample_ns.is_finite() && sample_ns > 0.0)
+            || fwhm_ns / sample_ns > 1000.0
+        {
+            return Err(KernelError::BadGaussian { fwhm_ns, sample_ns });
+        }
+        let sigma = fwhm_ns / sample_ns / (2.0 * (2.0 * std::f64::consts::LN_2).sqrt());
+        let half = (3.5 * sigma).ceil().max(1.0) as usize;
+        self.taps.clear();
+        self.taps.extend((0..=2 * half).map(|j| {
+            let x = j as f64 - half as f64;
+            (-0.5 * (x / sigma).powi(2)).exp() as f32
+        }));
+        let sum: f64 = self.taps.iter().map(|&v| v as f64).sum();
+        for v in self.taps.iter_mut() {
+            *v = (*v as f64 / sum) as f32;
+        }
+        self.center = half;
         Ok(())
     }
 

@@ -86,21 +86,8 @@ pub enum TruthError {
 /// A sampled Gaussian outgoing pulse of `fwhm_ns` FWHM at `sample_ns` sampling, ±3.5 standard
 /// deviations, unit sum, centred on its peak (so convolving with it does not shift anything).
 pub fn gaussian_pulse(fwhm_ns: f64, sample_ns: f64) -> Result<Kernel, TruthError> {
-    if !(fwhm_ns.is_finite() && fwhm_ns > 0.0 && sample_ns.is_finite() && sample_ns > 0.0)
-        || fwhm_ns / sample_ns > 1000.0
-    {
-        return Err(TruthError::BadPulse { fwhm_ns, sample_ns });
-    }
-    let sigma = fwhm_ns / sample_ns / (2.0 * (2.0 * std::f64::consts::LN_2).sqrt());
-    let half = (3.5 * sigma).ceil().max(1.0) as usize;
-    let raw: Vec<f32> = (0..=2 * half)
-        .map(|j| {
-            let x = j as f64 - half as f64;
-            (-0.5 * (x / sigma).powi(2)).exp() as f32
-        })
-        .collect();
-    let mut k = Kernel::with_capacity(raw.len());
-    k.set_from_taps(&raw, half, raw.len())
+    let mut k = Kernel::default();
+    k.set_gaussian(fwhm_ns, sample_ns)
         .map_err(|_| TruthError::BadPulse { fwhm_ns, sample_ns })?;
     Ok(k)
 }

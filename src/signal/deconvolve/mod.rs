@@ -12,6 +12,7 @@ pub mod nnls;
 pub mod response;
 pub mod richardson_lucy;
 pub mod stage;
+pub mod target;
 #[cfg(test)]
 mod tests;
 pub mod wiener;
@@ -27,6 +28,7 @@ pub use richardson_lucy::{RichardsonLucy, RlConfig};
 pub use stage::{
     Deconvolve, DeconvolveConfig, KERNEL_OVER_MAX_TAPS, KernelSource, LongKernel, WorstCase,
 };
+pub use target::{KernelReducer, Targeted};
 pub use wiener::{Wiener, WienerConfig};
 
 /// Why a segment could not be deconvolved (the stage drops the pulse with this reason).

@@ -57,7 +57,7 @@ use serde::{Deserialize, Serialize};
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::{Pulse, SegmentKind};
 use crate::signal::deconvolve::response::response_from_flat_target;
-use crate::signal::deconvolve::{Deconvolver, Gate, Gated, MethodConfig};
+use crate::signal::deconvolve::{Deconvolver, Gate, Gated, MethodConfig, Targeted};
 use crate::signal::kernel::{Kernel, RecordLevels};
 
 /// Where the stage's kernel (system response) comes from.
@@ -134,6 +134,12 @@ pub struct DeconvolveConfig {
     /// Kernel source. Default `"outgoing"`.
     #[serde(default)]
     pub kernel: KernelSource,
+    /// Deliver the result as seen by a Gaussian target pulse of this FWHM, ns (e.g. 2), instead
+    /// of as the cross-section itself ([`target`](crate::signal::deconvolve::target)):
+    /// Richardson-Lucy, Gold and Wiener deconvolve by the kernel that maps the target pulse to
+    /// the system pulse, NNLS draws its spikes as the target pulse. Default none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_fwhm_ns: Option<f64>,
     /// Longest segment accepted, samples; longer ones drop the pulse `segment_too_long`.
     /// Default 4096.
     #[serde(default = "default_max_samples")]
@@ -237,6 +243,7 @@ impl DeconvolveConfig {
             gate: None,
             method,
             kernel: KernelSource::default(),
+            target_fwhm_ns: None,
             max_samples: default_max_samples(),
             max_taps: default_max_taps(),
             missing_outgoing: MissingOutgoing::default(),
@@ -248,8 +255,8 @@ impl DeconvolveConfig {
 /// The deconvolve stage.
 pub struct Deconvolve {
     config: DeconvolveConfig,
-    /// The method behind the configured echo-window gate.
-    method: Gated,
+    /// The method behind the configured echo-window gate, to the target pulse if one is set.
+    method: Targeted,
     kernel: Kernel,
     /// Set when a configured calibrated kernel is unusable (reported as a fatal error).
     kernel_error: Option<String>,
@@ -264,9 +271,14 @@ impl Deconvolve {
     /// the first `process` call return a fatal error (configuration validation reports it
     /// before that).
     pub fn new(config: DeconvolveConfig) -> Self {
-        let method = Gated::build(
-            &config.method,
-            config.effective_gate(),
+        let method = Targeted::new(
+            Box::new(Gated::build(
+                &config.method,
+                config.effective_gate(),
+                config.max_samples,
+                config.max_taps,
+            )),
+            config.target_fwhm_ns,
             config.max_samples,
             config.max_taps,
         );
