@@ -343,7 +343,10 @@ mod tests {
         };
         let p = find(&y, &s);
         // 7: 0.05 above its saddle (29.95); 11: 9 above 12; 13: 1 above 15; 3: the highest.
-        assert_eq!(p.iter().map(|p| p.index).collect::<Vec<_>>(), vec![3, 11, 13]);
+        assert_eq!(
+            p.iter().map(|p| p.index).collect::<Vec<_>>(),
+            vec![3, 11, 13]
+        );
         let s = PeakSettings {
             min_prominence: 2.0,
             ..close
