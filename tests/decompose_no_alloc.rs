@@ -64,18 +64,27 @@ fn decomposer_fits_without_allocating() {
                 .collect()
         })
         .collect();
-    let mut d = Decomposer::new(DecomposeConfig::default(), 4096);
-    let mut out = Vec::with_capacity(8);
-    let before = ALLOCS.load(Ordering::SeqCst);
-    let mut found = 0;
-    for _ in 0..50 {
-        for y in &segments {
-            out.clear();
-            d.fit(y, 0.15, &mut out).unwrap();
-            found += out.len();
+    // The defaults, and the prominence test (its stack passes use the finder's buffers).
+    for config in [
+        DecomposeConfig::default(),
+        DecomposeConfig {
+            min_prominence_snr: 2.0,
+            ..DecomposeConfig::default()
+        },
+    ] {
+        let mut d = Decomposer::new(config, 4096);
+        let mut out = Vec::with_capacity(8);
+        let before = ALLOCS.load(Ordering::SeqCst);
+        let mut found = 0;
+        for _ in 0..50 {
+            for y in &segments {
+                out.clear();
+                d.fit(y, 0.15, &mut out).unwrap();
+                found += out.len();
+            }
         }
+        let allocations = ALLOCS.load(Ordering::SeqCst) - before;
+        assert_eq!(allocations, 0);
+        assert_eq!(found, 50 * 8 * 3);
     }
-    let allocations = ALLOCS.load(Ordering::SeqCst) - before;
-    assert_eq!(allocations, 0);
-    assert_eq!(found, 50 * 8 * 3);
 }

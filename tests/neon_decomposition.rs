@@ -18,6 +18,13 @@
 //! above 0.22 × the waveform's maximum as initial peaks, `nlsLM` without bounds, fits with a
 //! negative amplitude discarded (the 18 waveforms without a result). Its peaks below 22 % of the
 //! maximum are never fitted, so components we find there count as "extra" by construction.
+//!
+//! The asserted setting is the package's method in our terms: its selection rule
+//! (`min_relative_amplitude = 0.22`), a converged fit (`max_iterations = 200`), no residual
+//! refinement, and local maxima standing out of the noise (`min_prominence_snr = 2`: the
+//! 0.2 GHz low-pass leaves flat spots on the long NEON tails that are maxima a few hundredths
+//! of the noise high, which the package's 3-bin running mean does not have; each split an echo
+//! the package fits with one Gaussian).
 
 use fwlidar::pipeline::testing::run_stage;
 use fwlidar::pulse::{Pulse, SegmentKind};
@@ -202,14 +209,29 @@ fn neon_harv_decomposition_matches_the_reference() {
     assert_eq!(denoised.emitted.len(), 500);
     let denoised: Vec<Pulse> = denoised.emitted.into_iter().map(|p| *p).collect();
 
+    // The package's method in our terms (module documentation).
+    let package = DecomposeConfig {
+        min_relative_amplitude: 0.22,
+        min_prominence_snr: 2.0,
+        refine_passes: 0,
+        max_iterations: 200,
+        ..DecomposeConfig::default()
+    };
     // The defaults (only min_snr × noise) and the ablations that explain their difference
-    // from the reference (docs/accuracy.md), for the record; asserted: the reference's rule.
+    // from the reference (docs/accuracy.md), for the record; asserted: the package's method.
     for (name, config) in [
         ("defaults", DecomposeConfig::default()),
         (
             "defaults, no residual refinement",
             DecomposeConfig {
                 refine_passes: 0,
+                ..DecomposeConfig::default()
+            },
+        ),
+        (
+            "min_relative_amplitude 0.22",
+            DecomposeConfig {
+                min_relative_amplitude: 0.22,
                 ..DecomposeConfig::default()
             },
         ),
@@ -221,6 +243,21 @@ fn neon_harv_decomposition_matches_the_reference() {
                 ..DecomposeConfig::default()
             },
         ),
+        (
+            "0.22, min_prominence_snr 2",
+            DecomposeConfig {
+                min_relative_amplitude: 0.22,
+                min_prominence_snr: 2.0,
+                ..DecomposeConfig::default()
+            },
+        ),
+        (
+            "0.22, min_prominence_snr 2, no refinement",
+            DecomposeConfig {
+                max_iterations: 30,
+                ..package.clone()
+            },
+        ),
     ] {
         report(
             name,
@@ -228,30 +265,25 @@ fn neon_harv_decomposition_matches_the_reference() {
             reference.len(),
         );
     }
-    // The reference's selection rule (peaks above 22 % of the waveform maximum); with the
-    // defaults the residual refinement also splits the asymmetric tails of the NEON system
-    // response into extra Gaussians (docs/accuracy.md).
-    let c = compare(
-        &denoised,
-        &reference,
-        DecomposeConfig {
-            min_relative_amplitude: 0.22,
-            ..DecomposeConfig::default()
-        },
+    let c = compare(&denoised, &reference, package);
+    report(
+        "0.22, min_prominence_snr 2, no refinement, max_iterations 200",
+        &c,
+        reference.len(),
     );
-    report("min_relative_amplitude 0.22", &c, reference.len());
     let share = c.matched as f64 / reference.len() as f64;
     let extra_in_ref_waveforms = c.extra_in_ref_waveforms;
     let d_mu = c.d_mu;
-    // Measured on 2026-11-22: 634/713 matched (88.9 %), 74 extra components in the 482
-    // waveforms with a reference (751 in all 500); medians of ours − reference: μ −0.03 bin,
-    // σ −0.24 bin (our low-pass narrows nothing; the reference's 3-bin running mean widens its
-    // echoes), A ratio 0.996. The thresholds sit a little below/above the measurement so that
-    // small numerical changes (LM path, f32 rounding) pass while a real regression in detection
-    // or fitting (a few percent of the components) fails.
-    assert!(share >= 0.85, "matched share {share}");
+    // Measured on 2026-11-25: 654/713 matched (91.7 %), 54 extra components in the 482
+    // waveforms with a reference; before the prominence test and the converged fit (the
+    // relative threshold alone, refinement on) 632 (88.6 %) and 74. The target is 95 %;
+    // what is left is mostly the package's baseline (`min − 1`, a pedestal its Gaussians
+    // absorb) and its 3-bin running mean, not ours to copy (docs/accuracy.md). The thresholds
+    // sit between the two: a return to the old share or old extras fails, numerical noise
+    // (LM path, f32 rounding) passes.
+    assert!(share >= 0.90, "matched share {share}");
     assert!(
-        extra_in_ref_waveforms <= 100,
+        extra_in_ref_waveforms <= 62,
         "{extra_in_ref_waveforms} extra components"
     );
     let mean_mu = d_mu.iter().sum::<f64>() / d_mu.len() as f64;

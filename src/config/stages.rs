@@ -265,6 +265,14 @@ impl Validate for DecomposeConfig {
             ),
         );
         v.require(
+            self.min_prominence_snr.is_finite() && self.min_prominence_snr >= 0.0,
+            field(path, "min_prominence_snr"),
+            format!(
+                "must be a non-negative multiple of the noise level, got {}",
+                self.min_prominence_snr
+            ),
+        );
+        v.require(
             self.min_separation_bins >= 1,
             field(path, "min_separation_bins"),
             "must be at least 1 bin",
@@ -574,6 +582,7 @@ mod tests {
             max_components: 9,
             min_snr: f32::NAN,
             min_relative_amplitude: 1.5,
+            min_prominence_snr: -1.0,
             min_separation_bins: 0,
             sigma_min_bins: 0.0,
             sigma_max_bins: f32::INFINITY,
@@ -583,11 +592,12 @@ mod tests {
             max_samples: 8,
         };
         let issues = check_decompose(&bad);
-        assert_eq!(issues.len(), 9, "{issues:?}");
+        assert_eq!(issues.len(), 10, "{issues:?}");
         for (i, name) in [
             "max_components",
             "min_snr",
             "min_relative_amplitude",
+            "min_prominence_snr",
             "min_separation_bins",
             "sigma_min_bins",
             "sigma_max_bins",

@@ -8,15 +8,17 @@
 //! 1. **Detection** ([`crate::signal::peaks`]): local maxima (sign change of the first
 //!    difference) at least [`DecomposeConfig::min_snr`] × `noise_v` (and, optionally,
 //!    [`DecomposeConfig::min_relative_amplitude`] × the segment's maximum) high and
-//!    [`DecomposeConfig::min_separation_bins`] apart, the highest
+//!    [`DecomposeConfig::min_separation_bins`] apart (optionally standing out of their
+//!    surroundings by [`DecomposeConfig::min_prominence_snr`] × `noise_v`), the highest
 //!    [`DecomposeConfig::max_components`] kept; optionally shoulders (second-difference minima).
 //! 2. **Initial guesses**: amplitude = the sample value at the peak, μ = the peak's bin,
 //!    σ = half width at half maximum / √(2 ln 2) (the narrower side, each side walked until the
 //!    signal drops below half the peak or starts rising again towards a neighbour), clamped to
 //!    [`DecomposeConfig::sigma_min_bins`, `sigma_max_bins`].
 //! 3. **Fit** ([`crate::signal::gauss_fit`]): A ≥ 0, μ within the segment, σ within the bounds.
-//! 4. **Pruning**: components whose fitted amplitude is below the detection threshold
-//!    (`min_snr × noise_v`) are negligible and dropped.
+//! 4. **Pruning**: components whose fitted amplitude is below `min_snr × noise_v` are
+//!    negligible and dropped (the relative threshold, a rule for where components start, does
+//!    not prune: a fitted component below it is still significant above the noise).
 //! 5. **Residual refinement** (at most [`DecomposeConfig::refine_passes`] rounds): where the
 //!    residual `y − model` peaks above the detection threshold a component is added there (two
 //!    echoes closer than about 2σ merge into one maximum, which a local-maximum detector cannot
@@ -70,11 +72,21 @@ pub struct DecomposeConfig {
     /// in ~99.5 % (`docs/signal.md`).
     #[serde(default = "default_min_snr")]
     pub min_snr: f32,
-    /// Detection threshold as a fraction of the segment's largest sample (0..1): peaks,
-    /// residual peaks and fitted amplitudes must also reach `min_relative_amplitude × max(y)`.
-    /// 0 (default) disables it; the waveformlidar R package's `decom` uses 0.22.
+    /// Detection threshold as a fraction of the segment's largest sample (0..1): peaks and
+    /// residual peaks must also reach `min_relative_amplitude × max(y)`. It selects where
+    /// components start; fitted amplitudes are pruned by `min_snr` alone (as the package keeps
+    /// every component it fitted). 0 (default) disables it; the waveformlidar R package's
+    /// `decom` uses 0.22.
     #[serde(default)]
     pub min_relative_amplitude: f32,
+    /// Smallest topographic prominence of a detected peak, as a multiple of `noise_v`: a local
+    /// maximum must rise at least this far above the higher of its two saddles (the lowest
+    /// sample between it and the nearest higher sample on each side, or the segment's edge).
+    /// Low-pass ripples on a long flank (a few hundredths of the noise level) are local maxima
+    /// but no echo; each one otherwise seeds a component that splits the echo. 0 (default)
+    /// disables the test. Residual peaks of the refinement are not tested.
+    #[serde(default)]
+    pub min_prominence_snr: f32,
     /// Smallest distance between two detected peaks, bins. Default 3.
     #[serde(default = "default_min_separation_bins")]
     pub min_separation_bins: usize,
@@ -131,6 +143,7 @@ impl Default for DecomposeConfig {
             max_components: default_max_components(),
             min_snr: default_min_snr(),
             min_relative_amplitude: 0.0,
+            min_prominence_snr: 0.0,
             min_separation_bins: default_min_separation_bins(),
             sigma_min_bins: default_sigma_min_bins(),
             sigma_max_bins: default_sigma_max_bins(),
@@ -202,6 +215,9 @@ impl Decomposer {
         if !(config.min_relative_amplitude.is_finite() && config.min_relative_amplitude >= 0.0) {
             config.min_relative_amplitude = 0.0;
         }
+        if !(config.min_prominence_snr.is_finite() && config.min_prominence_snr >= 0.0) {
+            config.min_prominence_snr = 0.0;
+        }
         Decomposer {
             config,
             max_samples,
@@ -256,7 +272,10 @@ impl Decomposer {
             return Err(DecomposeError::NonFiniteInput);
         }
         let cfg = &self.config;
-        let threshold = (cfg.min_snr * noise_v.max(0.0))
+        // Fitted components are significant above the noise (`min_snr`); the relative threshold
+        // only selects where components start (peaks and residual peaks).
+        let significant = (cfg.min_snr * noise_v.max(0.0)).max(f32::MIN_POSITIVE);
+        let threshold = significant
             .max(cfg.min_relative_amplitude * y_max)
             .max(f32::MIN_POSITIVE);
         // Empty pulse: no sample reaches the threshold, so neither a peak nor a residual peak
@@ -278,6 +297,7 @@ impl Decomposer {
             max_peaks: cfg.max_components,
             shoulders: cfg.shoulders,
             shoulder_curvature: threshold / 4.0,
+            min_prominence: cfg.min_prominence_snr * noise_v.max(0.0),
         };
         self.finder.find(y, &settings, &mut self.peaks);
         stats.peaks = self.peaks.len() as u32;
@@ -308,7 +328,7 @@ impl Decomposer {
                 .fitter
                 .fit(y, &mut comps[..k], &bounds, first_budget)
                 .iterations;
-            k = prune(&mut comps, k, threshold as f64, &mut pruned);
+            k = prune(&mut comps, k, significant as f64, &mut pruned);
         }
 
         for _ in 0..cfg.refine_passes {
@@ -365,7 +385,7 @@ impl Decomposer {
                 .fitter
                 .fit(y, &mut comps[..k], &bounds, budget - used)
                 .iterations;
-            k = prune(&mut comps, k, threshold as f64, &mut pruned);
+            k = prune(&mut comps, k, significant as f64, &mut pruned);
             if k <= k_before {
                 comps = before;
                 k = k_before;

@@ -7,8 +7,15 @@
 //! signal. A flat top (a plateau of equal samples between a rise and a fall) counts as one
 //! maximum at its middle. The first and last samples are never maxima (no sign change there).
 //!
-//! Work is linear in the segment length plus a sort of the candidates; the candidate buffer of
-//! [`PeakFinder`] is sized once, so detection does not allocate.
+//! Optionally a maximum must also have a topographic *prominence* of at least
+//! [`PeakSettings::min_prominence`]: its height above the higher of the two lowest points
+//! between it and the nearest higher sample on each side (or the segment's edge). A low-pass
+//! filter leaves ripples of a fraction of the noise level on long flanks (a flat spot on the
+//! tail of a wide echo becomes a maximum 0.05 units high); they are local maxima, but no echo.
+//!
+//! Work is linear in the segment length plus a sort of the candidates (prominence: two more
+//! linear passes with a stack); the buffers of [`PeakFinder`] are sized once, so detection does
+//! not allocate.
 
 /// One detected peak.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -37,11 +44,21 @@ pub struct PeakSettings {
     pub shoulders: bool,
     /// Smallest `−Δ²y` of a shoulder, signal units per bin².
     pub shoulder_curvature: f32,
+    /// Smallest topographic prominence of a local maximum, signal units (0: no test). The
+    /// prominence is the height of the maximum above the higher of its two *saddles*: on each
+    /// side, the lowest sample between it and the nearest strictly higher sample (or the
+    /// segment's edge when there is none).
+    pub min_prominence: f32,
 }
 
 /// Finds peaks; holds the candidate buffer.
 pub struct PeakFinder {
     candidates: Vec<Peak>,
+    /// Left saddle of each candidate (prominence test), signal units.
+    saddles: Vec<f32>,
+    /// Monotone stack of the prominence passes: (sample value, lowest sample between the entry
+    /// below and this one).
+    stack: Vec<(f32, f32)>,
 }
 
 impl PeakFinder {
@@ -49,6 +66,8 @@ impl PeakFinder {
     pub fn new(max_samples: usize) -> Self {
         PeakFinder {
             candidates: Vec::with_capacity(max_samples / 2 + 2),
+            saddles: Vec::with_capacity(max_samples / 2 + 2),
+            stack: Vec::with_capacity(max_samples),
         }
     }
 
@@ -89,6 +108,9 @@ impl PeakFinder {
                 continue;
             }
             i += 1;
+        }
+        if settings.min_prominence > 0.0 && !self.candidates.is_empty() {
+            self.keep_prominent(y, settings.min_prominence);
         }
         select(&mut self.candidates, settings, out);
         if !settings.shoulders || out.len() >= settings.max_peaks || n < 5 {
@@ -140,6 +162,67 @@ impl PeakFinder {
     }
 }
 
+impl PeakFinder {
+    /// Drops the candidates (sorted by index) whose topographic prominence in `y` is below
+    /// `min_prominence`. Two passes (left to right for the left saddles, right to left for the
+    /// right ones), each keeping a stack of strictly decreasing samples with the lowest sample
+    /// between neighbouring entries: popping the entries not higher than the current sample
+    /// leaves the nearest higher one on top, with the lowest sample in between. Linear in `n`.
+    fn keep_prominent(&mut self, y: &[f32], min_prominence: f32) {
+        let n = y.len();
+        self.saddles.clear();
+        // The stack can hold every sample; segments longer than the finder was built for only
+        // happen on misuse, where growing it once is acceptable.
+        self.stack.clear();
+        self.stack.reserve(n);
+        let mut c = 0;
+        for (i, &v) in y.iter().enumerate() {
+            let low = Self::push(&mut self.stack, v);
+            if c < self.candidates.len() && self.candidates[c].index == i {
+                self.saddles.push(low);
+                c += 1;
+            }
+        }
+        self.stack.clear();
+        let mut c = self.candidates.len();
+        for (i, &v) in y.iter().enumerate().rev() {
+            let low = Self::push(&mut self.stack, v);
+            if c > 0 && self.candidates[c - 1].index == i {
+                c -= 1;
+                // The higher of the two saddles.
+                self.saddles[c] = self.saddles[c].max(low);
+            }
+        }
+        let mut kept = 0;
+        for c in 0..self.candidates.len() {
+            let p = self.candidates[c];
+            if y[p.index] - self.saddles[c] >= min_prominence {
+                self.candidates[kept] = p;
+                kept += 1;
+            }
+        }
+        self.candidates.truncate(kept);
+    }
+
+    /// One step of a prominence pass: pops the entries not higher than `v`, pushes `v`, and
+    /// returns the lowest sample between `v` and the nearest higher one already passed (or all
+    /// passed samples when none is higher; +∞ when there are none). Each entry holds its value
+    /// and the lowest sample between the entry below it (or the start) and itself, so the
+    /// popped entries together cover exactly the samples since the nearest higher one.
+    fn push(stack: &mut Vec<(f32, f32)>, v: f32) -> f32 {
+        let mut low = f32::INFINITY;
+        while let Some(&(top, before)) = stack.last() {
+            if top > v {
+                break;
+            }
+            low = low.min(top).min(before);
+            stack.pop();
+        }
+        stack.push((v, low));
+        low
+    }
+}
+
 /// Keeps the highest candidates at least the minimum separation apart, sorted by position.
 fn select(candidates: &mut [Peak], settings: &PeakSettings, out: &mut Vec<Peak>) {
     candidates.sort_unstable_by(|a, b| b.amplitude.total_cmp(&a.amplitude));
@@ -168,6 +251,7 @@ mod tests {
             max_peaks: 8,
             shoulders: false,
             shoulder_curvature: 0.0,
+            min_prominence: 0.0,
         }
     }
 
@@ -216,5 +300,100 @@ mod tests {
         let p = find(&y, &s);
         assert_eq!(p.len(), 2, "{p:?}");
         assert!(p[1].shoulder && p[1].index.abs_diff(46) <= 1, "{p:?}");
+    }
+
+    /// Topographic prominence by its definition (a walk to the nearest higher sample on each
+    /// side), for checking the linear passes.
+    fn prominence_by_walking(y: &[f32], i: usize) -> f32 {
+        let side = |step: isize| {
+            let mut j = i as isize;
+            let mut low = f32::INFINITY;
+            while j + step >= 0 && ((j + step) as usize) < y.len() {
+                j += step;
+                if y[j as usize] > y[i] {
+                    break;
+                }
+                low = low.min(y[j as usize]);
+            }
+            low
+        };
+        y[i] - side(-1).max(side(1))
+    }
+
+    #[test]
+    fn prominence_drops_flank_ripples_and_keeps_echoes() {
+        // A wide echo with a flat spot on its tail (a ripple 0.05 high), a second echo behind a
+        // real valley, and a small bump on the far side of the big one.
+        let y = [
+            0.0, 10.0, 30.0, 50.0, 40.0, 30.0, 29.95, 30.0, 25.0, 12.0, 20.0, 21.0, 15.0, 16.0,
+            4.0, 0.0,
+        ];
+        let close = PeakSettings {
+            min_separation_bins: 1,
+            ..settings(1.0)
+        };
+        let all = find(&y, &close);
+        assert_eq!(
+            all.iter().map(|p| p.index).collect::<Vec<_>>(),
+            vec![3, 7, 11, 13]
+        );
+        let s = PeakSettings {
+            min_prominence: 0.5,
+            ..close
+        };
+        let p = find(&y, &s);
+        // 7: 0.05 above its saddle (29.95); 11: 9 above 12; 13: 1 above 15; 3: the highest.
+        assert_eq!(
+            p.iter().map(|p| p.index).collect::<Vec<_>>(),
+            vec![3, 11, 13]
+        );
+        let s = PeakSettings {
+            min_prominence: 2.0,
+            ..close
+        };
+        assert_eq!(
+            find(&y, &s).iter().map(|p| p.index).collect::<Vec<_>>(),
+            vec![3, 11]
+        );
+        // The linear passes agree with the definition on a noisy signal with plateaus.
+        let mut state = 12345u32;
+        let y: Vec<f32> = (0..400)
+            .map(|i| {
+                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                let noise = ((state >> 24) % 4) as f32;
+                50.0 * (-((i as f32 - 120.0) / 30.0).powi(2)).exp()
+                    + 30.0 * (-((i as f32 - 260.0) / 12.0).powi(2)).exp()
+                    + noise
+            })
+            .collect();
+        let candidates = find(
+            &y,
+            &PeakSettings {
+                min_separation_bins: 1,
+                max_peaks: 400,
+                ..settings(0.0)
+            },
+        );
+        assert!(candidates.len() > 50);
+        for limit in [0.5, 1.0, 2.0, 3.5, 20.0] {
+            let kept: Vec<usize> = find(
+                &y,
+                &PeakSettings {
+                    min_separation_bins: 1,
+                    max_peaks: 400,
+                    min_prominence: limit,
+                    ..settings(0.0)
+                },
+            )
+            .iter()
+            .map(|p| p.index)
+            .collect();
+            let expected: Vec<usize> = candidates
+                .iter()
+                .map(|p| p.index)
+                .filter(|&i| prominence_by_walking(&y, i) >= limit)
+                .collect();
+            assert_eq!(kept, expected, "limit {limit}");
+        }
     }
 }
