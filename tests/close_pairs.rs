@@ -62,7 +62,12 @@ fn rl_200_beats_raw_on_close_pairs_as_scikit_image_does() {
     assert_eq!(code, 0, "{out}\n{err}");
     assert_eq!(out.matches(": ok").count(), 7, "{out}");
     // The table holds every row asked for.
-    for row in ["| raw |", "| skimage-rl200 |", "| rl200 |", "| rl200-no-denoise |"] {
+    for row in [
+        "| raw |",
+        "| skimage-rl200 |",
+        "| rl200 |",
+        "| rl200-no-denoise |",
+    ] {
         assert!(out.contains(row), "{row} missing: {out}");
     }
     // The inputs given to `fwlidar process` are there for a reader to rerun.
@@ -90,7 +95,13 @@ fn a_missed_target_fails_the_script() {
     // A row that was not run is a usage error, not a pass.
     let (code, _, err) = close_pairs(
         dir.path(),
-        &["--no-skimage", "--run", "none=--method none", "--expect", "rl rmse < 1"],
+        &[
+            "--no-skimage",
+            "--run",
+            "none=--method none",
+            "--expect",
+            "rl rmse < 1",
+        ],
     );
     assert_eq!(code, 2, "{err}");
 }

@@ -117,6 +117,7 @@ pub fn default_settings() -> Vec<Setting> {
                 iterations: it,
                 early_stop: None,
                 accelerate: false,
+                stop_at_noise: None,
             })),
         });
     }
@@ -128,6 +129,7 @@ pub fn default_settings() -> Vec<Setting> {
                 iterations: it,
                 early_stop: None,
                 accelerate: true,
+                stop_at_noise: None,
             })),
         });
     }

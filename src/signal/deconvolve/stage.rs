@@ -788,6 +788,7 @@ mod tests {
             iterations: 200,
             repetitions: 1,
             boost: 1.0,
+            stop_at_noise: None,
         });
         let t = 90usize;
         let mut p = Pulse::default();
@@ -836,6 +837,7 @@ mod tests {
                 iterations: 200,
                 repetitions: 1,
                 boost: 1.0,
+                stop_at_noise: None,
             },
         )));
         let mut q = Pulse::default();
@@ -904,7 +906,8 @@ mod tests {
             MethodConfig::Gold(GoldConfig {
                 iterations: 10,
                 repetitions: 3,
-                boost: 1.5
+                boost: 1.5,
+                stop_at_noise: None,
             })
         );
         assert_eq!(
@@ -923,6 +926,7 @@ mod tests {
                 iterations: 7,
                 early_stop: Some(1e-3),
                 accelerate: false,
+                stop_at_noise: Some(1.0),
             },
         )));
         for c in all {
