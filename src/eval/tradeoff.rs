@@ -91,6 +91,14 @@ pub const ACCELERATED_ITERATIONS: [u32; 3] = [5, 8, 12];
 pub const WIENER_NOISE_SCALES: [f32; 5] = [0.1, 1.0, 10.0, 100.0, 1000.0];
 /// NNLS outer-iteration caps of the sweep.
 pub const NNLS_CAPS: [u32; 4] = [10, 25, 50, 100];
+/// Noise multiples `τ` of the stop by the noise (`stop_at_noise`), swept for RL and Gold with
+/// a cap of [`STOP_AT_NOISE_CAP`] iterations and for accelerated RL with
+/// [`STOP_AT_NOISE_ACCELERATED_CAP`].
+pub const STOP_AT_NOISE_TAUS: [f32; 3] = [1.0, 1.5, 2.0];
+/// Iteration cap of RL and Gold with the stop by the noise (the largest budget of the sweep).
+pub const STOP_AT_NOISE_CAP: u32 = 200;
+/// Iteration cap of accelerated RL with the stop by the noise.
+pub const STOP_AT_NOISE_ACCELERATED_CAP: u32 = 50;
 
 /// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], accelerated RL at
 /// [`ACCELERATED_ITERATIONS`], Wiener at
@@ -150,6 +158,32 @@ pub fn default_settings() -> Vec<Setting> {
             processing: Processing::Deconvolve(MethodConfig::Wiener(WienerConfig {
                 noise_scale: ns,
                 ..WienerConfig::default()
+            })),
+        });
+    }
+    for tau in STOP_AT_NOISE_TAUS {
+        for (method, accelerate, cap) in [
+            ("rl", false, STOP_AT_NOISE_CAP),
+            ("rl_acc", true, STOP_AT_NOISE_ACCELERATED_CAP),
+        ] {
+            s.push(Setting {
+                method,
+                parameter: format!("iterations={cap} stop_at_noise={tau}"),
+                processing: Processing::Deconvolve(MethodConfig::RichardsonLucy(RlConfig {
+                    iterations: cap,
+                    early_stop: None,
+                    accelerate,
+                    stop_at_noise: Some(tau),
+                })),
+            });
+        }
+        s.push(Setting {
+            method: "gold",
+            parameter: format!("iterations={STOP_AT_NOISE_CAP} stop_at_noise={tau}"),
+            processing: Processing::Deconvolve(MethodConfig::Gold(GoldConfig {
+                iterations: STOP_AT_NOISE_CAP,
+                stop_at_noise: Some(tau),
+                ..GoldConfig::default()
             })),
         });
     }

@@ -592,7 +592,8 @@ fn stop_at_noise_stops_sooner_on_noisier_segments_and_for_larger_tau() {
     let (clean, k, clean_rms) = echoes_with_noise(0.005, 5);
     let (noisy, _, noisy_rms) = echoes_with_noise(0.02, 5);
     let mut out = vec![0.0; 256];
-    let mut runs: Vec<(&str, Box<dyn Fn(f32) -> Box<dyn Deconvolver>>)> = vec![
+    type Make = Box<dyn Fn(f32) -> Box<dyn Deconvolver>>;
+    let mut runs: Vec<(&str, Make)> = vec![
         ("rl", Box::new(|t| Box::new(rl_with(2000, Some(t), false)))),
         (
             "rl_acc",
