@@ -58,9 +58,32 @@ fn bench(c: &mut Criterion) {
             "richardson_lucy_20",
             Box::new(RichardsonLucy::new(RlConfig::default(), 4096, 256)),
         ),
+        // The stop by the noise at a τ that never triggers: the residual's cost per iteration.
+        (
+            "richardson_lucy_20_stop_at_noise_inert",
+            Box::new(RichardsonLucy::new(
+                RlConfig {
+                    stop_at_noise: Some(1e-6),
+                    ..RlConfig::default()
+                },
+                4096,
+                256,
+            )),
+        ),
         (
             "gold_20",
             Box::new(Gold::new(GoldConfig::default(), 4096, 256)),
+        ),
+        (
+            "gold_20_stop_at_noise_inert",
+            Box::new(Gold::new(
+                GoldConfig {
+                    stop_at_noise: Some(1e-6),
+                    ..GoldConfig::default()
+                },
+                4096,
+                256,
+            )),
         ),
         (
             "wiener_fused_same_kernel",

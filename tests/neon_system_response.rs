@@ -52,6 +52,7 @@ fn gold() -> MethodConfig {
         iterations: 30,
         repetitions: 2,
         boost: 1.8,
+        stop_at_noise: None,
     })
 }
 

@@ -125,6 +125,7 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
                         iterations: 2,
                         early_stop: None,
                         accelerate: false,
+                        stop_at_noise: None,
                     }))
                 })),
             ]

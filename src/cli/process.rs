@@ -104,6 +104,11 @@ pub struct ProcessArgs {
     /// `--response` and `--kernel` it applies to the last step (the kernel).
     #[arg(long)]
     pub target_fwhm_ns: Option<f64>,
+    /// Richardson-Lucy and Gold: stop by the noise (discrepancy principle) once the residual
+    /// RMS is at most this multiple of the row's noise level (dimensionless, > 0); the
+    /// iterations stay the cap. See `stop_at_noise` in docs/signal.md.
+    #[arg(long)]
+    pub stop_at_noise: Option<f32>,
     /// Sample interval, ns.
     #[arg(long, default_value_t = 1.0)]
     pub sample_ns: f64,
@@ -362,6 +367,11 @@ fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
     if args.response_outgoing.is_some() && args.response.is_none() {
         return Err(Failure::usage("--response-outgoing needs --response"));
     }
+    if args.method == ProcessMethod::None && args.stop_at_noise.is_some() {
+        return Err(Failure::usage(
+            "--stop-at-noise has no meaning with --method none",
+        ));
+    }
     if args.method == ProcessMethod::None && args.iterations.is_some() {
         return Err(Failure::usage(
             "--iterations has no meaning with --method none",
@@ -392,12 +402,20 @@ fn method_config(args: &ProcessArgs) -> Result<Option<MethodConfig>, Failure> {
     if let Some(n) = args.iterations {
         value["iterations"] = serde_json::json!(n);
     }
+    if let Some(tau) = args.stop_at_noise {
+        if !(tau.is_finite() && tau > 0.0) {
+            return Err(Failure::usage(format!(
+                "--stop-at-noise must be a positive number of noise levels, got {tau}"
+            )));
+        }
+        value["stop_at_noise"] = serde_json::json!(tau);
+    }
     serde_json::from_value::<MethodConfig>(value)
         .map(Some)
         .map_err(|e| {
-            if args.iterations.is_some() {
+            if args.iterations.is_some() || args.stop_at_noise.is_some() {
                 Failure::usage(format!(
-                    "--iterations is not accepted by method {name} in this build: {e}"
+                    "--iterations or --stop-at-noise is not accepted by method {name}: {e}"
                 ))
             } else {
                 Failure::usage(format!("method {name}: {e}"))
@@ -671,6 +689,7 @@ mod tests {
             response_outgoing: None,
             method: ProcessMethod::Rl,
             iterations: None,
+            stop_at_noise: None,
             sample_ns: 1.0,
             target_fwhm_ns: None,
             cutoff_ghz: 0.2,
@@ -724,6 +743,7 @@ mod tests {
             response_outgoing: a.response_outgoing.clone(),
             method: a.method,
             iterations: a.iterations,
+            stop_at_noise: a.stop_at_noise,
             sample_ns: a.sample_ns,
             target_fwhm_ns: a.target_fwhm_ns,
             cutoff_ghz: a.cutoff_ghz,

@@ -148,11 +148,17 @@ impl Validate for DeconvolveConfig {
                 if let Some(tol) = c.early_stop {
                     v.positive(tol as f64, field(&method, "early_stop"));
                 }
+                if let Some(tau) = c.stop_at_noise {
+                    v.positive(tau as f64, field(&method, "stop_at_noise"));
+                }
             }
             MethodConfig::Gold(c) => {
                 check_iterations(c.iterations, field(&method, "iterations"), v);
                 check_iterations(c.repetitions, field(&method, "repetitions"), v);
                 v.positive(c.boost as f64, field(&method, "boost"));
+                if let Some(tau) = c.stop_at_noise {
+                    v.positive(tau as f64, field(&method, "stop_at_noise"));
+                }
             }
             MethodConfig::Wiener(c) => {
                 check_cutoff(c.cutoff_ghz, field(&method, "cutoff_ghz"), v);
@@ -431,17 +437,19 @@ mod tests {
             iterations: 0,
             early_stop: Some(-1.0),
             accelerate: false,
+            stop_at_noise: Some(f32::NAN),
         }));
         Validate::validate(&bad, "s", &mut v);
-        assert_eq!(v.issues().len(), 2);
+        assert_eq!(v.issues().len(), 3);
         let mut v = Validator::new(None);
         let bad = DeconvolveConfig::with_method(MethodConfig::Gold(GoldConfig {
             iterations: 1,
             repetitions: 0,
             boost: f32::INFINITY,
+            stop_at_noise: Some(0.0),
         }));
         Validate::validate(&bad, "s", &mut v);
-        assert_eq!(v.issues().len(), 2);
+        assert_eq!(v.issues().len(), 3);
         let mut v = Validator::new(None);
         Validate::validate(
             &DeconvolveConfig::with_method(MethodConfig::Wiener(WienerConfig::default())),

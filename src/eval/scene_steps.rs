@@ -205,6 +205,7 @@ pub fn run_scene_steps(
                 iterations: 20,
                 early_stop: None,
                 accelerate: false,
+                stop_at_noise: None,
             })),
         ),
         (

@@ -102,120 +102,136 @@ pub const TARGET_ITERATIONS: [u32; 4] = [5, 10, 20, 50];
 pub const TARGET_WIENER_NOISE_SCALES: [f32; 3] = [1.0, 10.0, 100.0];
 /// NNLS caps of the sweep's synthesis with the 2 ns pulse (`nnls_2ns`).
 pub const TARGET_NNLS_CAPS: [u32; 2] = [25, 50];
+/// Noise multiples `τ` of the stop by the noise (`stop_at_noise`), swept for RL and Gold with
+/// a cap of [`STOP_AT_NOISE_CAP`] iterations and for accelerated RL with
+/// [`STOP_AT_NOISE_ACCELERATED_CAP`].
+pub const STOP_AT_NOISE_TAUS: [f32; 3] = [1.0, 1.5, 2.0];
+/// Iteration cap of RL and Gold with the stop by the noise (the largest budget of the sweep).
+pub const STOP_AT_NOISE_CAP: u32 = 200;
+/// Iteration cap of accelerated RL with the stop by the noise.
+pub const STOP_AT_NOISE_ACCELERATED_CAP: u32 = 50;
 
 /// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], accelerated RL at
-/// [`ACCELERATED_ITERATIONS`], Wiener at
-/// [`WIENER_NOISE_SCALES`] (cut-off 0.2 GHz, regularisation 1e-3), NNLS at [`NNLS_CAPS`]
-/// (tolerance: the default, 1e-6), then the same methods delivering their result as seen by the
-/// truth's 2 ns pulse (`target_fwhm_ns = 2`): RL at [`TARGET_ITERATIONS`] (`rl_2ns`), Wiener at
-/// [`TARGET_WIENER_NOISE_SCALES`] (`wiener_2ns`), NNLS at [`TARGET_NNLS_CAPS`] (`nnls_2ns`).
-/// Other parameters at their defaults.
+/// [`ACCELERATED_ITERATIONS`], Wiener at [`WIENER_NOISE_SCALES`] (cut-off 0.2 GHz,
+/// regularisation 1e-3), RL, accelerated RL and Gold stopped by the noise at
+/// [`STOP_AT_NOISE_TAUS`], NNLS at [`NNLS_CAPS`] (tolerance: the default, 1e-6), then the same
+/// methods delivering their result as seen by the truth's 2 ns pulse (`target_fwhm_ns = 2`): RL
+/// at [`TARGET_ITERATIONS`] (`rl_2ns`), Wiener at [`TARGET_WIENER_NOISE_SCALES`]
+/// (`wiener_2ns`), NNLS at [`TARGET_NNLS_CAPS`] (`nnls_2ns`). Other parameters at their
+/// defaults.
 pub fn default_settings() -> Vec<Setting> {
+    let plain = |method: &'static str, processing: Processing| Setting {
+        method,
+        parameter: String::new(),
+        processing,
+        target_fwhm_ns: None,
+    };
+    let deconvolve = |method: &'static str, parameter: String, config: MethodConfig| Setting {
+        method,
+        parameter,
+        processing: Processing::Deconvolve(config),
+        target_fwhm_ns: method.ends_with("_2ns").then_some(TRUTH_FWHM_NS),
+    };
+    let rl = |iterations: u32, accelerate: bool, stop_at_noise: Option<f32>| {
+        MethodConfig::RichardsonLucy(RlConfig {
+            iterations,
+            early_stop: None,
+            accelerate,
+            stop_at_noise,
+        })
+    };
+    let gold = |iterations: u32, stop_at_noise: Option<f32>| {
+        MethodConfig::Gold(GoldConfig {
+            iterations,
+            stop_at_noise,
+            ..GoldConfig::default()
+        })
+    };
+    let wiener = |noise_scale: f32| {
+        MethodConfig::Wiener(WienerConfig {
+            noise_scale,
+            ..WienerConfig::default()
+        })
+    };
+    let nnls = |max_iterations: u32| {
+        MethodConfig::Nnls(NnlsConfig {
+            max_iterations,
+            ..NnlsConfig::default()
+        })
+    };
     let mut s = vec![
-        Setting {
-            method: "raw",
-            parameter: String::new(),
-            processing: Processing::Raw,
-            target_fwhm_ns: None,
-        },
-        Setting {
-            method: "denoise",
-            parameter: String::new(),
-            processing: Processing::Denoise,
-            target_fwhm_ns: None,
-        },
+        plain("raw", Processing::Raw),
+        plain("denoise", Processing::Denoise),
     ];
     for it in ITERATIONS {
-        s.push(Setting {
-            method: "rl",
-            parameter: format!("iterations={it}"),
-            processing: Processing::Deconvolve(MethodConfig::RichardsonLucy(RlConfig {
-                iterations: it,
-                early_stop: None,
-                accelerate: false,
-            })),
-            target_fwhm_ns: None,
-        });
+        s.push(deconvolve(
+            "rl",
+            format!("iterations={it}"),
+            rl(it, false, None),
+        ));
     }
     for it in ACCELERATED_ITERATIONS {
-        s.push(Setting {
-            method: "rl_acc",
-            parameter: format!("iterations={it}"),
-            processing: Processing::Deconvolve(MethodConfig::RichardsonLucy(RlConfig {
-                iterations: it,
-                early_stop: None,
-                accelerate: true,
-            })),
-            target_fwhm_ns: None,
-        });
+        s.push(deconvolve(
+            "rl_acc",
+            format!("iterations={it}"),
+            rl(it, true, None),
+        ));
     }
     for it in ITERATIONS {
-        s.push(Setting {
-            method: "gold",
-            parameter: format!("iterations={it}"),
-            processing: Processing::Deconvolve(MethodConfig::Gold(GoldConfig {
-                iterations: it,
-                ..GoldConfig::default()
-            })),
-            target_fwhm_ns: None,
-        });
+        s.push(deconvolve(
+            "gold",
+            format!("iterations={it}"),
+            gold(it, None),
+        ));
     }
     for ns in WIENER_NOISE_SCALES {
-        s.push(Setting {
-            method: "wiener",
-            parameter: format!("noise_scale={ns}"),
-            processing: Processing::Deconvolve(MethodConfig::Wiener(WienerConfig {
-                noise_scale: ns,
-                ..WienerConfig::default()
-            })),
-            target_fwhm_ns: None,
-        });
+        s.push(deconvolve(
+            "wiener",
+            format!("noise_scale={ns}"),
+            wiener(ns),
+        ));
+    }
+    for tau in STOP_AT_NOISE_TAUS {
+        let stop = Some(tau);
+        for (method, accelerate, cap) in [
+            ("rl", false, STOP_AT_NOISE_CAP),
+            ("rl_acc", true, STOP_AT_NOISE_ACCELERATED_CAP),
+        ] {
+            let parameter = format!("iterations={cap} stop_at_noise={tau}");
+            s.push(deconvolve(method, parameter, rl(cap, accelerate, stop)));
+        }
+        let parameter = format!("iterations={STOP_AT_NOISE_CAP} stop_at_noise={tau}");
+        s.push(deconvolve("gold", parameter, gold(STOP_AT_NOISE_CAP, stop)));
     }
     for cap in NNLS_CAPS {
-        s.push(Setting {
-            method: "nnls",
-            parameter: format!("max_iterations={cap}"),
-            processing: Processing::Deconvolve(MethodConfig::Nnls(NnlsConfig {
-                max_iterations: cap,
-                ..NnlsConfig::default()
-            })),
-            target_fwhm_ns: None,
-        });
+        s.push(deconvolve(
+            "nnls",
+            format!("max_iterations={cap}"),
+            nnls(cap),
+        ));
     }
     // Deconvolution to the truth's own pulse (2 ns): the reduced kernel for RL and Wiener,
     // synthesis with the target for NNLS.
     for it in TARGET_ITERATIONS {
-        s.push(Setting {
-            method: "rl_2ns",
-            parameter: format!("iterations={it}"),
-            processing: Processing::Deconvolve(MethodConfig::RichardsonLucy(RlConfig {
-                iterations: it,
-                ..RlConfig::default()
-            })),
-            target_fwhm_ns: Some(TRUTH_FWHM_NS),
-        });
+        s.push(deconvolve(
+            "rl_2ns",
+            format!("iterations={it}"),
+            rl(it, false, None),
+        ));
     }
     for ns in TARGET_WIENER_NOISE_SCALES {
-        s.push(Setting {
-            method: "wiener_2ns",
-            parameter: format!("noise_scale={ns}"),
-            processing: Processing::Deconvolve(MethodConfig::Wiener(WienerConfig {
-                noise_scale: ns,
-                ..WienerConfig::default()
-            })),
-            target_fwhm_ns: Some(TRUTH_FWHM_NS),
-        });
+        s.push(deconvolve(
+            "wiener_2ns",
+            format!("noise_scale={ns}"),
+            wiener(ns),
+        ));
     }
     for cap in TARGET_NNLS_CAPS {
-        s.push(Setting {
-            method: "nnls_2ns",
-            parameter: format!("max_iterations={cap}"),
-            processing: Processing::Deconvolve(MethodConfig::Nnls(NnlsConfig {
-                max_iterations: cap,
-                ..NnlsConfig::default()
-            })),
-            target_fwhm_ns: Some(TRUTH_FWHM_NS),
-        });
+        s.push(deconvolve(
+            "nnls_2ns",
+            format!("max_iterations={cap}"),
+            nnls(cap),
+        ));
     }
     s
 }

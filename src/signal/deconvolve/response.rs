@@ -134,6 +134,7 @@ mod tests {
             iterations: 200,
             repetitions: 1,
             boost: 1.0,
+            stop_at_noise: None,
         });
         let k = response_from_flat_target(&g, &out, &method, 64).unwrap();
         // Narrow and centred: most of the energy in the centre tap and its two neighbours.

@@ -20,6 +20,29 @@
 //!   The output is therefore finite and non-negative.
 //! - **Early stop** (optional): after an iteration whose relative L1 change
 //!   `Σ|σ_{i+1} − σ_i| / Σσ_i` is below [`RlConfig::early_stop`].
+//! - **Stop by the noise** (optional, [`RlConfig::stop_at_noise`] `= τ`; the discrepancy
+//!   principle, Morozov): before the update of iteration `i` (`i = 0, 1, …`), the residual of
+//!   the current estimate `r = y − k ⊛ σ_i` is taken over the samples given to the method (the
+//!   whole segment, or one echo window of the gate: `gate.rs`), with `y` the data RL fits
+//!   (negative samples clipped to 0, as above: against the unclipped data the non-negative
+//!   `k ⊛ σ` leaves the mean of the clipped noise in every empty sample, and on a mostly empty
+//!   segment the residual never came down to the noise level). When
+//!   `√(Σr² / n) ≤ τ · noise_v` (`noise_v` the noise level passed to [`Deconvolver::run`], volts)
+//!   the run stops and returns `σ_i`: the first iterate that explains the data to within the
+//!   noise. `iterations` stays the hard cap (fixed worst-case latency); a `noise_v` that is not
+//!   a positive finite number never stops a run. The residual comes from the convolution pass
+//!   the iteration makes anyway (the ratio's epilogue sees `k ⊛ σ_i` and `y`): about `3·n`
+//!   flops more per iteration, and a stop saves the correlation pass of that iteration.
+//!   **What `noise_v` is**: after the denoise stage (pipeline, `fwlidar tradeoff`, `fwlidar
+//!   process` without `--no-denoise`) it is the mean `|raw − baseline − smoothed|`, the noise
+//!   *above* the low-pass cut-off `fc`: for white noise of standard deviation `s`,
+//!   `√(2/π) · s · √(1 − fc/fN)` (`fN` the Nyquist frequency), while the noise left in the
+//!   low-passed data RL sees has an RMS of `s · √(fc/fN)`. At the default 0.2 GHz and 1 ns the
+//!   two agree within 2 % (0.618 s and 0.632 s), so `τ = 1` is the classical discrepancy
+//!   principle (residual RMS = the data's noise RMS); at other cut-offs the ratio of the two is
+//!   `√(fc/fN) / (√(2/π) · √(1 − fc/fN))` and `τ` should absorb it. With `fwlidar process
+//!   --no-denoise`, `noise_v` is the robust standard deviation of the data's white noise, and
+//!   `τ = 1` is again the classical rule.
 //! - **Convolution**: direct, in the time domain (see the `direct` module: blocks of outputs
 //!   kept in registers across all taps, AVX-512 or AVX2/FMA when the CPU has them). The ratio
 //!   `y / (k ⊛ σ)` and (without early stop) the update of σ are computed from each block of
@@ -76,6 +99,13 @@ pub struct RlConfig {
     /// Default false.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub accelerate: bool,
+    /// Stop by the noise (discrepancy principle, see the module documentation): stop before
+    /// the first iteration whose estimate leaves a residual RMS `√(Σ(y − k ⊛ σ)² / n)` of at
+    /// most this multiple of the segment's noise level `noise_v` (dimensionless, > 0; 1 is the
+    /// classical rule at the default denoise cut-off). `iterations` stays the cap. Default
+    /// none: always run every iteration.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_at_noise: Option<f32>,
 }
 
 /// Largest extrapolation step of the accelerated iteration (dimensionless; below 1 so that
@@ -89,11 +119,17 @@ fn default_iterations() -> u32 {
 impl RlConfig {
     /// Worst-case flops for a segment of `n` samples and a kernel of `m` taps:
     /// `iterations × (4·n·m + 8·n)` (per iteration one convolution and one correlation of
-    /// `2·n·m` flops each, plus the ratio, product and early-stop sums).
+    /// `2·n·m` flops each, plus the ratio, product and early-stop sums), `10·n` more per
+    /// iteration accelerated and `3·n` more with [`RlConfig::stop_at_noise`] (the residual).
     pub fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
         let (n, m) = (n as u64, m as u64);
         let extra = if self.accelerate { 10 * n } else { 0 };
-        (self.iterations as u64).saturating_mul(4 * n * m + 8 * n + extra)
+        let residual = if self.stop_at_noise.is_some() {
+            3 * n
+        } else {
+            0
+        };
+        (self.iterations as u64).saturating_mul(4 * n * m + 8 * n + extra + residual)
     }
 }
 
@@ -103,6 +139,7 @@ impl Default for RlConfig {
             iterations: default_iterations(),
             early_stop: None,
             accelerate: false,
+            stop_at_noise: None,
         }
     }
 }
@@ -192,6 +229,72 @@ fn ratio_pass(sigma: &[f32], pad: usize, k: &Kernel, yn: &[f32], ratio: &mut [f3
     );
 }
 
+/// Epilogue of the convolution `k ⊛ σ` with the stop by the noise: the [`Ratio`] (the same
+/// bits), and the residual `Σ (y − k ⊛ σ)²` summed per lane.
+struct RatioResidual<'a> {
+    y: &'a [f32],
+    ratio: &'a mut [f32],
+    sums: &'a mut [f32; LANES],
+}
+
+impl Epilogue for RatioResidual<'_> {
+    #[inline(always)]
+    fn store(&mut self, i0: usize, acc: &[f32]) {
+        let len = acc.len();
+        let y = &self.y[i0..i0 + len];
+        let ratio = &mut self.ratio[i0..i0 + len];
+        let sums = &mut *self.sums;
+        let mut one = |i: usize, l: usize| {
+            let (b, v) = (acc[i], y[i]);
+            let q = v / b.max(DENOMINATOR_FLOOR);
+            ratio[i] = if v > 0.0 { q } else { 0.0 };
+            let r = v - b;
+            sums[l] += r * r;
+        };
+        let whole = len / LANES * LANES;
+        for c in (0..whole).step_by(LANES) {
+            for l in 0..LANES {
+                one(c + l, l);
+            }
+        }
+        for i in whole..len {
+            one(i, i - whole);
+        }
+    }
+}
+
+/// The ratio pass, and with `stop` (the largest sum of squared residuals that stops) whether
+/// the residual of the current estimate is within it.
+#[inline(always)]
+fn ratio_pass_checked(
+    sigma: &[f32],
+    pad: usize,
+    k: &Kernel,
+    yn: &[f32],
+    ratio: &mut [f32],
+    stop: Option<f64>,
+) -> bool {
+    let Some(limit) = stop else {
+        ratio_pass(sigma, pad, k, yn, ratio);
+        return false;
+    };
+    let n = yn.len();
+    let mut sums = [0.0f32; LANES];
+    convolve_padded_with(
+        sigma,
+        pad,
+        &k.taps,
+        k.center,
+        n,
+        RatioResidual {
+            y: yn,
+            ratio: &mut ratio[pad..pad + n],
+            sums: &mut sums,
+        },
+    );
+    sums.iter().map(|&v| v as f64).sum::<f64>() <= limit
+}
+
 /// Epilogue of the correlation `k ⋆ ratio` (no early stop): `σ ← flush(min(σ · max(c, 0),
 /// cap))`.
 struct Update<'a> {
@@ -275,6 +378,7 @@ impl Epilogue for AccUpdate<'_> {
 /// The accelerated iteration (module documentation): `sigma` holds the predicted point `p_k`
 /// (padded by `pad` zeros on both sides), `x` receives the estimate. `sigma[pad..pad + n]`
 /// holds the start estimate on entry.
+#[allow(clippy::too_many_arguments)]
 fn accelerated(
     config: &RlConfig,
     yn: &[f32],
@@ -282,6 +386,7 @@ fn accelerated(
     pad: usize,
     [sigma, ratio]: [&mut [f32]; 2],
     [x, x_prev, g_prev]: [&mut [f32]; 3],
+    stop: Option<f64>,
     stats: &mut MethodStats,
 ) {
     let n = yn.len();
@@ -301,7 +406,12 @@ fn accelerated(
             let v = (xi + a * (xi - xp)).clamp(0.0, ESTIMATE_CAP);
             *p = if v < FLUSH { 0.0 } else { v };
         }
-        ratio_pass(sigma, pad, k, yn, ratio);
+        if ratio_pass_checked(sigma, pad, k, yn, ratio, stop) {
+            // The predicted point explains the data to within the noise: it is the answer.
+            x.copy_from_slice(&sigma[pad..pad + n]);
+            stats.stopped_early = true;
+            break;
+        }
         // x_{k+1} = RL(p) and g = x_{k+1} − p, formed in the correlation's epilogue.
         let mut sums = AccSums::default();
         correlate_padded_with(
@@ -347,7 +457,7 @@ impl Deconvolver for RichardsonLucy {
         &mut self,
         y: &[f32],
         k: &Kernel,
-        _noise_v: f32,
+        noise_v: f32,
         _sample_ns: f64,
         out: &mut [f32],
     ) -> Result<MethodStats, DeconvError> {
@@ -366,6 +476,12 @@ impl Deconvolver for RichardsonLucy {
         for (d, &v) in yn.iter_mut().zip(y) {
             *d = (v.max(0.0) as f64 * inv) as f32;
         }
+        // The stop by the noise: the largest sum of squared residuals (normalised units) that
+        // stops, `n · (τ · noise_v / max)²`; none without a usable noise level.
+        let stop = self.config.stop_at_noise.and_then(|tau| {
+            let level = tau as f64 * noise_v as f64 * inv;
+            (level.is_finite() && level > 0.0).then_some(n as f64 * level * level)
+        });
         let sigma = &mut self.sigma[..n + 2 * pad];
         let ratio = &mut self.ratio[..n + 2 * pad];
         sigma.fill(0.0);
@@ -388,6 +504,7 @@ impl Deconvolver for RichardsonLucy {
                 pad,
                 [sigma, ratio],
                 [x, x_prev, g_prev],
+                stop,
                 &mut stats,
             );
             scale_out(&self.x[..n], scale, out);
@@ -395,8 +512,12 @@ impl Deconvolver for RichardsonLucy {
         }
         for _ in 0..self.config.iterations {
             // The ratio y / (k ⊛ σ) is formed from each block of sums while it is in
-            // registers.
-            ratio_pass(sigma, pad, k, yn, ratio);
+            // registers (with the stop by the noise, the residual too: σ is the answer when
+            // it is within the noise).
+            if ratio_pass_checked(sigma, pad, k, yn, ratio, stop) {
+                stats.stopped_early = true;
+                break;
+            }
             stats.iterations += 1;
             let Some(tol) = self.config.early_stop else {
                 // No early stop: σ is updated from each block of the correction `k ⋆ ratio`

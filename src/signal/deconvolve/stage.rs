@@ -800,6 +800,7 @@ mod tests {
             iterations: 200,
             repetitions: 1,
             boost: 1.0,
+            stop_at_noise: None,
         });
         let t = 90usize;
         let mut p = Pulse::default();
@@ -848,6 +849,7 @@ mod tests {
                 iterations: 200,
                 repetitions: 1,
                 boost: 1.0,
+                stop_at_noise: None,
             },
         )));
         let mut q = Pulse::default();
@@ -916,7 +918,8 @@ mod tests {
             MethodConfig::Gold(GoldConfig {
                 iterations: 10,
                 repetitions: 3,
-                boost: 1.5
+                boost: 1.5,
+                stop_at_noise: None,
             })
         );
         assert_eq!(
@@ -935,6 +938,7 @@ mod tests {
                 iterations: 7,
                 early_stop: Some(1e-3),
                 accelerate: false,
+                stop_at_noise: Some(1.0),
             },
         )));
         for c in all {

@@ -11,8 +11,8 @@ use crate::signal::kernel::convolve_same;
 const MAX_N: usize = 4096;
 const MAX_M: usize = 256;
 
-/// The four methods at their defaults, and Richardson-Lucy accelerated (NNLS's solver
-/// internals are also tested in its module).
+/// The four methods at their defaults, Richardson-Lucy accelerated, and Richardson-Lucy and
+/// Gold stopping by the noise (NNLS's solver internals are also tested in its module).
 fn methods() -> Vec<Box<dyn Deconvolver>> {
     vec![
         MethodConfig::RichardsonLucy(RlConfig::default()).build(MAX_N, MAX_M),
@@ -24,6 +24,16 @@ fn methods() -> Vec<Box<dyn Deconvolver>> {
         MethodConfig::Gold(GoldConfig::default()).build(MAX_N, MAX_M),
         MethodConfig::Wiener(WienerConfig::default()).build(MAX_N, MAX_M),
         MethodConfig::Nnls(NnlsConfig::default()).build(MAX_N, MAX_M),
+        MethodConfig::RichardsonLucy(RlConfig {
+            stop_at_noise: Some(1.0),
+            ..RlConfig::default()
+        })
+        .build(MAX_N, MAX_M),
+        MethodConfig::Gold(GoldConfig {
+            stop_at_noise: Some(1.0),
+            ..GoldConfig::default()
+        })
+        .build(MAX_N, MAX_M),
     ]
 }
 
@@ -404,6 +414,7 @@ fn deconvolve_accuracy_two_spikes() {
             iterations: 200,
             early_stop: None,
             accelerate: false,
+            stop_at_noise: None,
         },
         MAX_N,
         MAX_M,
@@ -428,6 +439,7 @@ fn deconvolve_rl_accelerated_goes_further_per_iteration() {
                 iterations,
                 early_stop: None,
                 accelerate,
+                stop_at_noise: None,
             },
             MAX_N,
             MAX_M,
@@ -457,6 +469,7 @@ fn deconvolve_rl_accelerated_goes_further_per_iteration() {
             iterations: 1000,
             early_stop: Some(1e-2),
             accelerate: true,
+            stop_at_noise: None,
         },
         MAX_N,
         MAX_M,
@@ -475,6 +488,7 @@ fn deconvolve_rl_early_stop() {
             iterations: 1000,
             early_stop: Some(1e-2),
             accelerate: false,
+            stop_at_noise: None,
         },
         MAX_N,
         MAX_M,
@@ -482,6 +496,203 @@ fn deconvolve_rl_early_stop() {
     let mut out = vec![0.0; 256];
     let stats = rl.run(&y, &k, 0.0, 1.0, &mut out).unwrap();
     assert!(stats.stopped_early && stats.iterations < 1000, "{stats:?}");
+}
+
+/// Root mean square of `max(y, 0) − k ⊛ x` (the residual the stop by the noise measures), in
+/// the units of `y`.
+fn residual_rms(x: &[f32], y: &[f32], k: &Kernel) -> f64 {
+    let b = blur(x, k);
+    let ss: f64 = b
+        .iter()
+        .zip(y)
+        .map(|(a, v)| ((v.max(0.0) - a) as f64).powi(2))
+        .sum();
+    (ss / y.len() as f64).sqrt()
+}
+
+/// Two close echoes and a single one seen through an 8-sample pulse, with uniform noise of
+/// standard deviation `level` (volts): the data and the noise's own RMS.
+fn echoes_with_noise(level: f32, seed: u64) -> (Vec<f32>, Kernel, f32) {
+    let k = gaussian_kernel(8.0);
+    let clean = blur(&spikes(256, &[(90, 5.0), (96, 3.0), (170, 10.0)]), &k);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let n = noise(&mut rng, 256, level);
+    let rms = (n.iter().map(|&v| (v as f64).powi(2)).sum::<f64>() / 256.0).sqrt() as f32;
+    (clean.iter().zip(&n).map(|(a, b)| a + b).collect(), k, rms)
+}
+
+fn rl_with(iterations: u32, stop_at_noise: Option<f32>, accelerate: bool) -> RichardsonLucy {
+    RichardsonLucy::new(
+        RlConfig {
+            iterations,
+            early_stop: None,
+            accelerate,
+            stop_at_noise,
+        },
+        MAX_N,
+        MAX_M,
+    )
+}
+
+fn gold_with(iterations: u32, stop_at_noise: Option<f32>) -> Gold {
+    Gold::new(
+        GoldConfig {
+            iterations,
+            stop_at_noise,
+            ..GoldConfig::default()
+        },
+        MAX_N,
+        MAX_M,
+    )
+}
+
+/// The discrepancy principle: RL stops at the first iterate whose residual RMS is within
+/// `τ · noise_v`, and that iterate is bit for bit what the capped run without the key returns
+/// after as many iterations; the iterate before it is not within.
+#[test]
+fn rl_stop_at_noise_returns_the_first_iterate_within_the_noise() {
+    for accelerate in [false, true] {
+        let (y, k, rms) = echoes_with_noise(0.01, 3);
+        let mut out = vec![0.0; 256];
+        let stats = rl_with(1000, Some(1.0), accelerate)
+            .run(&y, &k, rms, 1.0, &mut out)
+            .unwrap();
+        assert!(stats.stopped_early && stats.iterations > 1, "{stats:?}");
+        assert!(stats.iterations < 1000, "{stats:?}");
+        assert!(out.iter().all(|v| v.is_finite() && *v >= 0.0));
+        let r = residual_rms(&out, &y, &k);
+        assert!(r <= rms as f64 * 1.001, "residual {r} vs noise {rms}");
+        if accelerate {
+            // The accelerated run returns its predicted point: no capped twin to compare.
+            continue;
+        }
+        let mut same = vec![0.0; 256];
+        rl_with(stats.iterations, None, false)
+            .run(&y, &k, rms, 1.0, &mut same)
+            .unwrap();
+        for (a, b) in out.iter().zip(&same) {
+            assert_eq!(a.to_bits(), b.to_bits());
+        }
+        let mut before = vec![0.0; 256];
+        rl_with(stats.iterations - 1, None, false)
+            .run(&y, &k, rms, 1.0, &mut before)
+            .unwrap();
+        let r = residual_rms(&before, &y, &k);
+        assert!(
+            r > rms as f64 * 0.999,
+            "the iterate before: {r} vs noise {rms}"
+        );
+    }
+}
+
+/// More noise is explained sooner: the noisier segment stops after fewer iterations than the
+/// clean high-SNR one (for RL, accelerated RL and Gold); τ scales the stop the same way.
+#[test]
+fn stop_at_noise_stops_sooner_on_noisier_segments_and_for_larger_tau() {
+    let (clean, k, clean_rms) = echoes_with_noise(0.005, 5);
+    let (noisy, _, noisy_rms) = echoes_with_noise(0.02, 5);
+    let mut out = vec![0.0; 256];
+    type Make = Box<dyn Fn(f32) -> Box<dyn Deconvolver>>;
+    let mut runs: Vec<(&str, Make)> = vec![
+        ("rl", Box::new(|t| Box::new(rl_with(2000, Some(t), false)))),
+        (
+            "rl_acc",
+            Box::new(|t| Box::new(rl_with(2000, Some(t), true))),
+        ),
+        ("gold", Box::new(|t| Box::new(gold_with(2000, Some(t))))),
+    ];
+    for (name, make) in runs.drain(..) {
+        let c = make(1.0).run(&clean, &k, clean_rms, 1.0, &mut out).unwrap();
+        let n = make(1.0).run(&noisy, &k, noisy_rms, 1.0, &mut out).unwrap();
+        let n2 = make(2.0).run(&noisy, &k, noisy_rms, 1.0, &mut out).unwrap();
+        eprintln!("{name}: clean {c:?}, noisy {n:?}, noisy τ = 2 {n2:?}");
+        assert!(
+            c.stopped_early && n.stopped_early && n2.stopped_early,
+            "{name}"
+        );
+        assert!(n.iterations < c.iterations, "{name}: {n:?} vs {c:?}");
+        assert!(n2.iterations < n.iterations, "{name}: {n2:?} vs {n:?}");
+        assert!(out.iter().all(|v| v.is_finite() && *v >= 0.0), "{name}");
+    }
+}
+
+/// The cap holds whatever the noise level says, and a stop that never triggers (τ tiny, or no
+/// usable noise level) gives the same bits as the configuration without the key.
+#[test]
+fn stop_at_noise_never_exceeds_the_cap_and_is_inert_when_it_does_not_trigger() {
+    let (y, k, rms) = echoes_with_noise(0.01, 7);
+    for accelerate in [false, true] {
+        let mut want = vec![0.0; 256];
+        let s = rl_with(30, None, accelerate)
+            .run(&y, &k, rms, 1.0, &mut want)
+            .unwrap();
+        assert_eq!(s.iterations, 30);
+        for (tau, noise_v) in [(1e-6, rms), (1.0, 0.0), (1.0, f32::NAN), (1.0, -1.0)] {
+            let mut got = vec![0.0; 256];
+            let s = rl_with(30, Some(tau), accelerate)
+                .run(&y, &k, noise_v, 1.0, &mut got)
+                .unwrap();
+            assert_eq!((s.iterations, s.stopped_early), (30, false));
+            for (a, b) in got.iter().zip(&want) {
+                assert_eq!(a.to_bits(), b.to_bits(), "accelerate {accelerate} τ {tau}");
+            }
+        }
+    }
+    let mut want = vec![0.0; 256];
+    gold_with(30, None)
+        .run(&y, &k, rms, 1.0, &mut want)
+        .unwrap();
+    for (tau, noise_v) in [(1e-6, rms), (1.0, 0.0), (1.0, f32::INFINITY)] {
+        let mut got = vec![0.0; 256];
+        let s = gold_with(30, Some(tau))
+            .run(&y, &k, noise_v, 1.0, &mut got)
+            .unwrap();
+        assert_eq!((s.iterations, s.stopped_early), (30, false));
+        for (a, b) in got.iter().zip(&want) {
+            assert_eq!(a.to_bits(), b.to_bits(), "gold τ {tau}");
+        }
+    }
+    // A huge noise level stops before the first update: the start estimate comes back,
+    // finite, and never more than the cap.
+    for cap in [0u32, 1, 5] {
+        let mut out = vec![0.0; 256];
+        for mut m in [
+            Box::new(rl_with(cap, Some(1.0), false)) as Box<dyn Deconvolver>,
+            Box::new(rl_with(cap, Some(1.0), true)),
+            Box::new(gold_with(cap, Some(1.0))),
+        ] {
+            let s = m.run(&y, &k, 1e3, 1.0, &mut out).unwrap();
+            assert_eq!(s.iterations, 0, "{}", m.name());
+            assert_eq!(s.stopped_early, cap > 0, "{}", m.name());
+            assert!(out.iter().all(|v| v.is_finite() && *v >= 0.0));
+        }
+    }
+}
+
+/// Gold's stop: the returned estimate (at its least-squares amplitude) explains the data to
+/// within the noise and is what the capped run returns after as many iterations.
+#[test]
+fn gold_stop_at_noise_returns_the_first_iterate_within_the_noise() {
+    let (y, k, rms) = echoes_with_noise(0.01, 11);
+    let mut out = vec![0.0; 256];
+    let stats = gold_with(2000, Some(1.0))
+        .run(&y, &k, rms, 1.0, &mut out)
+        .unwrap();
+    assert!(stats.stopped_early && stats.iterations > 1, "{stats:?}");
+    let r = residual_rms(&out, &y, &k);
+    assert!(r <= rms as f64 * 1.001, "residual {r} vs noise {rms}");
+    let mut same = vec![0.0; 256];
+    gold_with(stats.iterations, None)
+        .run(&y, &k, rms, 1.0, &mut same)
+        .unwrap();
+    for (a, b) in out.iter().zip(&same) {
+        assert_eq!(a.to_bits(), b.to_bits());
+    }
+    let mut before = vec![0.0; 256];
+    gold_with(stats.iterations - 1, None)
+        .run(&y, &k, rms, 1.0, &mut before)
+        .unwrap();
+    assert!(residual_rms(&before, &y, &k) > rms as f64 * 0.999);
 }
 
 #[test]
@@ -493,6 +704,7 @@ fn deconvolve_gold_boosted_repetitions_sharpen() {
             iterations: 20,
             repetitions: 5,
             boost: 1.0,
+            stop_at_noise: None,
         },
         MAX_N,
         MAX_M,
@@ -502,6 +714,7 @@ fn deconvolve_gold_boosted_repetitions_sharpen() {
             iterations: 20,
             repetitions: 5,
             boost: 1.2,
+            stop_at_noise: None,
         },
         MAX_N,
         MAX_M,
