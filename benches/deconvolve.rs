@@ -3,7 +3,9 @@
 //! so results stay comparable with earlier runs): Richardson-Lucy 20 iterations, Gold 20
 //! iterations, Wiener fused with the low-pass, with the same kernel every call (its spectrum
 //! cached) and with a kernel that changes every call (per-shot kernels: spectrum computed per
-//! call).
+//! call). Deconvolution to a 2 ns target pulse (`Targeted`, issue 19): RL-20 by the reduced
+//! kernel with the same kernel every call (the reduction cached) and with a kernel that changes
+//! every call (the reduction, a regularised spectral division, computed per call).
 
 #[path = "common/waveforms.rs"]
 mod waveforms;
@@ -13,7 +15,7 @@ use std::hint::black_box;
 use criterion::{Criterion, criterion_group, criterion_main};
 use fwlidar::signal::deconvolve::{
     Deconvolver, Gate, Gated, Gold, GoldConfig, MethodConfig, RichardsonLucy, RlConfig, Wiener,
-    WienerConfig,
+    WienerConfig, target::Targeted,
 };
 use fwlidar::signal::kernel::{Kernel, convolve_same};
 
@@ -108,6 +110,28 @@ fn bench(c: &mut Criterion) {
             flip = !flip;
             let kk = if flip { &k } else { &k2 };
             w.run(black_box(&y), black_box(kk), 0.002, 1.0, &mut out)
+                .expect("runs");
+            black_box(&out);
+        })
+    });
+    // Deconvolution to a 2 ns target pulse: RL by the reduced kernel.
+    let rl = || Box::new(RichardsonLucy::new(RlConfig::default(), 4096, 256));
+    let mut targeted = Targeted::new(rl(), Some(2.0), 4096, 256);
+    group.bench_function("richardson_lucy_20_target_2ns", |b| {
+        b.iter(|| {
+            targeted
+                .run(black_box(&y), black_box(&k), 0.002, 1.0, &mut out)
+                .expect("runs");
+            black_box(&out);
+        })
+    });
+    let mut targeted = Targeted::new(rl(), Some(2.0), 4096, 256);
+    group.bench_function("richardson_lucy_20_target_2ns_per_shot_kernel", |b| {
+        b.iter(|| {
+            flip = !flip;
+            let kk = if flip { &k } else { &k2 };
+            targeted
+                .run(black_box(&y), black_box(kk), 0.002, 1.0, &mut out)
                 .expect("runs");
             black_box(&out);
         })
