@@ -1,5 +1,6 @@
 //! Hard cases, accuracy and property tests of Richardson-Lucy, Gold, Wiener and NNLS (one
-//! `#[test]` per case; each loops over the four methods).
+//! `#[test]` per case; each loops over the four methods, their variants, and the four
+//! deconvolving to a 2 ns target pulse).
 
 use proptest::prelude::*;
 use rand::{RngExt, SeedableRng};
@@ -7,13 +8,30 @@ use rand_chacha::ChaCha8Rng;
 
 use super::*;
 use crate::signal::kernel::convolve_same;
+use target::Targeted;
 
 const MAX_N: usize = 4096;
 const MAX_M: usize = 256;
 
-/// The four methods at their defaults, Richardson-Lucy accelerated, and Richardson-Lucy and
-/// Gold stopping by the noise (NNLS's solver internals are also tested in its module).
+/// The four methods at their defaults, Richardson-Lucy accelerated, Richardson-Lucy and Gold
+/// stopping by the noise, and the four delivering their result as seen by a 2 ns target pulse
+/// (`target.rs`; NNLS's solver internals are also tested in its module).
 fn methods() -> Vec<Box<dyn Deconvolver>> {
+    let mut m = plain_methods();
+    for config in [
+        MethodConfig::RichardsonLucy(RlConfig::default()),
+        MethodConfig::Gold(GoldConfig::default()),
+        MethodConfig::Wiener(WienerConfig::default()),
+        MethodConfig::Nnls(NnlsConfig::default()),
+    ] {
+        let inner = config.build(MAX_N, MAX_M);
+        m.push(Box::new(Targeted::new(inner, Some(2.0), MAX_N, MAX_M)));
+    }
+    m
+}
+
+/// The methods as they give their result (no target pulse).
+fn plain_methods() -> Vec<Box<dyn Deconvolver>> {
     vec![
         MethodConfig::RichardsonLucy(RlConfig::default()).build(MAX_N, MAX_M),
         MethodConfig::RichardsonLucy(RlConfig {
