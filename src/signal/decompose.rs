@@ -431,22 +431,8 @@ impl Decomposer {
         // Position of the previous peak (the peaks are sorted by position), bins.
         let mut previous: Option<f32> = None;
         for p in &self.peaks {
-            let (amplitude, sigma) = match cfg.start_values {
-                StartValues::HalfWidth => (p.amplitude, half_width(y, p.index) / HWHM_PER_SIGMA),
-                StartValues::PeakSpacing => (
-                    p.amplitude * (2.0 / 3.0),
-                    match previous {
-                        None => (p.position_bins + 1.0) / 5.0,
-                        Some(q) => (p.position_bins - q) / 4.0,
-                    },
-                ),
-            };
+            comps[k] = start_value(cfg.start_values, y, p, previous, (s_min, s_max));
             previous = Some(p.position_bins);
-            comps[k] = Gaussian {
-                amplitude: amplitude as f64,
-                center_bins: p.position_bins as f64,
-                sigma_bins: sigma.clamp(s_min, s_max) as f64,
-            };
             k += 1;
         }
         let budget = cfg.max_iterations;
@@ -580,6 +566,33 @@ fn near_pruned(pruned: &[Gaussian], i: usize) -> bool {
     pruned
         .iter()
         .any(|g| (g.center_bins - i as f64).abs() <= g.sigma_bins.max(1.0))
+}
+
+/// The first fit's start value for the peak `p` of `y` ([`StartValues`]); `previous` is the
+/// position of the peak before it (bins), `sigma` the σ bounds (bins).
+fn start_value(
+    rule: StartValues,
+    y: &[f32],
+    p: &Peak,
+    previous: Option<f32>,
+    (s_min, s_max): (f32, f32),
+) -> Gaussian {
+    let (amplitude, sigma) = match rule {
+        StartValues::HalfWidth => (p.amplitude, half_width(y, p.index) / HWHM_PER_SIGMA),
+        StartValues::PeakSpacing => (
+            p.amplitude * (2.0 / 3.0),
+            match previous {
+                // The package's 1-based sample number.
+                None => (p.position_bins + 1.0) / 5.0,
+                Some(q) => (p.position_bins - q) / 4.0,
+            },
+        ),
+    };
+    Gaussian {
+        amplitude: amplitude as f64,
+        center_bins: p.position_bins as f64,
+        sigma_bins: sigma.clamp(s_min, s_max) as f64,
+    }
 }
 
 /// Centred running mean of `y` over `width` samples (odd) into `out` (same length); near the
@@ -1100,6 +1113,153 @@ mod tests {
         assert_eq!(p.returns[1].segment, 2);
         assert!((p.returns[2].time_ns - (1500.0 + 90.0 * 0.5)).abs() < 0.01);
         assert!(run.emitted[1].returns.is_empty());
+    }
+
+    #[test]
+    fn running_mean_averages_the_samples_inside_the_segment() {
+        let y = [3.0, 6.0, 0.0, 3.0, 9.0];
+        let mut out = [0.0f32; 5];
+        running_mean(&y, 3, &mut out);
+        // Ends: the mean of the two samples inside.
+        assert_eq!(out, [4.5, 3.0, 3.0, 4.0, 6.0]);
+        running_mean(&y, 5, &mut out);
+        assert_eq!(out, [3.0, 3.0, 4.2, 4.5, 4.0]);
+        // Through `fit`: a running mean of 3 turns a one-sample spike into a 3-sample plateau
+        // of a third of its height, whose middle the (default) detector finds.
+        let mut spike = vec![0.0f32; 40];
+        spike[20] = 30.0;
+        let config = DecomposeConfig {
+            running_mean_bins: 3,
+            sigma_min_bins: 0.3,
+            refine_passes: 0,
+            ..Default::default()
+        };
+        let (r, stats) = decompose(&spike, 0.1, config.clone());
+        assert_eq!(stats.peaks, 1);
+        assert_eq!(r.len(), 1, "{r:?}");
+        assert!((r[0].position_bins - 20.0).abs() < 1e-3, "{r:?}");
+        // The fitted plateau, not the spike: much lower and wider.
+        assert!(r[0].amplitude < 15.0 && r[0].sigma_bins > 0.8, "{r:?}");
+        let without = DecomposeConfig {
+            running_mean_bins: 0,
+            ..config
+        };
+        let (r, _) = decompose(&spike, 0.1, without);
+        assert!(
+            r.len() == 1 && r[0].amplitude > 25.0,
+            "without the mean: {r:?}"
+        );
+    }
+
+    #[test]
+    fn start_values_follow_their_rule() {
+        let y = synth(100, &[(30.0, 20.0, 3.0), (12.0, 44.0, 6.0)], 0.0, 0);
+        let peak = |i: usize| Peak {
+            index: i,
+            position_bins: i as f32,
+            amplitude: y[i],
+            shoulder: false,
+        };
+        let b = (0.5, 30.0);
+        // Ours: the peak's height, σ from the half width.
+        let g = start_value(StartValues::HalfWidth, &y, &peak(20), None, b);
+        assert!(
+            (g.amplitude - 30.0).abs() < 0.1 && (g.sigma_bins - 3.0).abs() < 0.1,
+            "{g:?}"
+        );
+        // The package's: ⅔ of the height; σ a fifth of the 1-based sample number for the first
+        // peak, a quarter of the spacing for the next.
+        let g = start_value(StartValues::PeakSpacing, &y, &peak(20), None, b);
+        assert!((g.amplitude - 20.0).abs() < 0.1, "{g:?}");
+        assert!((g.sigma_bins - 21.0 / 5.0).abs() < 1e-6, "{g:?}");
+        let g = start_value(StartValues::PeakSpacing, &y, &peak(44), Some(20.0), b);
+        assert!(
+            (g.amplitude - y[44] as f64 * 2.0 / 3.0).abs() < 1e-4,
+            "{g:?}"
+        );
+        assert!((g.sigma_bins - 6.0).abs() < 1e-6, "{g:?}");
+        // Clamped to the bounds.
+        let g = start_value(StartValues::PeakSpacing, &y, &peak(44), Some(43.0), b);
+        assert_eq!(g.sigma_bins, 0.5);
+        // Both reach the two echoes here.
+        for rule in [StartValues::HalfWidth, StartValues::PeakSpacing] {
+            let config = DecomposeConfig {
+                start_values: rule,
+                ..Default::default()
+            };
+            let (r, _) = decompose(&y, 0.05, config);
+            assert_eq!(r.len(), 2, "{rule:?}: {r:?}");
+            assert!((r[1].position_bins - 44.0).abs() < 0.01, "{rule:?}: {r:?}");
+        }
+    }
+
+    #[test]
+    fn record_minimum_minus_one_fits_raw_counts_over_their_minimum() {
+        // Raw counts: a 200 DN floor (minimum 198 over both segments) and a 60 DN echo in the
+        // second; the denoised signal is (deliberately) flat zero.
+        let echo: Vec<u16> = (0..64)
+            .map(|i| {
+                let d = (i as f64 - 30.0) / 4.0;
+                (200.0 + 60.0 * (-0.5 * d * d).exp()).round() as u16
+            })
+            .collect();
+        let mut quiet = vec![200u16; 32];
+        quiet[5] = 198;
+        let mut p = Pulse {
+            sample_ns: 1.0,
+            gain_v_per_dn: 0.5,
+            ..Pulse::default()
+        };
+        p.push_segment(SegmentKind::Return, 0, 0.0, quiet.iter().copied());
+        p.push_segment(SegmentKind::Return, 0, 100.0, echo.iter().copied());
+        p.signal = vec![0.0; p.raw.len()];
+        p.noise.noise_v = 0.5;
+        let run = |baseline| {
+            let config = DecomposeConfig {
+                baseline,
+                min_relative_amplitude: 0.22,
+                ..Default::default()
+            };
+            let mut q = copy_pulse(&p);
+            q.gain_v_per_dn = p.gain_v_per_dn;
+            run_stage(&mut Decompose::new(config), [q]).unwrap().emitted[0]
+                .returns
+                .clone()
+        };
+        assert!(run(DecomposeBaseline::Denoised).is_empty());
+        let r = run(DecomposeBaseline::RecordMinimumMinusOne);
+        // The second segment: 0.5 V/DN × (counts − 198 + 1): the echo's 30 V on a 1.5 V
+        // pedestal (3 DN), which the offset-free Gaussian absorbs partly (wider, higher).
+        let echo_r: Vec<_> = r.iter().filter(|r| r.segment == 1).collect();
+        assert_eq!(echo_r.len(), 1, "{r:?}");
+        let g = echo_r[0];
+        assert!((g.position_bins - 30.0).abs() < 0.05, "{g:?}");
+        assert!((g.time_ns - 130.0).abs() < 0.05, "{g:?}");
+        assert!(g.amplitude > 30.0 && g.amplitude < 32.0, "{g:?}");
+        assert!(g.sigma_bins > 4.0, "{g:?}");
+        // Equal to fitting those samples directly.
+        let input: Vec<f32> = echo.iter().map(|&c| 0.5 * (c as f32 - 197.0)).collect();
+        let mut d = Decomposer::new(
+            DecomposeConfig {
+                min_relative_amplitude: 0.22,
+                ..Default::default()
+            },
+            256,
+        );
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        d.fit(&input, 0.5, &mut a).unwrap();
+        d.fit_counts(&echo, 198, 0.5, 0.5, &mut b).unwrap();
+        let params = |v: &[FittedReturn]| {
+            v.iter()
+                .map(|r| (r.position_bins, r.amplitude, r.sigma_bins))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(params(&a), params(&b));
+        assert_eq!(a.len(), 1);
+        assert!(matches!(
+            d.fit_counts(&[200; 300], 198, 0.5, 0.5, &mut b),
+            Err(DecomposeError::SegmentTooLong { .. })
+        ));
     }
 
     #[test]
