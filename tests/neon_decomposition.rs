@@ -25,6 +25,11 @@
 //! 0.2 GHz low-pass leaves flat spots on the long NEON tails that are maxima a few hundredths
 //! of the noise high, which the package's 3-bin running mean does not have; each split an echo
 //! the package fits with one Gaussian).
+//!
+//! A second asserted setting is the opt-in waveformlidar-compatible decomposition
+//! (`docs/signal.md`): the package's baseline convention (raw counts − the record's minimum + 1),
+//! its 3-bin running mean, its peak rule and its start values, each a decompose option; the
+//! ablation rows put our choices back one at a time.
 
 use fwlidar::pipeline::testing::run_stage;
 use fwlidar::pulse::{Pulse, SegmentKind};

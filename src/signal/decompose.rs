@@ -1203,7 +1203,7 @@ mod tests {
                 (200.0 + 60.0 * (-0.5 * d * d).exp()).round() as u16
             })
             .collect();
-        let mut quiet = vec![200u16; 32];
+        let mut quiet = [200u16; 32];
         quiet[5] = 198;
         let mut p = Pulse {
             sample_ns: 1.0,
