@@ -5,8 +5,9 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use fwlidar::signal::DecomposeConfig;
 use fwlidar::signal::decompose::Decomposer;
+use fwlidar::signal::peaks::PeakRule;
+use fwlidar::signal::{DecomposeBaseline, DecomposeConfig, StartValues};
 
 struct Counting;
 static ALLOCS: AtomicU64 = AtomicU64::new(0);
@@ -87,4 +88,36 @@ fn decomposer_fits_without_allocating() {
         assert_eq!(allocations, 0);
         assert_eq!(found, 50 * 8 * 3);
     }
+    // The waveformlidar-compatible options: raw counts over the record's minimum (the input
+    // buffer), a running mean (the smoothing buffer), the package's peak rule and start values.
+    let counts: Vec<Vec<u16>> = segments
+        .iter()
+        .map(|y| y.iter().map(|v| (200.0 + 4.0 * v).round() as u16).collect())
+        .collect();
+    let config = DecomposeConfig {
+        baseline: DecomposeBaseline::RecordMinimumMinusOne,
+        running_mean_bins: 3,
+        peak_rule: PeakRule::NotBelowLeft,
+        start_values: StartValues::PeakSpacing,
+        min_relative_amplitude: 0.22,
+        min_separation_bins: 1,
+        refine_passes: 0,
+        max_iterations: 1000,
+        ..DecomposeConfig::default()
+    };
+    let mut d = Decomposer::new(config, 4096);
+    let mut out = Vec::with_capacity(8);
+    let before = ALLOCS.load(Ordering::SeqCst);
+    let mut found = 0;
+    for _ in 0..50 {
+        for c in &counts {
+            out.clear();
+            let floor = *c.iter().min().unwrap();
+            d.fit_counts(c, floor, 1.0, 0.6, &mut out).unwrap();
+            found += out.len();
+        }
+    }
+    let allocations = ALLOCS.load(Ordering::SeqCst) - before;
+    assert_eq!(allocations, 0);
+    assert!(found >= 50 * 8 * 2, "{found} components");
 }

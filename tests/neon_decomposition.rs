@@ -25,10 +25,18 @@
 //! 0.2 GHz low-pass leaves flat spots on the long NEON tails that are maxima a few hundredths
 //! of the noise high, which the package's 3-bin running mean does not have; each split an echo
 //! the package fits with one Gaussian).
+//!
+//! A second asserted setting is the opt-in waveformlidar-compatible decomposition
+//! (`docs/signal.md`): the package's baseline convention (raw counts − the record's minimum + 1),
+//! its 3-bin running mean, its peak rule and its start values, each a decompose option; the
+//! ablation rows put our choices back one at a time.
 
 use fwlidar::pipeline::testing::run_stage;
 use fwlidar::pulse::{Pulse, SegmentKind};
-use fwlidar::signal::{Decompose, DecomposeConfig, Denoise, DenoiseConfig};
+use fwlidar::signal::peaks::PeakRule;
+use fwlidar::signal::{
+    Decompose, DecomposeBaseline, DecomposeConfig, Denoise, DenoiseConfig, StartValues,
+};
 
 /// One component of the R package's result: waveform index (1-based), A, u (1-based bin), σ.
 struct Reference {
@@ -290,5 +298,99 @@ fn neon_harv_decomposition_matches_the_reference() {
     assert!(
         mean_mu.abs() < 0.2,
         "systematic centre offset {mean_mu} bin"
+    );
+
+    // The waveformlidar-compatible decomposition (docs/signal.md): the package's `decom`
+    // reproduced option by option, for users who must compare with its products. Each
+    // ablation row puts one of our own choices back, to show what each option is worth.
+    let waveformlidar = DecomposeConfig {
+        baseline: DecomposeBaseline::RecordMinimumMinusOne,
+        running_mean_bins: 3,
+        peak_rule: PeakRule::NotBelowLeft,
+        start_values: StartValues::PeakSpacing,
+        min_relative_amplitude: 0.22,
+        min_separation_bins: 1,
+        min_snr: 1.0,
+        sigma_max_bins: 100.0,
+        refine_passes: 0,
+        max_iterations: 1000,
+        ..DecomposeConfig::default()
+    };
+    for (name, config) in [
+        (
+            "waveformlidar, but the denoised signal (pre-trigger median, 0.2 GHz low-pass)",
+            DecomposeConfig {
+                baseline: DecomposeBaseline::Denoised,
+                running_mean_bins: 0,
+                ..waveformlidar.clone()
+            },
+        ),
+        (
+            "waveformlidar, but the denoised signal with the running mean",
+            DecomposeConfig {
+                baseline: DecomposeBaseline::Denoised,
+                ..waveformlidar.clone()
+            },
+        ),
+        (
+            "waveformlidar, but no running mean",
+            DecomposeConfig {
+                running_mean_bins: 0,
+                ..waveformlidar.clone()
+            },
+        ),
+        (
+            "waveformlidar, but peak_rule rise_and_fall",
+            DecomposeConfig {
+                peak_rule: PeakRule::RiseAndFall,
+                ..waveformlidar.clone()
+            },
+        ),
+        (
+            "waveformlidar, but start_values half_width",
+            DecomposeConfig {
+                start_values: StartValues::HalfWidth,
+                ..waveformlidar.clone()
+            },
+        ),
+        (
+            "waveformlidar, but sigma_max_bins 30",
+            DecomposeConfig {
+                sigma_max_bins: 30.0,
+                ..waveformlidar.clone()
+            },
+        ),
+    ] {
+        report(
+            name,
+            &compare(&denoised, &reference, config),
+            reference.len(),
+        );
+    }
+    let c = compare(&denoised, &reference, waveformlidar);
+    report("waveformlidar-compatible", &c, reference.len());
+    // Measured on 2026-11-26: 702/713 matched (98.5 %), 14 extra components in the 482
+    // waveforms with a reference, |Δμ| p90 0.049 bin, A ratio median 1.000 (|ratio − 1| p90
+    // 0.005); the best setting in our own terms above: 654 (91.7 %) and 54. The thresholds
+    // sit between the two: losing any one option (each ablation above) fails at least one of
+    // them, numerical noise (LM path, f32 rounding) passes.
+    let share = c.matched as f64 / reference.len() as f64;
+    assert!(
+        share >= 0.97,
+        "waveformlidar-compatible: matched share {share}"
+    );
+    assert!(
+        c.extra_in_ref_waveforms <= 30,
+        "waveformlidar-compatible: {} extra components",
+        c.extra_in_ref_waveforms
+    );
+    // Not only the positions: the package's parameters themselves.
+    let abs_mu: Vec<f64> = c.d_mu.iter().map(|d| d.abs()).collect();
+    let p90 = quantile(&abs_mu, 0.9);
+    assert!(p90 < 0.15, "waveformlidar-compatible: |Δμ| p90 {p90} bin");
+    let amp = quantile(&c.r_amp, 0.5);
+    assert!(
+        (amp - 1.0).abs() < 0.01,
+        "waveformlidar-compatible: A ratio median {amp}"
     );
 }

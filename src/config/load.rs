@@ -612,7 +612,6 @@ impl<'a, 't> Loader<'a, 't> {
     ) -> Option<(String, String)> {
         if message.starts_with("unknown field")
             || message.starts_with("missing field")
-            || message.starts_with("unknown variant")
             || !self.is_tagged(root, path)
         {
             return None;
@@ -621,6 +620,13 @@ impl<'a, 't> Loader<'a, 't> {
             return None;
         };
         let tag = table.get("type")?;
+        // An unknown variant is the tag's own (an unknown `type`) unless it names another value:
+        // then it is a key's enumerated value (e.g. `start_values = "guess"`), found below.
+        if message.starts_with("unknown variant")
+            && quoted_name(message).is_none_or(|name| Some(name) == tag.as_str())
+        {
+            return None;
+        }
         // Deserialize the whole document with the entry cut down to its tag and one key: the
         // key whose error reappears at the entry is the culprit. No error before the entry can
         // occur (this error was the first), so an error at the entry is the entry's own.
@@ -779,6 +785,20 @@ mod tests {
 
     fn sensor(text: &str) -> Result<SensorFile, ConfigErrors> {
         load_str(text, "sensor.toml")
+    }
+
+    #[test]
+    fn unknown_decompose_option_values_name_their_keys() {
+        let e = run(
+            "[[pipeline.stages]]\ntype = \"decompose\"\nbaseline = \"median\"\n\
+                     start_values = \"guess\"\npeak_rule = \"any\"\n",
+        )
+        .unwrap_err();
+        let p = paths(&e);
+        for key in ["baseline", "start_values", "peak_rule"] {
+            let want = format!("pipeline.stages[0].{key}");
+            assert!(p.contains(&want.as_str()), "{key}: {p:?}");
+        }
     }
 
     /// Path, (line, column) and reason of an issue.

@@ -4,7 +4,7 @@
 use super::load::{Validate, Validator, field};
 use crate::pipeline::registry::StageConfig;
 use crate::signal::calibrate::CalibrateConfig;
-use crate::signal::decompose::DecomposeConfig;
+use crate::signal::decompose::{DecomposeConfig, MAX_RUNNING_MEAN_BINS};
 use crate::signal::deconvolve::response::{ResponseError, response_from_flat_target};
 use crate::signal::deconvolve::{DeconvolveConfig, GateError, KernelSource, MethodConfig};
 use crate::signal::denoise::DenoiseConfig;
@@ -318,6 +318,17 @@ impl Validate for DecomposeConfig {
             ),
         );
         v.require(
+            self.running_mean_bins <= 1
+                || (self.running_mean_bins % 2 == 1
+                    && self.running_mean_bins <= MAX_RUNNING_MEAN_BINS),
+            field(path, "running_mean_bins"),
+            format!(
+                "must be 0 (no running mean) or an odd number of bins up to \
+                 {MAX_RUNNING_MEAN_BINS}, got {}",
+                self.running_mean_bins
+            ),
+        );
+        v.require(
             (MIN_SEGMENT_SAMPLES..=MAX_SEGMENT_SAMPLES).contains(&self.max_samples),
             field(path, "max_samples"),
             format!(
@@ -598,9 +609,11 @@ mod tests {
             refine_passes: 99,
             shoulders: false,
             max_samples: 8,
+            running_mean_bins: 4,
+            ..Default::default()
         };
         let issues = check_decompose(&bad);
-        assert_eq!(issues.len(), 10, "{issues:?}");
+        assert_eq!(issues.len(), 11, "{issues:?}");
         for (i, name) in [
             "max_components",
             "min_snr",
@@ -611,6 +624,7 @@ mod tests {
             "sigma_max_bins",
             "max_iterations",
             "refine_passes",
+            "running_mean_bins",
             "max_samples",
         ]
         .iter()
@@ -618,6 +632,42 @@ mod tests {
         {
             assert!(issues[i].starts_with(&format!("s.{name}: ")), "{issues:?}");
         }
+        for (width, ok) in [
+            (0, true),
+            (1, true),
+            (3, true),
+            (63, true),
+            (2, false),
+            (65, false),
+        ] {
+            let c = DecomposeConfig {
+                running_mean_bins: width,
+                ..Default::default()
+            };
+            assert_eq!(
+                check_decompose(&c).is_empty(),
+                ok,
+                "running_mean_bins {width}"
+            );
+        }
+        // The waveformlidar-compatible options parse from their names.
+        let c = stage(
+            "type = \"decompose\"\nbaseline = \"record_minimum_minus_one\"\n\
+             running_mean_bins = 3\nstart_values = \"peak_spacing\"\n\
+             peak_rule = \"not_below_left\"",
+        )
+        .unwrap();
+        let StageConfig::Decompose(c) = c else {
+            panic!("{c:?}")
+        };
+        assert_eq!(
+            c.baseline,
+            crate::signal::DecomposeBaseline::RecordMinimumMinusOne
+        );
+        assert_eq!(c.start_values, crate::signal::StartValues::PeakSpacing);
+        assert_eq!(c.peak_rule, crate::signal::peaks::PeakRule::NotBelowLeft);
+        assert_eq!(c.running_mean_bins, 3);
+        assert!(check_decompose(&c).is_empty());
         let inverted = DecomposeConfig {
             sigma_min_bins: 5.0,
             sigma_max_bins: 4.0,

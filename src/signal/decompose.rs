@@ -51,7 +51,7 @@ use serde::{Deserialize, Serialize};
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::{FittedReturn, Pulse, SegmentKind};
 use crate::signal::gauss_fit::{Bounds, GaussFitter, Gaussian, MAX_COMPONENTS};
-use crate::signal::peaks::{Peak, PeakFinder, PeakSettings};
+use crate::signal::peaks::{Peak, PeakFinder, PeakRule, PeakSettings};
 
 /// `√(2 ln 2)`: half width at half maximum of a Gaussian in units of σ.
 const HWHM_PER_SIGMA: f32 = 1.177_410_1;
@@ -110,6 +110,61 @@ pub struct DecomposeConfig {
     /// segments drop the pulse with reason `segment_too_long`. Default 4096.
     #[serde(default = "default_max_samples")]
     pub max_samples: usize,
+    /// What the stage decomposes: the denoise stage's signal (`"denoised"`, default) or the
+    /// raw counts above the record's minimum minus one count (`"record_minimum_minus_one"`,
+    /// the waveformlidar R package's `decom` convention; see [`DecomposeBaseline`]).
+    #[serde(default)]
+    pub baseline: DecomposeBaseline,
+    /// Width of a centred running mean applied to the decomposed samples before detection and
+    /// fit, bins (odd; 0 or 1: none, the default). The waveformlidar package smooths its input
+    /// with a 3-bin running mean and fits the smoothed waveform; our denoise stage's low-pass
+    /// already smooths `"denoised"` input, so this is meant for `"record_minimum_minus_one"`.
+    /// At the segment's ends the mean is over the samples inside the segment.
+    #[serde(default)]
+    pub running_mean_bins: usize,
+    /// How the first fit's start values are chosen (see [`StartValues`]). Default
+    /// `"half_width"`.
+    #[serde(default)]
+    pub start_values: StartValues,
+    /// Which samples are local maxima: `"rise_and_fall"` (default) or `"not_below_left"` (the
+    /// waveformlidar package's rule, which also takes the end of a flat step on a falling
+    /// flank; see [`PeakRule`]).
+    #[serde(default)]
+    pub peak_rule: PeakRule,
+}
+
+/// What the decomposition fits (`decompose.baseline`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DecomposeBaseline {
+    /// `pulse.signal`: volts above the denoise stage's baseline (the pre-trigger median),
+    /// low-passed. Unbiased: an isolated echo's Gaussian sits on zero.
+    #[default]
+    Denoised,
+    /// `gain × (counts − m + 1)` volts, with `m` the smallest raw count over the pulse's return
+    /// segments: the waveformlidar package's `decom` input (`y − min(y) + 1`), unfiltered
+    /// (combine with `running_mean_bins = 3` for its smoothing). Its offset-free Gaussians then
+    /// fit a pedestal of one count plus (noise floor − minimum), ~4.5 DN on NEON HARV, which
+    /// they absorb: wide components widen and drift towards the tails. A biased convention,
+    /// only for reproducing the package's products.
+    RecordMinimumMinusOne,
+}
+
+/// Start values of the first fit (`decompose.start_values`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StartValues {
+    /// Amplitude = the sample at the peak, σ = its half width at half maximum / √(2 ln 2)
+    /// (the narrower side that reaches half maximum). Default.
+    #[default]
+    HalfWidth,
+    /// The waveformlidar package's rule: amplitude = ⅔ of the sample at the peak, σ = a
+    /// quarter of the distance to the previous peak, for the first peak a fifth of its
+    /// 1-based sample number in the segment (bins). It ignores the echo's shape, so it can
+    /// start (and end) in another optimum than `half_width`; only for reproducing the
+    /// package's products. Both clamped to [`DecomposeConfig::sigma_min_bins`,
+    /// `sigma_max_bins`].
+    PeakSpacing,
 }
 
 fn default_max_components() -> usize {
@@ -151,6 +206,10 @@ impl Default for DecomposeConfig {
             refine_passes: default_refine_passes(),
             shoulders: false,
             max_samples: default_max_samples(),
+            baseline: DecomposeBaseline::Denoised,
+            running_mean_bins: 0,
+            start_values: StartValues::HalfWidth,
+            peak_rule: PeakRule::RiseAndFall,
         }
     }
 }
@@ -195,7 +254,17 @@ pub struct Decomposer {
     fitter: GaussFitter,
     /// `y − model`, `max_samples` values, signal units.
     residual: Vec<f32>,
+    /// Raw counts above the record's minimum minus one count, volts
+    /// ([`Decomposer::fit_counts`]); `max_samples` values.
+    input: Vec<f32>,
+    /// The running mean of the input ([`DecomposeConfig::running_mean_bins`]); `max_samples`
+    /// values.
+    smoothed: Vec<f32>,
 }
+
+/// Widest running mean ([`DecomposeConfig::running_mean_bins`]), bins: the mean costs
+/// `running_mean_bins` additions per sample.
+pub const MAX_RUNNING_MEAN_BINS: usize = 63;
 
 impl Decomposer {
     /// Builds it for segments of up to `max_samples`. Out-of-range settings are brought into
@@ -218,6 +287,8 @@ impl Decomposer {
         if !(config.min_prominence_snr.is_finite() && config.min_prominence_snr >= 0.0) {
             config.min_prominence_snr = 0.0;
         }
+        // An even width has no centre: the next odd one.
+        config.running_mean_bins = (config.running_mean_bins | 1).min(MAX_RUNNING_MEAN_BINS);
         Decomposer {
             config,
             max_samples,
@@ -225,6 +296,8 @@ impl Decomposer {
             peaks: Vec::with_capacity(MAX_COMPONENTS),
             fitter: GaussFitter::with_capacity(max_samples),
             residual: vec![0.0; max_samples],
+            input: vec![0.0; max_samples],
+            smoothed: vec![0.0; max_samples],
         }
     }
 
@@ -235,8 +308,58 @@ impl Decomposer {
 
     /// Fits `y` (one segment, signal units, `noise_v` its noise level) and appends one
     /// [`FittedReturn`] per component to `out`, sorted by position (`segment`, `time_ns` left 0
-    /// for the caller to set; `position_bins` from the segment's first sample).
+    /// for the caller to set; `position_bins` from the segment's first sample). With
+    /// [`DecomposeConfig::running_mean_bins`] ≥ 3 the running mean of `y` is detected and
+    /// fitted instead.
     pub fn fit(
+        &mut self,
+        y: &[f32],
+        noise_v: f32,
+        out: &mut Vec<FittedReturn>,
+    ) -> Result<FitStats, DecomposeError> {
+        let width = self.config.running_mean_bins;
+        if width < 3 || y.len() > self.max_samples {
+            return self.fit_samples(y, noise_v, out);
+        }
+        // Taken out of `self` for the fit's borrow (no allocation: an empty `Vec` stands in).
+        let mut smoothed = std::mem::take(&mut self.smoothed);
+        running_mean(y, width, &mut smoothed[..y.len()]);
+        let result = self.fit_samples(&smoothed[..y.len()], noise_v, out);
+        self.smoothed = smoothed;
+        result
+    }
+
+    /// Fits one segment of raw digitizer counts in the waveformlidar convention
+    /// ([`DecomposeBaseline::RecordMinimumMinusOne`]): the samples
+    /// `gain_v_per_dn × (counts − floor_counts + 1)` volts, `floor_counts` being the record's
+    /// smallest count, then as [`Decomposer::fit`] (running mean included).
+    pub fn fit_counts(
+        &mut self,
+        counts: &[u16],
+        floor_counts: u16,
+        gain_v_per_dn: f32,
+        noise_v: f32,
+        out: &mut Vec<FittedReturn>,
+    ) -> Result<FitStats, DecomposeError> {
+        let n = counts.len();
+        if n > self.max_samples {
+            return Err(DecomposeError::SegmentTooLong {
+                len: n,
+                max_samples: self.max_samples,
+            });
+        }
+        let mut input = std::mem::take(&mut self.input);
+        let pedestal = 1.0 - floor_counts as f32;
+        for (v, &c) in input.iter_mut().zip(counts) {
+            *v = gain_v_per_dn * (c as f32 + pedestal);
+        }
+        let result = self.fit(&input[..n], noise_v, out);
+        self.input = input;
+        result
+    }
+
+    /// [`Decomposer::fit`] on the samples as given.
+    fn fit_samples(
         &mut self,
         y: &[f32],
         noise_v: f32,
@@ -298,18 +421,18 @@ impl Decomposer {
             shoulders: cfg.shoulders,
             shoulder_curvature: threshold / 4.0,
             min_prominence: cfg.min_prominence_snr * noise_v.max(0.0),
+            rule: cfg.peak_rule,
         };
         self.finder.find(y, &settings, &mut self.peaks);
         stats.peaks = self.peaks.len() as u32;
 
         let mut comps = [Gaussian::default(); MAX_COMPONENTS];
         let mut k = 0;
+        // Position of the previous peak (the peaks are sorted by position), bins.
+        let mut previous: Option<f32> = None;
         for p in &self.peaks {
-            comps[k] = Gaussian {
-                amplitude: p.amplitude as f64,
-                center_bins: p.position_bins as f64,
-                sigma_bins: (half_width(y, p.index) / HWHM_PER_SIGMA).clamp(s_min, s_max) as f64,
-            };
+            comps[k] = start_value(cfg.start_values, y, p, previous, (s_min, s_max));
+            previous = Some(p.position_bins);
             k += 1;
         }
         let budget = cfg.max_iterations;
@@ -445,6 +568,48 @@ fn near_pruned(pruned: &[Gaussian], i: usize) -> bool {
         .any(|g| (g.center_bins - i as f64).abs() <= g.sigma_bins.max(1.0))
 }
 
+/// The first fit's start value for the peak `p` of `y` ([`StartValues`]); `previous` is the
+/// position of the peak before it (bins), `sigma` the σ bounds (bins).
+fn start_value(
+    rule: StartValues,
+    y: &[f32],
+    p: &Peak,
+    previous: Option<f32>,
+    (s_min, s_max): (f32, f32),
+) -> Gaussian {
+    let (amplitude, sigma) = match rule {
+        StartValues::HalfWidth => (p.amplitude, half_width(y, p.index) / HWHM_PER_SIGMA),
+        StartValues::PeakSpacing => (
+            p.amplitude * (2.0 / 3.0),
+            match previous {
+                // The package's 1-based sample number.
+                None => (p.position_bins + 1.0) / 5.0,
+                Some(q) => (p.position_bins - q) / 4.0,
+            },
+        ),
+    };
+    Gaussian {
+        amplitude: amplitude as f64,
+        center_bins: p.position_bins as f64,
+        sigma_bins: sigma.clamp(s_min, s_max) as f64,
+    }
+}
+
+/// Centred running mean of `y` over `width` samples (odd) into `out` (same length); near the
+/// ends, the mean of the samples of the window that lie inside `y`. Each output is summed
+/// afresh in `f64` (no running sum whose rounding would drift along the segment, so equal
+/// windows give equal means: plateaus stay plateaus).
+fn running_mean(y: &[f32], width: usize, out: &mut [f32]) {
+    let n = y.len();
+    let half = width / 2;
+    for (i, o) in out.iter_mut().enumerate().take(n) {
+        let lo = i.saturating_sub(half);
+        let hi = (i + half).min(n - 1);
+        let sum: f64 = y[lo..=hi].iter().map(|&v| v as f64).sum();
+        *o = (sum / (hi - lo + 1) as f64) as f32;
+    }
+}
+
 /// Half width at half maximum around the peak at `i`, bins. Each side is walked until the
 /// signal falls below half of `y[i]` (linear interpolation between samples) or starts rising
 /// again (a neighbouring echo). The narrower of the sides that reached half maximum is taken
@@ -531,15 +696,37 @@ impl Stage for Decompose {
         let p = &mut *pulse;
         p.returns.clear();
         let noise_v = p.noise.noise_v;
+        let counts = self.decomposer.config.baseline == DecomposeBaseline::RecordMinimumMinusOne;
+        // The record's smallest count: over every return segment (the package's `min(y)` over
+        // the whole return waveform).
+        let floor_counts = if counts {
+            p.segments
+                .iter()
+                .filter(|s| s.kind == SegmentKind::Return)
+                .flat_map(|s| p.raw[s.range()].iter().copied())
+                .min()
+                .unwrap_or(0)
+        } else {
+            0
+        };
         for (si, seg) in p.segments.iter().enumerate() {
             if seg.kind != SegmentKind::Return || seg.len == 0 {
                 continue;
             }
             self.scratch.clear();
-            match self
-                .decomposer
-                .fit(&p.signal[seg.range()], noise_v, &mut self.scratch)
-            {
+            let fitted = if counts {
+                self.decomposer.fit_counts(
+                    &p.raw[seg.range()],
+                    floor_counts,
+                    p.gain_v_per_dn,
+                    noise_v,
+                    &mut self.scratch,
+                )
+            } else {
+                self.decomposer
+                    .fit(&p.signal[seg.range()], noise_v, &mut self.scratch)
+            };
+            match fitted {
                 Ok(_) => {}
                 Err(DecomposeError::NonFiniteInput) => {
                     out.reject(pulse, "non_finite_input");
@@ -926,6 +1113,153 @@ mod tests {
         assert_eq!(p.returns[1].segment, 2);
         assert!((p.returns[2].time_ns - (1500.0 + 90.0 * 0.5)).abs() < 0.01);
         assert!(run.emitted[1].returns.is_empty());
+    }
+
+    #[test]
+    fn running_mean_averages_the_samples_inside_the_segment() {
+        let y = [3.0, 6.0, 0.0, 3.0, 9.0];
+        let mut out = [0.0f32; 5];
+        running_mean(&y, 3, &mut out);
+        // Ends: the mean of the two samples inside.
+        assert_eq!(out, [4.5, 3.0, 3.0, 4.0, 6.0]);
+        running_mean(&y, 5, &mut out);
+        assert_eq!(out, [3.0, 3.0, 4.2, 4.5, 4.0]);
+        // Through `fit`: a running mean of 3 turns a one-sample spike into a 3-sample plateau
+        // of a third of its height, whose middle the (default) detector finds.
+        let mut spike = vec![0.0f32; 40];
+        spike[20] = 30.0;
+        let config = DecomposeConfig {
+            running_mean_bins: 3,
+            sigma_min_bins: 0.3,
+            refine_passes: 0,
+            ..Default::default()
+        };
+        let (r, stats) = decompose(&spike, 0.1, config.clone());
+        assert_eq!(stats.peaks, 1);
+        assert_eq!(r.len(), 1, "{r:?}");
+        assert!((r[0].position_bins - 20.0).abs() < 1e-3, "{r:?}");
+        // The fitted plateau, not the spike: much lower and wider.
+        assert!(r[0].amplitude < 15.0 && r[0].sigma_bins > 0.8, "{r:?}");
+        let without = DecomposeConfig {
+            running_mean_bins: 0,
+            ..config
+        };
+        let (r, _) = decompose(&spike, 0.1, without);
+        assert!(
+            r.len() == 1 && r[0].amplitude > 25.0,
+            "without the mean: {r:?}"
+        );
+    }
+
+    #[test]
+    fn start_values_follow_their_rule() {
+        let y = synth(100, &[(30.0, 20.0, 3.0), (12.0, 44.0, 6.0)], 0.0, 0);
+        let peak = |i: usize| Peak {
+            index: i,
+            position_bins: i as f32,
+            amplitude: y[i],
+            shoulder: false,
+        };
+        let b = (0.5, 30.0);
+        // Ours: the peak's height, σ from the half width.
+        let g = start_value(StartValues::HalfWidth, &y, &peak(20), None, b);
+        assert!(
+            (g.amplitude - 30.0).abs() < 0.1 && (g.sigma_bins - 3.0).abs() < 0.1,
+            "{g:?}"
+        );
+        // The package's: ⅔ of the height; σ a fifth of the 1-based sample number for the first
+        // peak, a quarter of the spacing for the next.
+        let g = start_value(StartValues::PeakSpacing, &y, &peak(20), None, b);
+        assert!((g.amplitude - 20.0).abs() < 0.1, "{g:?}");
+        assert!((g.sigma_bins - 21.0 / 5.0).abs() < 1e-6, "{g:?}");
+        let g = start_value(StartValues::PeakSpacing, &y, &peak(44), Some(20.0), b);
+        assert!(
+            (g.amplitude - y[44] as f64 * 2.0 / 3.0).abs() < 1e-4,
+            "{g:?}"
+        );
+        assert!((g.sigma_bins - 6.0).abs() < 1e-6, "{g:?}");
+        // Clamped to the bounds.
+        let g = start_value(StartValues::PeakSpacing, &y, &peak(44), Some(43.0), b);
+        assert_eq!(g.sigma_bins, 0.5);
+        // Both reach the two echoes here.
+        for rule in [StartValues::HalfWidth, StartValues::PeakSpacing] {
+            let config = DecomposeConfig {
+                start_values: rule,
+                ..Default::default()
+            };
+            let (r, _) = decompose(&y, 0.05, config);
+            assert_eq!(r.len(), 2, "{rule:?}: {r:?}");
+            assert!((r[1].position_bins - 44.0).abs() < 0.01, "{rule:?}: {r:?}");
+        }
+    }
+
+    #[test]
+    fn record_minimum_minus_one_fits_raw_counts_over_their_minimum() {
+        // Raw counts: a 200 DN floor (minimum 198 over both segments) and a 60 DN echo in the
+        // second; the denoised signal is (deliberately) flat zero.
+        let echo: Vec<u16> = (0..64)
+            .map(|i| {
+                let d = (i as f64 - 30.0) / 4.0;
+                (200.0 + 60.0 * (-0.5 * d * d).exp()).round() as u16
+            })
+            .collect();
+        let mut quiet = [200u16; 32];
+        quiet[5] = 198;
+        let mut p = Pulse {
+            sample_ns: 1.0,
+            gain_v_per_dn: 0.5,
+            ..Pulse::default()
+        };
+        p.push_segment(SegmentKind::Return, 0, 0.0, quiet.iter().copied());
+        p.push_segment(SegmentKind::Return, 0, 100.0, echo.iter().copied());
+        p.signal = vec![0.0; p.raw.len()];
+        p.noise.noise_v = 0.5;
+        let run = |baseline| {
+            let config = DecomposeConfig {
+                baseline,
+                min_relative_amplitude: 0.22,
+                ..Default::default()
+            };
+            let mut q = copy_pulse(&p);
+            q.gain_v_per_dn = p.gain_v_per_dn;
+            run_stage(&mut Decompose::new(config), [q]).unwrap().emitted[0]
+                .returns
+                .clone()
+        };
+        assert!(run(DecomposeBaseline::Denoised).is_empty());
+        let r = run(DecomposeBaseline::RecordMinimumMinusOne);
+        // The second segment: 0.5 V/DN × (counts − 198 + 1): the echo's 30 V on a 1.5 V
+        // pedestal (3 DN), which the offset-free Gaussian absorbs partly (wider, higher).
+        let echo_r: Vec<_> = r.iter().filter(|r| r.segment == 1).collect();
+        assert_eq!(echo_r.len(), 1, "{r:?}");
+        let g = echo_r[0];
+        assert!((g.position_bins - 30.0).abs() < 0.05, "{g:?}");
+        assert!((g.time_ns - 130.0).abs() < 0.05, "{g:?}");
+        assert!(g.amplitude > 30.0 && g.amplitude < 32.0, "{g:?}");
+        assert!(g.sigma_bins > 4.0, "{g:?}");
+        // Equal to fitting those samples directly.
+        let input: Vec<f32> = echo.iter().map(|&c| 0.5 * (c as f32 - 197.0)).collect();
+        let mut d = Decomposer::new(
+            DecomposeConfig {
+                min_relative_amplitude: 0.22,
+                ..Default::default()
+            },
+            256,
+        );
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        d.fit(&input, 0.5, &mut a).unwrap();
+        d.fit_counts(&echo, 198, 0.5, 0.5, &mut b).unwrap();
+        let params = |v: &[FittedReturn]| {
+            v.iter()
+                .map(|r| (r.position_bins, r.amplitude, r.sigma_bins))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(params(&a), params(&b));
+        assert_eq!(a.len(), 1);
+        assert!(matches!(
+            d.fit_counts(&[200; 300], 198, 0.5, 0.5, &mut b),
+            Err(DecomposeError::SegmentTooLong { .. })
+        ));
     }
 
     #[test]

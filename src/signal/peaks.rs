@@ -30,6 +30,23 @@ pub struct Peak {
     pub shoulder: bool,
 }
 
+/// Which samples are local maxima ([`PeakSettings::rule`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PeakRule {
+    /// A rise followed, possibly after a plateau of equal samples, by a fall; a plateau counts
+    /// once, at its middle. Default.
+    #[default]
+    RiseAndFall,
+    /// Every sample not below its left neighbour and above its right one
+    /// (`y[i−1] ≤ y[i] > y[i+1]`): the waveformlidar R package's `lpeak` (a 3-sample window
+    /// whose first maximum, in its reversed order, is the middle). A plateau counts at its last
+    /// sample, and so does the end of a flat step on a falling flank (two equal samples, then
+    /// lower), which is no maximum at all: frequent on a 3-bin running mean of integer counts,
+    /// whose values are multiples of ⅓. Only for reproducing the package's products.
+    NotBelowLeft,
+}
+
 /// Settings of one detection.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PeakSettings {
@@ -49,6 +66,8 @@ pub struct PeakSettings {
     /// side, the lowest sample between it and the nearest strictly higher sample (or the
     /// segment's edge when there is none).
     pub min_prominence: f32,
+    /// Which samples are local maxima. The prominence test and the separation apply to either.
+    pub rule: PeakRule,
 }
 
 /// Finds peaks; holds the candidate buffer.
@@ -84,9 +103,25 @@ impl PeakFinder {
         if n < 3 || settings.max_peaks == 0 {
             return;
         }
+        if settings.rule == PeakRule::NotBelowLeft {
+            for i in 1..n - 1 {
+                if y[i] >= y[i - 1]
+                    && y[i] > y[i + 1]
+                    && y[i] >= settings.threshold
+                    && self.candidates.len() < cap
+                {
+                    self.candidates.push(Peak {
+                        index: i,
+                        position_bins: i as f32,
+                        amplitude: y[i],
+                        shoulder: false,
+                    });
+                }
+            }
+        }
         // Local maxima: a rise followed, possibly after a plateau, by a fall.
         let mut i = 1;
-        while i + 1 < n {
+        while settings.rule == PeakRule::RiseAndFall && i + 1 < n {
             if y[i] > y[i - 1] {
                 let mut j = i;
                 while j + 1 < n && y[j + 1] == y[i] {
@@ -252,6 +287,7 @@ mod tests {
             shoulders: false,
             shoulder_curvature: 0.0,
             min_prominence: 0.0,
+            rule: PeakRule::RiseAndFall,
         }
     }
 
@@ -272,6 +308,59 @@ mod tests {
         assert_eq!(pos, vec![2.0, 6.0, 9.5]);
         let p = find(&y, &settings(3.0));
         assert_eq!(p.len(), 2);
+    }
+
+    #[test]
+    fn not_below_left_rule_takes_step_ends_and_plateau_ends() {
+        // A plateau (6..=7), a flat step on a falling flank (10, 11) and a strict maximum (2).
+        let y = [
+            0.0, 1.0, 5.0, 1.0, 0.0, 1.0, 2.0, 2.0, 0.0, 9.0, 4.0, 4.0, 3.0, 0.0,
+        ];
+        let rule = PeakSettings {
+            min_separation_bins: 1,
+            rule: PeakRule::NotBelowLeft,
+            ..settings(0.5)
+        };
+        let idx: Vec<usize> = find(&y, &rule).iter().map(|p| p.index).collect();
+        assert_eq!(idx, vec![2, 7, 9, 11]);
+        let idx: Vec<usize> = find(
+            &y,
+            &PeakSettings {
+                rule: PeakRule::RiseAndFall,
+                ..rule
+            },
+        )
+        .iter()
+        .map(|p| p.index)
+        .collect();
+        assert_eq!(
+            idx,
+            vec![2, 6, 9],
+            "the plateau's middle (6.5 → 6), no step end"
+        );
+        // Threshold and separation apply as before.
+        assert_eq!(
+            find(
+                &y,
+                &PeakSettings {
+                    threshold: 4.5,
+                    ..rule
+                }
+            )
+            .len(),
+            2
+        );
+        let sep: Vec<usize> = find(
+            &y,
+            &PeakSettings {
+                min_separation_bins: 3,
+                ..rule
+            },
+        )
+        .iter()
+        .map(|p| p.index)
+        .collect();
+        assert_eq!(sep, vec![2, 9], "7 and 11 lie 2 bins from the higher 9");
     }
 
     #[test]
