@@ -11,8 +11,8 @@ use crate::signal::kernel::convolve_same;
 const MAX_N: usize = 4096;
 const MAX_M: usize = 256;
 
-/// The four methods at their defaults, Richardson-Lucy accelerated, and Richardson-Lucy and
-/// Gold stopping by the noise (NNLS's solver internals are also tested in its module).
+/// The four methods at their defaults, Richardson-Lucy accelerated, Richardson-Lucy and
+/// Gold stopping by the noise, and Richardson-Lucy with the coarse-to-fine start (NNLS's solver internals are also tested in its module).
 fn methods() -> Vec<Box<dyn Deconvolver>> {
     vec![
         MethodConfig::RichardsonLucy(RlConfig::default()).build(MAX_N, MAX_M),
@@ -32,6 +32,21 @@ fn methods() -> Vec<Box<dyn Deconvolver>> {
         MethodConfig::Gold(GoldConfig {
             stop_at_noise: Some(1.0),
             ..GoldConfig::default()
+        })
+        .build(MAX_N, MAX_M),
+        // The coarse-to-fine start at a factor of ≥ 2 for every kernel at least 2 samples wide,
+        // plain and accelerated.
+        MethodConfig::RichardsonLucy(RlConfig {
+            coarse_iterations: 30,
+            coarse_fwhm_samples: 1.0,
+            ..RlConfig::default()
+        })
+        .build(MAX_N, MAX_M),
+        MethodConfig::RichardsonLucy(RlConfig {
+            coarse_iterations: 30,
+            coarse_fwhm_samples: 1.0,
+            accelerate: true,
+            ..RlConfig::default()
         })
         .build(MAX_N, MAX_M),
     ]
@@ -415,6 +430,7 @@ fn deconvolve_accuracy_two_spikes() {
             early_stop: None,
             accelerate: false,
             stop_at_noise: None,
+            ..RlConfig::default()
         },
         MAX_N,
         MAX_M,
@@ -440,6 +456,7 @@ fn deconvolve_rl_accelerated_goes_further_per_iteration() {
                 early_stop: None,
                 accelerate,
                 stop_at_noise: None,
+                ..RlConfig::default()
             },
             MAX_N,
             MAX_M,
@@ -470,6 +487,7 @@ fn deconvolve_rl_accelerated_goes_further_per_iteration() {
             early_stop: Some(1e-2),
             accelerate: true,
             stop_at_noise: None,
+            ..RlConfig::default()
         },
         MAX_N,
         MAX_M,
@@ -489,6 +507,7 @@ fn deconvolve_rl_early_stop() {
             early_stop: Some(1e-2),
             accelerate: false,
             stop_at_noise: None,
+            ..RlConfig::default()
         },
         MAX_N,
         MAX_M,
@@ -528,6 +547,7 @@ fn rl_with(iterations: u32, stop_at_noise: Option<f32>, accelerate: bool) -> Ric
             early_stop: None,
             accelerate,
             stop_at_noise,
+            ..RlConfig::default()
         },
         MAX_N,
         MAX_M,
