@@ -115,9 +115,9 @@ pub const STOP_AT_NOISE_ACCELERATED_CAP: u32 = 50;
 /// the coarse grid at the default 4 samples per kernel FWHM: a factor of 3 at 16 ns, none at
 /// 4 and 8 ns).
 pub const COARSE_RL: [(u32, u32); 1] = [(50, 10)];
-/// `(coarse_iterations, iterations)` of accelerated RL to the 2 ns pulse with the
-/// coarse-to-fine start (method `rl_acc_2ns`).
-pub const COARSE_TARGET_ACCELERATED: [(u32, u32); 3] = [(13, 10), (13, 13), (33, 13)];
+/// `(coarse_iterations, iterations)` of accelerated RL to the 2 ns pulse (method
+/// `rl_acc_2ns`): without the coarse-to-fine start (the control), then with it.
+pub const COARSE_TARGET_ACCELERATED: [(u32, u32); 4] = [(0, 13), (13, 10), (13, 13), (33, 13)];
 
 /// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], accelerated RL at
 /// [`ACCELERATED_ITERATIONS`], Wiener at [`WIENER_NOISE_SCALES`] (cut-off 0.2 GHz,
@@ -261,9 +261,14 @@ pub fn default_settings() -> Vec<Setting> {
         ));
     }
     for (coarse, it) in COARSE_TARGET_ACCELERATED {
+        let parameter = if coarse == 0 {
+            format!("iterations={it}")
+        } else {
+            format!("iterations={it} coarse_iterations={coarse}")
+        };
         s.push(deconvolve(
             "rl_acc_2ns",
-            format!("iterations={it} coarse_iterations={coarse}"),
+            parameter,
             rl_coarse(it, true, coarse),
         ));
     }
