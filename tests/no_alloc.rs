@@ -115,7 +115,9 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
     use fwlidar::signal::deconvolve::{Deconvolve, KERNEL_OVER_MAX_TAPS};
     use fwlidar::signal::deconvolve::{DeconvolveConfig, MethodConfig, RlConfig};
     let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    for max_taps in [256usize, 16] {
+    // Plain RL, and accelerated RL with the coarse-to-fine start (a coarse FWHM of 1 sample:
+    // a decimation factor of ≥ 2 for any outgoing pulse at least 2 samples wide).
+    for (max_taps, coarse_iterations) in [(256usize, 0u32), (16, 0), (256, 3), (16, 3)] {
         let factory: StageFactory = Arc::new(move || {
             vec![
                 Box::new(Denoise::new(DenoiseConfig::default())) as Box<dyn Stage>,
@@ -124,8 +126,10 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
                     ..DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
                         iterations: 2,
                         early_stop: None,
-                        accelerate: false,
+                        accelerate: coarse_iterations > 0,
                         stop_at_noise: None,
+                        coarse_iterations,
+                        coarse_fwhm_samples: 1.0,
                     }))
                 })),
             ]

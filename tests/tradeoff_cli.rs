@@ -116,7 +116,7 @@ fn quick_run_writes_sane_csv_markdown_and_svg() {
     let o = fwlidar(&["tradeoff", "--quick", "--out", out.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
-    assert!(err.contains("[264/264]"), "progress on stderr: {err}");
+    assert!(err.contains("[294/294]"), "progress on stderr: {err}");
 
     for f in ["tradeoff.csv", "tradeoff.md", "tradeoff.svg"] {
         assert!(out.join(f).is_file(), "{f} missing");
@@ -129,8 +129,8 @@ fn quick_run_writes_sane_csv_markdown_and_svg() {
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
     assert_eq!(header, COLUMNS);
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
-    // 44 settings × 3 widths × 2 families.
-    assert_eq!(rows.len(), 44 * 3 * 2);
+    // 49 settings × 3 widths × 2 families.
+    assert_eq!(rows.len(), 49 * 3 * 2);
     let col = |name: &str| COLUMNS.iter().position(|c| *c == name).unwrap();
     let mut rmse: HashMap<(String, String, String, String), f64> = HashMap::new();
     for r in &rows {

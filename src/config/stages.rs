@@ -6,6 +6,7 @@ use crate::pipeline::registry::StageConfig;
 use crate::signal::calibrate::CalibrateConfig;
 use crate::signal::decompose::{DecomposeConfig, MAX_RUNNING_MEAN_BINS};
 use crate::signal::deconvolve::response::{ResponseError, response_from_flat_target};
+use crate::signal::deconvolve::richardson_lucy::MAX_COARSE_ITERATIONS;
 use crate::signal::deconvolve::{DeconvolveConfig, GateError, KernelSource, MethodConfig};
 use crate::signal::denoise::DenoiseConfig;
 use crate::signal::gauss_fit::MAX_COMPONENTS;
@@ -151,6 +152,22 @@ impl Validate for DeconvolveConfig {
                 if let Some(tau) = c.stop_at_noise {
                     v.positive(tau as f64, field(&method, "stop_at_noise"));
                 }
+                v.require(
+                    c.coarse_iterations <= MAX_COARSE_ITERATIONS,
+                    field(&method, "coarse_iterations"),
+                    format!(
+                        "must be in 0..={MAX_COARSE_ITERATIONS}, got {}",
+                        c.coarse_iterations
+                    ),
+                );
+                v.require(
+                    c.coarse_fwhm_samples.is_finite() && c.coarse_fwhm_samples >= 1.0,
+                    field(&method, "coarse_fwhm_samples"),
+                    format!(
+                        "must be a finite number of coarse samples ≥ 1, got {}",
+                        c.coarse_fwhm_samples
+                    ),
+                );
             }
             MethodConfig::Gold(c) => {
                 check_iterations(c.iterations, field(&method, "iterations"), v);
@@ -449,9 +466,32 @@ mod tests {
             early_stop: Some(-1.0),
             accelerate: false,
             stop_at_noise: Some(f32::NAN),
+            ..RlConfig::default()
         }));
         Validate::validate(&bad, "s", &mut v);
         assert_eq!(v.issues().len(), 3);
+        let mut v = Validator::new(None);
+        let bad = DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
+            coarse_iterations: MAX_COARSE_ITERATIONS + 1,
+            coarse_fwhm_samples: 0.5,
+            ..RlConfig::default()
+        }));
+        Validate::validate(&bad, "s", &mut v);
+        let paths: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+        assert_eq!(
+            paths,
+            ["s.method.coarse_iterations", "s.method.coarse_fwhm_samples"]
+        );
+        for fwhm in [f32::NAN, f32::INFINITY] {
+            let mut v = Validator::new(None);
+            let bad = DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
+                coarse_iterations: 10,
+                coarse_fwhm_samples: fwhm,
+                ..RlConfig::default()
+            }));
+            Validate::validate(&bad, "s", &mut v);
+            assert_eq!(v.issues().len(), 1, "{fwhm}");
+        }
         let mut v = Validator::new(None);
         let bad = DeconvolveConfig::with_method(MethodConfig::Gold(GoldConfig {
             iterations: 1,

@@ -20,6 +20,7 @@ fn colour(method: &str) -> &'static str {
         "wiener" => "#2ca02c",
         "nnls" => "#d62728",
         "rl_2ns" => "#e377c2",
+        "rl_acc_2ns" => "#393b79",
         "wiener_2ns" => "#bcbd22",
         "nnls_2ns" => "#8c564b",
         _ => "#000000",
@@ -27,7 +28,7 @@ fn colour(method: &str) -> &'static str {
 }
 
 /// Legend names of the methods.
-const METHODS: [(&str, &str); 10] = [
+const METHODS: [(&str, &str); 11] = [
     ("raw", "raw (no processing)"),
     ("denoise", "denoise only"),
     ("rl", "Richardson-Lucy (iterations)"),
@@ -36,6 +37,10 @@ const METHODS: [(&str, &str); 10] = [
     ("wiener", "Wiener (noise scale)"),
     ("nnls", "NNLS (iteration cap)"),
     ("rl_2ns", "RL to the 2 ns pulse (iterations)"),
+    (
+        "rl_acc_2ns",
+        "accelerated RL to the 2 ns pulse, coarse-to-fine start",
+    ),
     ("wiener_2ns", "Wiener to the 2 ns pulse (noise scale)"),
     ("nnls_2ns", "NNLS drawn as the 2 ns pulse (cap)"),
 ];

@@ -206,6 +206,7 @@ pub fn run_scene_steps(
                 early_stop: None,
                 accelerate: false,
                 stop_at_noise: None,
+                ..RlConfig::default()
             })),
         ),
         (

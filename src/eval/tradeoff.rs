@@ -111,14 +111,23 @@ pub const STOP_AT_NOISE_CAP: u32 = 200;
 /// Iteration cap of accelerated RL with the stop by the noise.
 pub const STOP_AT_NOISE_ACCELERATED_CAP: u32 = 50;
 
+/// `(coarse_iterations, iterations)` of plain RL with the coarse-to-fine start (method `rl`;
+/// the coarse grid at the default 4 samples per kernel FWHM: a factor of 3 at 16 ns, none at
+/// 4 and 8 ns).
+pub const COARSE_RL: [(u32, u32); 1] = [(50, 10)];
+/// `(coarse_iterations, iterations)` of accelerated RL to the 2 ns pulse (method
+/// `rl_acc_2ns`): without the coarse-to-fine start (the control), then with it.
+pub const COARSE_TARGET_ACCELERATED: [(u32, u32); 4] = [(0, 13), (13, 10), (13, 13), (33, 13)];
+
 /// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], accelerated RL at
 /// [`ACCELERATED_ITERATIONS`], Wiener at [`WIENER_NOISE_SCALES`] (cut-off 0.2 GHz,
 /// regularisation 1e-3), RL, accelerated RL and Gold stopped by the noise at
 /// [`STOP_AT_NOISE_TAUS`], NNLS at [`NNLS_CAPS`] (tolerance: the default, 1e-6), then the same
 /// methods delivering their result as seen by the truth's 2 ns pulse (`target_fwhm_ns = 2`): RL
 /// at [`TARGET_ITERATIONS`] (`rl_2ns`), Wiener at [`TARGET_WIENER_NOISE_SCALES`]
-/// (`wiener_2ns`), NNLS at [`TARGET_NNLS_CAPS`] (`nnls_2ns`). Other parameters at their
-/// defaults.
+/// (`wiener_2ns`), NNLS at [`TARGET_NNLS_CAPS`] (`nnls_2ns`); last, RL with the
+/// coarse-to-fine start at [`COARSE_RL`] and accelerated RL to the 2 ns pulse with it at
+/// [`COARSE_TARGET_ACCELERATED`] (`rl_acc_2ns`). Other parameters at their defaults.
 pub fn default_settings() -> Vec<Setting> {
     let plain = |method: &'static str, processing: Processing| Setting {
         method,
@@ -138,6 +147,15 @@ pub fn default_settings() -> Vec<Setting> {
             early_stop: None,
             accelerate,
             stop_at_noise,
+            ..RlConfig::default()
+        })
+    };
+    let rl_coarse = |iterations: u32, accelerate: bool, coarse_iterations: u32| {
+        MethodConfig::RichardsonLucy(RlConfig {
+            iterations,
+            accelerate,
+            coarse_iterations,
+            ..RlConfig::default()
         })
     };
     let gold = |iterations: u32, stop_at_noise: Option<f32>| {
@@ -231,6 +249,27 @@ pub fn default_settings() -> Vec<Setting> {
             "nnls_2ns",
             format!("max_iterations={cap}"),
             nnls(cap),
+        ));
+    }
+    // Coarse-to-fine start (RL's `coarse_iterations`): plain RL, and accelerated RL to the
+    // 2 ns pulse.
+    for (coarse, it) in COARSE_RL {
+        s.push(deconvolve(
+            "rl",
+            format!("iterations={it} coarse_iterations={coarse}"),
+            rl_coarse(it, false, coarse),
+        ));
+    }
+    for (coarse, it) in COARSE_TARGET_ACCELERATED {
+        let parameter = if coarse == 0 {
+            format!("iterations={it}")
+        } else {
+            format!("iterations={it} coarse_iterations={coarse}")
+        };
+        s.push(deconvolve(
+            "rl_acc_2ns",
+            parameter,
+            rl_coarse(it, true, coarse),
         ));
     }
     s

@@ -939,6 +939,7 @@ mod tests {
                 early_stop: Some(1e-3),
                 accelerate: false,
                 stop_at_noise: Some(1.0),
+                ..RlConfig::default()
             },
         )));
         for c in all {

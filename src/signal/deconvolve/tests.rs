@@ -14,8 +14,9 @@ const MAX_N: usize = 4096;
 const MAX_M: usize = 256;
 
 /// The four methods at their defaults, Richardson-Lucy accelerated, Richardson-Lucy and Gold
-/// stopping by the noise, and the four delivering their result as seen by a 2 ns target pulse
-/// (`target.rs`; NNLS's solver internals are also tested in its module).
+/// stopping by the noise, Richardson-Lucy with the coarse-to-fine start, and the four
+/// delivering their result as seen by a 2 ns target pulse (`target.rs`; NNLS's solver
+/// internals are also tested in its module).
 fn methods() -> Vec<Box<dyn Deconvolver>> {
     let mut m = plain_methods();
     for config in [
@@ -50,6 +51,21 @@ fn plain_methods() -> Vec<Box<dyn Deconvolver>> {
         MethodConfig::Gold(GoldConfig {
             stop_at_noise: Some(1.0),
             ..GoldConfig::default()
+        })
+        .build(MAX_N, MAX_M),
+        // The coarse-to-fine start at a factor of ≥ 2 for every kernel at least 2 samples wide,
+        // plain and accelerated.
+        MethodConfig::RichardsonLucy(RlConfig {
+            coarse_iterations: 30,
+            coarse_fwhm_samples: 1.0,
+            ..RlConfig::default()
+        })
+        .build(MAX_N, MAX_M),
+        MethodConfig::RichardsonLucy(RlConfig {
+            coarse_iterations: 30,
+            coarse_fwhm_samples: 1.0,
+            accelerate: true,
+            ..RlConfig::default()
         })
         .build(MAX_N, MAX_M),
     ]
@@ -433,6 +449,7 @@ fn deconvolve_accuracy_two_spikes() {
             early_stop: None,
             accelerate: false,
             stop_at_noise: None,
+            ..RlConfig::default()
         },
         MAX_N,
         MAX_M,
@@ -458,6 +475,7 @@ fn deconvolve_rl_accelerated_goes_further_per_iteration() {
                 early_stop: None,
                 accelerate,
                 stop_at_noise: None,
+                ..RlConfig::default()
             },
             MAX_N,
             MAX_M,
@@ -488,6 +506,7 @@ fn deconvolve_rl_accelerated_goes_further_per_iteration() {
             early_stop: Some(1e-2),
             accelerate: true,
             stop_at_noise: None,
+            ..RlConfig::default()
         },
         MAX_N,
         MAX_M,
@@ -507,6 +526,7 @@ fn deconvolve_rl_early_stop() {
             early_stop: Some(1e-2),
             accelerate: false,
             stop_at_noise: None,
+            ..RlConfig::default()
         },
         MAX_N,
         MAX_M,
@@ -546,6 +566,7 @@ fn rl_with(iterations: u32, stop_at_noise: Option<f32>, accelerate: bool) -> Ric
             early_stop: None,
             accelerate,
             stop_at_noise,
+            ..RlConfig::default()
         },
         MAX_N,
         MAX_M,
