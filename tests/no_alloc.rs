@@ -113,24 +113,41 @@ fn calibrate_allocates_nothing_per_pulse() {
 #[test]
 fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
     use fwlidar::signal::deconvolve::{Deconvolve, KERNEL_OVER_MAX_TAPS};
-    use fwlidar::signal::deconvolve::{DeconvolveConfig, MethodConfig, RlConfig};
+    use fwlidar::signal::deconvolve::{DeconvolveConfig, MethodConfig, NnlsConfig, RlConfig};
     let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     // Plain RL, and accelerated RL with the coarse-to-fine start (a coarse FWHM of 1 sample:
-    // a decimation factor of ≥ 2 for any outgoing pulse at least 2 samples wide).
-    for (max_taps, coarse_iterations) in [(256usize, 0u32), (16, 0), (256, 3), (16, 3)] {
+    // a decimation factor of ≥ 2 for any outgoing pulse at least 2 samples wide); RL stopping
+    // by the noise and delivering its result as seen by a 2 ns target pulse (a reduced kernel
+    // per shot), and NNLS drawn as the target pulse.
+    let rl = |coarse_iterations: u32, stop_at_noise: Option<f32>| {
+        MethodConfig::RichardsonLucy(RlConfig {
+            iterations: 2,
+            early_stop: None,
+            accelerate: coarse_iterations > 0,
+            stop_at_noise,
+            coarse_iterations,
+            coarse_fwhm_samples: 1.0,
+        })
+    };
+    let nnls = MethodConfig::Nnls(NnlsConfig {
+        max_iterations: 3,
+        ..NnlsConfig::default()
+    });
+    for (max_taps, method, target_fwhm_ns) in [
+        (256usize, rl(0, None), None),
+        (16, rl(0, None), None),
+        (256, rl(3, None), None),
+        (16, rl(3, None), None),
+        (256, rl(0, Some(1.0)), Some(2.0)),
+        (16, nnls, Some(2.0)),
+    ] {
         let factory: StageFactory = Arc::new(move || {
             vec![
                 Box::new(Denoise::new(DenoiseConfig::default())) as Box<dyn Stage>,
                 Box::new(Deconvolve::new(DeconvolveConfig {
                     max_taps,
-                    ..DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
-                        iterations: 2,
-                        early_stop: None,
-                        accelerate: coarse_iterations > 0,
-                        stop_at_noise: None,
-                        coarse_iterations,
-                        coarse_fwhm_samples: 1.0,
-                    }))
+                    target_fwhm_ns,
+                    ..DeconvolveConfig::with_method(method.clone())
                 })),
             ]
         });

@@ -13,7 +13,7 @@ fn fwlidar(args: &[&str]) -> Output {
         .expect("run fwlidar")
 }
 
-const COLUMNS: [&str; 16] = [
+const COLUMNS: [&str; 17] = [
     "method",
     "parameter",
     "family",
@@ -27,6 +27,7 @@ const COLUMNS: [&str; 16] = [
     "detection_rate",
     "false_per_pulse",
     "sam_deg",
+    "time_mean_us",
     "time_median_us",
     "time_p99_us",
     "max_rate_hz",

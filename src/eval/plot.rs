@@ -95,7 +95,7 @@ struct Panel<'a> {
 
 /// The SVG document. `workers` sets the time budget lines (budget = workers / rate).
 pub fn svg(settings: &[Setting], summary: &[SettingSummary], workers: usize) -> String {
-    let times: Vec<f64> = summary.iter().map(|s| s.median_ns / 1e3).collect();
+    let times: Vec<f64> = summary.iter().map(|s| s.mean_ns / 1e3).collect();
     let budgets: Vec<f64> = RATES_HZ.iter().map(|&r| workers as f64 / r * 1e6).collect();
     let finite_pos = times
         .iter()
@@ -190,7 +190,7 @@ pub fn svg(settings: &[Setting], summary: &[SettingSummary], workers: usize) -> 
         }
         let _ = writeln!(
             s,
-            r#"<text x="{}" y="{}" text-anchor="middle">time per pulse (µs, median, one core; log scale)</text>"#,
+            r#"<text x="{}" y="{}" text-anchor="middle">time per pulse (µs, mean, one core; log scale)</text>"#,
             x0 + PW / 2.0,
             TOP + PH + 36.0
         );

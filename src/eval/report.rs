@@ -10,7 +10,7 @@ use crate::eval::tradeoff::{CaseResult, Setting, SettingSummary, SweepConfig};
 pub const RATES_HZ: [f64; 4] = [100e3, 500e3, 1e6, 2e6];
 
 /// Columns of the CSV, in order.
-pub const CSV_COLUMNS: [&str; 16] = [
+pub const CSV_COLUMNS: [&str; 17] = [
     "method",
     "parameter",
     "family",
@@ -24,6 +24,7 @@ pub const CSV_COLUMNS: [&str; 16] = [
     "detection_rate",
     "false_per_pulse",
     "sam_deg",
+    "time_mean_us",
     "time_median_us",
     "time_p99_us",
     "max_rate_hz",
@@ -71,7 +72,7 @@ pub fn csv(settings: &[Setting], cases: &[CaseResult], workers: usize) -> String
         let med = c.median_ns();
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{:.6},{:.6},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.0}",
+            "{},{},{},{},{},{:.6},{:.6},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.0}",
             set.method,
             set.parameter,
             c.family.name(),
@@ -85,6 +86,7 @@ pub fn csv(settings: &[Setting], cases: &[CaseResult], workers: usize) -> String
             c.detection_rate(),
             c.false_per_pulse(),
             c.sam_deg,
+            c.mean_ns() / 1e3,
             med / 1e3,
             c.p99_ns() / 1e3,
             workers as f64 / (med * 1e-9),
@@ -159,8 +161,9 @@ pub fn markdown(
     let _ = writeln!(
         s,
         "- Machine: {} logical core(s){}; times are single-thread wall clock per pulse (one \
-         core), medians over pulses; pulse rates assume {} worker thread(s) (one per core, as \
-         the runtime's default) at the slowest case's median: rate = workers / time.\n",
+         core): means over pulses (what decides throughput; the Pareto front and the plot use \
+         them) and medians; pulse rates assume {} worker thread(s) (one per core, as the \
+         runtime's default) at the slowest case's median: rate = workers / time.\n",
         machine.cores,
         machine
             .cpu
@@ -178,13 +181,13 @@ pub fn markdown(
     let rate_heads: Vec<String> = RATES_HZ.iter().map(|&r| rate(r)).collect();
     let _ = writeln!(
         s,
-        "| setting | median µs/pulse | slowest case µs | max rate ({w} worker{}) | {} | RMSE | RMSE at 2 ns | true det. | false/pulse | SAM ° | Pareto |",
+        "| setting | mean µs/pulse | median µs/pulse | slowest case µs | max rate ({w} worker{}) | {} | RMSE | RMSE at 2 ns | true det. | false/pulse | SAM ° | Pareto |",
         if w == 1 { "" } else { "s" },
         rate_heads.join(" | ")
     );
     let _ = writeln!(
         s,
-        "|---|---:|---:|---:|{}---:|---:|---:|---:|---:|:-:|",
+        "|---|---:|---:|---:|---:|{}---:|---:|---:|---:|---:|:-:|",
         ":-:|".repeat(RATES_HZ.len())
     );
     for sm in summary {
@@ -196,8 +199,9 @@ pub fn markdown(
             .collect();
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} | {} | {:.4} | {:.4} | {:.1} % | {:.2} | {:.1} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {:.4} | {:.4} | {:.1} % | {:.2} | {:.1} | {} |",
             set.label(),
+            us(sm.mean_ns),
             us(sm.median_ns),
             us(sm.slowest_case_median_ns),
             rate(max),
