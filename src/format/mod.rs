@@ -13,6 +13,8 @@
 //!   of points with extra dimensions (voxel tiles and other point outputs).
 //! - [`las_repair`]: rebuilding the header of a LAS 1.4 file cut off by a crash.
 //! - [`pulsewaves`]: PulseWaves 0.3 `.pls` + `.wvs` reader (input).
+//! - [`gedi`]: NASA GEDI Level 1B geolocated waveforms (HDF5, through the pure-Rust
+//!   `hdf5-reader` crate): beams, shot records, waveforms in blocks of shots.
 //! - [`geokeys`]: the GeoTIFF GeoKey directory of LAS and PulseWaves files and the CRS it names
 //!   (one precedence for both readers).
 //!
@@ -22,6 +24,7 @@ pub mod capture;
 pub mod capture_reader;
 pub mod capture_writer;
 pub mod frame;
+pub mod gedi;
 pub mod geokeys;
 pub mod header;
 pub mod las_points;
