@@ -5,9 +5,8 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use fwlidar::signal::DecomposeConfig;
 use fwlidar::signal::decompose::Decomposer;
-use fwlidar::signal::peaks::PeakRule;
-use fwlidar::signal::{DecomposeBaseline, DecomposeConfig, StartValues};
 
 struct Counting;
 static ALLOCS: AtomicU64 = AtomicU64::new(0);
@@ -94,17 +93,7 @@ fn decomposer_fits_without_allocating() {
         .iter()
         .map(|y| y.iter().map(|v| (200.0 + 4.0 * v).round() as u16).collect())
         .collect();
-    let config = DecomposeConfig {
-        baseline: DecomposeBaseline::RecordMinimumMinusOne,
-        running_mean_bins: 3,
-        peak_rule: PeakRule::NotBelowLeft,
-        start_values: StartValues::PeakSpacing,
-        min_relative_amplitude: 0.22,
-        min_separation_bins: 1,
-        refine_passes: 0,
-        max_iterations: 1000,
-        ..DecomposeConfig::default()
-    };
+    let config = DecomposeConfig::waveformlidar_compatible();
     let mut d = Decomposer::new(config, 4096);
     let mut out = Vec::with_capacity(8);
     let before = ALLOCS.load(Ordering::SeqCst);

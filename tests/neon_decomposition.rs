@@ -303,19 +303,7 @@ fn neon_harv_decomposition_matches_the_reference() {
     // The waveformlidar-compatible decomposition (docs/signal.md): the package's `decom`
     // reproduced option by option, for users who must compare with its products. Each
     // ablation row puts one of our own choices back, to show what each option is worth.
-    let waveformlidar = DecomposeConfig {
-        baseline: DecomposeBaseline::RecordMinimumMinusOne,
-        running_mean_bins: 3,
-        peak_rule: PeakRule::NotBelowLeft,
-        start_values: StartValues::PeakSpacing,
-        min_relative_amplitude: 0.22,
-        min_separation_bins: 1,
-        min_snr: 1.0,
-        sigma_max_bins: 100.0,
-        refine_passes: 0,
-        max_iterations: 1000,
-        ..DecomposeConfig::default()
-    };
+    let waveformlidar = DecomposeConfig::waveformlidar_compatible();
     for (name, config) in [
         (
             "waveformlidar, but the denoised signal (pre-trigger median, 0.2 GHz low-pass)",

@@ -192,6 +192,29 @@ fn default_max_samples() -> usize {
     4096
 }
 
+impl DecomposeConfig {
+    /// The waveformlidar-compatible decomposition (`docs/signal.md`): the package's `decom`
+    /// in our options (baseline `y − min + 1`, 3-bin running mean, its peak rule and start
+    /// values, 22 % relative threshold, no pruning below 1 × the noise level, σ up to 100
+    /// bins, no refinement, fits run to 1000 Levenberg-Marquardt steps). Opt-in; the other
+    /// fields at their defaults.
+    pub fn waveformlidar_compatible() -> Self {
+        DecomposeConfig {
+            baseline: DecomposeBaseline::RecordMinimumMinusOne,
+            running_mean_bins: 3,
+            peak_rule: PeakRule::NotBelowLeft,
+            start_values: StartValues::PeakSpacing,
+            min_relative_amplitude: 0.22,
+            min_separation_bins: 1,
+            min_snr: 1.0,
+            sigma_max_bins: 100.0,
+            refine_passes: 0,
+            max_iterations: 1000,
+            ..DecomposeConfig::default()
+        }
+    }
+}
+
 impl Default for DecomposeConfig {
     fn default() -> Self {
         DecomposeConfig {
