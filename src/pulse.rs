@@ -55,6 +55,18 @@ pub struct NoiseEstimate {
     pub noise_v: f32,
 }
 
+/// Noise of the received signal as the input file states it (GEDI Level 1B's
+/// `noise_mean_corrected` and `noise_stddev_corrected`), in the units of [`Pulse::signal`] before
+/// any stage changes it: `offset_v + gain_v_per_dn × counts` (volts for a digitizer; GEDI's own
+/// counts for GEDI input, whose gain makes one unit one GEDI count).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StatedNoise {
+    /// Mean of the noise (the baseline), signal units.
+    pub mean: f32,
+    /// Standard deviation of the noise, signal units.
+    pub stddev: f32,
+}
+
 /// A discrete return found by Gaussian decomposition of one segment.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct FittedReturn {
@@ -201,6 +213,8 @@ pub struct Pulse {
     pub signal: Vec<f32>,
     /// Noise figures from the denoise stage.
     pub noise: NoiseEstimate,
+    /// Noise as the input file states it (GEDI), `None` for inputs that do not.
+    pub stated_noise: Option<StatedNoise>,
     /// Returns found by the decomposition stage (empty before it).
     pub returns: Vec<FittedReturn>,
     /// How to turn the signal's volts into calibrated backscatter, from the `calibrate` stage
@@ -226,6 +240,7 @@ impl Default for Pulse {
             raw: Vec::new(),
             signal: Vec::new(),
             noise: NoiseEstimate::default(),
+            stated_noise: None,
             returns: Vec::new(),
             calibration: None,
             arrived: Instant::now(),
@@ -250,6 +265,7 @@ impl Pulse {
         self.raw.clone_from(&other.raw);
         self.signal.clone_from(&other.signal);
         self.noise = other.noise;
+        self.stated_noise = other.stated_noise;
         self.returns.clone_from(&other.returns);
         self.calibration = other.calibration;
         self.arrived = other.arrived;
@@ -270,6 +286,7 @@ impl Pulse {
         self.raw.clear();
         self.signal.clear();
         self.noise = NoiseEstimate::default();
+        self.stated_noise = None;
         self.returns.clear();
         self.calibration = None;
         self.arrived = Instant::now();
