@@ -20,6 +20,7 @@ pub mod config;
 pub mod daemon;
 pub mod eval;
 pub mod fixtures;
+pub mod forest;
 pub mod format;
 pub mod geo;
 pub mod nav;

@@ -217,6 +217,8 @@ pub struct Pulse {
     pub stated_noise: Option<StatedNoise>,
     /// Returns found by the decomposition stage (empty before it).
     pub returns: Vec<FittedReturn>,
+    /// Forest structure metrics from the `metrics` stage (`None` before it).
+    pub metrics: Option<crate::forest::pulse_metrics::WaveformMetrics>,
     /// How to turn the signal's volts into calibrated backscatter, from the `calibrate` stage
     /// (`None` before it, or when it did not run).
     pub calibration: Option<Calibration>,
@@ -242,6 +244,7 @@ impl Default for Pulse {
             noise: NoiseEstimate::default(),
             stated_noise: None,
             returns: Vec::new(),
+            metrics: None,
             calibration: None,
             arrived: Instant::now(),
         }
@@ -267,6 +270,7 @@ impl Pulse {
         self.noise = other.noise;
         self.stated_noise = other.stated_noise;
         self.returns.clone_from(&other.returns);
+        self.metrics = other.metrics;
         self.calibration = other.calibration;
         self.arrived = other.arrived;
     }
@@ -288,6 +292,7 @@ impl Pulse {
         self.noise = NoiseEstimate::default();
         self.stated_noise = None;
         self.returns.clear();
+        self.metrics = None;
         self.calibration = None;
         self.arrived = Instant::now();
     }

@@ -24,7 +24,61 @@ impl Validate for StageConfig {
             StageConfig::Deconvolve(c) => Validate::validate(c, path, v),
             StageConfig::Decompose(c) => Validate::validate(c, path, v),
             StageConfig::Calibrate(c) => Validate::validate(c, path, v),
+            StageConfig::Metrics(c) => Validate::validate(c, path, v),
         }
+    }
+}
+
+impl Validate for crate::forest::pulse_metrics::MetricsConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        let nonneg = |x: f64| x.is_finite() && x >= 0.0;
+        v.require(
+            nonneg(self.smoothing_sigma_ns) && self.smoothing_sigma_ns <= 1000.0,
+            field(path, "smoothing_sigma_ns"),
+            "must be 0 (the outgoing pulse's σ) or a σ in ns up to 1000",
+        );
+        v.positive(
+            self.front_threshold_sigmas,
+            field(path, "front_threshold_sigmas"),
+        );
+        v.positive(
+            self.back_threshold_sigmas,
+            field(path, "back_threshold_sigmas"),
+        );
+        v.positive(self.rho_ratio, field(path, "rho_ratio"));
+        v.positive(self.leaf_projection_g, field(path, "leaf_projection_g"));
+        v.require(
+            self.clumping_omega.is_finite()
+                && self.clumping_omega > 0.0
+                && self.clumping_omega <= 1.0,
+            field(path, "clumping_omega"),
+            "must be in (0, 1]",
+        );
+        v.require(
+            nonneg(self.ground_centre_buffer_ns),
+            field(path, "ground_centre_buffer_ns"),
+            "must be a non-negative number of ns",
+        );
+        v.positive(self.profile_bin_m, field(path, "profile_bin_m"));
+        v.require(
+            (1..=crate::forest::pulse_metrics::MAX_PROFILE_BINS).contains(&self.profile_bins),
+            field(path, "profile_bins"),
+            format!(
+                "must be 1..={}",
+                crate::forest::pulse_metrics::MAX_PROFILE_BINS
+            ),
+        );
+        v.require(
+            self.fhd_bin_m.is_finite() && self.fhd_bin_m >= 0.1,
+            field(path, "fhd_bin_m"),
+            "must be at least 0.1 m",
+        );
+        v.require(
+            self.crown_energy_fraction > 0.0 && self.crown_energy_fraction <= 1.0,
+            field(path, "crown_energy_fraction"),
+            "must be in (0, 1]",
+        );
+        v.positive(self.herbaceous_height_m, field(path, "herbaceous_height_m"));
     }
 }
 

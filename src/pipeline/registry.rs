@@ -26,6 +26,8 @@ pub enum StageConfig {
     Decompose(DecomposeConfig),
     /// Radiometric calibration: volts, range, outgoing energy, system constant.
     Calibrate(CalibrateConfig),
+    /// Forest structure metrics per pulse (`src/forest/stage.rs`).
+    Metrics(crate::forest::pulse_metrics::MetricsConfig),
 }
 
 /// Accepts only an empty table: the keys of a stage kind that has none.
@@ -45,6 +47,7 @@ impl StageConfig {
             StageConfig::Deconvolve(_) => "deconvolve",
             StageConfig::Decompose(_) => "decompose",
             StageConfig::Calibrate(_) => "calibrate",
+            StageConfig::Metrics(_) => "metrics",
         }
     }
 
@@ -56,6 +59,7 @@ impl StageConfig {
             StageConfig::Deconvolve(c) => Box::new(Deconvolve::new(c.clone())),
             StageConfig::Decompose(c) => Box::new(Decompose::new(c.clone())),
             StageConfig::Calibrate(c) => Box::new(Calibrate::new(c.clone())),
+            StageConfig::Metrics(c) => Box::new(crate::forest::stage::Metrics::new(c.clone())),
         }
     }
 

@@ -1,0 +1,908 @@
+//! Forest structure metrics of one waveform: ground, canopy top, relative heights RH0–RH100,
+//! energy duration, modes, crown thickness, ground and canopy energy, gap probability, cover,
+//! plant area index (PAI), plant area volume density profile (PAVD), foliage height diversity
+//! (FHD) and the herbaceous metrics of the ground echo.
+//!
+//! The definitions follow NASA GEDI's Level 2A and 2B algorithm documents (facts and formulas
+//! only; `docs/forest.md` gives them with the settings matched), applied to any waveform:
+//!
+//! 1. The waveform is smoothed with a Gaussian of σ = `smoothing_sigma_ns` (GEDI: 6.5 ns, about
+//!    its own outgoing pulse's σ).
+//! 2. Signal start (canopy top) is the first crossing of `noise mean + front_threshold_sigmas ×
+//!    noise σ` by the smoothed waveform, signal end the last crossing of `mean +
+//!    back_threshold_sigmas × σ` (GEDI algorithm setting group 1: 3 and 6), both to a fraction
+//!    of a bin.
+//! 3. The ground is the lowest mode: the last local maximum of the smoothed waveform above the
+//!    back threshold (parabolic peak to a fraction of a bin).
+//! 4. RH n is the height above the ground at which the energy of the smoothed waveform above
+//!    the noise mean, accumulated from the signal end upwards, reaches n % of the energy between
+//!    start and end (heights are negative below the ground centre).
+//! 5. Ground energy `Rg` is the area of an extended (skewed) Gaussian fitted to the raw waveform
+//!    from 1.5 smoothing σ above the ground to the signal end, its centre held within
+//!    `ground_centre_buffer_ns` of the lowest mode (GEDI L2B); canopy energy `Rv` is the rest of
+//!    the energy. Cover = `Rv / (Rv + ρ Rg)` with `ρ = ρv/ρg` (`rho_ratio`, GEDI 1.5); gap
+//!    probability `Pgap = 1 − cover`; `PAI = −ln(Pgap) cos θ / (G Ω)` with θ the beam's zenith
+//!    angle, `G` = 0.5 (spherical leaf angles), `Ω` = 1 (no clumping).
+//! 6. The canopy energy profile (waveform energy minus the fitted ground, above the ground)
+//!    gives cover and PAI cumulated from the top down to each height, PAVD per height bin
+//!    (`profile_bin_m`) as the PAI added in the bin per metre, and FHD = `−Σ p ln p` over the
+//!    PAVD of `fhd_bin_m` bins.
+//!
+//! Units: times in ns on the pulse's time axis, heights in metres above the ground centre,
+//! energies in signal units × bins (sum of samples above the noise mean).
+//!
+//! The computation reuses buffers held by [`MetricsComputer`]: no allocation per pulse once the
+//! longest waveform has been seen.
+
+use serde::{Deserialize, Serialize};
+
+/// Most height bins of the PAVD profile.
+pub const MAX_PROFILE_BINS: usize = 32;
+
+/// Largest supported waveform, samples (GEDI records are 1 000–1 400; airborne gates less).
+pub const MAX_METRIC_SAMPLES: usize = 65_536;
+
+/// Half the speed of light in vacuum, m/ns: range per ns of two-way travel (air's refractive
+/// index is below the precision this is used at).
+const HALF_C_M_PER_NS: f64 = 0.149_896_229;
+
+/// Sub-bin steps per bin of the energy integration grid (GEDI's `rx_subbin_resolution`).
+const SUBBINS: usize = 4;
+
+/// Which waveform of the pulse the metrics are computed from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum MetricsSource {
+    /// The raw received waveform (counts converted to signal units): GEDI L2A's input.
+    #[default]
+    Raw,
+    /// The processed signal (after denoise and, where configured, deconvolution): the seed's
+    /// view of what deconvolution does to the metrics.
+    Signal,
+}
+
+/// Settings of the waveform metrics (`type = "metrics"`, `docs/forest.md`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MetricsConfig {
+    /// Waveform the metrics are computed from: `raw` (default) or `signal`.
+    #[serde(default)]
+    pub source: MetricsSource,
+    /// σ of the Gaussian smoothing, ns. 0 (default): the σ of the pulse's own outgoing pulse
+    /// (its FWHM / 2.355) when it recorded one, else [`MetricsConfig::FALLBACK_SMOOTHING_NS`].
+    #[serde(default)]
+    pub smoothing_sigma_ns: f64,
+    /// Signal start threshold, noise σ above the noise mean. Default 3 (GEDI group 1).
+    #[serde(default = "default_front")]
+    pub front_threshold_sigmas: f64,
+    /// Signal end and mode threshold, noise σ above the noise mean. Default 6 (GEDI group 1).
+    #[serde(default = "default_back")]
+    pub back_threshold_sigmas: f64,
+    /// Ratio of canopy to ground reflectance `ρv/ρg` in the cover formula. Default 1.5 (GEDI
+    /// L2B's 0.6 / 0.4).
+    #[serde(default = "default_rho_ratio")]
+    pub rho_ratio: f64,
+    /// Projection of unit leaf area on the plane normal to the beam, `G`. Default 0.5
+    /// (spherical leaf angle distribution).
+    #[serde(default = "default_g")]
+    pub leaf_projection_g: f64,
+    /// Clumping index `Ω`. Default 1 (random foliage).
+    #[serde(default = "default_omega")]
+    pub clumping_omega: f64,
+    /// How far the ground echo's fitted centre may move from the lowest mode, ns. Default 4.
+    #[serde(default = "default_buffer")]
+    pub ground_centre_buffer_ns: f64,
+    /// Height of one PAVD profile bin, m. Default 5 (GEDI L2B `dz`).
+    #[serde(default = "default_profile_bin")]
+    pub profile_bin_m: f64,
+    /// Number of PAVD profile bins, at most 32. Default 30 (0–150 m).
+    #[serde(default = "default_profile_bins")]
+    pub profile_bins: usize,
+    /// Height bin of the FHD profile, m. Default 1.
+    #[serde(default = "default_fhd_bin")]
+    pub fhd_bin_m: f64,
+    /// Fraction of the canopy energy above the crown base (crown thickness = canopy top −
+    /// crown base). Default 0.95.
+    #[serde(default = "default_crown_fraction")]
+    pub crown_energy_fraction: f64,
+    /// Height above the ground of the herbaceous layer whose energy share is reported
+    /// (`energy_lowest_m`), m. Default 1.
+    #[serde(default = "default_herb_height")]
+    pub herbaceous_height_m: f64,
+}
+
+fn default_front() -> f64 {
+    3.0
+}
+fn default_back() -> f64 {
+    6.0
+}
+fn default_rho_ratio() -> f64 {
+    1.5
+}
+fn default_g() -> f64 {
+    0.5
+}
+fn default_omega() -> f64 {
+    1.0
+}
+fn default_buffer() -> f64 {
+    4.0
+}
+fn default_profile_bin() -> f64 {
+    5.0
+}
+fn default_profile_bins() -> usize {
+    30
+}
+fn default_fhd_bin() -> f64 {
+    1.0
+}
+fn default_crown_fraction() -> f64 {
+    0.95
+}
+fn default_herb_height() -> f64 {
+    1.0
+}
+
+impl Default for MetricsConfig {
+    fn default() -> Self {
+        MetricsConfig {
+            source: MetricsSource::Raw,
+            smoothing_sigma_ns: 0.0,
+            front_threshold_sigmas: default_front(),
+            back_threshold_sigmas: default_back(),
+            rho_ratio: default_rho_ratio(),
+            leaf_projection_g: default_g(),
+            clumping_omega: default_omega(),
+            ground_centre_buffer_ns: default_buffer(),
+            profile_bin_m: default_profile_bin(),
+            profile_bins: default_profile_bins(),
+            fhd_bin_m: default_fhd_bin(),
+            crown_energy_fraction: default_crown_fraction(),
+            herbaceous_height_m: default_herb_height(),
+        }
+    }
+}
+
+impl MetricsConfig {
+    /// Smoothing σ without an outgoing pulse to measure, ns (GEDI's setting group 1).
+    pub const FALLBACK_SMOOTHING_NS: f64 = 6.5;
+}
+
+/// Why a pulse has no metrics.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum MetricsStatus {
+    /// Metrics computed.
+    #[default]
+    Ok,
+    /// The smoothed waveform never rises above the front threshold (no signal).
+    NoSignal,
+    /// The signal never rises above the back threshold, or ends before it starts.
+    NoGround,
+    /// No return segment, or it is longer than [`MAX_METRIC_SAMPLES`].
+    NoWaveform,
+    /// A sample or the noise figures are not finite.
+    NonFinite,
+}
+
+impl MetricsStatus {
+    /// Short name for reports and the CSV's `status` column.
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            MetricsStatus::Ok => "ok",
+            MetricsStatus::NoSignal => "no_signal",
+            MetricsStatus::NoGround => "no_ground",
+            MetricsStatus::NoWaveform => "no_waveform",
+            MetricsStatus::NonFinite => "non_finite",
+        }
+    }
+}
+
+/// The metrics of one pulse (`pulse_metrics.csv`, `docs/forest.md`). Heights in metres above
+/// the ground centre (the lowest mode), times in ns on the pulse's time axis; NaN where a value
+/// does not exist (e.g. every field but `status` when it is not `Ok`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WaveformMetrics {
+    /// Whether metrics were computed.
+    pub status: MetricsStatus,
+    /// Noise mean and σ used, signal units.
+    pub noise_mean: f32,
+    /// Noise standard deviation used, signal units.
+    pub noise_sd: f32,
+    /// Smoothing σ used, ns.
+    pub smoothing_ns: f32,
+    /// Signal start (canopy top), ns.
+    pub top_ns: f64,
+    /// Signal end, ns.
+    pub bottom_ns: f64,
+    /// Ground (centre of the lowest mode), ns.
+    pub ground_ns: f64,
+    /// Vertical metres per ns of the time axis (positive: later is lower).
+    pub vertical_m_per_ns: f64,
+    /// Zenith angle of the beam, degrees (0: nadir; 0 when the pulse has no geometry).
+    pub zenith_deg: f32,
+    /// Relative heights RH0…RH100, m above the ground.
+    pub rh: [f32; 101],
+    /// Time between 10 % and 90 % of the cumulated energy, ns.
+    pub energy_10_90_ns: f32,
+    /// Modes (local maxima of the smoothed waveform above the back threshold).
+    pub modes: u16,
+    /// Canopy top to crown base, m (crown base: `crown_energy_fraction` of the canopy energy
+    /// lies above it); 0 without canopy energy.
+    pub crown_thickness_m: f32,
+    /// Energy between signal start and end, signal units × bins.
+    pub energy_total: f32,
+    /// Ground energy `Rg` (area of the fitted ground echo), signal units × bins.
+    pub energy_ground: f32,
+    /// Canopy energy `Rv = total − Rg`, signal units × bins.
+    pub energy_canopy: f32,
+    /// Canopy cover, 0..1.
+    pub cover: f32,
+    /// Gap probability at the beam's zenith angle, 0..1.
+    pub pgap: f32,
+    /// Plant area index, m²/m².
+    pub pai: f32,
+    /// Foliage height diversity (Shannon index of the PAVD in `fhd_bin_m` bins).
+    pub fhd: f32,
+    /// Plant area volume density per `profile_bin_m` bin from the ground up, m²/m³.
+    pub pavd: [f32; MAX_PROFILE_BINS],
+    /// Number of meaningful bins in `pavd`.
+    pub pavd_bins: u8,
+    /// σ of the fitted ground echo, m of height (the seed's herbaceous metric: grass widens it).
+    pub ground_sigma_m: f32,
+    /// Skewness parameter γ of the fitted extended Gaussian ground echo.
+    pub ground_skew: f32,
+    /// Share of the total energy between the ground centre and `herbaceous_height_m` above it,
+    /// ground echo excluded, 0..1.
+    pub energy_lowest_m: f32,
+    /// Ground position `[x, y, z]` in the CRS of the pulse's geometry (NaN without geometry).
+    pub ground_xyz: [f64; 3],
+}
+
+impl Default for WaveformMetrics {
+    fn default() -> Self {
+        WaveformMetrics {
+            status: MetricsStatus::NoWaveform,
+            noise_mean: f32::NAN,
+            noise_sd: f32::NAN,
+            smoothing_ns: f32::NAN,
+            top_ns: f64::NAN,
+            bottom_ns: f64::NAN,
+            ground_ns: f64::NAN,
+            vertical_m_per_ns: f64::NAN,
+            zenith_deg: f32::NAN,
+            rh: [f32::NAN; 101],
+            energy_10_90_ns: f32::NAN,
+            modes: 0,
+            crown_thickness_m: f32::NAN,
+            energy_total: f32::NAN,
+            energy_ground: f32::NAN,
+            energy_canopy: f32::NAN,
+            cover: f32::NAN,
+            pgap: f32::NAN,
+            pai: f32::NAN,
+            fhd: f32::NAN,
+            pavd: [f32::NAN; MAX_PROFILE_BINS],
+            pavd_bins: 0,
+            ground_sigma_m: f32::NAN,
+            ground_skew: f32::NAN,
+            energy_lowest_m: f32::NAN,
+            ground_xyz: [f64::NAN; 3],
+        }
+    }
+}
+
+/// One waveform to measure.
+#[derive(Clone, Copy, Debug)]
+pub struct WaveformInput<'a> {
+    /// Samples, signal units, in time order.
+    pub samples: &'a [f32],
+    /// Time of the first sample, ns after the pulse's t0.
+    pub start_ns: f64,
+    /// Sample interval, ns.
+    pub sample_ns: f64,
+    /// Noise mean and σ of the samples, signal units.
+    pub noise_mean: f64,
+    /// Noise standard deviation, signal units.
+    pub noise_sd: f64,
+    /// Smoothing σ, ns.
+    pub smoothing_ns: f64,
+    /// Position at t0 and displacement per ns (the pulse's geometry), if known.
+    pub geometry: Option<crate::pulse::PulseGeometry>,
+    /// Whether the geometry's x/y are degrees (geographic CRS): the zenith angle is then taken
+    /// from the vertical component alone.
+    pub geographic: bool,
+}
+
+/// Computes [`WaveformMetrics`] with reused buffers.
+#[derive(Debug, Default)]
+pub struct MetricsComputer {
+    smooth: Vec<f64>,
+    kernel: Vec<f64>,
+    energy: Vec<f64>,
+    heights: Vec<f64>,
+    canopy: Vec<f64>,
+}
+
+impl MetricsComputer {
+    /// A computer with buffers for waveforms of up to `samples` samples (they grow if needed).
+    pub fn with_capacity(samples: usize) -> Self {
+        MetricsComputer {
+            smooth: Vec::with_capacity(samples),
+            kernel: Vec::with_capacity(256),
+            energy: Vec::with_capacity(samples * SUBBINS + 1),
+            heights: Vec::with_capacity(samples * SUBBINS + 1),
+            canopy: Vec::with_capacity(samples * SUBBINS + 1),
+        }
+    }
+
+    /// The metrics of one waveform.
+    pub fn compute(&mut self, config: &MetricsConfig, w: &WaveformInput<'_>) -> WaveformMetrics {
+        let mut m = WaveformMetrics::default();
+        let y = w.samples;
+        let n = y.len();
+        if n < 4 || n > MAX_METRIC_SAMPLES || !(w.sample_ns > 0.0) {
+            return m;
+        }
+        if !(w.noise_mean.is_finite() && w.noise_sd.is_finite() && w.smoothing_ns.is_finite())
+            || y.iter().any(|v| !v.is_finite())
+        {
+            m.status = MetricsStatus::NonFinite;
+            return m;
+        }
+        let dt = w.sample_ns;
+        let mean = w.noise_mean;
+        let sd = w.noise_sd.max(0.0);
+        m.noise_mean = mean as f32;
+        m.noise_sd = sd as f32;
+        m.smoothing_ns = w.smoothing_ns as f32;
+
+        // Geometry: vertical metres per ns and the zenith angle.
+        let (vz, zenith) = match w.geometry {
+            Some(g) => {
+                let d = g.direction;
+                let vz = -d[2];
+                let zen = if w.geographic || !(d[0].is_finite() && d[1].is_finite()) {
+                    0.0
+                } else {
+                    let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                    if norm > 0.0 {
+                        (vz.abs() / norm).clamp(-1.0, 1.0).acos()
+                    } else {
+                        0.0
+                    }
+                };
+                if vz.is_finite() && vz != 0.0 {
+                    (vz, zen)
+                } else {
+                    (HALF_C_M_PER_NS, 0.0)
+                }
+            }
+            None => (HALF_C_M_PER_NS, 0.0),
+        };
+        m.vertical_m_per_ns = vz;
+        m.zenith_deg = zenith.to_degrees() as f32;
+        let vz_bin = vz * dt; // metres of height per bin
+
+        // 1. Smoothing (Gaussian, edges held at the end samples).
+        let sigma_bins = w.smoothing_ns / dt;
+        self.smooth_into(y, sigma_bins);
+        let s = &self.smooth;
+
+        // 2. Signal start and end.
+        let front = mean + config.front_threshold_sigmas * sd;
+        let back = mean + config.back_threshold_sigmas * sd;
+        let Some(first) = s.iter().position(|&v| v > front) else {
+            m.status = MetricsStatus::NoSignal;
+            return m;
+        };
+        let Some(last) = s.iter().rposition(|&v| v > back) else {
+            m.status = MetricsStatus::NoGround;
+            return m;
+        };
+        let top = if first == 0 {
+            0.0
+        } else {
+            let (a, b) = (s[first - 1], s[first]);
+            (first - 1) as f64 + ((front - a) / (b - a)).clamp(0.0, 1.0)
+        };
+        let bottom = if last + 1 >= n {
+            (n - 1) as f64
+        } else {
+            let (a, b) = (s[last], s[last + 1]);
+            last as f64 + ((a - back) / (a - b)).clamp(0.0, 1.0)
+        };
+        if bottom <= top {
+            m.status = MetricsStatus::NoGround;
+            return m;
+        }
+
+        // 3. Modes and the lowest one.
+        let mut modes = 0u16;
+        let mut lowest: Option<usize> = None;
+        let lo = first.max(1);
+        let hi = (last + 1).min(n - 1);
+        for k in lo..hi {
+            if s[k] > back && s[k - 1] < s[k] && s[k] >= s[k + 1] {
+                modes = modes.saturating_add(1);
+                lowest = Some(k);
+            }
+        }
+        let k = lowest.unwrap_or_else(|| {
+            let mut best = first;
+            for i in first..=last {
+                if s[i] > s[best] {
+                    best = i;
+                }
+            }
+            best
+        });
+        let ground = if k >= 1 && k + 1 < n {
+            let (a, b, c) = (s[k - 1], s[k], s[k + 1]);
+            let den = a - 2.0 * b + c;
+            if den < 0.0 {
+                k as f64 + (0.5 * (a - c) / den).clamp(-0.5, 0.5)
+            } else {
+                k as f64
+            }
+        } else {
+            k as f64
+        };
+        m.modes = modes;
+
+        // 4. Energy on a sub-bin grid from the top to the bottom (linear interpolation of the
+        // smoothed waveform above the noise mean, negative parts clipped).
+        let step = 1.0 / SUBBINS as f64;
+        let start_grid = (top * SUBBINS as f64).ceil() / SUBBINS as f64;
+        self.energy.clear();
+        self.heights.clear();
+        let mut x = start_grid;
+        while x <= bottom + 1e-9 {
+            let i = (x.floor() as usize).min(n - 1);
+            let f = x - i as f64;
+            let v = if i + 1 < n {
+                s[i] * (1.0 - f) + s[i + 1] * f
+            } else {
+                s[i]
+            };
+            self.energy.push((v - mean).max(0.0) * step);
+            self.heights.push((ground - x) * vz_bin);
+            x += step;
+        }
+        let total: f64 = self.energy.iter().sum();
+        if !(total > 0.0) || self.energy.len() < 2 {
+            m.status = MetricsStatus::NoSignal;
+            return m;
+        }
+        // RH: cumulative from the bottom.
+        let mut rh_idx = 0usize;
+        let mut cum = 0.0;
+        let len = self.energy.len();
+        let mut t10 = f64::NAN;
+        let mut t90 = f64::NAN;
+        for j in (0..len).rev() {
+            let prev = cum;
+            cum += self.energy[j];
+            let frac_prev = prev / total;
+            let frac = cum / total;
+            while rh_idx <= 100 && frac + 1e-12 >= rh_idx as f64 / 100.0 {
+                let target = rh_idx as f64 / 100.0;
+                // Interpolate between the heights of samples j+1 (at frac_prev) and j (at frac).
+                let h_here = self.heights[j];
+                let h_prev = if j + 1 < len {
+                    self.heights[j + 1]
+                } else {
+                    h_here
+                };
+                let h = if frac > frac_prev {
+                    h_prev + (h_here - h_prev) * ((target - frac_prev) / (frac - frac_prev))
+                } else {
+                    h_here
+                };
+                m.rh[rh_idx] = h as f32;
+                rh_idx += 1;
+            }
+            let tj = start_grid + j as f64 * step;
+            if t90.is_nan() && frac >= 0.1 {
+                t90 = tj; // 10 % from the bottom = 90 % from the top
+            }
+            if t10.is_nan() && frac >= 0.9 {
+                t10 = tj;
+            }
+        }
+        while rh_idx <= 100 {
+            m.rh[rh_idx] = self.heights[0] as f32;
+            rh_idx += 1;
+        }
+        m.energy_10_90_ns = ((t90 - t10) * dt) as f32;
+        m.top_ns = w.start_ns + top * dt;
+        m.bottom_ns = w.start_ns + bottom * dt;
+        m.ground_ns = w.start_ns + ground * dt;
+        m.energy_total = total as f32;
+
+        // 5. Ground echo: extended Gaussian on the raw samples.
+        let buffer = config.ground_centre_buffer_ns / dt;
+        let fit_from = ((ground - 1.5 * sigma_bins).floor().max(0.0)) as usize;
+        let fit_to = (bottom.ceil() as usize).min(n - 1);
+        let peak = (s[k] - mean).max(0.0);
+        let sigma0 = sigma_bins.max(1.0);
+        let start = ExtGauss {
+            area: peak * sigma0 * SQRT_2PI,
+            centre: ground,
+            sigma: sigma0,
+            gamma: 0.0,
+        };
+        let fit = fit_ext_gauss(
+            y,
+            mean,
+            fit_from,
+            fit_to,
+            start,
+            (ground - buffer, ground + buffer),
+            (0.5, (fit_to - fit_from).max(2) as f64),
+        );
+        let rg = fit.area.clamp(0.0, total);
+        let rv = total - rg;
+        m.energy_ground = rg as f32;
+        m.energy_canopy = rv as f32;
+        m.ground_sigma_m = (fit.sigma * vz_bin).abs() as f32;
+        m.ground_skew = fit.gamma as f32;
+        let denom = rv + config.rho_ratio * rg;
+        let cover = if denom > 0.0 { rv / denom } else { 0.0 };
+        let pgap = (1.0 - cover).clamp(1e-6, 1.0);
+        let cos_t = zenith.cos();
+        let k_pai = cos_t / (config.leaf_projection_g * config.clumping_omega);
+        m.cover = cover as f32;
+        m.pgap = pgap as f32;
+        m.pai = (-pgap.ln() * k_pai) as f32;
+
+        // 6. Canopy energy profile: energy minus the fitted ground, above the ground centre,
+        // scaled so that it sums to Rv.
+        // The energy is of the smoothed waveform, so the ground removed is the fitted echo
+        // smoothed alike: a skew-normal convolved with a Gaussian is the skew-normal of
+        // σ' = √(σ² + σs²) and δ' = δ σ / σ' (δ = γ / √(1 + γ²)).
+        let smoothed_ground = fit.smoothed(sigma_bins);
+        self.canopy.clear();
+        let mut csum = 0.0;
+        for (j, &e) in self.energy.iter().enumerate() {
+            let xj = start_grid + j as f64 * step;
+            let g = smoothed_ground.value(xj) * step;
+            let c = if self.heights[j] > 0.0 {
+                (e - g).max(0.0)
+            } else {
+                0.0
+            };
+            csum += c;
+            self.canopy.push(c);
+        }
+        if csum > 0.0 {
+            let scale = rv / csum;
+            for c in &mut self.canopy {
+                *c *= scale;
+            }
+        }
+        // PAVD: cover and PAI cumulated from the top down; per bin from the ground up.
+        let bins = config.profile_bins.min(MAX_PROFILE_BINS);
+        m.pavd_bins = bins as u8;
+        let pai_at = |cum_canopy: f64| -> f64 {
+            let cov = if denom > 0.0 { cum_canopy / denom } else { 0.0 };
+            -((1.0 - cov).clamp(1e-6, 1.0)).ln() * k_pai
+        };
+        // Canopy energy above each bin boundary.
+        let bin_m = config.profile_bin_m;
+        for b in 0..bins {
+            let lo_h = b as f64 * bin_m;
+            let hi_h = lo_h + bin_m;
+            let above_lo: f64 = self
+                .canopy
+                .iter()
+                .zip(&self.heights)
+                .filter(|(_, h)| **h >= lo_h)
+                .map(|(c, _)| *c)
+                .sum();
+            let above_hi: f64 = self
+                .canopy
+                .iter()
+                .zip(&self.heights)
+                .filter(|(_, h)| **h >= hi_h)
+                .map(|(c, _)| *c)
+                .sum();
+            m.pavd[b] = ((pai_at(above_lo) - pai_at(above_hi)) / bin_m) as f32;
+        }
+        // FHD over fine bins.
+        let fbin = config.fhd_bin_m;
+        let top_h = self.heights[0].max(0.0);
+        let nf = ((top_h / fbin).ceil() as usize).clamp(1, 1024);
+        let mut pavd_sum = 0.0;
+        let mut ent = 0.0;
+        // Two passes (sum, then entropy) without a buffer: the cumulated canopy above each
+        // boundary is monotone, so recompute per bin.
+        let above = |h: f64| -> f64 {
+            self.canopy
+                .iter()
+                .zip(&self.heights)
+                .filter(|(_, hh)| **hh >= h)
+                .map(|(c, _)| *c)
+                .sum()
+        };
+        let mut prev = pai_at(above(0.0));
+        let mut layer = [0.0f64; 1024];
+        for (b, slot) in layer.iter_mut().enumerate().take(nf) {
+            let next = pai_at(above((b + 1) as f64 * fbin));
+            let v = (prev - next).max(0.0);
+            *slot = v;
+            pavd_sum += v;
+            prev = next;
+        }
+        if pavd_sum > 0.0 {
+            for &v in layer.iter().take(nf) {
+                if v > 0.0 {
+                    let p = v / pavd_sum;
+                    ent -= p * p.ln();
+                }
+            }
+        }
+        m.fhd = ent as f32;
+
+        // Crown thickness and the herbaceous layer.
+        if rv > 0.0 {
+            let mut acc = 0.0;
+            let mut base_h = top_h;
+            for (c, h) in self.canopy.iter().zip(&self.heights) {
+                acc += c;
+                base_h = *h;
+                if acc >= config.crown_energy_fraction * rv {
+                    break;
+                }
+            }
+            m.crown_thickness_m = (top_h - base_h).max(0.0) as f32;
+        } else {
+            m.crown_thickness_m = 0.0;
+        }
+        let herb: f64 = self
+            .canopy
+            .iter()
+            .zip(&self.heights)
+            .filter(|(_, h)| **h > 0.0 && **h <= config.herbaceous_height_m)
+            .map(|(c, _)| *c)
+            .sum();
+        m.energy_lowest_m = (herb / total) as f32;
+
+        if let Some(g) = w.geometry {
+            let t = m.ground_ns;
+            m.ground_xyz = [
+                g.anchor[0] + t * g.direction[0],
+                g.anchor[1] + t * g.direction[1],
+                g.anchor[2] + t * g.direction[2],
+            ];
+        }
+        m.status = MetricsStatus::Ok;
+        m
+    }
+
+    fn smooth_into(&mut self, y: &[f32], sigma_bins: f64) {
+        let n = y.len();
+        self.smooth.clear();
+        if !(sigma_bins > 0.05) {
+            self.smooth.extend(y.iter().map(|&v| f64::from(v)));
+            return;
+        }
+        let half = ((4.0 * sigma_bins).round() as usize).clamp(1, 1024);
+        self.kernel.clear();
+        let mut sum = 0.0;
+        for i in 0..=2 * half {
+            let d = i as f64 - half as f64;
+            let v = (-0.5 * d * d / (sigma_bins * sigma_bins)).exp();
+            sum += v;
+            self.kernel.push(v);
+        }
+        for v in &mut self.kernel {
+            *v /= sum;
+        }
+        for i in 0..n {
+            let mut acc = 0.0;
+            for (j, kv) in self.kernel.iter().enumerate() {
+                let idx = (i + j).saturating_sub(half).min(n - 1);
+                acc += kv * f64::from(y[idx]);
+            }
+            self.smooth.push(acc);
+        }
+    }
+}
+
+const SQRT_2PI: f64 = 2.506_628_274_631_000_7;
+
+/// An extended (skewed) Gaussian `f(x) = area / (σ √(2π)) · exp(−u²/2) · (1 + erf(γ u / √2))`,
+/// `u = (x − centre) / σ`: its integral is `area` whatever γ.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExtGauss {
+    /// Integral, signal units × bins.
+    pub area: f64,
+    /// Location, bins.
+    pub centre: f64,
+    /// Width σ, bins.
+    pub sigma: f64,
+    /// Skewness γ (0: a Gaussian; > 0: the tail is on the later side).
+    pub gamma: f64,
+}
+
+impl ExtGauss {
+    /// Value at `x` bins.
+    pub fn value(&self, x: f64) -> f64 {
+        let u = (x - self.centre) / self.sigma;
+        self.area / (self.sigma * SQRT_2PI)
+            * (-0.5 * u * u).exp()
+            * (1.0 + erf(self.gamma * u * std::f64::consts::FRAC_1_SQRT_2))
+    }
+
+    /// This echo convolved with a unit-area Gaussian of σ `sigma_bins` (exact for the
+    /// skew-normal shape).
+    pub fn smoothed(&self, sigma_bins: f64) -> ExtGauss {
+        if !(sigma_bins > 0.0) {
+            return *self;
+        }
+        let s2 = (self.sigma * self.sigma + sigma_bins * sigma_bins).sqrt();
+        let delta = self.gamma / (1.0 + self.gamma * self.gamma).sqrt() * self.sigma / s2;
+        ExtGauss {
+            area: self.area,
+            centre: self.centre,
+            sigma: s2,
+            gamma: delta / (1.0 - delta * delta).max(1e-12).sqrt(),
+        }
+    }
+
+    /// Value and partial derivatives by (area, centre, sigma, gamma).
+    fn value_and_gradient(&self, x: f64) -> (f64, [f64; 4]) {
+        let s = self.sigma;
+        let u = (x - self.centre) / s;
+        let k = 1.0 / (s * SQRT_2PI);
+        let phi = (-0.5 * u * u).exp();
+        let e = 1.0 + erf(self.gamma * u * std::f64::consts::FRAC_1_SQRT_2);
+        let g =
+            (-0.5 * self.gamma * self.gamma * u * u).exp() * (2.0 / std::f64::consts::PI).sqrt();
+        let f = self.area * k * phi * e;
+        let df_du = self.area * k * (-u * phi * e + phi * self.gamma * g);
+        (
+            f,
+            [
+                k * phi * e,
+                -df_du / s,
+                -f / s - df_du * u / s,
+                self.area * k * phi * u * g,
+            ],
+        )
+    }
+}
+
+/// Error function, Abramowitz & Stegun 7.1.26 (absolute error below 1.5 × 10⁻⁷).
+fn erf(x: f64) -> f64 {
+    let sign = if x < 0.0 { -1.0 } else { 1.0 };
+    let x = x.abs();
+    let t = 1.0 / (1.0 + 0.327_591_1 * x);
+    let poly = t
+        * (0.254_829_592
+            + t * (-0.284_496_736
+                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+    sign * (1.0 - poly * (-x * x).exp())
+}
+
+/// Fits an [`ExtGauss`] to `y − mean` over samples `from..=to` by bounded Levenberg-Marquardt
+/// (at most 40 steps; area ≥ 0, centre and σ within their bounds, |γ| ≤ 5). Returns the start
+/// when the window is empty.
+fn fit_ext_gauss(
+    y: &[f32],
+    mean: f64,
+    from: usize,
+    to: usize,
+    start: ExtGauss,
+    centre_bounds: (f64, f64),
+    sigma_bounds: (f64, f64),
+) -> ExtGauss {
+    if to <= from + 3 || to >= y.len() {
+        return start;
+    }
+    let clamp = |p: ExtGauss| ExtGauss {
+        area: p.area.max(0.0),
+        centre: p.centre.clamp(centre_bounds.0, centre_bounds.1),
+        sigma: p.sigma.clamp(sigma_bounds.0, sigma_bounds.1),
+        gamma: p.gamma.clamp(-5.0, 5.0),
+    };
+    let cost = |p: &ExtGauss| -> f64 {
+        (from..=to)
+            .map(|i| {
+                let r = f64::from(y[i]) - mean - p.value(i as f64);
+                r * r
+            })
+            .sum()
+    };
+    let mut p = clamp(start);
+    let mut c = cost(&p);
+    let mut lambda = 1e-3;
+    for _ in 0..40 {
+        let mut jtj = [[0.0f64; 4]; 4];
+        let mut jtr = [0.0f64; 4];
+        for i in from..=to {
+            let (f, g) = p.value_and_gradient(i as f64);
+            let r = f64::from(y[i]) - mean - f;
+            for a in 0..4 {
+                jtr[a] += g[a] * r;
+                for b in a..4 {
+                    jtj[a][b] += g[a] * g[b];
+                }
+            }
+        }
+        for a in 0..4 {
+            for b in 0..a {
+                jtj[a][b] = jtj[b][a];
+            }
+        }
+        let mut improved = false;
+        for _ in 0..8 {
+            let mut m = jtj;
+            for (a, row) in m.iter_mut().enumerate() {
+                row[a] += lambda * (jtj[a][a] + 1e-12);
+            }
+            let Some(d) = solve4(m, jtr) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let q = clamp(ExtGauss {
+                area: p.area + d[0],
+                centre: p.centre + d[1],
+                sigma: p.sigma + d[2],
+                gamma: p.gamma + d[3],
+            });
+            let cq = cost(&q);
+            if cq < c {
+                let rel = (c - cq) / c.max(1e-300);
+                p = q;
+                c = cq;
+                lambda = (lambda * 0.3).max(1e-9);
+                improved = rel > 1e-9;
+                break;
+            }
+            lambda *= 10.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    p
+}
+
+/// Solves a 4 × 4 system by Gaussian elimination with partial pivoting; `None` if singular.
+fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
+    for col in 0..4 {
+        let mut piv = col;
+        for r in col + 1..4 {
+            if a[r][col].abs() > a[piv][col].abs() {
+                piv = r;
+            }
+        }
+        if !(a[piv][col].abs() > 1e-300) {
+            return None;
+        }
+        a.swap(col, piv);
+        b.swap(col, piv);
+        for r in col + 1..4 {
+            let f = a[r][col] / a[col][col];
+            for c in col..4 {
+                a[r][c] -= f * a[col][c];
+            }
+            b[r] -= f * b[col];
+        }
+    }
+    let mut x = [0.0; 4];
+    for r in (0..4).rev() {
+        let mut s = b[r];
+        for c in r + 1..4 {
+            s -= a[r][c] * x[c];
+        }
+        x[r] = s / a[r][r];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,177 @@
+use super::*;
+use crate::forest::gedi_check;
+
+fn gaussian(n: usize, centre: f64, sigma: f64, area: f64, out: &mut [f32]) {
+    for (i, v) in out.iter_mut().enumerate().take(n) {
+        let u = (i as f64 - centre) / sigma;
+        *v += (area / (sigma * SQRT_2PI) * (-0.5 * u * u).exp()) as f32;
+    }
+}
+
+fn input(samples: &[f32], mean: f64, sd: f64, smoothing: f64) -> WaveformInput<'_> {
+    WaveformInput {
+        samples,
+        start_ns: 10.0,
+        sample_ns: 1.0,
+        noise_mean: mean,
+        noise_sd: sd,
+        smoothing_ns: smoothing,
+        geometry: None,
+        geographic: false,
+    }
+}
+
+/// A canopy echo 90 bins (13.5 m) above a ground echo, no noise: the ground, the heights, the
+/// energies and the cover follow from the two Gaussians.
+#[test]
+fn two_echoes_give_ground_heights_and_cover() {
+    let n = 400;
+    let mut y = vec![100.0f32; n];
+    gaussian(n, 160.0, 4.0, 800.0, &mut y); // canopy, 800 units of energy
+    gaussian(n, 250.0, 4.0, 1600.0, &mut y); // ground, 1600
+    let mut c = MetricsComputer::default();
+    let config = MetricsConfig::default();
+    let m = c.compute(&config, &input(&y, 100.0, 1.0, 2.0));
+    assert_eq!(m.status, MetricsStatus::Ok);
+    assert_eq!(m.modes, 2);
+    assert!((m.ground_ns - 260.0).abs() < 0.05, "ground {}", m.ground_ns);
+    // Canopy centre 90 bins above the ground: 90 × 0.1499 m.
+    let canopy_h = 90.0 * HALF_C_M_PER_NS;
+    assert!(m.rh[100] as f64 > canopy_h, "rh100 {}", m.rh[100]);
+    assert!((m.rh[100] as f64 - canopy_h) < 3.5 * 4.0 * HALF_C_M_PER_NS);
+    // Two thirds of the energy is ground: RH50 is near 0, RH75 inside the canopy's lower half.
+    assert!(m.rh[50].abs() < 0.5, "rh50 {}", m.rh[50]);
+    assert!(
+        (f64::from(m.rh[90]) - canopy_h).abs() < 1.0,
+        "rh90 {}",
+        m.rh[90]
+    );
+    for p in 1..=100 {
+        assert!(m.rh[p] >= m.rh[p - 1], "RH monotone at {p}");
+    }
+    assert!(
+        (f64::from(m.energy_total) - 2400.0).abs() < 30.0,
+        "{}",
+        m.energy_total
+    );
+    assert!(
+        (f64::from(m.energy_ground) - 1600.0).abs() < 40.0,
+        "rg {}",
+        m.energy_ground
+    );
+    let cover = 800.0 / (800.0 + 1.5 * 1600.0);
+    assert!(
+        (f64::from(m.cover) - cover).abs() < 0.02,
+        "cover {} vs {cover}",
+        m.cover
+    );
+    assert!(
+        (f64::from(m.pai) + 2.0 * (1.0 - cover).ln()).abs() < 0.05,
+        "pai {}",
+        m.pai
+    );
+    // The canopy sits in the 10-15 m bin (5 m bins): the whole PAVD there.
+    let total_pavd: f32 = m.pavd[..m.pavd_bins as usize].iter().sum::<f32>() * 5.0;
+    assert!(
+        (total_pavd - m.pai).abs() < 0.01,
+        "Σ PAVD dz {total_pavd} = PAI {}",
+        m.pai
+    );
+    assert!(m.pavd[2] > 0.9 * m.pai / 5.0, "{:?}", &m.pavd[..4]);
+    assert!(
+        m.crown_thickness_m > 0.5 && m.crown_thickness_m < 4.0,
+        "{}",
+        m.crown_thickness_m
+    );
+    assert!(m.fhd > 0.0 && m.fhd < 2.0, "fhd {}", m.fhd);
+    assert!(
+        (m.ground_sigma_m - 4.0 * HALF_C_M_PER_NS as f32).abs() < 0.1,
+        "{}",
+        m.ground_sigma_m
+    );
+    assert!(m.ground_skew.abs() < 0.3, "{}", m.ground_skew);
+}
+
+#[test]
+fn bare_ground_has_no_cover_and_noise_alone_no_signal() {
+    let n = 300;
+    let mut y = vec![50.0f32; n];
+    gaussian(n, 150.0, 5.0, 2000.0, &mut y);
+    let mut c = MetricsComputer::default();
+    let m = c.compute(&MetricsConfig::default(), &input(&y, 50.0, 1.0, 3.0));
+    assert_eq!(m.status, MetricsStatus::Ok);
+    assert_eq!(m.modes, 1);
+    assert!(m.cover < 0.02, "cover {}", m.cover);
+    assert!(m.rh[50].abs() < 0.1, "rh50 {}", m.rh[50]);
+    let flat = vec![50.0f32; n];
+    let m = c.compute(&MetricsConfig::default(), &input(&flat, 50.0, 1.0, 3.0));
+    assert_eq!(m.status, MetricsStatus::NoSignal);
+    assert!(m.rh[50].is_nan());
+    let mut bad = y.clone();
+    bad[7] = f32::NAN;
+    let m = c.compute(&MetricsConfig::default(), &input(&bad, 50.0, 1.0, 3.0));
+    assert_eq!(m.status, MetricsStatus::NonFinite);
+    let m = c.compute(&MetricsConfig::default(), &input(&y[..2], 50.0, 1.0, 3.0));
+    assert_eq!(m.status, MetricsStatus::NoWaveform);
+}
+
+#[test]
+fn extended_gaussian_fit_recovers_a_skewed_echo() {
+    let truth = ExtGauss {
+        area: 5000.0,
+        centre: 60.0,
+        sigma: 7.0,
+        gamma: 1.2,
+    };
+    let y: Vec<f32> = (0..160)
+        .map(|i| (20.0 + truth.value(i as f64)) as f32)
+        .collect();
+    let start = ExtGauss {
+        area: 4000.0,
+        centre: 62.0,
+        sigma: 5.0,
+        gamma: 0.0,
+    };
+    let fit = fit_ext_gauss(&y, 20.0, 30, 159, start, (56.0, 66.0), (0.5, 100.0));
+    assert!((fit.area - 5000.0).abs() < 5.0, "{fit:?}");
+    assert!(
+        (fit.centre - 60.0).abs() < 0.05 && (fit.sigma - 7.0).abs() < 0.05,
+        "{fit:?}"
+    );
+    assert!((fit.gamma - 1.2).abs() < 0.02, "{fit:?}");
+    for x in [-3.0, -0.5, 0.0, 0.2, 1.0, 2.5] {
+        let e: f64 = erf(x);
+        // erf is odd and bounded; erf(0.5) = 0.520 499 877 8 (tables).
+        assert!(e.abs() <= 1.0 && (erf(-x) + e).abs() < 1e-8);
+    }
+    assert!((erf(0.5) - 0.520_499_877_8).abs() < 2e-7);
+}
+
+/// The fixture's 32 GEDI shots: our RH against L2A's `rh`, our cover, PAI and FHD against L2B.
+/// Prints the table of docs/accuracy.md ("GEDI"); run with `--nocapture` to see it.
+#[test]
+fn gedi_fixture_matches_level_2a_and_2b() {
+    let f = |n: &str| crate::fixtures::path(&format!("waveform/gedi/{n}_O01964_beams0001_1011.h5"));
+    let rows = gedi_check::compare(
+        &f("GEDI01_B"),
+        &f("GEDI02_A"),
+        &f("GEDI02_B"),
+        &MetricsConfig::default(),
+        6.5,
+    )
+    .unwrap();
+    assert_eq!(rows.len(), 32);
+    assert!(
+        rows.iter()
+            .all(|r| r.ours.status == MetricsStatus::Ok && r.l2a_algorithm == 1)
+    );
+    println!("{}", gedi_check::summary_markdown(&rows));
+    for p in [50usize, 98] {
+        let (med, worst) =
+            gedi_check::median_and_worst(&rows, |r| f64::from(r.ours.rh[p]) - r.l2a_rh[p]);
+        assert!(med <= 0.5, "RH{p}: median |Δ| {med:.2} m");
+        assert!(worst <= 1.0, "RH{p}: worst |Δ| {worst:.2} m");
+    }
+    let (med, _) = gedi_check::median_and_worst(&rows, |r| f64::from(r.ours.cover) - r.l2b_cover);
+    assert!(med <= 0.05, "cover: median |Δ| {med:.3}");
+}
