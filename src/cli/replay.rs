@@ -16,6 +16,7 @@ use crate::sink::atomic_file::write_atomic;
 use crate::sink::hyper_points::HyperPointSink;
 use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use crate::sink::nav_decode::NavDecode;
+use crate::sink::pulse_metrics_csv::PulseMetricsCsvSink;
 use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::voxel_tiles::{CrsSource, VoxelTilesSink};
 use crate::sink::waveform_csv::WaveformCsvSink;
@@ -270,12 +271,38 @@ fn build_sinks(
             .map_err(Failure::job)?,
         ));
     }
+    if out.metrics {
+        let metrics = config.pipeline.stages.iter().find_map(|s| match s {
+            crate::pipeline::registry::StageConfig::Metrics(c) => Some(c),
+            _ => None,
+        });
+        if let Some(m) = metrics {
+            sinks.push(Box::new(
+                PulseMetricsCsvSink::create(
+                    out_dir,
+                    is_hdf5(input_path),
+                    m.profile_bins,
+                    m.profile_bin_m,
+                )
+                .map_err(Failure::job)?,
+            ));
+        }
+    }
     if config.voxels.enabled {
         sinks.push(voxel_sink(
             config, spec, input, &facts, input_path, out_dir,
         )?);
     }
     Ok(Box::new(FanOut(sinks)))
+}
+
+/// Whether `path` is an HDF5 file (GEDI input: `pulse_metrics.csv` gains `shot_number`).
+fn is_hdf5(path: &Path) -> bool {
+    let mut head = [0u8; 8];
+    std::fs::File::open(path)
+        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut head))
+        .is_ok()
+        && head == *b"\x89HDF\r\n\x1a\n"
 }
 
 /// `returns.las` (or its rotated files), with the CRS and time base the input states, or the

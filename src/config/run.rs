@@ -221,6 +221,10 @@ pub struct OutputConfig {
     /// with `hyper_points = true`. Default none.
     #[serde(default)]
     pub hyper_threshold_v: Option<f32>,
+    /// Write `pulse_metrics.csv` (forest structure metrics per pulse, `docs/forest.md`) when the
+    /// chain has a `metrics` stage. Default true.
+    #[serde(default = "yes")]
+    pub metrics: bool,
 }
 
 /// The form of the processed waveforms written by `replay`.
@@ -261,6 +265,7 @@ impl Default for OutputConfig {
             las_flush_s: default_las_flush_s(),
             hyper_points: false,
             hyper_threshold_v: None,
+            metrics: true,
         }
     }
 }

@@ -323,6 +323,8 @@ pub struct MetricsComputer {
     energy: Vec<f64>,
     heights: Vec<f64>,
     canopy: Vec<f64>,
+    cum: Vec<f64>,
+    padded: Vec<f64>,
 }
 
 impl MetricsComputer {
@@ -334,6 +336,8 @@ impl MetricsComputer {
             energy: Vec::with_capacity(samples * SUBBINS + 1),
             heights: Vec::with_capacity(samples * SUBBINS + 1),
             canopy: Vec::with_capacity(samples * SUBBINS + 1),
+            cum: Vec::with_capacity(samples * SUBBINS + 2),
+            padded: Vec::with_capacity(samples + 512),
         }
     }
 
@@ -582,61 +586,42 @@ impl MetricsComputer {
                 *c *= scale;
             }
         }
-        // PAVD: cover and PAI cumulated from the top down; per bin from the ground up.
-        let bins = config.profile_bins.min(MAX_PROFILE_BINS);
-        m.pavd_bins = bins as u8;
+        // PAVD: cover and PAI cumulated from the top down; per bin from the ground up. The
+        // heights fall with the grid index, so the canopy energy above a height is a prefix
+        // sum up to the first grid point below it.
+        self.cum.clear();
+        let mut acc = 0.0;
+        self.cum.push(0.0);
+        for c in &self.canopy {
+            acc += c;
+            self.cum.push(acc);
+        }
+        let heights = &self.heights;
+        let cum = &self.cum;
+        let above = |h: f64| -> f64 { cum[heights.partition_point(|&hh| hh >= h)] };
         let pai_at = |cum_canopy: f64| -> f64 {
             let cov = if denom > 0.0 { cum_canopy / denom } else { 0.0 };
             -((1.0 - cov).clamp(1e-6, 1.0)).ln() * k_pai
         };
-        // Canopy energy above each bin boundary.
+        let bins = config.profile_bins.min(MAX_PROFILE_BINS);
+        m.pavd_bins = bins as u8;
         let bin_m = config.profile_bin_m;
         for b in 0..bins {
             let lo_h = b as f64 * bin_m;
-            let hi_h = lo_h + bin_m;
-            let above_lo: f64 = self
-                .canopy
-                .iter()
-                .zip(&self.heights)
-                .filter(|(_, h)| **h >= lo_h)
-                .map(|(c, _)| *c)
-                .sum();
-            let above_hi: f64 = self
-                .canopy
-                .iter()
-                .zip(&self.heights)
-                .filter(|(_, h)| **h >= hi_h)
-                .map(|(c, _)| *c)
-                .sum();
-            m.pavd[b] = ((pai_at(above_lo) - pai_at(above_hi)) / bin_m) as f32;
+            m.pavd[b] = ((pai_at(above(lo_h)) - pai_at(above(lo_h + bin_m))) / bin_m) as f32;
         }
-        // FHD over fine bins.
+        // FHD over fine bins: two passes (the sum, then the entropy).
         let fbin = config.fhd_bin_m;
         let top_h = self.heights[0].max(0.0);
-        let nf = ((top_h / fbin).ceil() as usize).clamp(1, 1024);
-        let mut pavd_sum = 0.0;
-        let mut ent = 0.0;
-        // Two passes (sum, then entropy) without a buffer: the cumulated canopy above each
-        // boundary is monotone, so recompute per bin.
-        let above = |h: f64| -> f64 {
-            self.canopy
-                .iter()
-                .zip(&self.heights)
-                .filter(|(_, hh)| **hh >= h)
-                .map(|(c, _)| *c)
-                .sum()
+        let nf = ((top_h / fbin).ceil() as usize).clamp(1, 4096);
+        let layer = |b: usize| -> f64 {
+            (pai_at(above(b as f64 * fbin)) - pai_at(above((b + 1) as f64 * fbin))).max(0.0)
         };
-        let mut prev = pai_at(above(0.0));
-        let mut layer = [0.0f64; 1024];
-        for (b, slot) in layer.iter_mut().enumerate().take(nf) {
-            let next = pai_at(above((b + 1) as f64 * fbin));
-            let v = (prev - next).max(0.0);
-            *slot = v;
-            pavd_sum += v;
-            prev = next;
-        }
+        let pavd_sum: f64 = (0..nf).map(layer).sum();
+        let mut ent = 0.0;
         if pavd_sum > 0.0 {
-            for &v in layer.iter().take(nf) {
+            for b in 0..nf {
+                let v = layer(b);
                 if v > 0.0 {
                     let p = v / pavd_sum;
                     ent -= p * p.ln();
@@ -700,11 +685,29 @@ impl MetricsComputer {
         for v in &mut self.kernel {
             *v /= sum;
         }
+        // Edges held at the end samples: a padded copy, then one dot product per sample
+        // (contiguous, so it vectorises).
+        self.padded.clear();
+        self.padded
+            .extend(std::iter::repeat_n(f64::from(y[0]), half));
+        self.padded.extend(y.iter().map(|&v| f64::from(v)));
+        self.padded
+            .extend(std::iter::repeat_n(f64::from(y[n - 1]), half));
+        let k = &self.kernel;
         for i in 0..n {
-            let mut acc = 0.0;
-            for (j, kv) in self.kernel.iter().enumerate() {
-                let idx = (i + j).saturating_sub(half).min(n - 1);
-                acc += kv * f64::from(y[idx]);
+            let window = &self.padded[i..i + k.len()];
+            // Four partial sums, so the compiler may use vector lanes.
+            let mut lanes = [0.0f64; 4];
+            let (wc, kc) = (window.chunks_exact(4), k.chunks_exact(4));
+            let (wr, kr) = (wc.remainder(), kc.remainder());
+            for (a, b) in wc.zip(kc) {
+                for l in 0..4 {
+                    lanes[l] += a[l] * b[l];
+                }
+            }
+            let mut acc = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+            for (a, b) in wr.iter().zip(kr) {
+                acc += a * b;
             }
             self.smooth.push(acc);
         }
@@ -788,7 +791,7 @@ fn erf(x: f64) -> f64 {
 }
 
 /// Fits an [`ExtGauss`] to `y − mean` over samples `from..=to` by bounded Levenberg-Marquardt
-/// (at most 40 steps; area ≥ 0, centre and σ within their bounds, |γ| ≤ 5). Returns the start
+/// (at most 15 steps; area ≥ 0, centre and σ within their bounds, |γ| ≤ 5). Returns the start
 /// when the window is empty.
 fn fit_ext_gauss(
     y: &[f32],
@@ -819,7 +822,7 @@ fn fit_ext_gauss(
     let mut p = clamp(start);
     let mut c = cost(&p);
     let mut lambda = 1e-3;
-    for _ in 0..40 {
+    for _ in 0..15 {
         let mut jtj = [[0.0f64; 4]; 4];
         let mut jtr = [0.0f64; 4];
         for i in from..=to {
@@ -859,7 +862,7 @@ fn fit_ext_gauss(
                 p = q;
                 c = cq;
                 lambda = (lambda * 0.3).max(1e-9);
-                improved = rel > 1e-9;
+                improved = rel > 1e-5;
                 break;
             }
             lambda *= 10.0;

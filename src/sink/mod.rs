@@ -6,6 +6,7 @@ pub mod hyper_points;
 pub mod las_wave;
 pub mod nav_decode;
 pub mod nav_tally;
+pub mod pulse_metrics_csv;
 pub mod returns_csv;
 pub mod voxel_tiles;
 pub mod waveform_csv;

@@ -1,0 +1,119 @@
+//! Cost of the forest structure metrics per pulse (`src/forest/pulse_metrics.rs`, the `metrics`
+//! stage of `config/replay.toml`):
+//!
+//! - `metrics/gedi_shot`: the 32 real GEDI shots of the fixture (760–823 samples, 6.5 ns
+//!   smoothing), one at a time;
+//! - `metrics/survey_line`: the survey line's mix of raw simulated pulses (1 000, every 4th of
+//!   the first 4 000 of `config/scenes/survey_line.toml`) through the stage as replay runs it.
+//!
+//! Criterion reports the mean per pulse (throughput); the bench also prints the mean, p50, p99
+//! and p99.9 of single-pulse timings (three passes, `Instant` per pulse) for the tail.
+
+#[path = "common/survey.rs"]
+mod survey;
+
+use std::hint::black_box;
+use std::time::Instant;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use fwlidar::forest::pulse_metrics::{MetricsComputer, MetricsConfig, WaveformInput};
+use fwlidar::forest::stage::Metrics;
+use fwlidar::format::gedi::GediL1b;
+
+fn tail(name: &str, mut times: Vec<u64>) {
+    times.sort_unstable();
+    let q = |f: f64| times[((times.len() - 1) as f64 * f).round() as usize] as f64 / 1e3;
+    let mean = times.iter().sum::<u64>() as f64 / times.len() as f64 / 1e3;
+    println!(
+        "{name}: {} timings: mean {mean:.2} µs, p50 {:.2}, p99 {:.2}, p99.9 {:.2}, max {:.2} µs",
+        times.len(),
+        q(0.5),
+        q(0.99),
+        q(0.999),
+        q(1.0)
+    );
+}
+
+fn gedi(c: &mut Criterion) {
+    let g = GediL1b::open(&fwlidar::fixtures::path(
+        "waveform/gedi/GEDI01_B_O01964_beams0001_1011.h5",
+    ))
+    .unwrap();
+    let mut shots = Vec::new();
+    for name in g.beams() {
+        let beam = g.read_beam(name).unwrap();
+        let (mut rx, mut tx) = (Vec::new(), Vec::new());
+        g.read_waveforms(&beam, 0..beam.shots.len(), &mut rx, &mut tx)
+            .unwrap();
+        let base = beam.shots[0].rx_start;
+        for s in &beam.shots {
+            let off = (s.rx_start - base) as usize;
+            shots.push((
+                rx[off..off + s.rx_count as usize].to_vec(),
+                s.noise_mean,
+                s.noise_stddev,
+            ));
+        }
+    }
+    let config = MetricsConfig::default();
+    let mut computer = MetricsComputer::with_capacity(2048);
+    let mut one = |i: usize| {
+        let (w, mean, sd) = &shots[i % shots.len()];
+        computer.compute(
+            &config,
+            &WaveformInput {
+                samples: w,
+                start_ns: 0.0,
+                sample_ns: 1.0,
+                noise_mean: *mean,
+                noise_sd: *sd,
+                smoothing_ns: 6.5,
+                geometry: None,
+                geographic: false,
+            },
+        )
+    };
+    let mut times = Vec::new();
+    for _ in 0..20 {
+        for i in 0..shots.len() {
+            let t0 = Instant::now();
+            black_box(one(i));
+            times.push(t0.elapsed().as_nanos() as u64);
+        }
+    }
+    tail("metrics/gedi_shot", times);
+    let mut i = 0;
+    c.bench_function("metrics/gedi_shot", |b| {
+        b.iter(|| {
+            i += 1;
+            black_box(one(i))
+        })
+    });
+}
+
+fn survey_line(c: &mut Criterion) {
+    let pulses: Vec<_> = survey::survey_line_pulses(1000, 4, None)
+        .into_iter()
+        .map(|(p, _)| p)
+        .collect();
+    let mut stage = Metrics::new(MetricsConfig::default());
+    let mut times = Vec::new();
+    for _ in 0..3 {
+        for p in &pulses {
+            let t0 = Instant::now();
+            black_box(stage.measure(p));
+            times.push(t0.elapsed().as_nanos() as u64);
+        }
+    }
+    tail("metrics/survey_line", times);
+    let mut i = 0;
+    c.bench_function("metrics/survey_line", |b| {
+        b.iter(|| {
+            i += 1;
+            black_box(stage.measure(&pulses[i % pulses.len()]))
+        })
+    });
+}
+
+criterion_group!(benches, gedi, survey_line);
+criterion_main!(benches);

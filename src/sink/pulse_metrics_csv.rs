@@ -1,0 +1,255 @@
+//! Forest structure metrics per pulse as `pulse_metrics.csv` (one row per pulse that went
+//! through a `metrics` stage; definitions in `docs/forest.md`, computation in
+//! `src/forest/pulse_metrics.rs`). Columns:
+//!
+//! - `pulse_id`, `gps_time` (s, the input's time base); `shot_number` (GEDI input only: the
+//!   GEDI shot number, equal to `pulse_id`);
+//! - `x`, `y`, `z`: the ground (centre of the lowest mode) in the CRS of the pulse's geometry
+//!   (empty without geometry);
+//! - `status`: `ok`, or why there are no metrics (`no_signal`, `no_ground`, `no_waveform`,
+//!   `non_finite`; the other columns are then empty);
+//! - `canopy_height` (m: signal start above the ground = `rh100`), `rh0` … `rh100` (m above the
+//!   ground);
+//! - `energy_10_90_ns`, `modes`, `crown_thickness_m`;
+//! - `energy_total`, `energy_ground`, `energy_canopy` (signal units × bins), `cover`, `pgap`,
+//!   `pai` (m²/m²), `fhd`;
+//! - `pavd_0_5` … (m²/m³ per profile bin, named by its height range in m);
+//! - `ground_sigma_m`, `ground_skew`, `energy_lowest_m` (herbaceous metrics);
+//! - `zenith_deg`, `noise_mean`, `noise_sd` (signal units), `smoothing_ns`, `top_ns`,
+//!   `ground_ns`, `bottom_ns` (ns on the pulse's time axis).
+//!
+//! The file appears atomically at the end of the run.
+
+use std::io::Write;
+use std::path::Path;
+
+use crate::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+use crate::pulse::Pulse;
+use crate::sink::atomic_file::AtomicFile;
+use crate::sink::{PulseSink, SinkError};
+
+/// Writes `pulse_metrics.csv` into a folder.
+pub struct PulseMetricsCsvSink {
+    file: AtomicFile,
+    shot_number: bool,
+    profile_bins: usize,
+    profile_bin_m: f64,
+    rows: u64,
+    by_status: [u64; 5],
+    line: String,
+}
+
+/// The header line for `profile_bins` PAVD bins of `profile_bin_m` metres.
+pub fn header(shot_number: bool, profile_bins: usize, profile_bin_m: f64) -> String {
+    use std::fmt::Write as _;
+    let mut h = String::from("pulse_id,gps_time");
+    if shot_number {
+        h.push_str(",shot_number");
+    }
+    h.push_str(",x,y,z,status,canopy_height");
+    for p in 0..=100 {
+        let _ = write!(h, ",rh{p}");
+    }
+    h.push_str(
+        ",energy_10_90_ns,modes,crown_thickness_m,energy_total,energy_ground,energy_canopy,\
+         cover,pgap,pai,fhd",
+    );
+    for b in 0..profile_bins {
+        let lo = b as f64 * profile_bin_m;
+        let _ = write!(h, ",pavd_{}_{}", fmt_m(lo), fmt_m(lo + profile_bin_m));
+    }
+    h.push_str(
+        ",ground_sigma_m,ground_skew,energy_lowest_m,zenith_deg,noise_mean,noise_sd,\
+         smoothing_ns,top_ns,ground_ns,bottom_ns",
+    );
+    h
+}
+
+fn fmt_m(v: f64) -> String {
+    if v.fract() == 0.0 {
+        format!("{}", v as i64)
+    } else {
+        format!("{v}").replace('.', "p")
+    }
+}
+
+impl PulseMetricsCsvSink {
+    /// Starts `pulse_metrics.csv` in `dir`; `shot_number` adds the GEDI column; the PAVD
+    /// columns follow the metrics stage's profile.
+    pub fn create(
+        dir: &Path,
+        shot_number: bool,
+        profile_bins: usize,
+        profile_bin_m: f64,
+    ) -> Result<Self, SinkError> {
+        let mut file = AtomicFile::create(dir.join("pulse_metrics.csv"))?;
+        let path = file.path().display().to_string();
+        writeln!(
+            file.writer()?,
+            "{}",
+            header(shot_number, profile_bins, profile_bin_m)
+        )
+        .map_err(|source| SinkError::Io { path, source })?;
+        Ok(PulseMetricsCsvSink {
+            file,
+            shot_number,
+            profile_bins,
+            profile_bin_m,
+            rows: 0,
+            by_status: [0; 5],
+            line: String::with_capacity(4096),
+        })
+    }
+
+    fn row(&mut self, p: &Pulse, m: &WaveformMetrics) {
+        use std::fmt::Write as _;
+        let l = &mut self.line;
+        l.clear();
+        let _ = write!(l, "{},{:.9}", p.pulse_id, p.gps_time);
+        if self.shot_number {
+            let _ = write!(l, ",{}", p.pulse_id);
+        }
+        if m.ground_xyz.iter().all(|v| v.is_finite()) {
+            let [x, y, z] = m.ground_xyz;
+            let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
+        } else {
+            l.push_str(",,,");
+        }
+        let _ = write!(l, ",{}", m.status.as_str());
+        let ok = m.status == MetricsStatus::Ok;
+        let f = |l: &mut String, v: f32, digits: usize| {
+            if ok && v.is_finite() {
+                let _ = write!(l, ",{v:.digits$}");
+            } else {
+                l.push(',');
+            }
+        };
+        f(l, m.rh[100], 3);
+        for v in m.rh {
+            f(l, v, 3);
+        }
+        f(l, m.energy_10_90_ns, 3);
+        if ok {
+            let _ = write!(l, ",{}", m.modes);
+        } else {
+            l.push(',');
+        }
+        f(l, m.crown_thickness_m, 3);
+        f(l, m.energy_total, 2);
+        f(l, m.energy_ground, 2);
+        f(l, m.energy_canopy, 2);
+        f(l, m.cover, 5);
+        f(l, m.pgap, 5);
+        f(l, m.pai, 5);
+        f(l, m.fhd, 5);
+        for b in 0..self.profile_bins {
+            let v = if b < m.pavd_bins as usize {
+                m.pavd[b]
+            } else {
+                f32::NAN
+            };
+            f(l, v, 6);
+        }
+        f(l, m.ground_sigma_m, 4);
+        f(l, m.ground_skew, 4);
+        f(l, m.energy_lowest_m, 5);
+        f(l, m.zenith_deg, 3);
+        f(l, m.noise_mean, 4);
+        f(l, m.noise_sd, 4);
+        f(l, m.smoothing_ns, 3);
+        for v in [m.top_ns, m.ground_ns, m.bottom_ns] {
+            if ok && v.is_finite() {
+                let _ = write!(l, ",{v:.3}");
+            } else {
+                l.push(',');
+            }
+        }
+        l.push('\n');
+    }
+}
+
+impl PulseSink for PulseMetricsCsvSink {
+    fn name(&self) -> &'static str {
+        "pulse_metrics_csv"
+    }
+
+    fn write(&mut self, p: &Pulse) -> Result<(), SinkError> {
+        let Some(m) = p.metrics else {
+            return Ok(());
+        };
+        self.row(p, &m);
+        let path = self.file.path().display().to_string();
+        self.file
+            .writer()?
+            .write_all(self.line.as_bytes())
+            .map_err(|source| SinkError::Io { path, source })?;
+        self.rows += 1;
+        let i = match m.status {
+            MetricsStatus::Ok => 0,
+            MetricsStatus::NoSignal => 1,
+            MetricsStatus::NoGround => 2,
+            MetricsStatus::NoWaveform => 3,
+            MetricsStatus::NonFinite => 4,
+        };
+        self.by_status[i] += 1;
+        Ok(())
+    }
+
+    fn flush(&mut self) -> Result<(), SinkError> {
+        self.file.flush()
+    }
+
+    fn report(&self) -> serde_json::Value {
+        let s = &self.by_status;
+        serde_json::json!({
+            "rows": self.rows,
+            "ok": s[0], "no_signal": s[1], "no_ground": s[2], "no_waveform": s[3], "non_finite": s[4],
+            "profile_bin_m": self.profile_bin_m,
+        })
+    }
+
+    fn finish(&mut self) -> Result<(), SinkError> {
+        self.file.commit()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn header_and_rows_have_the_same_columns() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut sink = PulseMetricsCsvSink::create(dir.path(), true, 30, 5.0).unwrap();
+        let mut p = Pulse {
+            pulse_id: 42,
+            ..Default::default()
+        };
+        sink.write(&p).unwrap(); // no metrics: no row
+        p.metrics = Some(WaveformMetrics::default());
+        sink.write(&p).unwrap();
+        let mut m = WaveformMetrics {
+            status: MetricsStatus::Ok,
+            pavd_bins: 30,
+            ..Default::default()
+        };
+        m.rh = [1.5; 101];
+        m.ground_xyz = [1.0, 2.0, 3.0];
+        p.metrics = Some(m);
+        sink.write(&p).unwrap();
+        sink.finish().unwrap();
+        let text = std::fs::read_to_string(dir.path().join("pulse_metrics.csv")).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 3);
+        let n = lines[0].split(',').count();
+        assert!(lines[0].starts_with("pulse_id,gps_time,shot_number,x,y,z,status,canopy_height,rh0,rh1,"));
+        assert!(lines[0].contains(",pavd_0_5,pavd_5_10,") && lines[0].contains(",pavd_145_150,"));
+        for l in &lines[1..] {
+            assert_eq!(l.split(',').count(), n, "{l}");
+        }
+        assert!(lines[1].contains(",no_waveform,"));
+        assert!(lines[2].starts_with("42,0.000000000,42,1.000,2.000,3.000,ok,1.500,1.500,"));
+        assert_eq!(sink.report()["ok"], 1);
+        assert_eq!(sink.report()["no_waveform"], 1);
+    }
+}
