@@ -202,24 +202,31 @@ pub fn write_vrt(path: &Path, tiles: &[VrtTile]) -> Result<(), RasterError> {
         .iter()
         .map(|t| t.origin_y)
         .fold(f64::NEG_INFINITY, f64::max);
-    // Each tile's offset in whole cells from the mosaic's corner.
+    // Each tile's offset in whole cells from the mosaic's corner; the grid is the first tile's.
     let mut placed = Vec::with_capacity(tiles.len());
     let (mut w, mut h) = (0usize, 0usize);
     for t in tiles {
-        let (fc, fr) = ((t.origin_x - x0) / cell, (y0 - t.origin_y) / cell);
-        let (c, r) = (fc.round(), fr.round());
-        if (fc - c).abs() > 1e-6 || (fr - r).abs() > 1e-6 {
+        let (fc, fr) = (
+            (t.origin_x - first.origin_x) / cell,
+            (first.origin_y - t.origin_y) / cell,
+        );
+        if (fc - fc.round()).abs() > 1e-6 || (fr - fr.round()).abs() > 1e-6 {
             return Err(RasterError::invalid(
                 path,
                 format!(
-                    "tile {} origin ({}, {}) is not on the grid of the other tiles \
-                     ({fc:.6}, {fr:.6} cells from the mosaic's corner)",
+                    "tile {} origin ({}, {}) is not on the grid of the first tile {} \
+                     ({fc:.6}, {fr:.6} cells from its corner)",
                     t.path.display(),
                     t.origin_x,
-                    t.origin_y
+                    t.origin_y,
+                    first.path.display()
                 ),
             ));
         }
+        let (c, r) = (
+            ((t.origin_x - x0) / cell).round(),
+            ((y0 - t.origin_y) / cell).round(),
+        );
         let (c, r) = (c as usize, r as usize);
         w = w.max(c + t.width);
         h = h.max(r + t.height);
