@@ -535,7 +535,7 @@ fn level_entries(
 pub fn write_cog(path: &Path, raster: &Raster, opt: &CogOptions) -> Result<(), RasterError> {
     raster.validate(path)?;
     let ts = opt.tile_size;
-    if ts < 16 || ts > 4096 || ts % 16 != 0 {
+    if !(16..=4096).contains(&ts) || !ts.is_multiple_of(16) {
         return Err(RasterError::invalid(
             path,
             format!("tile_size {ts}: TIFF tiles must be a multiple of 16, 16–4096"),
