@@ -27,6 +27,7 @@ pub mod nav;
 pub mod pipeline;
 pub mod pulse;
 pub mod qc;
+pub mod raster;
 pub mod signal;
 pub mod sim;
 pub mod sink;
