@@ -288,6 +288,28 @@ fn build_sinks(
             ));
         }
     }
+    let has_metrics = config
+        .pipeline
+        .stages
+        .iter()
+        .any(|s| matches!(s, crate::pipeline::registry::StageConfig::Metrics(_)));
+    if out.rasters && has_metrics {
+        use crate::sink::metrics_rasters::{MetricsRastersSink, RasterCrs, RasterSettings};
+        let crs = match (facts.crs.clone(), input.decided_crs.clone()) {
+            (Some(c), _) => RasterCrs::Known(Some(c)),
+            (None, Some(cell)) => RasterCrs::Decided(cell),
+            (None, None) => RasterCrs::Known(None),
+        };
+        sinks.push(Box::new(MetricsRastersSink::new(
+            out_dir,
+            RasterSettings {
+                chm_cell_m: out.chm_cell_m,
+                profile_cell_m: out.profile_cell_m,
+                tile_m: out.raster_tile_m,
+            },
+            crs,
+        )));
+    }
     if config.voxels.enabled {
         sinks.push(voxel_sink(
             config, spec, input, &facts, input_path, out_dir,

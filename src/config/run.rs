@@ -225,6 +225,31 @@ pub struct OutputConfig {
     /// chain has a `metrics` stage. Default true.
     #[serde(default = "yes")]
     pub metrics: bool,
+    /// Write forest structure rasters (`rasters/chm.vrt`, `rasters/metrics.vrt`, Cloud-Optimized
+    /// GeoTIFF tiles; `docs/forest.md`) when the chain has a `metrics` stage and the pulses
+    /// have a projected CRS. Default true.
+    #[serde(default = "yes")]
+    pub rasters: bool,
+    /// Cell of the canopy height model, m. Default 1.
+    #[serde(default = "default_chm_cell")]
+    pub chm_cell_m: f64,
+    /// Cell of the other metrics rasters (RH, cover, PAI, FHD, herbaceous, density), m.
+    /// Default 10.
+    #[serde(default = "default_profile_cell")]
+    pub profile_cell_m: f64,
+    /// Side of a raster tile, m; a whole multiple of both cells. Default 1000.
+    #[serde(default = "default_raster_tile")]
+    pub raster_tile_m: f64,
+}
+
+fn default_chm_cell() -> f64 {
+    1.0
+}
+fn default_profile_cell() -> f64 {
+    10.0
+}
+fn default_raster_tile() -> f64 {
+    1000.0
 }
 
 /// The form of the processed waveforms written by `replay`.
@@ -266,6 +291,10 @@ impl Default for OutputConfig {
             hyper_points: false,
             hyper_threshold_v: None,
             metrics: true,
+            rasters: true,
+            chm_cell_m: default_chm_cell(),
+            profile_cell_m: default_profile_cell(),
+            raster_tile_m: default_raster_tile(),
         }
     }
 }
@@ -353,6 +382,20 @@ impl Validate for PipelineConfig {
 
 impl Validate for OutputConfig {
     fn validate(&self, path: &str, v: &mut Validator) {
+        v.positive(self.chm_cell_m, field(path, "chm_cell_m"));
+        v.positive(self.profile_cell_m, field(path, "profile_cell_m"));
+        let whole = |tile: f64, cell: f64| {
+            let k = tile / cell;
+            k.is_finite() && k >= 1.0 && (k - k.round()).abs() < 1e-6 && k <= 16_384.0
+        };
+        v.require(
+            whole(self.raster_tile_m, self.chm_cell_m) && whole(self.raster_tile_m, self.profile_cell_m),
+            field(path, "raster_tile_m"),
+            format!(
+                "must be a whole multiple (1 to 16384) of chm_cell_m ({}) and profile_cell_m ({}), got {}",
+                self.chm_cell_m, self.profile_cell_m, self.raster_tile_m
+            ),
+        );
         v.require(
             !self.dir.trim().is_empty(),
             field(path, "dir"),

@@ -4,6 +4,7 @@
 pub mod atomic_file;
 pub mod hyper_points;
 pub mod las_wave;
+pub mod metrics_rasters;
 pub mod nav_decode;
 pub mod nav_tally;
 pub mod pulse_metrics_csv;

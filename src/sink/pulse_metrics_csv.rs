@@ -242,7 +242,10 @@ mod tests {
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines.len(), 3);
         let n = lines[0].split(',').count();
-        assert!(lines[0].starts_with("pulse_id,gps_time,shot_number,x,y,z,status,canopy_height,rh0,rh1,"));
+        assert!(
+            lines[0]
+                .starts_with("pulse_id,gps_time,shot_number,x,y,z,status,canopy_height,rh0,rh1,")
+        );
         assert!(lines[0].contains(",pavd_0_5,pavd_5_10,") && lines[0].contains(",pavd_145_150,"));
         for l in &lines[1..] {
             assert_eq!(l.split(',').count(), n, "{l}");

@@ -1,0 +1,348 @@
+//! Forest structure rasters from the per-pulse metrics (`rasters/` in the output folder):
+//!
+//! - `rasters/chm.vrt` over `rasters/chm/chm_<ix>_<iy>.tif`: canopy height model, the highest
+//!   `canopy_height` (signal start above the ground) of the pulses whose ground falls in each
+//!   `chm_cell_m` cell (default 1 m);
+//! - `rasters/metrics.vrt` over `rasters/metrics/metrics_<ix>_<iy>.tif`: per `profile_cell_m`
+//!   cell (default 10 m) the mean `rh25`, `rh50`, `rh75`, `rh98`, `rh100`, `cover`, `pai`,
+//!   `fhd`, `ground_sigma_m`, `energy_lowest_m` and the pulse density (pulses with metrics per
+//!   m²), one band each, named.
+//!
+//! Each tile covers `raster_tile_m` × `raster_tile_m` metres of the plane (tiles of both
+//! products line up; a tile file exists only where pulses landed) and is a Cloud-Optimized
+//! GeoTIFF (`src/raster/cog.rs`: tiled 256 × 256, DEFLATE level 1 with the floating-point
+//! predictor, overviews, CRS, nodata −9999); the VRTs mosaic them for GDAL, QGIS and rasterio.
+//!
+//! Pulses are placed at their ground position (`pulse_metrics.csv`'s x, y) in the CRS of their
+//! geometry, which must be projected (an EPSG code, stated by the input or decided by
+//! georeferencing). Pulses without metrics or geometry are counted, not placed.
+//!
+//! The tiles are kept in memory (20 bytes per cell and band) and written when the run ends.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+use crate::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+use crate::pulse::Pulse;
+use crate::raster::cog::{CogOptions, write_cog};
+use crate::raster::grid::{CellGrid, CellStat};
+use crate::raster::vrt::{VrtTile, write_vrt};
+use crate::raster::{Raster, RasterError};
+use crate::sink::{PulseSink, SinkError};
+
+/// Nodata value of the rasters.
+pub const NODATA: f32 = -9999.0;
+
+/// The bands of the profile-resolution raster: name, unit and how to read it from a pulse.
+const PROFILE_BANDS: [(&str, &str); 10] = [
+    ("rh25", "m"),
+    ("rh50", "m"),
+    ("rh75", "m"),
+    ("rh98", "m"),
+    ("rh100", "m"),
+    ("cover", "1"),
+    ("pai", "m2/m2"),
+    ("fhd", "1"),
+    ("ground_sigma_m", "m"),
+    ("energy_lowest_m", "1"),
+];
+
+fn profile_values(m: &WaveformMetrics) -> [f32; 10] {
+    [
+        m.rh[25],
+        m.rh[50],
+        m.rh[75],
+        m.rh[98],
+        m.rh[100],
+        m.cover,
+        m.pai,
+        m.fhd,
+        m.ground_sigma_m,
+        m.energy_lowest_m,
+    ]
+}
+
+/// Raster settings (`[output]`: `rasters`, `chm_cell_m`, `profile_cell_m`, `raster_tile_m`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RasterSettings {
+    /// Canopy height model cell, m.
+    pub chm_cell_m: f64,
+    /// Cell of the other metrics, m.
+    pub profile_cell_m: f64,
+    /// Tile side, m (a multiple of both cells).
+    pub tile_m: f64,
+}
+
+/// Where the CRS comes from: stated by the input, or decided by georeferencing during the run.
+#[derive(Clone, Debug)]
+pub enum RasterCrs {
+    /// Known at the start (`EPSG:<code>` or WKT), or `None` (no rasters).
+    Known(Option<String>),
+    /// Decided at the first position fix.
+    Decided(Arc<OnceLock<String>>),
+}
+
+/// The EPSG code of a CRS given as `EPSG:<code>` or as WKT with an EPSG identifier (the last
+/// one: the CRS's own, after those of its parts).
+pub fn epsg_of(crs: &str) -> Option<u32> {
+    let t = crs.trim();
+    if let Some(code) = t.strip_prefix("EPSG:") {
+        return code.trim().parse().ok();
+    }
+    let at = t.rfind("\"EPSG\",")?;
+    let rest = t[at + 7..].trim_start().trim_start_matches('"');
+    let digits: String = rest.chars().take_while(|c| c.is_ascii_digit()).collect();
+    digits.parse().ok()
+}
+
+/// Writes the metrics rasters.
+pub struct MetricsRastersSink {
+    dir: PathBuf,
+    settings: RasterSettings,
+    crs: RasterCrs,
+    epsg: Option<u32>,
+    chm: BTreeMap<(i64, i64), CellGrid>,
+    profile: BTreeMap<(i64, i64), Vec<CellGrid>>,
+    placed: u64,
+    without_metrics: u64,
+    without_position: u64,
+    written: Vec<String>,
+}
+
+impl MetricsRastersSink {
+    /// Rasters into `out_dir/rasters` (created at the end, when there is something to write).
+    pub fn new(out_dir: &Path, settings: RasterSettings, crs: RasterCrs) -> Self {
+        MetricsRastersSink {
+            dir: out_dir.join("rasters"),
+            settings,
+            crs,
+            epsg: None,
+            chm: BTreeMap::new(),
+            profile: BTreeMap::new(),
+            placed: 0,
+            without_metrics: 0,
+            without_position: 0,
+            written: Vec::new(),
+        }
+    }
+
+    fn crs_epsg(&mut self) -> Option<u32> {
+        if self.epsg.is_none() {
+            self.epsg = match &self.crs {
+                RasterCrs::Known(Some(c)) => epsg_of(c),
+                RasterCrs::Known(None) => None,
+                RasterCrs::Decided(cell) => cell.get().and_then(|c| epsg_of(c)),
+            };
+        }
+        self.epsg
+    }
+
+    fn cells(&self, cell: f64) -> usize {
+        (self.settings.tile_m / cell).round().max(1.0) as usize
+    }
+
+    fn place(&mut self, m: &WaveformMetrics) -> Result<(), RasterError> {
+        let [x, y, _] = m.ground_xyz;
+        let s = self.settings;
+        let n = self.cells(s.chm_cell_m);
+        let key = CellGrid::tile_of(x, y, n, s.chm_cell_m);
+        if !self.chm.contains_key(&key) {
+            self.chm
+                .insert(key, CellGrid::for_tile(key.0, key.1, n, s.chm_cell_m)?);
+        }
+        if let Some(g) = self.chm.get_mut(&key) {
+            g.add(x, y, m.rh[100]);
+        }
+        let n = self.cells(s.profile_cell_m);
+        let key = CellGrid::tile_of(x, y, n, s.profile_cell_m);
+        if !self.profile.contains_key(&key) {
+            let mut grids = Vec::with_capacity(PROFILE_BANDS.len());
+            for _ in 0..PROFILE_BANDS.len() {
+                grids.push(CellGrid::for_tile(key.0, key.1, n, s.profile_cell_m)?);
+            }
+            self.profile.insert(key, grids);
+        }
+        if let Some(grids) = self.profile.get_mut(&key) {
+            for (g, v) in grids.iter_mut().zip(profile_values(m)) {
+                g.add(x, y, v);
+            }
+        }
+        self.placed += 1;
+        Ok(())
+    }
+
+    fn write_all(&mut self) -> Result<(), RasterError> {
+        let Some(epsg) = self.crs_epsg() else {
+            return Ok(());
+        };
+        if self.chm.is_empty() {
+            return Ok(());
+        }
+        let opt = CogOptions {
+            deflate_level: 1,
+            ..CogOptions::default()
+        };
+        let io = |e: std::io::Error, p: &Path| RasterError::Io {
+            file: p.display().to_string(),
+            source: e,
+        };
+        for sub in ["chm", "metrics"] {
+            let d = self.dir.join(sub);
+            std::fs::create_dir_all(&d).map_err(|e| io(e, &d))?;
+        }
+        let mut chm_tiles = Vec::new();
+        for (&(ix, iy), g) in &self.chm {
+            let mut r = g.to_raster(epsg, NODATA, &[CellStat::Max]);
+            r.band_names[0] = "canopy_height".into();
+            r.band_units[0] = "m".into();
+            let path = self.dir.join("chm").join(format!("chm_{ix}_{iy}.tif"));
+            write_cog(&path, &r, &opt)?;
+            chm_tiles.push(VrtTile::of(&path, &r));
+        }
+        write_vrt(&self.dir.join("chm.vrt"), &chm_tiles)?;
+        let mut tiles = Vec::new();
+        for (&(ix, iy), grids) in &self.profile {
+            let g0 = &grids[0];
+            let (ox, oy) = g0.origin();
+            let mut r = Raster::new(
+                g0.width(),
+                g0.height(),
+                ox,
+                oy,
+                g0.cell_size(),
+                epsg,
+                NODATA,
+            );
+            for (g, (name, unit)) in grids.iter().zip(PROFILE_BANDS) {
+                r.push_band(name, unit, g.band(CellStat::Mean, NODATA));
+            }
+            r.push_band("pulse_density", "1/m2", g0.band(CellStat::Density, NODATA));
+            let path = self
+                .dir
+                .join("metrics")
+                .join(format!("metrics_{ix}_{iy}.tif"));
+            write_cog(&path, &r, &opt)?;
+            tiles.push(VrtTile::of(&path, &r));
+        }
+        write_vrt(&self.dir.join("metrics.vrt"), &tiles)?;
+        self.written = vec![
+            format!("rasters/chm.vrt ({} tiles)", chm_tiles.len()),
+            format!("rasters/metrics.vrt ({} tiles)", tiles.len()),
+        ];
+        Ok(())
+    }
+}
+
+fn sink_error(e: RasterError) -> SinkError {
+    SinkError::Io {
+        path: "rasters".into(),
+        source: std::io::Error::other(e.to_string()),
+    }
+}
+
+impl PulseSink for MetricsRastersSink {
+    fn name(&self) -> &'static str {
+        "metrics_rasters"
+    }
+
+    fn write(&mut self, p: &Pulse) -> Result<(), SinkError> {
+        let Some(m) = p.metrics.as_ref().filter(|m| m.status == MetricsStatus::Ok) else {
+            self.without_metrics += 1;
+            return Ok(());
+        };
+        if !m.ground_xyz.iter().all(|v| v.is_finite()) || self.crs_epsg().is_none() {
+            self.without_position += 1;
+            return Ok(());
+        }
+        let m = *m;
+        self.place(&m).map_err(sink_error)
+    }
+
+    fn flush(&mut self) -> Result<(), SinkError> {
+        Ok(())
+    }
+
+    fn finish(&mut self) -> Result<(), SinkError> {
+        self.write_all().map_err(sink_error)
+    }
+
+    fn report(&self) -> serde_json::Value {
+        serde_json::json!({
+            "pulses_placed": self.placed,
+            "without_metrics": self.without_metrics,
+            "without_position_or_crs": self.without_position,
+            "epsg": self.epsg,
+            "chm_cell_m": self.settings.chm_cell_m,
+            "profile_cell_m": self.settings.profile_cell_m,
+            "written": self.written,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn epsg_from_code_or_wkt() {
+        assert_eq!(epsg_of("EPSG:32618"), Some(32618));
+        assert_eq!(
+            epsg_of(
+                r#"PROJCRS["WGS 84 / UTM zone 18N",BASEGEOGCRS["WGS 84",ID["EPSG",4326]],ID["EPSG",32618]]"#
+            ),
+            Some(32618)
+        );
+        assert_eq!(
+            epsg_of(
+                r#"PROJCS["x",GEOGCS["y",AUTHORITY["EPSG","4326"]],AUTHORITY["EPSG","32736"]]"#
+            ),
+            Some(32736)
+        );
+        assert_eq!(epsg_of("LOCAL_CS[\"x\"]"), None);
+    }
+
+    #[test]
+    fn pulses_land_in_their_cells_and_tiles_are_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut sink = MetricsRastersSink::new(
+            dir.path(),
+            RasterSettings {
+                chm_cell_m: 1.0,
+                profile_cell_m: 10.0,
+                tile_m: 100.0,
+            },
+            RasterCrs::Known(Some("EPSG:32618".into())),
+        );
+        let mut p = Pulse::default();
+        for (i, (x, y, h)) in [(5.5, 5.5, 12.0f32), (5.7, 5.2, 14.0), (150.0, 20.0, 3.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let mut m = WaveformMetrics {
+                status: MetricsStatus::Ok,
+                ground_xyz: [x, y, 100.0],
+                cover: 0.5,
+                ..Default::default()
+            };
+            m.rh = [h; 101];
+            p.pulse_id = i as u64;
+            p.metrics = Some(m);
+            sink.write(&p).unwrap();
+        }
+        p.metrics = None;
+        sink.write(&p).unwrap();
+        sink.finish().unwrap();
+        let r = sink.report();
+        assert_eq!(r["pulses_placed"], 3);
+        assert_eq!(r["without_metrics"], 1);
+        let d = dir.path().join("rasters");
+        assert!(d.join("chm/chm_0_0.tif").exists() && d.join("chm/chm_1_0.tif").exists());
+        assert!(d.join("metrics/metrics_0_0.tif").exists() && d.join("chm.vrt").exists());
+        // The CHM cell holding the two first pulses keeps the higher.
+        let g = &sink.chm[&(0, 0)];
+        let band = g.band(CellStat::Max, NODATA);
+        let (col, row) = g.cell_of(5.5, 5.5).unwrap();
+        assert_eq!(band[row * g.width() + col], 14.0);
+    }
+}

@@ -1,0 +1,166 @@
+//! Forest structure metrics through `fwlidar replay` (issue 20): `pulse_metrics.csv` and the
+//! rasters, on the README's two-layer capture (a canopy plane 15 m above flat ground
+//! intercepting 40 % of each footprint), opened by the real readers: GDAL's `gdalinfo` and
+//! rasterio with `rio cogeo validate`'s checker (installed by `.ci/run`; skipped with a message
+//! where missing).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn column(header: &[&str], name: &str) -> usize {
+    header
+        .iter()
+        .position(|h| *h == name)
+        .unwrap_or_else(|| panic!("no column {name}"))
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+#[test]
+fn replay_writes_pulse_metrics_and_rasters_of_the_two_layer_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let o = common::fwlidar(&[
+        "replay",
+        "replay/two_layer.fwcap",
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+        "--set",
+        "output.las=false",
+        "--set",
+        "output.waveforms=false",
+        "--set",
+        "voxels.enabled=false",
+    ]);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let text = std::fs::read_to_string(out.join("pulse_metrics.csv")).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(
+        &header[..8],
+        [
+            "pulse_id",
+            "gps_time",
+            "x",
+            "y",
+            "z",
+            "status",
+            "canopy_height",
+            "rh0"
+        ]
+    );
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 2000, "one row per pulse");
+    assert!(rows.iter().all(|r| r.len() == header.len()));
+    let ok: Vec<&Vec<&str>> = rows.iter().filter(|r| r[5] == "ok").collect();
+    assert!(ok.len() >= 1600, "{} pulses with metrics", ok.len());
+    let get = |name: &str| -> Vec<f64> {
+        let c = column(&header, name);
+        ok.iter().map(|r| r[c].parse::<f64>().unwrap()).collect()
+    };
+    // The canopy plane is 15 m above the ground: RH98 and the canopy top lie just above it
+    // (the pulse's half width adds to the signal start).
+    let rh98 = median(get("rh98"));
+    let top = median(get("canopy_height"));
+    assert!((14.5..17.5).contains(&rh98), "RH98 {rh98}");
+    assert!((15.0..18.5).contains(&top), "canopy height {top}");
+    // 40 % of each footprint intercepted: the canopy's share of the energy is near 0.4.
+    let share: Vec<f64> = get("energy_canopy")
+        .iter()
+        .zip(get("energy_total"))
+        .map(|(c, t)| c / t)
+        .collect();
+    let share = median(share);
+    assert!((0.33..0.5).contains(&share), "canopy energy share {share}");
+    // All the plant area is in the profile bin holding 15 m, with PAI = Σ PAVD · 5 m.
+    let pai = median(get("pai"));
+    assert!(pai > 0.3, "PAI {pai}");
+    let low = median(get("pavd_0_5"));
+    assert!(low.abs() < 0.01, "no plant area near the ground: {low}");
+    let modes = median(get("modes"));
+    assert_eq!(modes, 2.0);
+
+    // Rasters.
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let r = &summary["sinks"]["metrics_rasters"];
+    assert_eq!(r["pulses_placed"].as_u64(), Some(ok.len() as u64), "{r}");
+    let chm_vrt = out.join("rasters/chm.vrt");
+    let metrics_vrt = out.join("rasters/metrics.vrt");
+    assert!(chm_vrt.exists() && metrics_vrt.exists());
+    let tiles: Vec<PathBuf> = std::fs::read_dir(out.join("rasters/metrics"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert!(!tiles.is_empty());
+    if let Ok(o) = Command::new("gdalinfo")
+        .arg("-json")
+        .arg(&metrics_vrt)
+        .output()
+    {
+        assert!(o.status.success(), "{}", common::text(&o.stderr));
+        let info: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let wkt = info["coordinateSystem"]["wkt"].as_str().unwrap_or("");
+        assert!(wkt.contains("UTM zone 36S"), "{wkt}");
+        let bands = info["bands"].as_array().unwrap();
+        let names: Vec<&str> = bands
+            .iter()
+            .map(|b| b["description"].as_str().unwrap_or(""))
+            .collect();
+        assert_eq!(
+            names[..5],
+            ["rh25", "rh50", "rh75", "rh98", "rh100"],
+            "{names:?}"
+        );
+        assert_eq!(names.last(), Some(&"pulse_density"));
+    } else {
+        println!("SKIP gdalinfo checks: gdalinfo not found (.ci/run installs gdal-bin)");
+    }
+    let py = std::env::var_os("FWLIDAR_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(common::ROOT).join(".venv/bin/python"));
+    let script = r#"
+import sys, json, numpy as np, rasterio
+from rio_cogeo.cogeo import cog_validate
+vrt, tile = sys.argv[1], sys.argv[2]
+with rasterio.open(vrt) as ds:
+    i = list(ds.descriptions).index("rh98") + 1
+    a = ds.read(i)
+    v = a[a != ds.nodata]
+    print(json.dumps({"epsg": ds.crs.to_epsg(), "cells": int(v.size), "rh98_median": float(np.median(v)),
+                      "valid": cog_validate(tile)[0]}))
+"#;
+    match Command::new(&py)
+        .arg("-c")
+        .arg(script)
+        .arg(&metrics_vrt)
+        .arg(&tiles[0])
+        .output()
+    {
+        Ok(o) if o.status.success() => {
+            let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+            assert_eq!(v["epsg"], 32736, "{v}");
+            assert!(v["cells"].as_u64().unwrap() >= 1, "{v}");
+            let cell_median = v["rh98_median"].as_f64().unwrap();
+            assert!(
+                (cell_median - rh98).abs() < 0.5,
+                "raster RH98 {cell_median} vs pulses {rh98}"
+            );
+            assert_eq!(v["valid"], true, "rio cogeo validate: {v}");
+        }
+        Ok(o) if common::text(&o.stderr).contains("ModuleNotFoundError") => {
+            println!(
+                "SKIP rasterio checks: {} lacks rasterio / rio-cogeo (.ci/run installs them)",
+                py.display()
+            );
+        }
+        Ok(o) => panic!("rasterio check failed: {}", common::text(&o.stderr)),
+        Err(e) => println!("SKIP rasterio checks: cannot run {}: {e}", py.display()),
+    }
+}
