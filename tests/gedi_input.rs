@@ -25,7 +25,7 @@ fn ok(args: &[&str]) -> String {
 /// shot_number → elev_lowestmode (m, WGS84 ellipsoid) from the Level 2A granule of the same
 /// shots.
 fn l2a_ground() -> HashMap<u64, f64> {
-    let f = hdf5_reader::Hdf5File::open(&fixture(L2A)).unwrap();
+    let f = hdf5_reader::Hdf5File::open(fixture(L2A)).unwrap();
     let mut m = HashMap::new();
     for beam in ["BEAM0001", "BEAM1011"] {
         let shots = f

@@ -733,9 +733,9 @@ mod tests {
             assert_eq!(ret.len, s.rx_count);
             let last_t = ret.start_ns + f64::from(ret.len - 1) * p.sample_ns;
             for (t, want) in [(ret.start_ns, b0), (last_t, b1)] {
-                for k in 0..3 {
+                for (k, w) in want.iter().enumerate() {
                     let got = g.anchor[k] + t * g.direction[k];
-                    assert!((got - want[k]).abs() < 0.01, "{k}: {got} vs {}", want[k]);
+                    assert!((got - w).abs() < 0.01, "{k}: {got} vs {w}");
                 }
             }
             let per_ns = g.direction.iter().map(|d| d * d).sum::<f64>().sqrt();
