@@ -214,6 +214,27 @@ fn write_report(out: &mut impl Write, report: &serde_json::Value) -> std::io::Re
                 writeln!(out, "  scanners:")?;
                 write_table(out, "    ", &transposed_rows("scanner", a))?;
             }
+            ("beams", Value::Array(a)) => {
+                writeln!(out, "  beams:")?;
+                write_table(out, "    ", &object_rows(a))?;
+            }
+            ("extent", Value::Object(o)) => {
+                writeln!(out, "  extent (min .. max):")?;
+                let width = o.keys().map(String::len).max().unwrap_or(0);
+                for (k, v) in o {
+                    let text = match v.as_array().map(Vec::as_slice) {
+                        // Times to the microsecond: 7 digits would hide the span.
+                        Some([lo, hi]) if k == "gps_time" => format!(
+                            "{:.6} .. {:.6} s",
+                            lo.as_f64().unwrap_or(f64::NAN),
+                            hi.as_f64().unwrap_or(f64::NAN)
+                        ),
+                        Some([lo, hi]) => format!("{} .. {}", cell(lo), cell(hi)),
+                        _ => cell(v),
+                    };
+                    writeln!(out, "    {k:<width$}  {text}")?;
+                }
+            }
             ("warnings", Value::Array(a)) => {
                 writeln!(out, "  warnings:")?;
                 for w in a {
@@ -365,6 +386,29 @@ fn pulse_descriptor_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
             ]);
         }
     }
+    rows
+}
+
+/// A list of objects as a table with a row per object and a column per key (keys in the order
+/// of the first object; `name` first when there is one): GEDI's beams.
+fn object_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
+    let mut keys: Vec<&str> = Vec::new();
+    for o in list.iter().filter_map(|o| o.as_object()) {
+        for k in o.keys() {
+            if !keys.contains(&k.as_str()) {
+                keys.push(k);
+            }
+        }
+    }
+    if let Some(i) = keys.iter().position(|k| *k == "name") {
+        let k = keys.remove(i);
+        keys.insert(0, k);
+    }
+    let mut rows = vec![keys.iter().map(|k| k.replace('_', " ")).collect::<Vec<_>>()];
+    rows.extend(
+        list.iter()
+            .map(|o| keys.iter().map(|k| cell(&o[*k])).collect::<Vec<_>>()),
+    );
     rows
 }
 

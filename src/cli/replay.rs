@@ -509,13 +509,21 @@ pub fn georeferenced(
     Ok((Box::new(g), dem, Some(decided)))
 }
 
-/// The LAS output's CRS and time base from what the input states: its WKT when it gave one (an
-/// `EPSG:<code>` alone cannot be turned into the WKT LAS 1.4 requires without a CRS database, so
-/// the file then has no CRS record and the summary of the input says which EPSG it was), and
+/// The LAS output's CRS and time base from what the input states: its WKT when it gave one, or
+/// the WKT of a WGS84 UTM zone named `EPSG:326zz`/`327zz` (other `EPSG:<code>`s cannot be
+/// turned into the WKT LAS 1.4 requires without a CRS database, so the file then has no CRS
+/// record and the summary of the input says which EPSG it was), and
 /// adjusted standard GPS time when the input's times are in it.
 fn las_options(facts: &crate::source::SourceFacts) -> LasWaveOptions {
     LasWaveOptions {
-        crs_wkt: facts.crs.clone().filter(|c| !c.starts_with("EPSG:")),
+        crs_wkt: facts
+            .crs
+            .as_deref()
+            .and_then(|c| match c.strip_prefix("EPSG:") {
+                // WGS84 UTM zones (GEDI input) are written from their parameters.
+                Some(code) => code.parse().ok().and_then(crate::geo::crs::utm_wkt),
+                None => Some(c.to_string()),
+            }),
         adjusted_standard_gps_time: facts.time_base.as_deref() == Some("gps_adjusted_standard"),
         ..LasWaveOptions::default()
     }

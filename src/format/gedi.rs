@@ -12,6 +12,9 @@
 //! - `geolocation/{latitude,longitude,elevation}_{bin0,lastbin}` (degrees, degrees, metres
 //!   above the WGS84 ellipsoid) of the first and last received sample;
 //!   `geolocation/local_beam_azimuth`, `local_beam_elevation` (radians);
+//!   `geolocation/bounce_time_offset_bin0` (s: the one-way light time from the instrument to
+//!   bin 0; × c it is the slant range, 412.6 km on the fixture's first shot, which matches
+//!   `altitude_instrument − elevation_bin0` over the cosine of the off-nadir angle);
 //!   `geolocation/digital_elevation_model` (m); `geolocation/degrade` (non-zero: degraded
 //!   pointing or positioning).
 //!
@@ -44,6 +47,19 @@ pub enum GediError {
     NoBeams {
         /// The file.
         file: String,
+    },
+    /// A GEDI granule of another level (2A, 2B), or an HDF5 file with beams but no waveforms.
+    #[error(
+        "{file}: {what}: {beam}/rxwaveform is missing; fwlidar reads GEDI Level 1B \
+         (GEDI01_B) granules, the geolocated waveforms"
+    )]
+    NotLevel1b {
+        /// The file.
+        file: String,
+        /// What it is instead.
+        what: String,
+        /// The beam looked at.
+        beam: String,
     },
     /// A dataset is missing, has an unusable type or shape, or cannot be decoded.
     #[error("{file}: {dataset}: {reason}")]
@@ -102,6 +118,9 @@ pub struct GediShot {
     pub beam_elevation_rad: f64,
     /// `digital_elevation_model` at the shot, m (NaN or a fill value where absent).
     pub dem_m: f64,
+    /// `bounce_time_offset_bin0`, s: one-way light time from the instrument to bin 0 (≈ 1.38 ms
+    /// from the ISS).
+    pub bounce_time_bin0_s: f64,
     /// `degrade` flag non-zero: pointing or positioning degraded.
     pub degraded: bool,
 }
@@ -189,6 +208,33 @@ impl GediL1b {
         })
     }
 
+    /// Shots in `beam` (the length of its `shot_number`), without reading them.
+    pub fn shot_count(&self, beam: &str) -> Result<u64, GediError> {
+        self.len_of(&format!("{beam}/shot_number"))
+    }
+
+    /// Checks that the granule is a Level 1B one (its first beam has `rxwaveform`). A Level 2A
+    /// or 2B granule of the same shots (which has beams too, but no waveforms) is named as such.
+    pub fn check_level1b(&self) -> Result<(), GediError> {
+        let beam = &self.beams[0];
+        let has = |d: &str| self.file.dataset(&format!("{beam}/{d}")).is_ok();
+        if has("rxwaveform") && has("txwaveform") {
+            return Ok(());
+        }
+        let product = if has("rh") || has("elev_lowestmode") {
+            "a GEDI Level 2A granule (elevations and relative heights, no waveforms)"
+        } else if has("pai") || has("cover") {
+            "a GEDI Level 2B granule (cover and plant area index, no waveforms)"
+        } else {
+            "not a GEDI Level 1B granule"
+        };
+        Err(GediError::NotLevel1b {
+            file: self.name(),
+            what: product.to_string(),
+            beam: beam.clone(),
+        })
+    }
+
     /// Reads every shot record of `beam` and checks that each points inside its beam's
     /// waveform arrays.
     pub fn read_beam(&self, beam: &str) -> Result<GediBeam, GediError> {
@@ -239,6 +285,7 @@ impl GediL1b {
         let azimuth = geo("local_beam_azimuth")?;
         let elevation = geo("local_beam_elevation")?;
         let dem = geo("digital_elevation_model")?;
+        let bounce = geo("bounce_time_offset_bin0")?;
         let degrade = geo("degrade")?;
         let rx_len = self.len_of(&path("rxwaveform"))?;
         let tx_len = self.len_of(&path("txwaveform"))?;
@@ -286,6 +333,7 @@ impl GediL1b {
                 beam_azimuth_rad: azimuth[i],
                 beam_elevation_rad: elevation[i],
                 dem_m: dem[i],
+                bounce_time_bin0_s: bounce[i],
                 degraded: degrade[i] != 0.0,
             });
         }

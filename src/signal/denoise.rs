@@ -45,7 +45,12 @@
 //!    `noise_v` the mean of `|raw − baseline − smoothed|` over all return samples, in volts.
 //!    This is the seed's noise level; it measures the part of the noise above the cut-off only
 //!    (for white noise of standard deviation σ and cut-off fc below Nyquist fN it is about
-//!    `sqrt(2/π) × σ × sqrt(1 − fc/fN)`).
+//!    `sqrt(2/π) × σ × sqrt(1 − fc/fN)`). When the input states its noise
+//!    ([`Pulse::stated_noise`], GEDI), `noise_v` is that formula applied to the stated σ
+//!    instead: GEDI's received noise is band-limited before it is digitised (neighbouring
+//!    samples are correlated), so the part above the cut-off is almost nothing (0.02-0.03
+//!    counts for a stated σ of 3 counts) and every threshold in noise levels downstream
+//!    (decomposition, the deconvolution gate) would take noise for echoes.
 //!
 //! Pulses the stage cannot use are dropped with a counted reason:
 //! `no_segments` (dropped), `segment_too_long` (dropped: longer than
@@ -990,9 +995,13 @@ impl Stage for Denoise {
             }
         }
         p.noise = if return_samples > 0 {
+            let measured = (return_abs_sum / return_samples as f64) as f32;
             crate::pulse::NoiseEstimate {
                 baseline_v: (return_baseline_sum / return_samples as f64) as f32,
-                noise_v: (return_abs_sum / return_samples as f64) as f32,
+                noise_v: p
+                    .stated_noise
+                    .and_then(|n| stated_noise_level(n.stddev, self.config.cutoff_ghz, sample_ns))
+                    .unwrap_or(measured),
             }
         } else {
             crate::pulse::NoiseEstimate {
@@ -1003,6 +1012,16 @@ impl Stage for Denoise {
         out.emit(pulse);
         Ok(())
     }
+}
+
+/// The noise level `noise_v` that the estimate gives on white noise of standard deviation
+/// `sigma` (signal units) behind a cut-off of `cutoff_ghz` at `sample_ns`:
+/// `sqrt(2/π) × σ × sqrt(1 − 2·fc·Δt)`. `None` unless `sigma` is a positive finite number.
+fn stated_noise_level(sigma: f32, cutoff_ghz: f64, sample_ns: f64) -> Option<f32> {
+    let kept_above = (1.0 - 2.0 * cutoff_ghz * sample_ns).max(0.0);
+    (sigma.is_finite() && sigma > 0.0).then(|| {
+        (f64::from(sigma) * (2.0 / std::f64::consts::PI).sqrt() * kept_above.sqrt()) as f32
+    })
 }
 
 #[cfg(test)]
@@ -1389,6 +1408,43 @@ mod tests {
             "expected edge ringing without the level shift: {off}"
         );
         assert!(on < off / 1000.0);
+    }
+
+    #[test]
+    fn noise_level_is_the_stated_noise_when_the_input_states_it() {
+        // GEDI-like: noise smoothed before digitising (a 9-sample running mean of white noise),
+        // so hardly any of it lies above the cut-off; 1/32 count per raw count.
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let white: Vec<f64> = (0..800).map(|_| rng.random_range(-1.0..=1.0)).collect();
+        let values: Vec<f64> = (0..white.len() - 8)
+            .map(|i| 32.0 * (240.0 + 9.0 * white[i..i + 9].iter().sum::<f64>() / 9.0))
+            .collect();
+        let mut p = pulse_with_return(&values);
+        p.gain_v_per_dn = 1.0 / 32.0;
+        let measured = denoise_one(DenoiseConfig::default(), p.clone())
+            .noise
+            .noise_v;
+        p.stated_noise = Some(crate::pulse::StatedNoise {
+            mean: 240.0,
+            stddev: 3.0,
+        });
+        let stated = denoise_one(DenoiseConfig::default(), p.clone()).noise;
+        let want = (2.0 / std::f64::consts::PI).sqrt() * 3.0 * 0.6f64.sqrt();
+        assert!(
+            (f64::from(stated.noise_v) - want).abs() < 1e-5,
+            "{stated:?}"
+        );
+        assert!(measured < stated.noise_v / 5.0, "{measured} vs {stated:?}");
+        assert!((stated.baseline_v - 240.0).abs() < 6.0, "{stated:?}");
+        // A stated σ that is not a positive number leaves the measured level.
+        p.stated_noise = Some(crate::pulse::StatedNoise {
+            mean: 240.0,
+            stddev: f32::NAN,
+        });
+        assert_eq!(
+            denoise_one(DenoiseConfig::default(), p).noise.noise_v,
+            measured
+        );
     }
 
     #[test]

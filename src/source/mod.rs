@@ -1,7 +1,8 @@
 //! Sources: where pulses and navigation bytes come from (a recorded capture, LAS files with
-//! waveforms; the network, serial ports and PulseWaves files as later issues land).
+//! waveforms, PulseWaves files, NASA GEDI Level 1B granules; the network and serial ports).
 
 pub mod capture;
+pub mod gedi;
 pub mod las;
 pub mod live_frames;
 pub mod pulsewaves;
@@ -129,6 +130,10 @@ pub enum InputKind {
     Las,
     /// PulseWaves `.pls` (file signature `PulseWavesPulse\0`).
     PulseWaves,
+    /// HDF5 (signature `\x89HDF\r\n\x1a\n`), read as a NASA GEDI Level 1B granule; any other
+    /// HDF5 file is refused when opened, with what it is when it is a GEDI granule of another
+    /// level.
+    Gedi,
 }
 
 impl InputKind {
@@ -140,6 +145,8 @@ impl InputKind {
             Some(InputKind::Las)
         } else if head.starts_with(b"PulseWavesPulse") {
             Some(InputKind::PulseWaves)
+        } else if head.starts_with(&crate::format::gedi::HDF5_SIGNATURE) {
+            Some(InputKind::Gedi)
         } else {
             None
         }
@@ -164,8 +171,8 @@ impl InputKind {
         }
         InputKind::sniff(&head[..n]).ok_or_else(|| {
             format!(
-                "{}: not an fwlidar capture, a LAS file or a PulseWaves .pls file (its first \
-                 bytes match none of their signatures)",
+                "{}: not an fwlidar capture, a LAS file, a PulseWaves .pls file or a GEDI \
+                 Level 1B HDF5 granule (its first bytes match none of their signatures)",
                 path.display()
             )
         })
@@ -185,6 +192,9 @@ pub fn open_file(path: &Path) -> Result<Box<dyn Source>, String> {
         InputKind::Las => Ok(Box::new(
             las::LasSource::open(path).map_err(|e| e.to_string())?,
         )),
+        InputKind::Gedi => Ok(Box::new(
+            gedi::GediSource::open(path).map_err(|e| e.to_string())?,
+        )),
     }
 }
 
@@ -203,6 +213,11 @@ mod tests {
             InputKind::sniff(b"PulseWavesPulse\0"),
             Some(InputKind::PulseWaves)
         );
+        assert_eq!(
+            InputKind::sniff(b"\x89HDF\r\n\x1a\n\0\0\0\0"),
+            Some(InputKind::Gedi)
+        );
+        assert_eq!(InputKind::sniff(b"\x89HDF"), None);
         assert_eq!(InputKind::sniff(b"LAS"), None);
         assert_eq!(InputKind::sniff(b""), None);
         assert_eq!(InputKind::sniff(b"hello world, not"), None);
