@@ -164,3 +164,77 @@ with rasterio.open(vrt) as ds:
         Err(e) => println!("SKIP rasterio checks: cannot run {}: {e}", py.display()),
     }
 }
+
+/// `replay` of the GEDI L1B fixture: `pulse_metrics.csv` carries `shot_number`, and our RH98,
+/// RH50 and cover of each shot are near NASA's L2A `rh` and L2B `cover` of the same shot (read
+/// here from the products with the HDF5 reader, not through our code).
+#[test]
+fn replay_of_gedi_level_1b_matches_level_2a_and_2b() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let gedi =
+        |level: &str| common::fixture(&format!("waveform/gedi/{level}_O01964_beams0001_1011.h5"));
+    let o = common::fwlidar(&[
+        "replay",
+        gedi("GEDI01_B").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+        "--set",
+        "voxels.enabled=false",
+    ]);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let text = std::fs::read_to_string(out.join("pulse_metrics.csv")).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(header[2], "shot_number");
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 32);
+    let l2a = hdf5_reader::Hdf5File::open(gedi("GEDI02_A")).unwrap();
+    let l2b = hdf5_reader::Hdf5File::open(gedi("GEDI02_B")).unwrap();
+    let mut reference = std::collections::HashMap::new();
+    for beam in ["BEAM0001", "BEAM1011"] {
+        let shots = l2a
+            .dataset(&format!("{beam}/shot_number"))
+            .unwrap()
+            .read_array::<u64>()
+            .unwrap();
+        let rh = l2a
+            .dataset(&format!("{beam}/rh"))
+            .unwrap()
+            .read_array::<f64>()
+            .unwrap();
+        let cover = l2b
+            .dataset(&format!("{beam}/cover"))
+            .unwrap()
+            .read_array::<f32>()
+            .unwrap();
+        let rh: Vec<f64> = rh.iter().copied().collect();
+        for (i, s) in shots.iter().enumerate() {
+            reference.insert(
+                *s,
+                (rh[i * 101 + 50], rh[i * 101 + 98], f64::from(cover[i])),
+            );
+        }
+    }
+    let (c_shot, c50, c98, ccov) = (
+        column(&header, "shot_number"),
+        column(&header, "rh50"),
+        column(&header, "rh98"),
+        column(&header, "cover"),
+    );
+    let (mut d50, mut d98, mut dcov) = (Vec::new(), Vec::new(), Vec::new());
+    for r in &rows {
+        let shot: u64 = r[c_shot].parse().unwrap();
+        let (rh50, rh98, cover) = reference[&shot];
+        d50.push((r[c50].parse::<f64>().unwrap() - rh50).abs());
+        d98.push((r[c98].parse::<f64>().unwrap() - rh98).abs());
+        dcov.push((r[ccov].parse::<f64>().unwrap() - cover).abs());
+    }
+    let (m50, m98, mcov) = (median(d50), median(d98), median(dcov));
+    assert!(
+        m50 <= 0.5 && m98 <= 0.5,
+        "median |ΔRH50| {m50:.2} m, |ΔRH98| {m98:.2} m"
+    );
+    assert!(mcov <= 0.05, "median |Δcover| {mcov:.3}");
+}
