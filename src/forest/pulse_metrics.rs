@@ -34,6 +34,9 @@
 //! The computation reuses buffers held by [`MetricsComputer`]: no allocation per pulse once the
 //! longest waveform has been seen.
 
+// The 4 × 4 normal equations and the solver index rows and columns by number, as written.
+#![allow(clippy::needless_range_loop)]
+
 use serde::{Deserialize, Serialize};
 
 /// Most height bins of the PAVD profile.
@@ -346,7 +349,7 @@ impl MetricsComputer {
         let mut m = WaveformMetrics::default();
         let y = w.samples;
         let n = y.len();
-        if n < 4 || n > MAX_METRIC_SAMPLES || !(w.sample_ns > 0.0) {
+        if !(4..=MAX_METRIC_SAMPLES).contains(&n) || w.sample_ns.is_nan() || w.sample_ns <= 0.0 {
             return m;
         }
         if !(w.noise_mean.is_finite() && w.noise_sd.is_finite() && w.smoothing_ns.is_finite())
@@ -475,7 +478,7 @@ impl MetricsComputer {
             x += step;
         }
         let total: f64 = self.energy.iter().sum();
-        if !(total > 0.0) || self.energy.len() < 2 {
+        if total.is_nan() || total <= 0.0 || self.energy.len() < 2 {
             m.status = MetricsStatus::NoSignal;
             return m;
         }
@@ -669,7 +672,7 @@ impl MetricsComputer {
     fn smooth_into(&mut self, y: &[f32], sigma_bins: f64) {
         let n = y.len();
         self.smooth.clear();
-        if !(sigma_bins > 0.05) {
+        if sigma_bins.is_nan() || sigma_bins <= 0.05 {
             self.smooth.extend(y.iter().map(|&v| f64::from(v)));
             return;
         }
@@ -742,7 +745,7 @@ impl ExtGauss {
     /// This echo convolved with a unit-area Gaussian of σ `sigma_bins` (exact for the
     /// skew-normal shape).
     pub fn smoothed(&self, sigma_bins: f64) -> ExtGauss {
-        if !(sigma_bins > 0.0) {
+        if sigma_bins.is_nan() || sigma_bins <= 0.0 {
             return *self;
         }
         let s2 = (self.sigma * self.sigma + sigma_bins * sigma_bins).sqrt();
@@ -883,7 +886,7 @@ fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
                 piv = r;
             }
         }
-        if !(a[piv][col].abs() > 1e-300) {
+        if a[piv][col].is_nan() || a[piv][col].abs() <= 1e-300 {
             return None;
         }
         a.swap(col, piv);

@@ -120,7 +120,7 @@ fn outgoing_sigma_ns(p: &Pulse) -> Option<f64> {
     let base = f64::from(raw[0].min(raw[raw.len() - 1]));
     let (k, &peak) = raw.iter().enumerate().max_by_key(|(_, v)| **v)?;
     let half = base + 0.5 * (f64::from(peak) - base);
-    if !(f64::from(peak) > base) {
+    if f64::from(peak) <= base {
         return None;
     }
     let v = |j: usize| f64::from(raw[j]);

@@ -147,26 +147,27 @@ impl MetricsRastersSink {
         let s = self.settings;
         let n = self.cells(s.chm_cell_m);
         let key = CellGrid::tile_of(x, y, n, s.chm_cell_m);
-        if !self.chm.contains_key(&key) {
-            self.chm
-                .insert(key, CellGrid::for_tile(key.0, key.1, n, s.chm_cell_m)?);
-        }
-        if let Some(g) = self.chm.get_mut(&key) {
-            g.add(x, y, m.rh[100]);
-        }
+        let g = match self.chm.entry(key) {
+            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::btree_map::Entry::Vacant(e) => {
+                e.insert(CellGrid::for_tile(key.0, key.1, n, s.chm_cell_m)?)
+            }
+        };
+        g.add(x, y, m.rh[100]);
         let n = self.cells(s.profile_cell_m);
         let key = CellGrid::tile_of(x, y, n, s.profile_cell_m);
-        if !self.profile.contains_key(&key) {
-            let mut grids = Vec::with_capacity(PROFILE_BANDS.len());
-            for _ in 0..PROFILE_BANDS.len() {
-                grids.push(CellGrid::for_tile(key.0, key.1, n, s.profile_cell_m)?);
+        let grids = match self.profile.entry(key) {
+            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::btree_map::Entry::Vacant(e) => {
+                let mut grids = Vec::with_capacity(PROFILE_BANDS.len());
+                for _ in 0..PROFILE_BANDS.len() {
+                    grids.push(CellGrid::for_tile(key.0, key.1, n, s.profile_cell_m)?);
+                }
+                e.insert(grids)
             }
-            self.profile.insert(key, grids);
-        }
-        if let Some(grids) = self.profile.get_mut(&key) {
-            for (g, v) in grids.iter_mut().zip(profile_values(m)) {
-                g.add(x, y, v);
-            }
+        };
+        for (g, v) in grids.iter_mut().zip(profile_values(m)) {
+            g.add(x, y, v);
         }
         self.placed += 1;
         Ok(())
