@@ -1154,7 +1154,8 @@ dir = "out"
                 None,
                 "unknown key `lass`, expected one of `dir`, `waveforms`, `waveform_format`, \
                  `returns`, `las`, `las_point_format`, `las_rotate_s`, `las_flush_s`, \
-                 `hyper_points`, `hyper_threshold_v` (from --set output.lass=true)"
+                 `hyper_points`, `hyper_threshold_v`, `metrics`, `rasters`, `chm_cell_m`, \
+                 `profile_cell_m`, `raster_tile_m` (from --set output.lass=true)"
                     .to_string()
             )],
             "{e}"
