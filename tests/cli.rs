@@ -177,7 +177,10 @@ fn replay_of_the_sample_writes_consistent_outputs() {
         .iter()
         .map(|s| s["name"].as_str().unwrap())
         .collect();
-    assert_eq!(names, ["denoise", "deconvolve", "decompose", "calibrate", "metrics"]);
+    assert_eq!(
+        names,
+        ["denoise", "deconvolve", "decompose", "calibrate", "metrics"]
+    );
     // ... and its discrete returns (returns.csv) sit where the physics puts the two surfaces:
     // two-way travel time 2R/c to the ground at 1000 m and to the plane 15 m above it.
     let c_m_per_ns = 0.299_792_458;

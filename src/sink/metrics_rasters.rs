@@ -127,13 +127,16 @@ impl MetricsRastersSink {
         }
     }
 
+    /// The EPSG code of the pulses' CRS, when it is one we can project with (a code found in a
+    /// WKT may be a unit's or a datum's: only a code that names a CRS is taken).
     fn crs_epsg(&mut self) -> Option<u32> {
         if self.epsg.is_none() {
-            self.epsg = match &self.crs {
+            let code = match &self.crs {
                 RasterCrs::Known(Some(c)) => epsg_of(c),
                 RasterCrs::Known(None) => None,
                 RasterCrs::Decided(cell) => cell.get().and_then(|c| epsg_of(c)),
             };
+            self.epsg = code.filter(|&c| crate::geo::crs::OutputCrs::from_epsg(c).is_ok());
         }
         self.epsg
     }
@@ -265,6 +268,13 @@ impl PulseSink for MetricsRastersSink {
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {
+        if self.epsg.is_none() && self.without_position > 0 {
+            tracing::warn!(
+                pulses = self.without_position,
+                "no metrics rasters: the pulses' CRS has no EPSG code of a CRS (set \
+                 [georeference] output_epsg, or the input's CRS); pulse_metrics.csv has them"
+            );
+        }
         self.write_all().map_err(sink_error)
     }
 
