@@ -103,34 +103,15 @@ fn ign_dtm_agrees_with_its_own_ground_points() {
 /// Writes a GeoTIFF DEM in UTM 36S (EPSG:32736) around the bundled sample's flight line: a
 /// plane `h = −0.5 + 0.01 (x − x0)` on 1 m pixels, with one nodata pixel far from the line.
 fn write_utm36s_dem(path: &std::path::Path) -> (f64, f64) {
-    use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
-    use tiff::tags::Tag;
     let (x0, y0) = (357_676.0, 7_235_440.0); // top-left corner
-    let (w, h) = (40u32, 40u32);
-    let mut data = Vec::new();
-    for row in 0..h {
-        for col in 0..w {
-            let x = x0 + col as f64 + 0.5;
-            let _ = row;
-            data.push((-0.5 + 0.01 * (x - x0)) as f32);
+    let mut first = true;
+    common::write_utm36s_dem(path, (x0, y0), (40, 40), |x, _| {
+        if std::mem::take(&mut first) {
+            -9999.0
+        } else {
+            (-0.5 + 0.01 * (x - x0)) as f32
         }
-    }
-    data[0] = -9999.0;
-    let f = std::fs::File::create(path).unwrap();
-    let mut enc = TiffEncoder::new(f).unwrap();
-    let mut img = enc.new_image::<Gray32Float>(w, h).unwrap();
-    let e = img.encoder();
-    e.write_tag(Tag::ModelPixelScaleTag, &[1.0f64, 1.0, 0.0][..])
-        .unwrap();
-    e.write_tag(Tag::ModelTiepointTag, &[0.0f64, 0.0, 0.0, x0, y0, 0.0][..])
-        .unwrap();
-    e.write_tag(
-        Tag::GeoKeyDirectoryTag,
-        &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32736][..],
-    )
-    .unwrap();
-    e.write_tag(Tag::GdalNodata, "-9999").unwrap();
-    img.write_data(&data).unwrap();
+    });
     (x0, y0)
 }
 

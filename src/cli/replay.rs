@@ -283,6 +283,7 @@ fn build_sinks(
                     is_hdf5(input_path),
                     m.profile_bins,
                     m.profile_bin_m,
+                    input.dem.clone(),
                 )
                 .map_err(Failure::job)?,
             ));

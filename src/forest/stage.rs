@@ -5,8 +5,10 @@
 //! record one), from the raw waveform (`source = "raw"`, counts converted to signal units with
 //! the pulse's gain and offset) or the processed signal (`source = "signal"`). Noise: the
 //! input's own figures when it states them ([`Pulse::stated_noise`], GEDI) and the raw waveform
-//! is measured; otherwise the median and the normalised median absolute deviation (× 1.4826) of
-//! the measured waveform, which holds while echoes fill less than half the segment. Smoothing:
+//! is measured; otherwise the upper-clipped median and normalised median absolute deviation
+//! (× 1.4826) of the measured waveform (the denoise stage's robust baseline: samples more than
+//! 3 σ above the median are dropped and both taken again), which holds when echoes fill half
+//! the segment or more (grass under a 64-sample window). Smoothing:
 //! `smoothing_sigma_ns`, or the σ of the pulse's outgoing pulse (its FWHM / 2.355).
 //!
 //! Never drops a pulse: a pulse without metrics carries a status saying why.
@@ -15,7 +17,8 @@ use crate::forest::pulse_metrics::{
     MetricsComputer, MetricsConfig, MetricsSource, MetricsStatus, WaveformInput, WaveformMetrics,
 };
 use crate::pipeline::stage::{Emitter, Stage, StageError};
-use crate::pulse::{Pulse, SegmentKind};
+use crate::pulse::{Pulse, SegmentKind, StatedNoise};
+use crate::signal::denoise::robust_level_and_sigma;
 
 /// `2 √(2 ln 2)`: FWHM of a Gaussian in units of σ.
 const FWHM_PER_SIGMA: f64 = 2.354_820_045;
@@ -26,6 +29,8 @@ pub struct Metrics {
     computer: MetricsComputer,
     work: Vec<f32>,
     sorted: Vec<f32>,
+    /// Work buffer of the noise estimate.
+    deviations: Vec<f32>,
 }
 
 impl Metrics {
@@ -36,6 +41,7 @@ impl Metrics {
             computer: MetricsComputer::with_capacity(2048),
             work: Vec::with_capacity(2048),
             sorted: Vec::with_capacity(2048),
+            deviations: Vec::with_capacity(2048),
         }
     }
 
@@ -67,7 +73,13 @@ impl Metrics {
                     return WaveformMetrics::default();
                 };
                 self.work.extend_from_slice(sig);
-                None
+                // The denoise stage removed the baseline and measured the noise (a mean
+                // absolute deviation: × √(π/2) for σ); without it, the robust estimate.
+                let nv = p.noise.noise_v;
+                (nv.is_finite() && nv > 0.0).then(|| StatedNoise {
+                    mean: 0.0,
+                    stddev: nv * std::f32::consts::FRAC_PI_2.sqrt(),
+                })
             }
         };
         let (mean, sd) = match stated {
@@ -76,6 +88,10 @@ impl Metrics {
         };
         let smoothing = if self.config.smoothing_sigma_ns > 0.0 {
             self.config.smoothing_sigma_ns
+        } else if self.config.source == MetricsSource::Signal {
+            // Already low-passed (and deconvolved): smoothing by the outgoing pulse would undo
+            // the deconvolution.
+            0.0
         } else {
             outgoing_sigma_ns(p).unwrap_or(MetricsConfig::FALLBACK_SMOOTHING_NS)
         };
@@ -92,21 +108,12 @@ impl Metrics {
         self.computer.compute(&self.config, &input)
     }
 
+    /// Noise level and σ of the waveform in `work`: the upper-clipped median and MAD (the
+    /// denoise stage's robust baseline), so a return filling half the window does not raise them.
     fn robust_noise(&mut self) -> (f64, f64) {
-        self.sorted.clear();
-        self.sorted.extend_from_slice(&self.work);
-        let n = self.sorted.len();
-        if n == 0 {
-            return (f64::NAN, f64::NAN);
-        }
-        let mid = n / 2;
-        let (_, med, _) = self.sorted.select_nth_unstable_by(mid, f32::total_cmp);
-        let med = *med;
-        for v in &mut self.sorted {
-            *v = (*v - med).abs();
-        }
-        let (_, mad, _) = self.sorted.select_nth_unstable_by(mid, f32::total_cmp);
-        (f64::from(med), 1.4826 * f64::from(*mad))
+        let (level, sigma) =
+            robust_level_and_sigma(&self.work, &mut self.sorted, &mut self.deviations);
+        (f64::from(level), f64::from(sigma))
     }
 }
 

@@ -790,8 +790,16 @@ fn robust_baseline<T: Copy + Into<f32>>(
     let s = &mut sorted[..n];
     s.copy_from_slice(values);
     sort(s);
+    upper_clipped(s, deviations).0
+}
+
+/// The upper-clipped median of the ascending `s` (non-empty) and how many of its values it
+/// keeps: values more than [`CLIP_SIGMAS`] robust deviations above the median are dropped and
+/// the median taken again, at most [`CLIP_ITERATIONS`] times. `deviations` (at least `s.len()`
+/// long) is a work buffer.
+fn upper_clipped<T: Copy + Into<f32>>(s: &[T], deviations: &mut [f32]) -> (f32, usize) {
     // The kept samples are always a prefix of the sorted values (upper clipping only).
-    let mut kept = n;
+    let mut kept = s.len();
     let mut median = median_sorted(&s[..kept]);
     for _ in 0..CLIP_ITERATIONS {
         let dev = &mut deviations[..kept];
@@ -808,7 +816,39 @@ fn robust_baseline<T: Copy + Into<f32>>(
         kept = new_kept;
         median = median_sorted(&s[..kept]);
     }
-    median
+    (median, kept)
+}
+
+/// Level and noise standard deviation of a waveform whose signal may fill much of it (no
+/// pre-trigger samples to trust): the upper-clipped median of the module documentation as the
+/// level, and 1.4826 × the median absolute deviation of the kept samples from it as σ. Both in
+/// the unit of `values`; `(NaN, NaN)` when `values` is empty. `sorted` and `deviations` are work
+/// buffers, grown to `values.len()` if shorter (no allocation once they are long enough).
+pub fn robust_level_and_sigma(
+    values: &[f32],
+    sorted: &mut Vec<f32>,
+    deviations: &mut Vec<f32>,
+) -> (f32, f32) {
+    let n = values.len();
+    if n == 0 {
+        return (f32::NAN, f32::NAN);
+    }
+    if sorted.len() < n {
+        sorted.resize(n, 0.0);
+    }
+    if deviations.len() < n {
+        deviations.resize(n, 0.0);
+    }
+    let s = &mut sorted[..n];
+    s.copy_from_slice(values);
+    s.sort_unstable_by(f32::total_cmp);
+    let (median, kept) = upper_clipped(s, deviations);
+    let dev = &mut deviations[..kept];
+    for (d, &c) in dev.iter_mut().zip(&s[..kept]) {
+        *d = (c - median).abs();
+    }
+    let (_, &mut mad, _) = dev.select_nth_unstable_by(kept / 2, f32::total_cmp);
+    (median, MAD_TO_SIGMA * mad)
 }
 
 /// The upper-clipped median of `counts` (non-empty, every count in `lo .. lo + hist.len()`)

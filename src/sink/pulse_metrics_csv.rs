@@ -14,7 +14,9 @@
 //! - `energy_total`, `energy_ground`, `energy_canopy` (signal units × bins), `cover`, `pgap`,
 //!   `pai` (m²/m²), `fhd`;
 //! - `pavd_0_5` … (m²/m³ per profile bin, named by its height range in m);
-//! - `ground_sigma_m`, `ground_skew`, `energy_lowest_m` (herbaceous metrics);
+//! - `ground_sigma_m`, `ground_skew`, `energy_lowest_m`, `ground_above_dem_m` (herbaceous
+//!   metrics; the last the waveform's ground `z` above the run's DEM, `[georeference] dem`, at
+//!   `x`, `y`: grass lifts the lowest mode; empty without a DEM or outside it);
 //! - `zenith_deg`, `noise_mean`, `noise_sd` (signal units), `smoothing_ns`, `top_ns`,
 //!   `ground_ns`, `bottom_ns` (ns on the pulse's time axis).
 //!
@@ -23,7 +25,10 @@
 use std::io::Write;
 use std::path::Path;
 
+use std::sync::Arc;
+
 use crate::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+use crate::geo::dem::Dem;
 use crate::pulse::Pulse;
 use crate::sink::atomic_file::AtomicFile;
 use crate::sink::{PulseSink, SinkError};
@@ -34,6 +39,8 @@ pub struct PulseMetricsCsvSink {
     shot_number: bool,
     profile_bins: usize,
     profile_bin_m: f64,
+    /// The run's DEM, for `ground_above_dem_m`.
+    dem: Option<Arc<Dem>>,
     rows: u64,
     by_status: [u64; 5],
     line: String,
@@ -59,8 +66,8 @@ pub fn header(shot_number: bool, profile_bins: usize, profile_bin_m: f64) -> Str
         let _ = write!(h, ",pavd_{}_{}", fmt_m(lo), fmt_m(lo + profile_bin_m));
     }
     h.push_str(
-        ",ground_sigma_m,ground_skew,energy_lowest_m,zenith_deg,noise_mean,noise_sd,\
-         smoothing_ns,top_ns,ground_ns,bottom_ns",
+        ",ground_sigma_m,ground_skew,energy_lowest_m,ground_above_dem_m,zenith_deg,noise_mean,\
+         noise_sd,smoothing_ns,top_ns,ground_ns,bottom_ns",
     );
     h
 }
@@ -75,12 +82,14 @@ fn fmt_m(v: f64) -> String {
 
 impl PulseMetricsCsvSink {
     /// Starts `pulse_metrics.csv` in `dir`; `shot_number` adds the GEDI column; the PAVD
-    /// columns follow the metrics stage's profile.
+    /// columns follow the metrics stage's profile; `dem` (the run's `[georeference] dem`, in
+    /// the pulses' CRS) fills `ground_above_dem_m`.
     pub fn create(
         dir: &Path,
         shot_number: bool,
         profile_bins: usize,
         profile_bin_m: f64,
+        dem: Option<Arc<Dem>>,
     ) -> Result<Self, SinkError> {
         let mut file = AtomicFile::create(dir.join("pulse_metrics.csv"))?;
         let path = file.path().display().to_string();
@@ -95,6 +104,7 @@ impl PulseMetricsCsvSink {
             shot_number,
             profile_bins,
             profile_bin_m,
+            dem,
             rows: 0,
             by_status: [0; 5],
             line: String::with_capacity(4096),
@@ -153,6 +163,14 @@ impl PulseMetricsCsvSink {
         f(l, m.ground_sigma_m, 4);
         f(l, m.ground_skew, 4);
         f(l, m.energy_lowest_m, 5);
+        let [x, y, z] = m.ground_xyz;
+        let above = match &self.dem {
+            Some(dem) if x.is_finite() && y.is_finite() => {
+                dem.height_at(x, y).map_or(f32::NAN, |g| (z - g) as f32)
+            }
+            _ => f32::NAN,
+        };
+        f(l, above, 4);
         f(l, m.zenith_deg, 3);
         f(l, m.noise_mean, 4);
         f(l, m.noise_sd, 4);
@@ -220,7 +238,7 @@ mod tests {
     #[test]
     fn header_and_rows_have_the_same_columns() {
         let dir = tempfile::tempdir().unwrap();
-        let mut sink = PulseMetricsCsvSink::create(dir.path(), true, 30, 5.0).unwrap();
+        let mut sink = PulseMetricsCsvSink::create(dir.path(), true, 30, 5.0, None).unwrap();
         let mut p = Pulse {
             pulse_id: 42,
             ..Default::default()

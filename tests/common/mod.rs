@@ -87,3 +87,37 @@ pub fn write_laz_copies(dir: &Path) -> serde_json::Value {
     }
     serde_json::from_slice(&o.stdout).expect("write_laz.py prints one JSON line")
 }
+
+/// Writes a Float32 GeoTIFF DEM in UTM 36S (EPSG:32736, the simulated scenes' zone) of
+/// `width` × `height` 1 m pixels, its top-left corner at (`x0`, `y0`), each pixel the height
+/// `z(x, y)` at its centre (m); `-9999` is the stated nodata.
+pub fn write_utm36s_dem(
+    path: &Path,
+    (x0, y0): (f64, f64),
+    (width, height): (u32, u32),
+    mut z: impl FnMut(f64, f64) -> f32,
+) {
+    use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
+    use tiff::tags::Tag;
+    let mut data = Vec::with_capacity((width * height) as usize);
+    for row in 0..height {
+        for col in 0..width {
+            data.push(z(x0 + f64::from(col) + 0.5, y0 - f64::from(row) - 0.5));
+        }
+    }
+    let f = std::fs::File::create(path).unwrap();
+    let mut enc = TiffEncoder::new(f).unwrap();
+    let mut img = enc.new_image::<Gray32Float>(width, height).unwrap();
+    let e = img.encoder();
+    e.write_tag(Tag::ModelPixelScaleTag, &[1.0f64, 1.0, 0.0][..])
+        .unwrap();
+    e.write_tag(Tag::ModelTiepointTag, &[0.0f64, 0.0, 0.0, x0, y0, 0.0][..])
+        .unwrap();
+    e.write_tag(
+        Tag::GeoKeyDirectoryTag,
+        &[1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, 32736][..],
+    )
+    .unwrap();
+    e.write_tag(Tag::GdalNodata, "-9999").unwrap();
+    img.write_data(&data).unwrap();
+}
