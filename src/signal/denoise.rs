@@ -790,16 +790,8 @@ fn robust_baseline<T: Copy + Into<f32>>(
     let s = &mut sorted[..n];
     s.copy_from_slice(values);
     sort(s);
-    upper_clipped(s, deviations).0
-}
-
-/// The upper-clipped median of the ascending `s` (non-empty) and how many of its values it
-/// keeps: values more than [`CLIP_SIGMAS`] robust deviations above the median are dropped and
-/// the median taken again, at most [`CLIP_ITERATIONS`] times. `deviations` (at least `s.len()`
-/// long) is a work buffer.
-fn upper_clipped<T: Copy + Into<f32>>(s: &[T], deviations: &mut [f32]) -> (f32, usize) {
     // The kept samples are always a prefix of the sorted values (upper clipping only).
-    let mut kept = s.len();
+    let mut kept = n;
     let mut median = median_sorted(&s[..kept]);
     for _ in 0..CLIP_ITERATIONS {
         let dev = &mut deviations[..kept];
@@ -816,39 +808,74 @@ fn upper_clipped<T: Copy + Into<f32>>(s: &[T], deviations: &mut [f32]) -> (f32, 
         kept = new_kept;
         median = median_sorted(&s[..kept]);
     }
-    (median, kept)
+    median
 }
 
 /// Level and noise standard deviation of a waveform whose signal may fill much of it (no
-/// pre-trigger samples to trust): the upper-clipped median of the module documentation as the
-/// level, and 1.4826 × the median absolute deviation of the kept samples from it as σ. Both in
-/// the unit of `values`; `(NaN, NaN)` when `values` is empty. `sorted` and `deviations` are work
-/// buffers, grown to `values.len()` if shorter (no allocation once they are long enough).
+/// pre-trigger samples to trust): the upper-clipped median of the module documentation (samples
+/// more than [`CLIP_SIGMAS`] robust deviations above the median dropped and the median taken
+/// again, at most [`CLIP_ITERATIONS`] times) as the level, and 1.4826 × the median absolute
+/// deviation of the kept samples from it as σ. The same estimate as [`robust_baseline`] by
+/// selection instead of a sort (linear time per round). Both in the unit of `values`; `(NaN,
+/// NaN)` when `values` is empty. `work` and `deviations` are work buffers, grown to
+/// `values.len()` if shorter (no allocation once they are long enough).
 pub fn robust_level_and_sigma(
     values: &[f32],
-    sorted: &mut Vec<f32>,
+    work: &mut Vec<f32>,
     deviations: &mut Vec<f32>,
 ) -> (f32, f32) {
     let n = values.len();
     if n == 0 {
         return (f32::NAN, f32::NAN);
     }
-    if sorted.len() < n {
-        sorted.resize(n, 0.0);
-    }
+    work.clear();
+    work.extend_from_slice(values);
     if deviations.len() < n {
         deviations.resize(n, 0.0);
     }
-    let s = &mut sorted[..n];
-    s.copy_from_slice(values);
-    s.sort_unstable_by(f32::total_cmp);
-    let (median, kept) = upper_clipped(s, deviations);
-    let dev = &mut deviations[..kept];
-    for (d, &c) in dev.iter_mut().zip(&s[..kept]) {
-        *d = (c - median).abs();
+    // The median of `v` (reorders it).
+    fn median(v: &mut [f32]) -> f32 {
+        let (len, mid) = (v.len(), v.len() / 2);
+        let (below, &mut m, _) = v.select_nth_unstable_by(mid, f32::total_cmp);
+        if len % 2 == 1 {
+            m
+        } else {
+            let lower = below.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            0.5 * (lower + m)
+        }
     }
-    let (_, &mut mad, _) = dev.select_nth_unstable_by(kept / 2, f32::total_cmp);
-    (median, MAD_TO_SIGMA * mad)
+    let mut kept = n;
+    let mut level = median(&mut work[..kept]);
+    let mut mad;
+    let mut rounds = 0;
+    loop {
+        let dev = &mut deviations[..kept];
+        for (d, &v) in dev.iter_mut().zip(&work[..kept]) {
+            *d = (v - level).abs();
+        }
+        let (_, &mut m, _) = dev.select_nth_unstable_by(kept / 2, f32::total_cmp);
+        mad = m;
+        if rounds == CLIP_ITERATIONS {
+            break;
+        }
+        rounds += 1;
+        let limit = level + CLIP_SIGMAS * MAD_TO_SIGMA * mad;
+        // Keep the samples at or below the limit at the front, in place.
+        let mut new_kept = 0;
+        for i in 0..kept {
+            if work[i] <= limit {
+                work.swap(i, new_kept);
+                new_kept += 1;
+            }
+        }
+        let new_kept = new_kept.max(1);
+        if new_kept == kept {
+            break;
+        }
+        kept = new_kept;
+        level = median(&mut work[..kept]);
+    }
+    (level, MAD_TO_SIGMA * mad)
 }
 
 /// The upper-clipped median of `counts` (non-empty, every count in `lo .. lo + hist.len()`)
@@ -1184,6 +1211,44 @@ mod tests {
                 proptest::prop_assert_eq!(a.to_bits(), b.to_bits());
             }
         }
+    }
+
+    /// The selection-based level and σ equal the sort-based upper-clipped median on the same
+    /// samples, and stay at the noise's when an echo fills half the window (grass under a short
+    /// window), where the plain median and MAD of the window do not.
+    #[test]
+    fn robust_level_and_sigma_ignores_an_echo_filling_half_the_window() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let (mut work, mut dev) = (Vec::new(), Vec::new());
+        let mut plain_fails = 0;
+        for trial in 0..50 {
+            let n = 32 + trial * 7;
+            let counts: Vec<u16> = (0..n)
+                .map(|i| {
+                    let noise = rng.random_range(-3i32..=3);
+                    let u = (i as f64 - n as f64 / 2.0) / (n as f64 / 12.0);
+                    (12 + noise + (70.0 * (-0.5 * u * u).exp()) as i32) as u16
+                })
+                .collect();
+            let volts: Vec<f32> = counts.iter().map(|&c| f32::from(c)).collect();
+            let (level, sigma) = robust_level_and_sigma(&volts, &mut work, &mut dev);
+            assert_eq!(level, baseline_by_sorting(&counts, 0), "trial {trial}");
+            // Uniform integers −3…3 around 12: σ 2 (the MAD's 1.48 × 2 = 3 on so few values).
+            assert!(
+                (10.0..=14.0).contains(&level),
+                "trial {trial}: level {level}"
+            );
+            assert!((0.7..=4.5).contains(&sigma), "trial {trial}: σ {sigma}");
+            // The window's plain median and MAD (no clipping) would put σ above the bar.
+            let mut v = volts.clone();
+            v.sort_by(f32::total_cmp);
+            let med = v[n / 2];
+            let mut d: Vec<f32> = v.iter().map(|x| (x - med).abs()).collect();
+            d.sort_by(f32::total_cmp);
+            plain_fails += usize::from(1.4826 * d[n / 2] > 4.5);
+        }
+        assert!(plain_fails >= 40, "only {plain_fails} of 50 windows hard");
+        assert!(robust_level_and_sigma(&[], &mut work, &mut dev).0.is_nan());
     }
 
     /// The sort-based robust baseline of `counts` (the reference).
