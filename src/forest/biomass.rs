@@ -174,12 +174,7 @@ fn find(header: &[&str], name: &str) -> Option<usize> {
     header.iter().position(|h| h.trim() == name)
 }
 
-fn number(
-    file: &Path,
-    line: usize,
-    field: &str,
-    text: Option<&str>,
-) -> Result<f64, BiomassError> {
+fn number(file: &Path, line: usize, field: &str, text: Option<&str>) -> Result<f64, BiomassError> {
     let t = text.map(str::trim).unwrap_or("");
     let err = |what: String| BiomassError::Field {
         file: file.display().to_string(),
@@ -204,7 +199,10 @@ fn number(
 pub fn read_plots(path: &Path) -> Result<Vec<Plot>, BiomassError> {
     let text = std::fs::read_to_string(path).map_err(|e| io_err(path, e))?;
     let file = path.display().to_string();
-    let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
     let Some((_, head)) = lines.next() else {
         return Err(BiomassError::Empty {
             file,
@@ -343,10 +341,7 @@ pub fn read_pulse_metrics(path: &Path, columns: &[String]) -> Result<PulseTable,
         })
     };
     let (cx, cy, cs) = (need("x")?, need("y")?, need("status")?);
-    let cols: Vec<usize> = columns
-        .iter()
-        .map(|c| need(c))
-        .collect::<Result<_, _>>()?;
+    let cols: Vec<usize> = columns.iter().map(|c| need(c)).collect::<Result<_, _>>()?;
     let mut t = PulseTable {
         columns: columns.to_vec(),
         values: vec![Vec::new(); columns.len()],
@@ -848,8 +843,7 @@ impl BiomassModel {
             });
         }
         for p in &m.predictors {
-            if statistic(&p.term.stat, &mut [1.0]).is_none() || !(1..=2).contains(&p.term.power)
-            {
+            if statistic(&p.term.stat, &mut [1.0]).is_none() || !(1..=2).contains(&p.term.power) {
                 return Err(BiomassError::Model {
                     file: path.display().to_string(),
                     what: format!("field `predictors`: unknown term {:?}", p.name),
@@ -1100,8 +1094,21 @@ mod tests {
             .expect("a linear term in c");
         assert!((b_h.coefficient - 8.0).abs() < 1e-6, "{b_h:?}");
         assert!((b_c.coefficient - 30.0).abs() < 1e-6, "{b_c:?}");
-        // The mean of h over a plot's pulses is hk (the wiggle cancels): so is p50.
-        assert!((m.intercept - 12.0).abs() < 1e-5, "{}", m.intercept);
+        // The intercept is 12 for the mean or p50 of h (the wiggle cancels), 12 − 8 · 0.5 for
+        // its p75 or p90 (h + 0.5): equally exact fits.
+        let off = if ["mean", "p50"].contains(&b_h.term.stat.as_str()) {
+            0.0
+        } else {
+            4.0
+        };
+        assert!(
+            (m.intercept - (12.0 - off)).abs() < 1e-5,
+            "{} {b_h:?}",
+            m.intercept
+        );
+        for p in &m.plots {
+            assert!((p.predicted.unwrap() - p.observed).abs() < 1e-6, "{p:?}");
+        }
     }
 
     #[test]
@@ -1126,7 +1133,11 @@ mod tests {
         assert!(h.r2 > 0.9 && h.rmse > 1.0 && h.rmse < 10.0, "{h:?}");
         // The constant column c is never chosen: skipped as collinear with the intercept.
         assert!(m.predictors.iter().all(|p| p.term.column != "c"));
-        assert!(m.skipped_terms.iter().any(|s| s == "mean_c"), "{:?}", m.skipped_terms);
+        assert!(
+            m.skipped_terms.iter().any(|s| s == "mean_c"),
+            "{:?}",
+            m.skipped_terms
+        );
     }
 
     #[test]
@@ -1192,7 +1203,10 @@ mod tests {
         assert!(plots[0].shape.contains(13.0, 13.9) && !plots[0].shape.contains(14.0, 14.0));
         std::fs::write(&p, "plot_id,x_min,y_min,x_max,y_max\na,0,0,1,1\n").unwrap();
         let e = read_plots(&p).unwrap_err().to_string();
-        assert!(e.contains("plots.csv") && e.contains("`biomass_mg_ha`"), "{e}");
+        assert!(
+            e.contains("plots.csv") && e.contains("`biomass_mg_ha`"),
+            "{e}"
+        );
         std::fs::write(
             &p,
             "plot_id,x_min,y_min,x_max,y_max,biomass_mg_ha\na,0,0,1,1,12\nb,0,0,1,x,3\n",
@@ -1222,7 +1236,10 @@ mod tests {
         let e = read_pulse_metrics(&p, &["cover".into()])
             .unwrap_err()
             .to_string();
-        assert!(e.contains("pulse_metrics.csv") && e.contains("`cover`"), "{e}");
+        assert!(
+            e.contains("pulse_metrics.csv") && e.contains("`cover`"),
+            "{e}"
+        );
     }
 
     #[test]
