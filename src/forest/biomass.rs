@@ -549,7 +549,7 @@ fn least_squares(x: &[Vec<f64>], y: &[f64], rows: &[usize], cols: &[usize]) -> O
     let svd = a.clone().svd(true, true);
     let smax = svd.singular_values.max();
     let smin = svd.singular_values.min();
-    if !(smax > 0.0) || smin < RANK_TOL * smax {
+    if smax.is_nan() || smax <= 0.0 || smin < RANK_TOL * smax {
         return None;
     }
     let sol = svd.solve(&b, RANK_TOL * smax).ok()?;
@@ -1005,9 +1005,12 @@ pub fn chave2014_agb_kg(wood_density: f64, dbh_cm: f64, height_m: f64) -> f64 {
     0.0673 * (wood_density * dbh_cm * dbh_cm * height_m).powf(0.976)
 }
 
+/// The pulses (indices) of each raster cell (column, row of the anchored grid).
+pub type CellPulses = HashMap<(i64, i64), Vec<usize>>;
+
 /// Groups pulses by raster cell: the cell (col, row) of each pulse on a grid of `cell` metres
 /// anchored at multiples of `cell`, with the grid's bounds.
-pub fn cells_of(table: &PulseTable, cell: f64) -> (HashMap<(i64, i64), Vec<usize>>, [i64; 4]) {
+pub fn cells_of(table: &PulseTable, cell: f64) -> (CellPulses, [i64; 4]) {
     let mut m: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
     let mut b = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
     for i in 0..table.x.len() {
