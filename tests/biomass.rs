@@ -176,6 +176,22 @@ fn biomass_models_on_simulated_plots() {
         Err(_) => println!("SKIP gdalinfo checks: gdalinfo not found (.ci/run installs gdal-bin)"),
     }
 
+    // An existing output is never written over.
+    let before = std::fs::read(&model).unwrap();
+    let o = fwlidar(&[
+        "biomass",
+        "fit",
+        "--plots",
+        s(&plots),
+        "--metrics",
+        s(&metrics),
+        "--out",
+        s(&model),
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(text(&o.stderr).contains("exists"), "{}", text(&o.stderr));
+    assert_eq!(std::fs::read(&model).unwrap(), before);
+
     // Bad input: a clear error naming file and field, non-zero exit, nothing written.
     let bad_out = d.join("bad.json");
     let missing = d.join("no_such_plots.csv");

@@ -8,8 +8,8 @@
 //! - `biomass predict --model MODEL.json --metrics pulse_metrics.csv --out biomass.tif`: the
 //!   model per raster cell, a Cloud-Optimized GeoTIFF.
 //!
-//! Every output is written complete or not at all (under `NAME.partial`, then renamed), and
-//! only after all input has been read and checked.
+//! Every output is written complete or not at all (under `NAME.partial`, then renamed), only
+//! after all input has been read and checked, and never over an existing file.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -131,6 +131,17 @@ pub fn run(args: BiomassArgs) -> Result<(), Failure> {
     }
 }
 
+/// Refuses an output that exists (as `simulate`, `import` and `man` do).
+fn refuse_existing(path: &Path) -> Result<(), Failure> {
+    if path.exists() {
+        return Err(Failure::job(format!(
+            "{} exists; fwlidar biomass never writes over a file (remove it or choose another name)",
+            path.display()
+        )));
+    }
+    Ok(())
+}
+
 /// Writes `bytes` to `path` through `path.partial` and a rename.
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Failure> {
     let mut tmp = path.as_os_str().to_owned();
@@ -145,6 +156,7 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Failure> {
 }
 
 fn truth(a: TruthArgs) -> Result<(), Failure> {
+    refuse_existing(&a.plots)?;
     if !(a.plot_size.is_finite() && a.plot_size > 0.0) {
         return Err(Failure::usage(format!(
             "--plot-size must be a positive number of metres, got {}",
@@ -234,6 +246,7 @@ fn truth(a: TruthArgs) -> Result<(), Failure> {
 }
 
 fn fit(a: FitArgs) -> Result<(), Failure> {
+    refuse_existing(&a.out)?;
     if let Some(f) = a.holdout
         && !(f.is_finite() && (0.0..1.0).contains(&f))
     {
@@ -332,6 +345,7 @@ fn predict(a: PredictArgs) -> Result<(), Failure> {
             a.cell
         )));
     }
+    refuse_existing(&a.out)?;
     let model = BiomassModel::read(&a.model).map_err(Failure::job)?;
     let code = match a.epsg.or_else(|| epsg_from_summary(&a.metrics)) {
         Some(c) => c,
