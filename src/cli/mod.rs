@@ -4,6 +4,7 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 
+pub mod biomass;
 pub mod completions;
 pub mod import;
 pub mod inspect;
@@ -71,6 +72,9 @@ pub enum Command {
     /// Combine voxel stores (voxels.zarr) of several flights or replays into one, independent
     /// of order.
     Merge(merge::MergeArgs),
+    /// Biomass models from the per-pulse metrics: true plot biomass of a simulated scene,
+    /// stepwise regression on plots, prediction to a raster.
+    Biomass(biomass::BiomassArgs),
     /// Print the shell completion script (bash, zsh, fish, elvish, powershell).
     Completions(completions::CompletionsArgs),
     /// Write the manual pages (fwlidar.1 and one per command) into a folder.
@@ -142,6 +146,7 @@ pub fn main() -> i32 {
         Command::Process(a) => process::run(a),
         Command::Tradeoff(a) => tradeoff::run(a),
         Command::Merge(a) => merge::run(a),
+        Command::Biomass(a) => biomass::run(a),
         Command::Completions(a) => completions::run(a),
         Command::Man(a) => man::run(a),
     };

@@ -1,7 +1,8 @@
 //! Forest structure from the waveforms (issue 20): per-pulse metrics (relative heights, cover,
-//! PAI, PAVD, FHD, crown thickness, herbaceous metrics), the stage that computes them, and the
-//! check against NASA GEDI's Level 2A/2B products. Definitions: `docs/forest.md`.
+//! PAI, PAVD, FHD, crown thickness, herbaceous metrics), the stage that computes them, the
+//! check against NASA GEDI's Level 2A/2B products, and biomass models from the metrics. Definitions: `docs/forest.md`.
 
+pub mod biomass;
 pub mod gedi_check;
 pub mod pulse_metrics;
 pub mod stage;
