@@ -10,6 +10,7 @@ pub mod inspect;
 pub mod inspect_nav;
 pub mod man;
 pub mod merge;
+pub mod metrics;
 pub mod process;
 pub mod repair;
 pub mod replay;
@@ -71,6 +72,9 @@ pub enum Command {
     /// Combine voxel stores (voxels.zarr) of several flights or replays into one, independent
     /// of order.
     Merge(merge::MergeArgs),
+    /// Recompute the forest structure rasters (canopy height, RH, cover, PAI, FHD) from a voxel
+    /// store after the flight: each cell's column of voxels is its waveform.
+    Metrics(metrics::MetricsArgs),
     /// Print the shell completion script (bash, zsh, fish, elvish, powershell).
     Completions(completions::CompletionsArgs),
     /// Write the manual pages (fwlidar.1 and one per command) into a folder.
@@ -142,6 +146,7 @@ pub fn main() -> i32 {
         Command::Process(a) => process::run(a),
         Command::Tradeoff(a) => tradeoff::run(a),
         Command::Merge(a) => merge::run(a),
+        Command::Metrics(a) => metrics::run(a),
         Command::Completions(a) => completions::run(a),
         Command::Man(a) => man::run(a),
     };
