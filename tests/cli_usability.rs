@@ -363,6 +363,7 @@ fn bash_completions_are_valid_and_name_every_command() {
         "process",
         "tradeoff",
         "merge",
+        "metrics",
         "completions",
         "man",
     ] {

@@ -10,8 +10,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
 use crate::forest::store_metrics::{
-    DEFAULT_SMOOTHING_NS, StoreMetricsError, StoreMetricsOptions, compute_store_metrics,
-    product_paths,
+    DEFAULT_NOISE_FLOOR, DEFAULT_SMOOTHING_NS, StoreMetricsError, StoreMetricsOptions,
+    compute_store_metrics, product_paths,
 };
 
 /// Arguments of `fwlidar metrics`.
@@ -31,6 +31,10 @@ pub struct MetricsArgs {
     /// σ of the Gaussian smoothing of each cell's profile, ns of two-way time (0.15 m per ns).
     #[arg(long, default_value_t = DEFAULT_SMOOTHING_NS)]
     pub smoothing_ns: f64,
+    /// Least noise σ of a cell's profile, fraction of its peak (signal start at 3 σ, modes
+    /// from 6 σ).
+    #[arg(long, default_value_t = DEFAULT_NOISE_FLOOR)]
+    pub noise_floor: f64,
     /// Leave cells crossed by fewer pulses as nodata.
     #[arg(long, default_value_t = 1)]
     pub min_pulses: u64,
@@ -67,8 +71,10 @@ pub fn run(args: MetricsArgs) -> Result<(), Failure> {
         profile_cell_m: args.profile_cell,
         smoothing_ns: args.smoothing_ns,
         min_pulses: args.min_pulses,
+        noise_floor: args.noise_floor,
     };
-    // Fail on the store before touching the output folder.
+    // Fail on the options and the store before touching the output folder.
+    crate::forest::store_metrics::check_options(&opts).map_err(Failure::usage)?;
     if !args.store.join("zarr.json").is_file() {
         return Err(Failure::job(StoreMetricsError::Unusable {
             path: args.store.display().to_string(),

@@ -57,6 +57,10 @@ use crate::voxel::zarr::{StoreError, ZarrStore};
 /// Default smoothing of a cell's profile, ns of two-way time (1 ns ≈ 0.15 m of height).
 pub const DEFAULT_SMOOTHING_NS: f64 = 1.0;
 
+/// Default least noise σ of a profile, fraction of its peak level (with GEDI's thresholds of 3
+/// and 6 σ: the signal starts at 3 % of the peak, modes count from 6 %).
+pub const DEFAULT_NOISE_FLOOR: f64 = 0.01;
+
 /// Cells per side of a raster tile.
 pub const RASTER_TILE_CELLS: usize = 512;
 
@@ -119,6 +123,9 @@ pub struct StoreMetricsOptions {
     pub smoothing_ns: f64,
     /// Cells with fewer pulses are left nodata. Default 1.
     pub min_pulses: u64,
+    /// Least noise σ of a profile, as a fraction of its peak (the deposited signal is denoised,
+    /// so most levels are exactly 0 and the MAD is 0). Default [`DEFAULT_NOISE_FLOOR`].
+    pub noise_floor: f64,
 }
 
 impl Default for StoreMetricsOptions {
@@ -128,6 +135,7 @@ impl Default for StoreMetricsOptions {
             profile_cell_m: None,
             smoothing_ns: DEFAULT_SMOOTHING_NS,
             min_pulses: 1,
+            noise_floor: DEFAULT_NOISE_FLOOR,
         }
     }
 }
@@ -147,6 +155,8 @@ pub struct StoreMetricsReport {
     pub profile_cell_m: f64,
     /// Smoothing σ, ns.
     pub smoothing_ns: f64,
+    /// Least noise σ, fraction of each profile's peak.
+    pub noise_floor: f64,
     /// Store tiles read.
     pub tiles_read: u64,
     /// Voxel columns with at least one bin.
@@ -247,6 +257,7 @@ pub fn compute_store_metrics(
         path: spath.clone(),
         what,
     };
+    check_options(opts)?;
     if !store_path.join("zarr.json").is_file() {
         return Err(unusable(if store_path.exists() {
             "no zarr.json: not a voxel store (give the voxels.zarr folder a replay wrote)".into()
@@ -270,20 +281,6 @@ pub fn compute_store_metrics(
     let column_m = grid.voxel_size_m[0];
     let cell = opts.cell_m.unwrap_or(column_m);
     let profile_cell = opts.profile_cell_m.unwrap_or(cell);
-    for (option, v) in [("--cell", cell), ("--profile-cell", profile_cell)] {
-        if !(v.is_finite() && v > 0.0 && v <= 10_000.0) {
-            return Err(StoreMetricsError::Option {
-                option,
-                what: format!("must be a cell side in (0, 10000] m, got {v}"),
-            });
-        }
-    }
-    if !(opts.smoothing_ns.is_finite() && (0.0..=100.0).contains(&opts.smoothing_ns)) {
-        return Err(StoreMetricsError::Option {
-            option: "--smoothing-ns",
-            what: format!("must be in 0..=100 ns, got {}", opts.smoothing_ns),
-        });
-    }
     let (config, settings_from) = match metrics_config_of(&info.configuration) {
         Some(c) => (c, "store configuration"),
         None => (MetricsConfig::default(), "defaults"),
@@ -295,6 +292,7 @@ pub fn compute_store_metrics(
         cell_m: cell,
         profile_cell_m: profile_cell,
         smoothing_ns: opts.smoothing_ns,
+        noise_floor: opts.noise_floor,
         ..Default::default()
     };
 
@@ -309,6 +307,7 @@ pub fn compute_store_metrics(
         config,
         smoothing_ns: opts.smoothing_ns,
         min_pulses: opts.min_pulses.max(1),
+        noise_floor: opts.noise_floor,
         grid: grid.clone(),
         samples: Vec::new(),
         sorted: Vec::new(),
@@ -552,6 +551,7 @@ struct Measurer {
     config: MetricsConfig,
     smoothing_ns: f64,
     min_pulses: u64,
+    noise_floor: f64,
     grid: Grid,
     samples: Vec<f32>,
     sorted: Vec<f32>,
@@ -612,6 +612,8 @@ impl Measurer {
             self.samples.push(v as f32);
         }
         let (mean, sd) = robust_noise(&self.samples, &mut self.sorted);
+        let peak = self.samples.iter().fold(0.0f32, |a, &b| a.max(b));
+        let sd = sd.max(self.noise_floor * (f64::from(peak) - mean).max(0.0));
         let dz = self.grid.voxel_size_m[2];
         let input = WaveformInput {
             samples: &self.samples,
@@ -654,6 +656,36 @@ fn robust_noise(v: &[f32], sorted: &mut Vec<f32>) -> (f64, f64) {
     (f64::from(med), 1.4826 * f64::from(*mad))
 }
 
+/// Checks the options that were given (before the store is read).
+pub fn check_options(opts: &StoreMetricsOptions) -> Result<(), StoreMetricsError> {
+    for (option, v) in [
+        ("--cell", opts.cell_m),
+        ("--profile-cell", opts.profile_cell_m),
+    ] {
+        if let Some(v) = v
+            && !(v.is_finite() && v > 0.0 && v <= 10_000.0)
+        {
+            return Err(StoreMetricsError::Option {
+                option,
+                what: format!("must be a cell side in (0, 10000] m, got {v}"),
+            });
+        }
+    }
+    if !(opts.smoothing_ns.is_finite() && (0.0..=100.0).contains(&opts.smoothing_ns)) {
+        return Err(StoreMetricsError::Option {
+            option: "--smoothing-ns",
+            what: format!("must be in 0..=100 ns, got {}", opts.smoothing_ns),
+        });
+    }
+    if !(opts.noise_floor.is_finite() && (0.0..1.0).contains(&opts.noise_floor)) {
+        return Err(StoreMetricsError::Option {
+            option: "--noise-floor",
+            what: format!("must be in [0, 1), got {}", opts.noise_floor),
+        });
+    }
+    Ok(())
+}
+
 /// The files `fwlidar metrics` writes in its output folder (what `--force` replaces).
 pub fn product_paths(out_dir: &Path) -> Vec<PathBuf> {
     vec![
@@ -663,4 +695,66 @@ pub fn product_paths(out_dir: &Path) -> Vec<PathBuf> {
         out_dir.join("metrics"),
         out_dir.join("metrics.json"),
     ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_metrics_settings_of_a_recorded_configuration_are_found() {
+        let text = "[pipeline]\nworkers = 0\n\n[[pipeline.stages]]\ntype = \"denoise\"\n\n\
+                    [[pipeline.stages]]\ntype = \"metrics\"\nrho_ratio = 2.0\nfhd_bin_m = 0.5\n";
+        let c = metrics_config_of(text).unwrap();
+        assert_eq!(c.rho_ratio, 2.0);
+        assert_eq!(c.fhd_bin_m, 0.5);
+        assert_eq!(c.profile_bin_m, MetricsConfig::default().profile_bin_m);
+        assert!(metrics_config_of("[pipeline]\nstages = []\n").is_none());
+        assert!(metrics_config_of("not toml [").is_none());
+        // A key this version does not know: the defaults, not a half-read setting.
+        assert!(
+            metrics_config_of("[[pipeline.stages]]\ntype = \"metrics\"\nnew_key = 1\n").is_none()
+        );
+    }
+
+    #[test]
+    fn robust_noise_ignores_the_echoes() {
+        let mut v = vec![1.0f32; 100];
+        v[10] = 50.0;
+        v[11] = 80.0;
+        v[20] = 1.5;
+        v[21] = 0.5;
+        let (mean, sd) = robust_noise(&v, &mut Vec::new());
+        assert_eq!(mean, 1.0);
+        assert_eq!(sd, 0.0);
+        let alt: Vec<f32> = (0..100)
+            .map(|i| if i % 2 == 0 { 1.0 } else { 3.0 })
+            .collect();
+        let (mean, sd) = robust_noise(&alt, &mut Vec::new());
+        assert_eq!(mean, 3.0);
+        assert!((sd - 0.0).abs() < 1e-9 || (sd - 2.0 * 1.4826).abs() < 1e-6);
+    }
+
+    #[test]
+    fn bad_options_are_named() {
+        let mut o = StoreMetricsOptions {
+            cell_m: Some(0.0),
+            ..Default::default()
+        };
+        assert!(
+            check_options(&o)
+                .unwrap_err()
+                .to_string()
+                .starts_with("--cell")
+        );
+        o.cell_m = None;
+        o.noise_floor = 1.5;
+        assert!(
+            check_options(&o)
+                .unwrap_err()
+                .to_string()
+                .starts_with("--noise-floor")
+        );
+        assert!(check_options(&StoreMetricsOptions::default()).is_ok());
+    }
 }
