@@ -173,6 +173,12 @@ pub struct StoreMetricsReport {
     pub raster_tiles: [usize; 2],
     /// Most cell profiles held at once.
     pub peak_pending_cells: usize,
+    /// Seconds reading and decompressing store tiles.
+    pub read_s: f64,
+    /// Seconds accumulating and measuring the profiles.
+    pub measure_s: f64,
+    /// Seconds writing the rasters.
+    pub write_s: f64,
 }
 
 /// The accumulated profile of one cell: per height chunk the energy sums (quanta) and the bins
@@ -321,8 +327,15 @@ pub fn compute_store_metrics(
     let side = grid.tile_columns as i64;
     let levels_per_chunk = grid.chunk_levels() as usize;
     let mut data = TileData::for_grid(&grid);
+    let mut clock = std::time::Instant::now();
+    let mut lap = |into: &mut f64| {
+        let now = std::time::Instant::now();
+        *into += (now - clock).as_secs_f64();
+        clock = now;
+    };
     for (n, &t) in tiles.iter().enumerate() {
         store.read_tile(t, &mut data).map_err(store_err)?;
+        lap(&mut report.read_s);
         unread.remove(&t);
         report.tiles_read += 1;
         let present = data.present();
@@ -415,6 +428,7 @@ pub fn compute_store_metrics(
                 }
             }
         }
+        lap(&mut report.measure_s);
         progress(n as u64 + 1, total);
     }
     // Whatever is left (cells at the edge of what was read).
@@ -429,6 +443,7 @@ pub fn compute_store_metrics(
         }
     }
     report.peak_pending_cells = products.iter().map(|p| p.peak).sum();
+    lap(&mut report.measure_s);
     if report.cells_ok[0] == 0 && report.cells_ok[1] == 0 {
         return Err(unusable(format!(
             "no cell has metrics ({} tiles, {} columns with bins read); nothing written",
@@ -449,6 +464,7 @@ pub fn compute_store_metrics(
         let (a, b) = write_rasters(out_dir, epsg, &out.chm, &out.profile, &bands)?;
         [a, b]
     };
+    lap(&mut report.write_s);
     Ok(report)
 }
 
