@@ -364,6 +364,7 @@ fn bash_completions_are_valid_and_name_every_command() {
         "tradeoff",
         "merge",
         "biomass",
+        "metrics",
         "completions",
         "man",
     ] {
@@ -419,6 +420,7 @@ fn man_pages_render_and_are_never_written_over() {
         "fwlidar-man.1",
         "fwlidar-run.1",
         "fwlidar-biomass.1",
+        "fwlidar-metrics.1",
     ] {
         assert!(names.iter().any(|n| n == want), "{want} missing: {names:?}");
     }

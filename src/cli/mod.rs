@@ -11,6 +11,7 @@ pub mod inspect;
 pub mod inspect_nav;
 pub mod man;
 pub mod merge;
+pub mod metrics;
 pub mod process;
 pub mod repair;
 pub mod replay;
@@ -75,6 +76,9 @@ pub enum Command {
     /// Biomass models from the per-pulse metrics: true plot biomass of a simulated scene,
     /// stepwise regression on plots, prediction to a raster.
     Biomass(biomass::BiomassArgs),
+    /// Recompute the forest structure rasters (canopy height, RH, cover, PAI, FHD) from a voxel
+    /// store after the flight: each cell's column of voxels is its waveform.
+    Metrics(metrics::MetricsArgs),
     /// Print the shell completion script (bash, zsh, fish, elvish, powershell).
     Completions(completions::CompletionsArgs),
     /// Write the manual pages (fwlidar.1 and one per command) into a folder.
@@ -147,6 +151,7 @@ pub fn main() -> i32 {
         Command::Tradeoff(a) => tradeoff::run(a),
         Command::Merge(a) => merge::run(a),
         Command::Biomass(a) => biomass::run(a),
+        Command::Metrics(a) => metrics::run(a),
         Command::Completions(a) => completions::run(a),
         Command::Man(a) => man::run(a),
     };

@@ -359,7 +359,8 @@ impl Sampler {
             ];
             tiles.tile_m = tm;
             let area = (tm[0] * tm[1]).max(1e-9);
-            for c in cov["cells"].as_array().into_iter().flatten() {
+            let canopy = cov["canopy_max_m"].as_array();
+            for (i, c) in cov["cells"].as_array().into_iter().flatten().enumerate() {
                 let f = |i: usize| c[i].as_i64().unwrap_or(0);
                 let open = f(3) == 1;
                 tiles.open += open as u64;
@@ -369,6 +370,7 @@ impl Sampler {
                     state: if open { "open" } else { "closed" }.into(),
                     pulses: f(2) as u64,
                     density_per_m2: f(2) as f64 / area,
+                    canopy_height_m: canopy.and_then(|a| a.get(i)).and_then(|h| h.as_f64()),
                 });
             }
         }

@@ -47,7 +47,7 @@ pub const MAX_METRIC_SAMPLES: usize = 65_536;
 
 /// Half the speed of light in vacuum, m/ns: range per ns of two-way travel (air's refractive
 /// index is below the precision this is used at).
-const HALF_C_M_PER_NS: f64 = 0.149_896_229;
+pub const HALF_C_M_PER_NS: f64 = 0.149_896_229;
 
 /// Sub-bin steps per bin of the energy integration grid (GEDI's `rx_subbin_resolution`).
 const SUBBINS: usize = 4;

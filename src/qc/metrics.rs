@@ -682,6 +682,7 @@ pub(crate) mod tests {
                         state: "open".into(),
                         pulses: 400,
                         density_per_m2: 0.0064,
+                        canopy_height_m: None,
                     },
                     TileCell {
                         tx: 11,
@@ -689,6 +690,7 @@ pub(crate) mod tests {
                         state: "closed".into(),
                         pulses: 900,
                         density_per_m2: 0.0144,
+                        canopy_height_m: Some(21.5),
                     },
                 ],
             },

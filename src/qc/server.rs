@@ -765,6 +765,7 @@ mod demo {
                 state: if closed { "closed" } else { "open" }.into(),
                 pulses,
                 density_per_m2: pulses as f64 / 62_500.0,
+                canopy_height_m: Some(8.0 + (i * 37 % 23) as f64),
             });
         }
         let nav_age = |period: u64| (k % period) as f64 * 0.9 + 0.05;

@@ -197,6 +197,9 @@ pub struct TileCell {
     pub pulses: u64,
     /// Pulses per square metre.
     pub density_per_m2: f64,
+    /// Highest canopy height (RH100 of the forest metrics) of its pulses, m; none without a
+    /// `metrics` stage in the chain.
+    pub canopy_height_m: Option<f64>,
 }
 
 /// The recording.

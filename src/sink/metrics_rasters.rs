@@ -183,59 +183,117 @@ impl MetricsRastersSink {
         if self.chm.is_empty() {
             return Ok(());
         }
-        let opt = CogOptions {
-            deflate_level: 1,
-            ..CogOptions::default()
-        };
-        let io = |e: std::io::Error, p: &Path| RasterError::Io {
-            file: p.display().to_string(),
-            source: e,
-        };
-        for sub in ["chm", "metrics"] {
-            let d = self.dir.join(sub);
-            std::fs::create_dir_all(&d).map_err(|e| io(e, &d))?;
-        }
-        let mut chm_tiles = Vec::new();
-        for (&(ix, iy), g) in &self.chm {
-            let mut r = g.to_raster(epsg, NODATA, &[CellStat::Max]);
-            r.band_names[0] = "canopy_height".into();
-            r.band_units[0] = "m".into();
-            let path = self.dir.join("chm").join(format!("chm_{ix}_{iy}.tif"));
-            write_cog(&path, &r, &opt)?;
-            chm_tiles.push(VrtTile::of(&path, &r));
-        }
-        write_vrt(&self.dir.join("chm.vrt"), &chm_tiles)?;
-        let mut tiles = Vec::new();
-        for (&(ix, iy), grids) in &self.profile {
-            let g0 = &grids[0];
-            let (ox, oy) = g0.origin();
-            let mut r = Raster::new(
-                g0.width(),
-                g0.height(),
-                ox,
-                oy,
-                g0.cell_size(),
-                epsg,
-                NODATA,
-            );
-            for (g, (name, unit)) in grids.iter().zip(PROFILE_BANDS) {
-                r.push_band(name, unit, g.band(CellStat::Mean, NODATA));
-            }
-            r.push_band("pulse_density", "1/m2", g0.band(CellStat::Density, NODATA));
-            let path = self
-                .dir
-                .join("metrics")
-                .join(format!("metrics_{ix}_{iy}.tif"));
-            write_cog(&path, &r, &opt)?;
-            tiles.push(VrtTile::of(&path, &r));
-        }
-        write_vrt(&self.dir.join("metrics.vrt"), &tiles)?;
+        let mut bands: Vec<ProfileBand> = PROFILE_BANDS
+            .iter()
+            .enumerate()
+            .map(|(i, &(name, unit))| ProfileBand {
+                name,
+                unit,
+                grid: i,
+                stat: CellStat::Mean,
+            })
+            .collect();
+        bands.push(ProfileBand {
+            name: "pulse_density",
+            unit: "1/m2",
+            grid: 0,
+            stat: CellStat::Density,
+        });
+        let (chm, metrics) = write_rasters(&self.dir, epsg, &self.chm, &self.profile, &bands)?;
         self.written = vec![
-            format!("rasters/chm.vrt ({} tiles)", chm_tiles.len()),
-            format!("rasters/metrics.vrt ({} tiles)", tiles.len()),
+            format!("rasters/chm.vrt ({chm} tiles)"),
+            format!("rasters/metrics.vrt ({metrics} tiles)"),
         ];
         Ok(())
     }
+}
+
+/// One band of the profile-resolution raster: its name and unit, which of a tile's
+/// [`CellGrid`]s it is read from, and by which statistic.
+#[derive(Clone, Copy, Debug)]
+pub struct ProfileBand {
+    /// Band name (GDAL's description), e.g. `rh98`.
+    pub name: &'static str,
+    /// Unit, e.g. `m`.
+    pub unit: &'static str,
+    /// Index of the grid in each tile's `Vec<CellGrid>`.
+    pub grid: usize,
+    /// The statistic of that grid written.
+    pub stat: CellStat,
+}
+
+/// Writes the two raster products into `dir` (created if missing): `chm.vrt` over
+/// `chm/chm_<ix>_<iy>.tif` (band `canopy_height`, the per-cell maximum of each tile's grid) and
+/// `metrics.vrt` over `metrics/metrics_<ix>_<iy>.tif` (one band per [`ProfileBand`]), every
+/// tile a COG in EPSG `epsg` with nodata [`NODATA`]. Tiles are keyed by
+/// [`CellGrid::tile_of`]. Returns the tiles written (CHM, metrics). Shared by the run's sink
+/// and `fwlidar metrics` (`crate::forest::store_metrics`).
+pub fn write_rasters(
+    dir: &Path,
+    epsg: u32,
+    chm: &BTreeMap<(i64, i64), CellGrid>,
+    profile: &BTreeMap<(i64, i64), Vec<CellGrid>>,
+    bands: &[ProfileBand],
+) -> Result<(usize, usize), RasterError> {
+    let opt = CogOptions {
+        deflate_level: 1,
+        ..CogOptions::default()
+    };
+    let io = |e: std::io::Error, p: &Path| RasterError::Io {
+        file: p.display().to_string(),
+        source: e,
+    };
+    for sub in ["chm", "metrics"] {
+        let d = dir.join(sub);
+        std::fs::create_dir_all(&d).map_err(|e| io(e, &d))?;
+    }
+    let mut chm_tiles = Vec::new();
+    for (&(ix, iy), g) in chm {
+        let mut r = g.to_raster(epsg, NODATA, &[CellStat::Max]);
+        r.band_names[0] = "canopy_height".into();
+        r.band_units[0] = "m".into();
+        let path = dir.join("chm").join(format!("chm_{ix}_{iy}.tif"));
+        write_cog(&path, &r, &opt)?;
+        chm_tiles.push(VrtTile::of(&path, &r));
+    }
+    if !chm_tiles.is_empty() {
+        write_vrt(&dir.join("chm.vrt"), &chm_tiles)?;
+    }
+    let mut tiles = Vec::new();
+    for (&(ix, iy), grids) in profile {
+        let g0 = &grids[0];
+        let (ox, oy) = g0.origin();
+        let mut r = Raster::new(
+            g0.width(),
+            g0.height(),
+            ox,
+            oy,
+            g0.cell_size(),
+            epsg,
+            NODATA,
+        );
+        for b in bands {
+            let g = grids.get(b.grid).ok_or_else(|| {
+                RasterError::invalid(
+                    &dir.join("metrics.vrt"),
+                    format!(
+                        "band {} reads grid {}, the tile has {}",
+                        b.name,
+                        b.grid,
+                        grids.len()
+                    ),
+                )
+            })?;
+            r.push_band(b.name, b.unit, g.band(b.stat, NODATA));
+        }
+        let path = dir.join("metrics").join(format!("metrics_{ix}_{iy}.tif"));
+        write_cog(&path, &r, &opt)?;
+        tiles.push(VrtTile::of(&path, &r));
+    }
+    if !tiles.is_empty() {
+        write_vrt(&dir.join("metrics.vrt"), &tiles)?;
+    }
+    Ok((chm_tiles.len(), tiles.len()))
 }
 
 fn sink_error(e: RasterError) -> SinkError {

@@ -55,8 +55,9 @@ pub struct VoxelTilesSink {
     finished: bool,
     /// Take the grid of a store already there (a survey continued by the daemon).
     continue_store: bool,
-    /// Pulses per tile by footprint centre (the QC coverage map), when tracked.
-    coverage: Option<std::collections::HashMap<[i64; 2], u64>>,
+    /// Per tile by footprint centre (the QC coverage map), when tracked: the pulses, and the
+    /// highest canopy height (RH100, m) of those with forest metrics (NaN: none).
+    coverage: Option<std::collections::HashMap<[i64; 2], (u64, f32)>>,
     /// Write closed tiles on a writer thread, this many waiting at most (0: on this thread).
     writer_queue: usize,
 }
@@ -241,7 +242,17 @@ impl PulseSink for VoxelTilesSink {
                 ((c[0] - g.origin_m[0]) / tm[0]).floor() as i64,
                 ((c[1] - g.origin_m[1]) / tm[1]).floor() as i64,
             ];
-            *cov.entry(t).or_insert(0) += 1;
+            let e = cov.entry(t).or_insert((0, f32::NAN));
+            e.0 += 1;
+            if let Some(m) = pulse
+                .metrics
+                .as_ref()
+                .filter(|m| m.status == crate::forest::pulse_metrics::MetricsStatus::Ok)
+                && m.rh[100].is_finite()
+            {
+                // f32::max keeps the number when the other side is NaN.
+                e.1 = e.1.max(m.rh[100]);
+            }
         }
         deposit_pulse(pulse, tiles, params, &mut self.stats).map_err(store_err)
     }
@@ -301,15 +312,22 @@ impl PulseSink for VoxelTilesSink {
             if let Some(cov) = &self.coverage {
                 let open: std::collections::HashSet<[i64; 2]> =
                     t.open_tiles().into_iter().collect();
-                let mut cells: Vec<[i64; 4]> = cov
+                let mut cells: Vec<([i64; 4], f32)> = cov
                     .iter()
-                    .map(|(k, n)| [k[0], k[1], *n as i64, open.contains(k) as i64])
+                    .map(|(k, (n, h))| ([k[0], k[1], *n as i64, open.contains(k) as i64], *h))
                     .collect();
-                cells.sort_unstable();
+                cells.sort_unstable_by_key(|c| c.0);
+                // Canopy height per cell, in the cells' order (null: no pulse with metrics).
+                let canopy: Vec<Option<f32>> = cells
+                    .iter()
+                    .map(|c| c.1.is_finite().then_some(c.1))
+                    .collect();
+                let cells: Vec<[i64; 4]> = cells.into_iter().map(|c| c.0).collect();
                 v["coverage"] = serde_json::json!({
                     "tile_m": g.tile_m(),
                     "origin_m": g.origin_m,
                     "cells": cells,
+                    "canopy_max_m": canopy,
                 });
             }
         }
@@ -468,6 +486,56 @@ mod tests {
         assert_eq!(d.pulses[at(19)], 2);
         let next_column = (2 * 8 + 4) * 20 + 5;
         assert!(d.max[next_column].is_nan() && d.samples[next_column] == 0);
+    }
+
+    #[test]
+    fn the_coverage_map_keeps_the_highest_canopy_per_tile() {
+        use crate::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = VoxelTilesSink::create(
+            dir.path(),
+            cfg(),
+            CrsSource::Known(Some("EPSG:32736".into())),
+            info(),
+            None,
+            None,
+        )
+        .unwrap()
+        .with_coverage();
+        // Tile (0, 0): canopy 12 m and 17 m and a pulse without metrics; tile (1, 0): one
+        // pulse without metrics.
+        for (i, (x, h)) in [
+            (3.2, Some(12.0f32)),
+            (3.4, Some(17.0)),
+            (3.6, None),
+            (12.0, None),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let mut p = pulse(i as u64, i as f64 * 0.001, x, 2.7);
+            p.metrics = h.map(|h| {
+                let mut m = WaveformMetrics {
+                    status: MetricsStatus::Ok,
+                    ..Default::default()
+                };
+                m.rh[100] = h;
+                m
+            });
+            s.write(&p).unwrap();
+        }
+        let r = s.report();
+        let cov = &r["coverage"];
+        let head = |i: usize| -> Vec<i64> {
+            (0..3)
+                .map(|j| cov["cells"][i][j].as_i64().unwrap())
+                .collect()
+        };
+        assert_eq!(head(0), [0, 0, 3], "{cov}");
+        assert_eq!(cov["canopy_max_m"][0], 17.0, "{cov}");
+        assert_eq!(head(1), [1, 0, 1], "{cov}");
+        assert!(cov["canopy_max_m"][1].is_null(), "{cov}");
+        s.finish().unwrap();
     }
 
     #[test]

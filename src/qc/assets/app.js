@@ -432,6 +432,11 @@
     let dmax = 0;
     for (const c of cells) dmax = Math.max(dmax, c.density_per_m2 || 0);
     setText("density-max", dmax >= 10 ? dmax.toFixed(0) : dmax > 0 ? dmax.toPrecision(2) : "0");
+    let hmax = null;
+    for (const c of cells) {
+      if (typeof c.canopy_height_m === "number") hmax = hmax === null ? c.canopy_height_m : Math.max(hmax, c.canopy_height_m);
+    }
+    setText("canopy-max", hmax === null ? "–" : hmax.toFixed(1));
     if (cells.length === 0) {
       ctx.fillStyle = AXIS;
       ctx.textAlign = "center";
@@ -462,6 +467,12 @@
         ctx.strokeStyle = "#a5d6ff";
         ctx.lineWidth = 1.5;
         ctx.strokeRect(x + 1.5, y + 1.5, cw - 3, ch - 3);
+      }
+      // The tile's highest canopy (m), where the chain computes forest metrics.
+      if (typeof c.canopy_height_m === "number" && cw >= 24 && ch >= 14) {
+        ctx.fillStyle = "#e6edf3";
+        ctx.textAlign = "center";
+        ctx.fillText(c.canopy_height_m.toFixed(0), x + cw / 2, y + ch / 2 + 4);
       }
     }
     // Tile index range.
