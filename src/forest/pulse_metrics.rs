@@ -72,7 +72,8 @@ pub struct MetricsConfig {
     #[serde(default)]
     pub source: MetricsSource,
     /// σ of the Gaussian smoothing, ns. 0 (default): the σ of the pulse's own outgoing pulse
-    /// (its FWHM / 2.355) when it recorded one, else [`MetricsConfig::FALLBACK_SMOOTHING_NS`].
+    /// (its FWHM / 2.355) when it recorded one, else [`MetricsConfig::FALLBACK_SMOOTHING_NS`];
+    /// with `source = "signal"`, no smoothing.
     #[serde(default)]
     pub smoothing_sigma_ns: f64,
     /// Signal start threshold, noise σ above the noise mean. Default 3 (GEDI group 1).
