@@ -134,13 +134,15 @@ fn metrics_from_the_two_layer_store_match_the_scene_and_the_per_pulse_rasters() 
     // 0.45 m (ground_sigma_m), so RH98 sits up to ~2σ above the plane: measured 15.85 m.
     let rh98 = med(s, "rh98");
     assert!((15.0..16.5).contains(&rh98), "store RH98 {rh98}");
-    // The store's canopy height (RH100 of the column) against the mean per-pulse RH100 of the
-    // replay's own rasters: measured 16.45 m against 16.67 m (the per-pulse signal start is on
-    // the raw waveform, smoothed by the outgoing pulse's σ, so it sits a little higher).
+    // The store's canopy height (RH100 of the column, the 3 % start of the deconvolved profile)
+    // sits above the 15 m plane by the deconvolved echo's leading edge: measured 16.28 m. The
+    // per-pulse RH100 of the replay's own rasters starts on the raw waveform smoothed by the
+    // outgoing pulse's σ, 3 noise σ above the noise, so it is higher still (17.22 m).
     let chm = med(s_chm, "canopy_height");
     let per_pulse = med(p, "rh100");
+    assert!((15.0..17.0).contains(&chm), "store CHM {chm}");
     assert!(
-        (chm - per_pulse).abs() < 0.5,
+        per_pulse > chm - 0.5 && per_pulse < chm + 1.5,
         "store CHM {chm} against per-pulse RH100 {per_pulse}"
     );
     assert!((chm - med(s, "rh100")).abs() < 1e-4);
