@@ -49,7 +49,9 @@ use super::pulse_metrics::{
     WaveformInput, WaveformMetrics,
 };
 use crate::raster::{CellGrid, CellStat, RasterError};
-use crate::sink::metrics_rasters::{ProfileBand, epsg_of, write_rasters};
+use crate::sink::metrics_rasters::{
+    PROFILE_BANDS, ProfileBand, epsg_of, profile_values, write_rasters,
+};
 use crate::voxel::grid::{Grid, Placer};
 use crate::voxel::tile::TileData;
 use crate::voxel::zarr::{StoreError, ZarrStore};
@@ -64,21 +66,12 @@ pub const DEFAULT_NOISE_FLOOR: f64 = 0.01;
 /// Cells per side of a raster tile.
 pub const RASTER_TILE_CELLS: usize = 512;
 
-/// The bands of `metrics.vrt`, in order (the pulse density is the last).
-pub const STORE_PROFILE_BANDS: [(&str, &str); 12] = [
-    ("rh25", "m"),
-    ("rh50", "m"),
-    ("rh75", "m"),
-    ("rh98", "m"),
-    ("rh100", "m"),
-    ("cover", "1"),
-    ("pai", "m2/m2"),
-    ("fhd", "1"),
-    ("ground_sigma_m", "m"),
-    ("energy_lowest_m", "1"),
-    ("ground_z", "m"),
-    ("pulse_density", "1/m2"),
-];
+/// The bands of `metrics.vrt` after the replay's ([`PROFILE_BANDS`]), in order (the pulse
+/// density is the last).
+pub const STORE_EXTRA_BANDS: [(&str, &str); 2] = [("ground_z", "m"), ("pulse_density", "1/m2")];
+
+/// Number of bands (and cell grids) of `metrics.vrt`.
+const STORE_BAND_COUNT: usize = PROFILE_BANDS.len() + STORE_EXTRA_BANDS.len();
 
 /// Errors of `fwlidar metrics`; each names the store or the file.
 #[derive(Debug, thiserror::Error)]
@@ -450,8 +443,9 @@ pub fn compute_store_metrics(
             report.tiles_read, report.columns
         )));
     }
-    let bands: Vec<ProfileBand> = STORE_PROFILE_BANDS
+    let bands: Vec<ProfileBand> = PROFILE_BANDS
         .iter()
+        .chain(&STORE_EXTRA_BANDS)
         .enumerate()
         .map(|(i, &(name, unit))| ProfileBand {
             name,
@@ -531,28 +525,17 @@ impl Outputs {
             let grids = match self.profile.entry(k) {
                 std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
                 std::collections::btree_map::Entry::Vacant(e) => {
-                    let mut v = Vec::with_capacity(STORE_PROFILE_BANDS.len());
-                    for _ in 0..STORE_PROFILE_BANDS.len() {
+                    let mut v = Vec::with_capacity(STORE_BAND_COUNT);
+                    for _ in 0..STORE_BAND_COUNT {
                         v.push(CellGrid::for_tile(k.0, k.1, n, self.profile_cell)?);
                     }
                     e.insert(v)
                 }
             };
             let density = (pulses as f64 / (cell * cell)) as f32;
-            let values = [
-                m.rh[25],
-                m.rh[50],
-                m.rh[75],
-                m.rh[98],
-                m.rh[100],
-                m.cover,
-                m.pai,
-                m.fhd,
-                m.ground_sigma_m,
-                m.energy_lowest_m,
-                m.ground_xyz[2] as f32,
-                density,
-            ];
+            let values = profile_values(m)
+                .into_iter()
+                .chain([m.ground_xyz[2] as f32, density]);
             for (g, v) in grids.iter_mut().zip(values) {
                 g.add(x, y, v);
             }

@@ -35,7 +35,7 @@ use crate::sink::{PulseSink, SinkError};
 pub const NODATA: f32 = -9999.0;
 
 /// The bands of the profile-resolution raster: name, unit and how to read it from a pulse.
-const PROFILE_BANDS: [(&str, &str); 10] = [
+pub const PROFILE_BANDS: [(&str, &str); 10] = [
     ("rh25", "m"),
     ("rh50", "m"),
     ("rh75", "m"),
@@ -48,7 +48,8 @@ const PROFILE_BANDS: [(&str, &str); 10] = [
     ("energy_lowest_m", "1"),
 ];
 
-fn profile_values(m: &WaveformMetrics) -> [f32; 10] {
+/// The values of [`PROFILE_BANDS`] of one pulse's (or one cell's) metrics, in band order.
+pub fn profile_values(m: &WaveformMetrics) -> [f32; 10] {
     [
         m.rh[25],
         m.rh[50],
