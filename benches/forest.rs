@@ -62,6 +62,7 @@ fn gedi(c: &mut Criterion) {
         computer.compute(
             &config,
             &WaveformInput {
+                pulse_sigma_ns: 0.0,
                 samples: w,
                 start_ns: 0.0,
                 sample_ns: 1.0,

@@ -119,6 +119,17 @@ pub struct PulseGeometry {
     pub direction: [f64; 3],
 }
 
+impl PulseGeometry {
+    /// Position `[x, y, z]` at `t_ns` ns on the pulse's time axis: `anchor + t_ns × direction`.
+    pub fn at(&self, t_ns: f64) -> [f64; 3] {
+        [
+            self.anchor[0] + t_ns * self.direction[0],
+            self.anchor[1] + t_ns * self.direction[1],
+            self.anchor[2] + t_ns * self.direction[2],
+        ]
+    }
+}
+
 /// How to turn any bin of a pulse's [`Pulse::signal`] (volts) into calibrated backscatter,
 /// attached to the pulse by the `calibrate` stage (`src/signal/calibrate.rs`; the formula, its
 /// assumptions and units in `docs/calibration.md`). The signal itself stays in volts.

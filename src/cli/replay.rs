@@ -166,7 +166,7 @@ fn prepare(
 ) -> Result<Prepared, Failure> {
     let opened = open_input(input, config)?;
     prepare_out_dir(out_dir)?;
-    let spec = build_spec(config, workers, &opened.source.facts());
+    let spec = build_spec(config, workers, &opened.source.facts(), opened.dem.as_ref());
     let sinks = build_sinks(config, &spec, &opened, input, out_dir)?;
     Ok(Prepared {
         spec,
@@ -203,16 +203,19 @@ fn open_input(path: &Path, config: &RunConfig) -> Result<Input, Failure> {
 }
 
 /// The pipeline: the configured stages with the keys left to the input (the calibrate stage's
-/// system constant and time origin) filled from what it states.
+/// system constant and time origin) filled from what it states, and the run's DEM handed to
+/// a metrics stage that takes its ground from it.
 fn build_spec(
     config: &RunConfig,
     workers: Option<usize>,
     facts: &crate::source::SourceFacts,
+    dem: Option<&std::sync::Arc<crate::geo::dem::Dem>>,
 ) -> PipelineSpec {
     let p = &config.pipeline;
     let mut stages = p.stages.clone();
     for stage in &mut stages {
         stage.resolve_from_input(facts);
+        stage.attach_dem(dem);
         if let crate::pipeline::registry::StageConfig::Calibrate(c) = stage {
             tracing::info!(
                 system_constant = c.system_constant_value.unwrap_or(1.0),

@@ -251,6 +251,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     let mut stages = p.stages.clone();
     for stage in &mut stages {
         stage.resolve_from_input(&facts);
+        stage.attach_dem(dem.as_ref());
     }
     // Live, automatic workers leave a core to the receivers and the recorder: with one worker
     // per core a chain that falls behind takes every core and the kernel drops UDP datagrams

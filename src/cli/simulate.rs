@@ -195,9 +195,9 @@ fn tick(bar: &Option<ProgressBar>, pulses: u64) {
 }
 
 /// The files written beside a described scene's capture `out`: `<stem>.truth.fwcap`,
-/// `<stem>.scatterers.csv`, `<stem>.truth.json`, and the folder `<stem>.truth/` (the truth
-/// voxelised: `voxels.zarr`).
-pub fn truth_paths(out: &Path) -> [PathBuf; 4] {
+/// `<stem>.scatterers.csv`, `<stem>.truth.json`, the folder `<stem>.truth/` (the truth
+/// voxelised: `voxels.zarr`) and `<stem>.trees.csv` (every tree in map coordinates).
+pub fn truth_paths(out: &Path) -> [PathBuf; 5] {
     let stem = out.with_extension("");
     let with = |suffix: &str| {
         let mut s = stem.as_os_str().to_owned();
@@ -209,7 +209,54 @@ pub fn truth_paths(out: &Path) -> [PathBuf; 4] {
         with(".scatterers.csv"),
         with(".truth.json"),
         with(".truth"),
+        with(".trees.csv"),
     ]
+}
+
+/// Header of `<stem>.trees.csv`.
+pub const TREES_CSV_HEADER: &str = "tree_id,x,y,epsg,height_m,crown_shape,crown_base_m,\
+crown_radius_m,stem_radius_m,leaf_area_density,scene_x,scene_y";
+
+/// Writes every tree of the scene (its `[[tree]]`s, then each `[[forest]]` stand's) to `path`:
+/// the stem's position in the UTM zone of the scene's origin (the CRS a replay of the capture
+/// decides, EPSG code in `epsg`), height and crown above the terrain (m), the crown's shape,
+/// the stem radius (m), the leaf area density (m²/m³) and the position in the scene's frame
+/// (m east and north of the origin). Returns the number of trees.
+fn write_tree_truth(scene: &WorldScene, path: &Path) -> Result<usize, Failure> {
+    use crate::geo::crs::{OutputCrs, utm_epsg};
+    use crate::sim::world::flight::Frames;
+    use crate::sim::world::scene::CrownShape;
+    use std::fmt::Write as _;
+    let o = &scene.origin;
+    let code = utm_epsg(o.lat_deg, o.lon_deg);
+    let crs = OutputCrs::from_epsg(code).map_err(Failure::job)?;
+    let frames = Frames::new(o.lat_deg, o.lon_deg, o.height_m);
+    let mut trees = scene.tree.clone();
+    for (i, f) in scene.forest.iter().enumerate() {
+        trees.extend(f.trees(scene.seed, i));
+    }
+    let mut text = String::from(TREES_CSV_HEADER);
+    text.push('\n');
+    for (i, t) in trees.iter().enumerate() {
+        let [sx, sy] = t.position_m;
+        let g = frames.geodetic([sx, sy, 0.0]);
+        let [x, y, _] = crs
+            .project(g.lat_deg, g.lon_deg, g.height_m)
+            .map_err(Failure::job)?;
+        let shape = match t.crown.shape {
+            CrownShape::Ellipsoid => "ellipsoid",
+            CrownShape::Cone => "cone",
+            CrownShape::Cylinder => "cylinder",
+        };
+        let _ = writeln!(
+            text,
+            "{i},{x:.3},{y:.3},{code},{},{shape},{},{},{},{},{sx},{sy}",
+            t.height_m, t.crown.base_m, t.crown.radius_m, t.stem_radius_m, t.leaf_area_density
+        );
+    }
+    std::fs::write(path, text)
+        .map_err(|e| Failure::job(format!("cannot write {}: {e}", path.display())))?;
+    Ok(trees.len())
 }
 
 fn run_world(args: SimulateArgs) -> Result<(), Failure> {
@@ -231,8 +278,15 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
             return run_live(&args, items);
         }
     };
-    let [truth_path, csv_path, json_path, truth_dir] = truth_paths(&out);
-    for p in [&out, &truth_path, &csv_path, &json_path, &truth_dir] {
+    let [truth_path, csv_path, json_path, truth_dir, trees_path] = truth_paths(&out);
+    for p in [
+        &out,
+        &truth_path,
+        &csv_path,
+        &json_path,
+        &truth_dir,
+        &trees_path,
+    ] {
         if p.exists() {
             return Err(Failure::usage(format!(
                 "{} exists: simulated captures and their truth are never overwritten",
@@ -340,7 +394,9 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
         "truth_capture": truth_path.display().to_string(),
         "truth_steps_per_count": truth_steps,
         "scatterers": csv_path.display().to_string(),
+        "trees": trees_path.display().to_string(),
     });
+    write_tree_truth(&scene, &trees_path)?;
     std::fs::write(
         &json_path,
         serde_json::to_string_pretty(&summary).unwrap_or_default(),

@@ -338,6 +338,17 @@ impl Validate for RunConfig {
         self.navigation.validate(&field(path, "navigation"), v);
         self.voxels.validate(&field(path, "voxels"), v);
         self.daemon.validate(&field(path, "daemon"), v);
+        for (i, stage) in self.pipeline.stages.iter().enumerate() {
+            if let crate::pipeline::registry::StageConfig::Metrics(m) = stage
+                && m.ground == crate::forest::pulse_metrics::GroundFrom::Dem
+                && self.georeference.dem.is_none()
+            {
+                v.report(
+                    format!("{}.stages[{i}].ground", field(path, "pipeline")),
+                    "\"dem\" needs a DEM: set [georeference] dem",
+                );
+            }
+        }
         if self.voxels.enabled
             && self.voxels.height == crate::voxel::grid::HeightMode::AboveDem
             && self.georeference.dem.is_none()

@@ -118,6 +118,7 @@ pub fn compare(
             let ours = computer.compute(
                 config,
                 &WaveformInput {
+                    pulse_sigma_ns: 0.0,
                     samples,
                     start_ns: 0.0,
                     sample_ns: 1.0,

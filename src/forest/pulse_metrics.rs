@@ -37,7 +37,11 @@
 // The 4 × 4 normal equations and the solver index rows and columns by number, as written.
 #![allow(clippy::needless_range_loop)]
 
+use std::sync::Arc;
+
 use serde::{Deserialize, Serialize};
+
+use crate::geo::dem::Dem;
 
 /// Most height bins of the PAVD profile.
 pub const MAX_PROFILE_BINS: usize = 32;
@@ -62,6 +66,56 @@ pub enum MetricsSource {
     /// The processed signal (after denoise and, where configured, deconvolution): the seed's
     /// view of what deconvolution does to the metrics.
     Signal,
+}
+
+/// Where the metrics' ground (height 0 of every RH, profile and cover) is taken from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum GroundFrom {
+    /// The waveform's lowest mode (GEDI L2A): needs a ground echo, which dense crowns hide.
+    #[default]
+    LowestMode,
+    /// The beam's crossing of the run's DEM (`[georeference] dem`); the lowest mode for a
+    /// pulse without geometry or outside the DEM.
+    Dem,
+}
+
+impl GroundFrom {
+    /// Short name for the CSV's `ground_from` column.
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            GroundFrom::LowestMode => "lowest_mode",
+            GroundFrom::Dem => "dem",
+        }
+    }
+}
+
+/// Where the canopy top (`canopy_height`, the canopy height model) is put on the waveform.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum TopFrom {
+    /// The signal start (GEDI's RH100): the front threshold's crossing, ahead of the first
+    /// surface by the rise of the system pulse to that threshold (about 2.5 σ of the
+    /// outgoing pulse and smoothing together, 2 m for a 16 ns pulse).
+    #[default]
+    SignalStart,
+    /// The signal start moved later by that rise: `σs √(2 ln(A / T))` with σs the system
+    /// pulse's σ (the waveform's pulse, `pulse_sigma_ns`, and the smoothing together), A the
+    /// first mode's and T the threshold's height above the noise mean — where a surface
+    /// whose echo peaks at A starts (exact for a point target, within 0.8 σs for a dense
+    /// crown's erf-shaped edge); never past the first mode.
+    LeadingEdge,
+}
+
+/// The run's DEM handed to the metrics stage (filled from `[georeference] dem` when the run
+/// starts, [`crate::pipeline::registry::StageConfig::attach_dem`]; never read from a file).
+#[derive(Clone, Debug)]
+pub struct RunDem(pub Arc<Dem>);
+
+impl PartialEq for RunDem {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
 }
 
 /// Settings of the waveform metrics (`type = "metrics"`, `docs/forest.md`).
@@ -113,6 +167,21 @@ pub struct MetricsConfig {
     /// (`energy_lowest_m`), m. Default 1.
     #[serde(default = "default_herb_height")]
     pub herbaceous_height_m: f64,
+    /// Ground: `lowest_mode` (default) or `dem` (the beam's crossing of `[georeference] dem`).
+    #[serde(default)]
+    pub ground: GroundFrom,
+    /// Canopy top: `signal_start` (default, GEDI RH100) or `leading_edge` (the signal start
+    /// corrected for the rise of the system pulse: unbiased tree heights).
+    #[serde(default)]
+    pub top: TopFrom,
+    /// σ of the pulse in the measured waveform, ns, for `top = "leading_edge"`. 0 (default):
+    /// the outgoing pulse's σ for `source = "raw"`, none (a deconvolved signal) for
+    /// `source = "signal"`.
+    #[serde(default)]
+    pub pulse_sigma_ns: f64,
+    /// The run's DEM (with `ground = "dem"`): attached when the run starts, not configured.
+    #[serde(skip)]
+    pub dem: Option<RunDem>,
 }
 
 fn default_front() -> f64 {
@@ -165,6 +234,10 @@ impl Default for MetricsConfig {
             fhd_bin_m: default_fhd_bin(),
             crown_energy_fraction: default_crown_fraction(),
             herbaceous_height_m: default_herb_height(),
+            ground: GroundFrom::LowestMode,
+            top: TopFrom::SignalStart,
+            pulse_sigma_ns: 0.0,
+            dem: None,
         }
     }
 }
@@ -260,8 +333,18 @@ pub struct WaveformMetrics {
     /// Share of the total energy between the ground centre and `herbaceous_height_m` above it,
     /// ground echo excluded, 0..1.
     pub energy_lowest_m: f32,
+    /// Canopy top above the ground, m (`top`: the signal start, = RH100, or its leading edge).
+    pub canopy_height: f32,
     /// Ground position `[x, y, z]` in the CRS of the pulse's geometry (NaN without geometry).
     pub ground_xyz: [f64; 3],
+    /// Where the ground came from: the lowest mode, or the beam's crossing of the DEM.
+    pub ground_from: GroundFrom,
+    /// The waveform's lowest mode, ns on the pulse's time axis (the ground with
+    /// `ground = "lowest_mode"`; with a DEM ground, what grass or understorey lifts).
+    pub mode_ns: f64,
+    /// Signal start (canopy top) position `[x, y, z]` along the beam (NaN without geometry):
+    /// where an off-nadir beam met the canopy top, not above its ground point.
+    pub top_xyz: [f64; 3],
 }
 
 impl Default for WaveformMetrics {
@@ -292,7 +375,11 @@ impl Default for WaveformMetrics {
             ground_sigma_m: f32::NAN,
             ground_skew: f32::NAN,
             energy_lowest_m: f32::NAN,
+            canopy_height: f32::NAN,
             ground_xyz: [f64::NAN; 3],
+            ground_from: GroundFrom::LowestMode,
+            mode_ns: f64::NAN,
+            top_xyz: [f64::NAN; 3],
         }
     }
 }
@@ -312,6 +399,9 @@ pub struct WaveformInput<'a> {
     pub noise_sd: f64,
     /// Smoothing σ, ns.
     pub smoothing_ns: f64,
+    /// σ of the pulse in `samples` (before smoothing), ns; 0 when none (a deconvolved signal).
+    /// Used by `top = "leading_edge"`.
+    pub pulse_sigma_ns: f64,
     /// Position at t0 and displacement per ns (the pulse's geometry), if known.
     pub geometry: Option<crate::pulse::PulseGeometry>,
     /// Whether the geometry's x/y are degrees (geographic CRS): the zenith angle is then taken
@@ -405,10 +495,25 @@ impl MetricsComputer {
             m.status = MetricsStatus::NoSignal;
             return m;
         };
-        let Some(last) = s.iter().rposition(|&v| v > back) else {
+        // The DEM's ground, when asked for and the beam crosses it.
+        let dem_ground = match (config.ground, &config.dem, w.geometry) {
+            (GroundFrom::Dem, Some(dem), Some(g)) if !w.geographic => {
+                let guess = w.start_ns + 0.5 * (n - 1) as f64 * dt;
+                dem_crossing_ns(&dem.0, &g, guess).map(|t| (t - w.start_ns) / dt)
+            }
+            _ => None,
+        };
+        // Signal end: the last crossing of the back threshold (with a DEM ground, of the front
+        // one when no return clears the back threshold: a canopy without ground echo).
+        let Some(last) = s
+            .iter()
+            .rposition(|&v| v > back)
+            .or_else(|| dem_ground.and_then(|_| s.iter().rposition(|&v| v > front)))
+        else {
             m.status = MetricsStatus::NoGround;
             return m;
         };
+        let end_level = if s[last] > back { back } else { front };
         let top = if first == 0 {
             0.0
         } else {
@@ -419,7 +524,7 @@ impl MetricsComputer {
             (n - 1) as f64
         } else {
             let (a, b) = (s[last], s[last + 1]);
-            last as f64 + ((a - back) / (a - b)).clamp(0.0, 1.0)
+            last as f64 + ((a - end_level) / (a - b)).clamp(0.0, 1.0)
         };
         if bottom <= top {
             m.status = MetricsStatus::NoGround;
@@ -429,12 +534,14 @@ impl MetricsComputer {
         // 3. Modes and the lowest one.
         let mut modes = 0u16;
         let mut lowest: Option<usize> = None;
+        let mut first_mode: Option<usize> = None;
         let lo = first.max(1);
         let hi = (last + 1).min(n - 1);
         for k in lo..hi {
             if s[k] > back && s[k - 1] < s[k] && s[k] >= s[k + 1] {
                 modes = modes.saturating_add(1);
                 lowest = Some(k);
+                first_mode.get_or_insert(k);
             }
         }
         let k = lowest.unwrap_or_else(|| {
@@ -446,7 +553,7 @@ impl MetricsComputer {
             }
             best
         });
-        let ground = if k >= 1 && k + 1 < n {
+        let mode = if k >= 1 && k + 1 < n {
             let (a, b, c) = (s[k - 1], s[k], s[k + 1]);
             let den = a - 2.0 * b + c;
             if den < 0.0 {
@@ -458,6 +565,14 @@ impl MetricsComputer {
             k as f64
         };
         m.modes = modes;
+        m.mode_ns = w.start_ns + mode * dt;
+        let ground = match dem_ground {
+            Some(g) => {
+                m.ground_from = GroundFrom::Dem;
+                g
+            }
+            None => mode,
+        };
 
         // 4. Energy on a sub-bin grid from the top to the bottom (linear interpolation of the
         // smoothed waveform above the noise mean, negative parts clipped).
@@ -524,16 +639,38 @@ impl MetricsComputer {
             rh_idx += 1;
         }
         m.energy_10_90_ns = ((t90 - t10) * dt) as f32;
-        m.top_ns = w.start_ns + top * dt;
         m.bottom_ns = w.start_ns + bottom * dt;
         m.ground_ns = w.start_ns + ground * dt;
+        // The canopy top: the signal start, or its leading edge.
+        let top_edge = match config.top {
+            TopFrom::SignalStart => top,
+            TopFrom::LeadingEdge => {
+                let ps = if w.pulse_sigma_ns.is_finite() {
+                    w.pulse_sigma_ns.max(0.0)
+                } else {
+                    0.0
+                };
+                let sys_bins = (ps * ps + w.smoothing_ns * w.smoothing_ns).sqrt() / dt;
+                let peak_at = first_mode.unwrap_or(k);
+                let a = s[peak_at] - mean;
+                let t = front - mean;
+                if a > t && t > 0.0 && sys_bins.is_finite() {
+                    (top + sys_bins * (2.0 * (a / t).ln()).sqrt()).min(peak_at as f64)
+                } else {
+                    top
+                }
+            }
+        };
+        m.top_ns = w.start_ns + top_edge * dt;
+        m.canopy_height = ((ground - top_edge) * vz_bin) as f32;
         m.energy_total = total as f32;
 
         // 5. Ground echo: extended Gaussian on the raw samples.
         let buffer = config.ground_centre_buffer_ns / dt;
         let fit_from = ((ground - 1.5 * sigma_bins).floor().max(0.0)) as usize;
         let fit_to = (bottom.ceil() as usize).min(n - 1);
-        let peak = (s[k] - mean).max(0.0);
+        let kg = (ground.round().max(0.0) as usize).min(n - 1);
+        let peak = (s[kg] - mean).max(0.0);
         let sigma0 = sigma_bins.max(1.0);
         let start = ExtGauss {
             area: peak * sigma0 * SQRT_2PI,
@@ -541,21 +678,33 @@ impl MetricsComputer {
             sigma: sigma0,
             gamma: 0.0,
         };
-        let fit = fit_ext_gauss(
-            y,
-            mean,
-            fit_from,
-            fit_to,
-            start,
-            (ground - buffer, ground + buffer),
-            (0.5, (fit_to - fit_from).max(2) as f64),
-        );
+        // A DEM ground below the signal's end: the beam saw no ground echo.
+        let fit = if ground > bottom + buffer || fit_to < fit_from + 3 {
+            ExtGauss {
+                area: 0.0,
+                centre: ground,
+                sigma: sigma0,
+                gamma: 0.0,
+            }
+        } else {
+            fit_ext_gauss(
+                y,
+                mean,
+                fit_from,
+                fit_to,
+                start,
+                (ground - buffer, ground + buffer),
+                (0.5, (fit_to - fit_from).max(2) as f64),
+            )
+        };
         let rg = fit.area.clamp(0.0, total);
         let rv = total - rg;
         m.energy_ground = rg as f32;
         m.energy_canopy = rv as f32;
-        m.ground_sigma_m = (fit.sigma * vz_bin).abs() as f32;
-        m.ground_skew = fit.gamma as f32;
+        if fit.area > 0.0 {
+            m.ground_sigma_m = (fit.sigma * vz_bin).abs() as f32;
+            m.ground_skew = fit.gamma as f32;
+        }
         let denom = rv + config.rho_ratio * rg;
         let cover = if denom > 0.0 { rv / denom } else { 0.0 };
         let pgap = (1.0 - cover).clamp(1e-6, 1.0);
@@ -617,6 +766,7 @@ impl MetricsComputer {
         // FHD over fine bins: two passes (the sum, then the entropy).
         let fbin = config.fhd_bin_m;
         let top_h = self.heights[0].max(0.0);
+        let crown_top_h = f64::from(m.canopy_height).max(0.0);
         let nf = ((top_h / fbin).ceil() as usize).clamp(1, 4096);
         let layer = |b: usize| -> f64 {
             (pai_at(above(b as f64 * fbin)) - pai_at(above((b + 1) as f64 * fbin))).max(0.0)
@@ -637,7 +787,7 @@ impl MetricsComputer {
         // Crown thickness and the herbaceous layer.
         if rv > 0.0 {
             let mut acc = 0.0;
-            let mut base_h = top_h;
+            let mut base_h = crown_top_h;
             for (c, h) in self.canopy.iter().zip(&self.heights) {
                 acc += c;
                 base_h = *h;
@@ -645,7 +795,7 @@ impl MetricsComputer {
                     break;
                 }
             }
-            m.crown_thickness_m = (top_h - base_h).max(0.0) as f32;
+            m.crown_thickness_m = (crown_top_h - base_h).max(0.0) as f32;
         } else {
             m.crown_thickness_m = 0.0;
         }
@@ -659,12 +809,8 @@ impl MetricsComputer {
         m.energy_lowest_m = (herb / total) as f32;
 
         if let Some(g) = w.geometry {
-            let t = m.ground_ns;
-            m.ground_xyz = [
-                g.anchor[0] + t * g.direction[0],
-                g.anchor[1] + t * g.direction[1],
-                g.anchor[2] + t * g.direction[2],
-            ];
+            m.ground_xyz = g.at(m.ground_ns);
+            m.top_xyz = g.at(m.top_ns);
         }
         m.status = MetricsStatus::Ok;
         m
@@ -721,6 +867,32 @@ impl MetricsComputer {
 const SQRT_2PI: f64 = 2.506_628_274_631_000_7;
 
 /// An extended (skewed) Gaussian `f(x) = area / (σ √(2π)) · exp(−u²/2) · (1 + erf(γ u / √2))`,
+
+/// Time on the pulse's axis (ns) at which its beam crosses the DEM: the fixed point of
+/// `t = (DEM(x(t), y(t)) − z0) / dz`, from `guess`. Converges when the terrain's slope times
+/// the beam's tangent of zenith is below 1 (any slope under 75° at 15° off nadir); `None`
+/// outside the DEM, for a horizontal beam, or without convergence in 12 steps.
+pub fn dem_crossing_ns(dem: &Dem, g: &crate::pulse::PulseGeometry, guess: f64) -> Option<f64> {
+    let dz = g.direction[2];
+    if !(dz.is_finite() && dz.abs() > 1e-12 && guess.is_finite()) {
+        return None;
+    }
+    let mut t = guess;
+    for _ in 0..12 {
+        let [x, y, _] = g.at(t);
+        let z = dem.height_at(x, y)?;
+        let next = (z - g.anchor[2]) / dz;
+        if !next.is_finite() {
+            return None;
+        }
+        if (next - t).abs() < 1e-4 {
+            return Some(next);
+        }
+        t = next;
+    }
+    None
+}
+
 /// `u = (x − centre) / σ`: its integral is `area` whatever γ.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ExtGauss {

@@ -95,8 +95,16 @@ impl Metrics {
         } else {
             outgoing_sigma_ns(p).unwrap_or(MetricsConfig::FALLBACK_SMOOTHING_NS)
         };
+        let pulse_sigma = if self.config.pulse_sigma_ns > 0.0 {
+            self.config.pulse_sigma_ns
+        } else if self.config.source == MetricsSource::Raw {
+            outgoing_sigma_ns(p).unwrap_or(0.0)
+        } else {
+            0.0
+        };
         let input = WaveformInput {
             samples: &self.work,
+            pulse_sigma_ns: pulse_sigma,
             start_ns: seg.start_ns,
             sample_ns: p.sample_ns,
             noise_mean: mean,

@@ -615,6 +615,7 @@ impl Measurer {
         let sd = sd.max(self.noise_floor * (f64::from(peak) - mean).max(0.0));
         let dz = self.grid.voxel_size_m[2];
         let input = WaveformInput {
+            pulse_sigma_ns: 0.0,
             samples: &self.samples,
             start_ns: 0.0,
             sample_ns: dz / HALF_C_M_PER_NS,

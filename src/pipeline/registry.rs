@@ -71,4 +71,14 @@ impl StageConfig {
             c.resolve_from_input(facts);
         }
     }
+
+    /// Hands the run's DEM (`[georeference] dem`) to a `metrics` stage with `ground = "dem"`.
+    /// Run once, before the stages are built.
+    pub fn attach_dem(&mut self, dem: Option<&std::sync::Arc<crate::geo::dem::Dem>>) {
+        if let StageConfig::Metrics(c) = self
+            && c.ground == crate::forest::pulse_metrics::GroundFrom::Dem
+        {
+            c.dem = dem.cloned().map(crate::forest::pulse_metrics::RunDem);
+        }
+    }
 }

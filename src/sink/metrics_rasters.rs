@@ -1,7 +1,7 @@
 //! Forest structure rasters from the per-pulse metrics (`rasters/` in the output folder):
 //!
 //! - `rasters/chm.vrt` over `rasters/chm/chm_<ix>_<iy>.tif`: canopy height model, the highest
-//!   `canopy_height` (signal start above the ground) of the pulses whose ground falls in each
+//!   `canopy_height` (canopy top above the ground) of the pulses whose canopy top falls in each
 //!   `chm_cell_m` cell (default 1 m);
 //! - `rasters/metrics.vrt` over `rasters/metrics/metrics_<ix>_<iy>.tif`: per `profile_cell_m`
 //!   cell (default 10 m) the mean `rh25`, `rh50`, `rh75`, `rh98`, `rh100`, `cover`, `pai`,
@@ -13,8 +13,10 @@
 //! GeoTIFF (`src/raster/cog.rs`: tiled 256 × 256, DEFLATE level 1 with the floating-point
 //! predictor, overviews, CRS, nodata −9999); the VRTs mosaic them for GDAL, QGIS and rasterio.
 //!
-//! Pulses are placed at their ground position (`pulse_metrics.csv`'s x, y) in the CRS of their
-//! geometry, which must be projected (an EPSG code, stated by the input or decided by
+//! Pulses are placed in the canopy height model where their beam met the canopy top
+//! (`pulse_metrics.csv`'s `top_x`, `top_y`: off nadir the top lies `height × tan θ` from the
+//! ground point, so this is the angular rectification of the CHM) and in the profile rasters
+//! at their ground position (`x`, `y`), in the CRS of their geometry, which must be projected (an EPSG code, stated by the input or decided by
 //! georeferencing). Pulses without metrics or geometry are counted, not placed.
 //!
 //! The tiles are kept in memory (20 bytes per cell and band) and written when the run ends.
@@ -62,6 +64,16 @@ pub fn profile_values(m: &WaveformMetrics) -> [f32; 10] {
         m.ground_sigma_m,
         m.energy_lowest_m,
     ]
+}
+
+/// Where a pulse's canopy height goes in the canopy height model: its canopy top's x, y
+/// (`top_xyz`), or the ground point's when the top has no position.
+pub fn chm_position(m: &WaveformMetrics) -> [f64; 2] {
+    if m.top_xyz[0].is_finite() && m.top_xyz[1].is_finite() {
+        [m.top_xyz[0], m.top_xyz[1]]
+    } else {
+        [m.ground_xyz[0], m.ground_xyz[1]]
+    }
 }
 
 /// Raster settings (`[output]`: `rasters`, `chm_cell_m`, `profile_cell_m`, `raster_tile_m`).
@@ -150,14 +162,17 @@ impl MetricsRastersSink {
         let [x, y, _] = m.ground_xyz;
         let s = self.settings;
         let n = self.cells(s.chm_cell_m);
-        let key = CellGrid::tile_of(x, y, n, s.chm_cell_m);
+        // The canopy height where the beam met the canopy top (off nadir, `height × tan θ` from
+        // the ground point: the angular rectification); the profiles at the ground point.
+        let [cx, cy] = chm_position(m);
+        let key = CellGrid::tile_of(cx, cy, n, s.chm_cell_m);
         let g = match self.chm.entry(key) {
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
             std::collections::btree_map::Entry::Vacant(e) => {
                 e.insert(CellGrid::for_tile(key.0, key.1, n, s.chm_cell_m)?)
             }
         };
-        g.add(x, y, m.rh[100]);
+        g.add(cx, cy, m.canopy_height);
         let n = self.cells(s.profile_cell_m);
         let key = CellGrid::tile_of(x, y, n, s.profile_cell_m);
         let grids = match self.profile.entry(key) {

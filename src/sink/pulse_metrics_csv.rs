@@ -4,21 +4,25 @@
 //!
 //! - `pulse_id`, `gps_time` (s, the input's time base); `shot_number` (GEDI input only: the
 //!   GEDI shot number, equal to `pulse_id`);
-//! - `x`, `y`, `z`: the ground (centre of the lowest mode) in the CRS of the pulse's geometry
-//!   (empty without geometry);
+//! - `x`, `y`, `z`: the ground (centre of the lowest mode, or the beam's crossing of the DEM
+//!   with `ground = "dem"`) in the CRS of the pulse's geometry (empty without geometry);
 //! - `status`: `ok`, or why there are no metrics (`no_signal`, `no_ground`, `no_waveform`,
 //!   `non_finite`; the other columns are then empty);
-//! - `canopy_height` (m: signal start above the ground = `rh100`), `rh0` … `rh100` (m above the
-//!   ground);
+//! - `canopy_height` (m: the canopy top above the ground — the signal start, = `rh100`, or with
+//!   `top = "leading_edge"` its leading edge), `rh0` … `rh100` (m above the ground);
 //! - `energy_10_90_ns`, `modes`, `crown_thickness_m`;
 //! - `energy_total`, `energy_ground`, `energy_canopy` (signal units × bins), `cover`, `pgap`,
 //!   `pai` (m²/m²), `fhd`;
 //! - `pavd_0_5` … (m²/m³ per profile bin, named by its height range in m);
 //! - `ground_sigma_m`, `ground_skew`, `energy_lowest_m`, `ground_above_dem_m` (herbaceous
-//!   metrics; the last the waveform's ground `z` above the run's DEM, `[georeference] dem`, at
-//!   `x`, `y`: grass lifts the lowest mode; empty without a DEM or outside it);
+//!   metrics; the last the waveform's lowest mode above the run's DEM, `[georeference] dem`,
+//!   where the beam met it: grass lifts the lowest mode; empty without a DEM or outside it);
 //! - `zenith_deg`, `noise_mean`, `noise_sd` (signal units), `smoothing_ns`, `top_ns`,
-//!   `ground_ns`, `bottom_ns` (ns on the pulse's time axis).
+//!   `ground_ns`, `bottom_ns`, `mode_ns` (the lowest mode; ns on the pulse's time axis);
+//! - `ground_from`: `lowest_mode` or `dem`;
+//! - `top_x`, `top_y`, `top_z`: the signal start (canopy top) along the beam — off nadir it
+//!   lies `height × tan(zenith)` from the ground point, which is where the canopy height
+//!   model places it (angular rectification).
 //!
 //! The file appears atomically at the end of the run.
 
@@ -67,7 +71,7 @@ pub fn header(shot_number: bool, profile_bins: usize, profile_bin_m: f64) -> Str
     }
     h.push_str(
         ",ground_sigma_m,ground_skew,energy_lowest_m,ground_above_dem_m,zenith_deg,noise_mean,\
-         noise_sd,smoothing_ns,top_ns,ground_ns,bottom_ns",
+         noise_sd,smoothing_ns,top_ns,ground_ns,bottom_ns,mode_ns,ground_from,top_x,top_y,top_z",
     );
     h
 }
@@ -134,7 +138,7 @@ impl PulseMetricsCsvSink {
                 l.push(',');
             }
         };
-        f(l, m.rh[100], 3);
+        f(l, m.canopy_height, 3);
         for v in m.rh {
             f(l, v, 3);
         }
@@ -163,7 +167,7 @@ impl PulseMetricsCsvSink {
         f(l, m.ground_sigma_m, 4);
         f(l, m.ground_skew, 4);
         f(l, m.energy_lowest_m, 5);
-        let [x, y, z] = m.ground_xyz;
+        let [x, y, z] = p.geometry.map_or([f64::NAN; 3], |g| g.at(m.mode_ns));
         let above = match &self.dem {
             Some(dem) if x.is_finite() && y.is_finite() => {
                 dem.height_at(x, y).map_or(f32::NAN, |g| (z - g) as f32)
@@ -175,12 +179,23 @@ impl PulseMetricsCsvSink {
         f(l, m.noise_mean, 4);
         f(l, m.noise_sd, 4);
         f(l, m.smoothing_ns, 3);
-        for v in [m.top_ns, m.ground_ns, m.bottom_ns] {
+        for v in [m.top_ns, m.ground_ns, m.bottom_ns, m.mode_ns] {
             if ok && v.is_finite() {
                 let _ = write!(l, ",{v:.3}");
             } else {
                 l.push(',');
             }
+        }
+        if ok {
+            let _ = write!(l, ",{}", m.ground_from.as_str());
+        } else {
+            l.push(',');
+        }
+        if ok && m.top_xyz.iter().all(|v| v.is_finite()) {
+            let [x, y, z] = m.top_xyz;
+            let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
+        } else {
+            l.push_str(",,,");
         }
         l.push('\n');
     }

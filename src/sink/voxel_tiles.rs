@@ -248,10 +248,10 @@ impl PulseSink for VoxelTilesSink {
                 .metrics
                 .as_ref()
                 .filter(|m| m.status == crate::forest::pulse_metrics::MetricsStatus::Ok)
-                && m.rh[100].is_finite()
+                && m.canopy_height.is_finite()
             {
                 // f32::max keeps the number when the other side is NaN.
-                e.1 = e.1.max(m.rh[100]);
+                e.1 = e.1.max(m.canopy_height);
             }
         }
         deposit_pulse(pulse, tiles, params, &mut self.stats).map_err(store_err)
@@ -519,7 +519,7 @@ mod tests {
                     status: MetricsStatus::Ok,
                     ..Default::default()
                 };
-                m.rh[100] = h;
+                m.canopy_height = h;
                 m
             });
             s.write(&p).unwrap();

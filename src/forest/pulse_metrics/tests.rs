@@ -10,6 +10,7 @@ fn gaussian(n: usize, centre: f64, sigma: f64, area: f64, out: &mut [f32]) {
 
 fn input(samples: &[f32], mean: f64, sd: f64, smoothing: f64) -> WaveformInput<'_> {
     WaveformInput {
+        pulse_sigma_ns: 0.0,
         samples,
         start_ns: 10.0,
         sample_ns: 1.0,
