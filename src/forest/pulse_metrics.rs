@@ -662,7 +662,10 @@ impl MetricsComputer {
             }
         };
         m.top_ns = w.start_ns + top_edge * dt;
-        m.canopy_height = ((ground - top_edge) * vz_bin) as f32;
+        m.canopy_height = match config.top {
+            TopFrom::SignalStart => m.rh[100],
+            TopFrom::LeadingEdge => ((ground - top_edge) * vz_bin) as f32,
+        };
         m.energy_total = total as f32;
 
         // 5. Ground echo: extended Gaussian on the raw samples.
@@ -866,8 +869,6 @@ impl MetricsComputer {
 
 const SQRT_2PI: f64 = 2.506_628_274_631_000_7;
 
-/// An extended (skewed) Gaussian `f(x) = area / (σ √(2π)) · exp(−u²/2) · (1 + erf(γ u / √2))`,
-
 /// Time on the pulse's axis (ns) at which its beam crosses the DEM: the fixed point of
 /// `t = (DEM(x(t), y(t)) − z0) / dz`, from `guess`. Converges when the terrain's slope times
 /// the beam's tangent of zenith is below 1 (any slope under 75° at 15° off nadir); `None`
@@ -893,6 +894,7 @@ pub fn dem_crossing_ns(dem: &Dem, g: &crate::pulse::PulseGeometry, guess: f64) -
     None
 }
 
+/// An extended (skewed) Gaussian `f(x) = area / (σ √(2π)) · exp(−u²/2) · (1 + erf(γ u / √2))`,
 /// `u = (x − centre) / σ`: its integral is `area` whatever γ.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ExtGauss {

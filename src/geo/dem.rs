@@ -62,6 +62,26 @@ const PROJECTED_CS_TYPE: u16 = 3072;
 const GEOGRAPHIC_TYPE: u16 = 2048;
 
 impl Dem {
+    /// A DEM from heights in memory: `size` = (columns, rows), row-major from the north-west,
+    /// `first_centre` the map coordinates of pixel (0, 0)'s centre, `pixel` the pixel size
+    /// (rows go towards −y). `None` when `heights` does not hold columns × rows values.
+    pub fn from_heights(
+        size: (usize, usize),
+        first_centre: [f64; 2],
+        pixel: [f64; 2],
+        epsg: Option<u32>,
+        heights: Vec<f32>,
+    ) -> Option<Dem> {
+        (size.0.checked_mul(size.1)? == heights.len()).then_some(Dem {
+            size,
+            first_centre,
+            pixel,
+            epsg,
+            nodata: None,
+            heights,
+        })
+    }
+
     /// Reads a single-band GeoTIFF DEM (8/16/32-bit integers or 32/64-bit floats).
     pub fn open(path: &Path) -> Result<Dem, DemError> {
         let file = path.display().to_string();

@@ -400,14 +400,22 @@ mod tests {
             RasterCrs::Known(Some("EPSG:32618".into())),
         );
         let mut p = Pulse::default();
-        for (i, (x, y, h)) in [(5.5, 5.5, 12.0f32), (5.7, 5.2, 14.0), (150.0, 20.0, 3.0)]
-            .into_iter()
-            .enumerate()
+        // The last pulse met its canopy top 3 m east of its ground point (off nadir).
+        for (i, (x, y, h, dx)) in [
+            (5.5, 5.5, 12.0f32, 0.0),
+            (5.7, 5.2, 14.0, 0.0),
+            (150.0, 20.0, 3.0, 0.0),
+            (5.5, 5.5, 20.0, 3.0),
+        ]
+        .into_iter()
+        .enumerate()
         {
             let mut m = WaveformMetrics {
                 status: MetricsStatus::Ok,
                 ground_xyz: [x, y, 100.0],
+                top_xyz: [x + dx, y, 100.0 + f64::from(h)],
                 cover: 0.5,
+                canopy_height: h,
                 ..Default::default()
             };
             m.rh = [h; 101];
@@ -419,7 +427,7 @@ mod tests {
         sink.write(&p).unwrap();
         sink.finish().unwrap();
         let r = sink.report();
-        assert_eq!(r["pulses_placed"], 3);
+        assert_eq!(r["pulses_placed"], 4);
         assert_eq!(r["without_metrics"], 1);
         let d = dir.path().join("rasters");
         assert!(d.join("chm/chm_0_0.tif").exists() && d.join("chm/chm_1_0.tif").exists());
@@ -429,5 +437,8 @@ mod tests {
         let band = g.band(CellStat::Max, NODATA);
         let (col, row) = g.cell_of(5.5, 5.5).unwrap();
         assert_eq!(band[row * g.width() + col], 14.0);
+        // The off-nadir pulse's height stands where its beam met the canopy top.
+        let (col, row) = g.cell_of(8.5, 5.5).unwrap();
+        assert_eq!(band[row * g.width() + col], 20.0);
     }
 }

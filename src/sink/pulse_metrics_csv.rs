@@ -267,6 +267,7 @@ mod tests {
             ..Default::default()
         };
         m.rh = [1.5; 101];
+        m.canopy_height = 1.5;
         m.ground_xyz = [1.0, 2.0, 3.0];
         p.metrics = Some(m);
         sink.write(&p).unwrap();

@@ -176,3 +176,132 @@ fn gedi_fixture_matches_level_2a_and_2b() {
     let (med, _) = gedi_check::median_and_worst(&rows, |r| f64::from(r.ours.cover) - r.l2b_cover);
     assert!(med <= 0.05, "cover: median |Δ| {med:.3}");
 }
+
+fn vertical(start_ns_z: f64) -> crate::pulse::PulseGeometry {
+    // Nadir beam: z falls by c/2 per ns from `start_ns_z` at t = 0.
+    crate::pulse::PulseGeometry {
+        anchor: [500.0, 500.0, start_ns_z],
+        direction: [0.0, 0.0, -HALF_C_M_PER_NS],
+    }
+}
+
+fn flat_dem(z: f32) -> RunDem {
+    let dem = Dem::from_heights((20, 20), [495.5, 504.5], [1.0, 1.0], None, vec![z; 400])
+        .expect("20 × 20 heights");
+    RunDem(std::sync::Arc::new(dem))
+}
+
+/// An oblique beam over a sloping DEM: the fixed point is the exact crossing.
+#[test]
+fn the_beam_crosses_a_sloping_dem_where_the_plane_says() {
+    // z = 0.1 (x − 490) over x 490..590.
+    let heights: Vec<f32> = (0..100 * 10)
+        .map(|i| 0.1 * ((i % 100) as f32 + 0.5))
+        .collect();
+    let dem = Dem::from_heights((100, 10), [490.5, 504.5], [1.0, 1.0], None, heights).unwrap();
+    let g = crate::pulse::PulseGeometry {
+        anchor: [500.0, 500.0, 100.0],
+        direction: [0.05, 0.0, -0.15],
+    };
+    // 100 − 0.15 t = 0.1 (10 + 0.05 t)  ⇒  t = 99 / 0.155.
+    let t = dem_crossing_ns(&dem, &g, 0.0).expect("converges");
+    assert!((t - 99.0 / 0.155).abs() < 1e-3, "t {t}");
+    // Outside the DEM, or a horizontal beam: none.
+    let away = crate::pulse::PulseGeometry {
+        anchor: [0.0, 0.0, 100.0],
+        ..g
+    };
+    assert_eq!(dem_crossing_ns(&dem, &away, 0.0), None);
+    let flat = crate::pulse::PulseGeometry {
+        direction: [0.1, 0.0, 0.0],
+        ..g
+    };
+    assert_eq!(dem_crossing_ns(&dem, &flat, 0.0), None);
+}
+
+/// A dense crown hides the ground: the lowest mode is the crown's and the height collapses;
+/// with the DEM as the ground the crown stands at its height, all its energy canopy.
+#[test]
+fn the_dem_gives_the_ground_a_crown_hides() {
+    let n = 300;
+    let mut y = vec![0.0f32; n];
+    gaussian(n, 100.0, 3.0, 600.0, &mut y); // crown top echo
+    gaussian(n, 130.0, 3.0, 300.0, &mut y); // deeper in the crown
+    // t0 = start (10 ns) at 40 m: bin b is at 40 − (b) × c/2; the DEM at 10 m is bin 200.1.
+    let ground_bin = 30.0 / HALF_C_M_PER_NS;
+    let mut w = input(&y, 0.0, 1.0, 1.0);
+    let geometry = vertical(40.0 + 10.0 * HALF_C_M_PER_NS);
+    w.geometry = Some(geometry);
+    let mut c = MetricsComputer::default();
+    let by_mode = c.compute(&MetricsConfig::default(), &w);
+    assert_eq!(by_mode.ground_from, GroundFrom::LowestMode);
+    assert!(by_mode.canopy_height < 6.0, "{}", by_mode.canopy_height);
+    let config = MetricsConfig {
+        ground: GroundFrom::Dem,
+        dem: Some(flat_dem(10.0)),
+        ..MetricsConfig::default()
+    };
+    let m = c.compute(&config, &w);
+    assert_eq!(m.status, MetricsStatus::Ok);
+    assert_eq!(m.ground_from, GroundFrom::Dem);
+    assert!(
+        (m.ground_ns - (10.0 + ground_bin)).abs() < 1e-3,
+        "{}",
+        m.ground_ns
+    );
+    assert!((m.ground_xyz[2] - 10.0).abs() < 1e-6, "{:?}", m.ground_xyz);
+    // The lowest mode stays known (the crown's second echo).
+    assert!((m.mode_ns - 140.0).abs() < 0.5, "{}", m.mode_ns);
+    // The crown top is 100 bins above the ground bin less the threshold's lead.
+    let top_h = (ground_bin - 100.0) * HALF_C_M_PER_NS;
+    assert!(
+        f64::from(m.canopy_height) > top_h && f64::from(m.canopy_height) < top_h + 1.5,
+        "canopy {} vs {top_h}",
+        m.canopy_height
+    );
+    assert_eq!(m.energy_ground, 0.0);
+    assert!(m.cover > 0.999, "{}", m.cover);
+    // A DEM ground needs the DEM: without it, the lowest mode.
+    let without = MetricsConfig {
+        ground: GroundFrom::Dem,
+        ..MetricsConfig::default()
+    };
+    assert_eq!(c.compute(&without, &w).ground_from, GroundFrom::LowestMode);
+}
+
+/// A point target's echo: the signal start leads its centre by the pulse's rise to the
+/// threshold; the leading edge puts the top back on it.
+#[test]
+fn the_leading_edge_puts_a_point_target_at_its_echo() {
+    let n = 200;
+    let mut y = vec![0.0f32; n];
+    gaussian(n, 80.0, 4.0, 400.0, &mut y); // peak 40 units
+    gaussian(n, 150.0, 4.0, 400.0, &mut y); // ground
+    let mut w = input(&y, 0.0, 1.0, 0.0);
+    w.pulse_sigma_ns = 4.0;
+    let mut c = MetricsComputer::default();
+    let start = c.compute(&MetricsConfig::default(), &w);
+    // 3 σ of noise against a 40-unit peak: σ √(2 ln(40/3)) = 9.1 bins early.
+    assert!(
+        (start.top_ns - (10.0 + 80.0 - 9.1)).abs() < 0.3,
+        "{}",
+        start.top_ns
+    );
+    assert_eq!(start.canopy_height, start.rh[100]);
+    let edge = c.compute(
+        &MetricsConfig {
+            top: TopFrom::LeadingEdge,
+            ..MetricsConfig::default()
+        },
+        &w,
+    );
+    assert!((edge.top_ns - 90.0).abs() < 0.3, "{}", edge.top_ns);
+    let h = 70.0 * HALF_C_M_PER_NS;
+    assert!(
+        (f64::from(edge.canopy_height) - h).abs() < 0.05,
+        "{}",
+        edge.canopy_height
+    );
+    // RH100 stays GEDI's (the signal start).
+    assert_eq!(edge.rh[100], start.rh[100]);
+}
