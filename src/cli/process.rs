@@ -378,13 +378,13 @@ fn load_response(
 fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
     TableFormat::from_path(&args.input).map_err(Failure::usage)?;
     TableFormat::from_path(&args.out).map_err(Failure::usage)?;
-    if let Some(m) = &args.metrics {
-        if m.extension().and_then(|e| e.to_str()) != Some("csv") {
-            return Err(Failure::usage(format!(
-                "--metrics {}: the metrics are written as CSV; give a name ending in .csv",
-                m.display()
-            )));
-        }
+    if let Some(m) = &args.metrics
+        && m.extension().and_then(|e| e.to_str()) != Some("csv")
+    {
+        return Err(Failure::usage(format!(
+            "--metrics {}: the metrics are written as CSV; give a name ending in .csv",
+            m.display()
+        )));
     }
     for k in [&args.kernel, &args.response, &args.response_outgoing]
         .into_iter()
