@@ -375,7 +375,13 @@ mod tests {
         let cols = lines[0].split(',').count();
         assert!(lines[1..].iter().all(|l| l.split(',').count() == cols));
         assert!(lines[1].starts_with("0,,,,,ok,"), "{}", lines[1]);
-        assert!(lines[2].starts_with("1,,100."), "{}", lines[2]);
+        // x moves along the beam: 100 m + the ground's time × dx.
+        let x = 100.0 + m2.ground_ns * c2 * th.sin();
+        assert!(
+            lines[2].starts_with(&format!("1,,{x:.3},200.000,")),
+            "{}",
+            lines[2]
+        );
         assert_eq!((t.ok(), t.measured()), (2, 2));
     }
 }
