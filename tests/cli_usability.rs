@@ -365,6 +365,7 @@ fn bash_completions_are_valid_and_name_every_command() {
         "merge",
         "biomass",
         "metrics",
+        "metrics-plot",
         "completions",
         "man",
     ] {
@@ -425,7 +426,7 @@ fn man_pages_render_and_are_never_written_over() {
         assert!(names.iter().any(|n| n == want), "{want} missing: {names:?}");
     }
     assert!(!names.iter().any(|n| n == "fwlidar-help.1"), "{names:?}");
-    assert_eq!(names.len(), 1 + 14, "{names:?}");
+    assert_eq!(names.len(), 1 + 15, "{names:?}");
 
     let main = std::fs::read_to_string(out.join("fwlidar.1")).unwrap();
     assert!(

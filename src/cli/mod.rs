@@ -12,6 +12,7 @@ pub mod inspect_nav;
 pub mod man;
 pub mod merge;
 pub mod metrics;
+pub mod metrics_plot;
 pub mod process;
 pub mod repair;
 pub mod replay;
@@ -79,6 +80,9 @@ pub enum Command {
     /// Recompute the forest structure rasters (canopy height, RH, cover, PAI, FHD) from a voxel
     /// store after the flight: each cell's column of voxels is its waveform.
     Metrics(metrics::MetricsArgs),
+    /// Draw the relative heights (RH25–RH98 above the ground) and cover of every waveform of a
+    /// pulse_metrics.csv as an SVG figure.
+    MetricsPlot(metrics_plot::MetricsPlotArgs),
     /// Print the shell completion script (bash, zsh, fish, elvish, powershell).
     Completions(completions::CompletionsArgs),
     /// Write the manual pages (fwlidar.1 and one per command) into a folder.
@@ -152,6 +156,7 @@ pub fn main() -> i32 {
         Command::Merge(a) => merge::run(a),
         Command::Biomass(a) => biomass::run(a),
         Command::Metrics(a) => metrics::run(a),
+        Command::MetricsPlot(a) => metrics_plot::run(a),
         Command::Completions(a) => completions::run(a),
         Command::Man(a) => man::run(a),
     };

@@ -15,6 +15,9 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
+use crate::forest::pulse_metrics::MetricsConfig;
+use crate::forest::stage::pulse_sigma_ns;
+use crate::forest::table_metrics::{TableMetrics, TableWaveform, read_geometry};
 use crate::format::table::{Table, TableFormat, read_table, write_table};
 use crate::pulse::FittedReturn;
 use crate::signal::decompose::{DecomposeConfig, Decomposer};
@@ -22,7 +25,7 @@ use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::deconvolve::{Deconvolver, MethodConfig, Targeted};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::kernel::{Kernel, remove_baseline};
-use crate::sink::atomic_file::AtomicFile;
+use crate::sink::atomic_file::{AtomicFile, write_atomic};
 
 pub use crate::signal::kernel::KERNEL_BASELINE_SAMPLES;
 
@@ -136,9 +139,34 @@ pub struct ProcessArgs {
     /// `waveform,position_bins,amplitude,sigma_bins`, waveform the 0-based row index).
     #[arg(long)]
     pub returns: Option<PathBuf>,
+    /// Also measure the forest metrics of every row and write them here (CSV, the columns of
+    /// the replay's `pulse_metrics.csv`, `docs/forest.md`): `pulse_id` is the 0-based row
+    /// index, `gps_time` empty, times in ns from the row's first sample.
+    #[arg(long)]
+    pub metrics: Option<PathBuf>,
+    /// Which waveform `--metrics` measures: `raw` (the input row, smoothed by the σ of the
+    /// outgoing pulse from `--kernel`, else of `--response`, else 6.5 ns) or `signal` (the
+    /// processed output row, not smoothed again).
+    #[arg(long, value_enum, default_value_t = MetricsWaveform::Raw, requires = "metrics")]
+    pub metrics_source: MetricsWaveform,
+    /// Geometry of every row for `--metrics` (CSV with a header: `x0,y0,z0` the position of
+    /// sample 0 in a projected CRS, `dx,dy,dz` the displacement per ns, one row per waveform;
+    /// the waveformlidar package's `geo.csv` is read as it is). Without it heights use the
+    /// nominal vertical scale, c/2 = 0.1499 m per ns (a nadir beam), and x, y, z are empty.
+    #[arg(long, requires = "metrics")]
+    pub geometry: Option<PathBuf>,
     /// Do not draw a progress bar.
     #[arg(long)]
     pub no_progress: bool,
+}
+
+/// The waveform `fwlidar process --metrics` measures.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum MetricsWaveform {
+    /// The input row as read (as the replay's `source = "raw"`).
+    Raw,
+    /// The processed output row (denoised, deconvolved; as `source = "signal"`).
+    Signal,
 }
 
 /// What a run did.
@@ -150,6 +178,10 @@ pub struct ProcessReport {
     pub samples: usize,
     /// Returns found (with `--returns`).
     pub returns: usize,
+    /// Waveforms with forest metrics (status `ok`, with `--metrics`).
+    pub metrics_ok: usize,
+    /// Time spent measuring the metrics (with `--metrics`), seconds.
+    pub metrics_s: f64,
     /// Wall time, seconds.
     pub wall_s: f64,
 }
@@ -176,6 +208,27 @@ pub fn noise_from_differences(y: &[f32]) -> f32 {
     let m = median(&d);
     let dev: Vec<f32> = d.iter().map(|v| (v - m).abs()).collect();
     1.4826 * median(&dev) / std::f32::consts::SQRT_2
+}
+
+/// Noise mean and σ of a raw row for `--metrics`, from its first [`KERNEL_BASELINE_SAMPLES`]
+/// samples (the samples recorded before the first echo, which also give the denoise baseline):
+/// their median and their root-mean-square deviation from it. This holds when the echoes fill
+/// most of the record (NEON's records are cut around the echoes), where the robust median of
+/// the whole record sits on the echo, and it does not depend on the processing options. `None`
+/// (the robust estimate of the whole row) when the row is shorter than that or its first
+/// samples are all equal.
+fn raw_noise(row: &[f32]) -> Option<(f64, f64)> {
+    if row.len() < 2 * KERNEL_BASELINE_SAMPLES {
+        return None;
+    }
+    let head = &row[..KERNEL_BASELINE_SAMPLES];
+    let level = f64::from(median(head));
+    let ms = head
+        .iter()
+        .map(|&v| (f64::from(v) - level).powi(2))
+        .sum::<f64>()
+        / head.len() as f64;
+    (ms > 0.0).then(|| (level, ms.sqrt()))
 }
 
 /// Number of samples of `row` before its trailing zeros.
@@ -325,6 +378,14 @@ fn load_response(
 fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
     TableFormat::from_path(&args.input).map_err(Failure::usage)?;
     TableFormat::from_path(&args.out).map_err(Failure::usage)?;
+    if let Some(m) = &args.metrics
+        && m.extension().and_then(|e| e.to_str()) != Some("csv")
+    {
+        return Err(Failure::usage(format!(
+            "--metrics {}: the metrics are written as CSV; give a name ending in .csv",
+            m.display()
+        )));
+    }
     for k in [&args.kernel, &args.response, &args.response_outgoing]
         .into_iter()
         .flatten()
@@ -432,7 +493,7 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         0.0
     };
     println!(
-        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}; {:.3} s, {:.1} µs per waveform",
+        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}; {:.3} s, {:.1} µs per waveform",
         args.input.display(),
         args.out.display(),
         report.waveforms,
@@ -441,6 +502,28 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         if args.no_denoise { "" } else { ", denoised" },
         match &args.returns {
             Some(p) => format!(", {} returns in {}", report.returns, p.display()),
+            None => String::new(),
+        },
+        match &args.metrics {
+            Some(p) => format!(
+                ", metrics of {} waveforms ({} {}, {:.1} µs per waveform) in {}",
+                report.metrics_ok,
+                match args.metrics_source {
+                    MetricsWaveform::Raw => "raw",
+                    MetricsWaveform::Signal => "processed",
+                },
+                if args.geometry.is_some() {
+                    "with geometry"
+                } else {
+                    "at c/2 per ns"
+                },
+                if report.waveforms > 0 {
+                    report.metrics_s * 1e6 / report.waveforms as f64
+                } else {
+                    0.0
+                },
+                p.display()
+            ),
             None => String::new(),
         },
         report.wall_s,
@@ -488,6 +571,42 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
             max_taps,
         )
     });
+    let geometry = match &args.geometry {
+        Some(path) => {
+            let g = read_geometry(path).map_err(Failure::job)?;
+            if g.len() != table.rows.len() {
+                return Err(Failure::job(format!(
+                    "geometry {} has {} rows but the input {input_name} has {} waveforms; give one \
+                     geometry row per waveform, in the same order",
+                    path.display(),
+                    g.len(),
+                    table.rows.len()
+                )));
+            }
+            g
+        }
+        None => Vec::new(),
+    };
+    let mut metrics = args
+        .metrics
+        .as_ref()
+        .map(|_| TableMetrics::new(MetricsConfig::default(), max_samples));
+    // Smoothing of the raw waveform: the σ of its outgoing pulse (as the replay's metrics
+    // stage), from the kernel rows, else the system response, else GEDI's 6.5 ns.
+    let smoothing_of = |i: usize| -> f64 {
+        if args.metrics_source == MetricsWaveform::Signal {
+            return 0.0;
+        }
+        let pulse = match kernels.len() {
+            0 => response.as_ref(),
+            1 => kernels.first(),
+            _ => kernels.get(i),
+        };
+        pulse
+            .and_then(|k| pulse_sigma_ns(&k.taps, args.sample_ns))
+            .unwrap_or(MetricsConfig::FALLBACK_SMOOTHING_NS)
+    };
+    let mut metrics_s = 0.0f64;
     let mut decomposer = args
         .returns
         .as_ref()
@@ -596,6 +715,28 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
                 j + 1
             )));
         }
+        if let Some(tm) = metrics.as_mut() {
+            let t0 = Instant::now();
+            let (samples, noise) = match args.metrics_source {
+                MetricsWaveform::Raw => (row, raw_noise(row)),
+                // After denoise the baseline is 0 and the noise level a mean absolute
+                // deviation (σ √(2/π)), as the replay's metrics stage reads it.
+                MetricsWaveform::Signal => (
+                    &out[..len],
+                    (!args.no_denoise && noise_v > 0.0)
+                        .then(|| (0.0, f64::from(noise_v) * std::f64::consts::FRAC_PI_2.sqrt())),
+                ),
+            };
+            tm.measure(&TableWaveform {
+                row: i,
+                samples,
+                sample_ns: args.sample_ns,
+                noise,
+                smoothing_ns: smoothing_of(i),
+                geometry: geometry.get(i).copied(),
+            });
+            metrics_s += t0.elapsed().as_secs_f64();
+        }
         if let Some(dec) = decomposer.as_mut() {
             fits.clear();
             dec.fit(&out[..len], noise_v, &mut fits)
@@ -611,11 +752,17 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
     if let Some(path) = &args.returns {
         write_returns(path, &returns)?;
     }
+    if let (Some(path), Some(tm)) = (&args.metrics, &metrics) {
+        write_atomic(path, tm.csv().as_bytes())
+            .map_err(|e| Failure::job(format!("{}: {e}", path.display())))?;
+    }
     write_table(&args.out, &outputs).map_err(Failure::job)?;
     Ok(ProcessReport {
         waveforms: n,
         samples,
         returns: returns.len(),
+        metrics_ok: metrics.as_ref().map_or(0, TableMetrics::ok),
+        metrics_s,
         wall_s: started.elapsed().as_secs_f64(),
     })
 }
@@ -699,6 +846,9 @@ mod tests {
             skip_columns: 0,
             out: "o.csv".into(),
             returns: None,
+            metrics: None,
+            metrics_source: MetricsWaveform::Raw,
+            geometry: None,
             no_progress: true,
         };
         for m in [
@@ -753,6 +903,9 @@ mod tests {
             skip_columns: a.skip_columns,
             out: a.out.clone(),
             returns: a.returns.clone(),
+            metrics: a.metrics.clone(),
+            metrics_source: a.metrics_source,
+            geometry: a.geometry.clone(),
             no_progress: a.no_progress,
         }
     }

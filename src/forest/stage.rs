@@ -129,16 +129,31 @@ impl Metrics {
 fn outgoing_sigma_ns(p: &Pulse) -> Option<f64> {
     let i = p.outgoing()?;
     let raw = p.raw.get(p.segments[i].range())?;
-    if raw.len() < 3 {
+    pulse_sigma_ns(raw, p.sample_ns)
+}
+
+/// σ of a recorded pulse, ns: its full width at half maximum above its base (the lower of its
+/// first and last samples), to a fraction of a sample, / 2.355. `None` for fewer than three
+/// samples, no peak above the base, or a width that is not a positive number.
+pub fn pulse_sigma_ns<T: Copy + Into<f64>>(samples: &[T], sample_ns: f64) -> Option<f64> {
+    if samples.len() < 3 {
         return None;
     }
-    let base = f64::from(raw[0].min(raw[raw.len() - 1]));
-    let (k, &peak) = raw.iter().enumerate().max_by_key(|(_, v)| **v)?;
-    let half = base + 0.5 * (f64::from(peak) - base);
-    if f64::from(peak) <= base {
+    let v = |j: usize| -> f64 { samples[j].into() };
+    let n = samples.len();
+    let base = v(0).min(v(n - 1));
+    let mut k = 0;
+    for j in 1..n {
+        // The last of equal maxima, as before.
+        if v(j) >= v(k) {
+            k = j;
+        }
+    }
+    let peak = v(k);
+    if peak.is_nan() || peak <= base {
         return None;
     }
-    let v = |j: usize| f64::from(raw[j]);
+    let half = base + 0.5 * (peak - base);
     let mut left = 0.0;
     let mut j = k;
     while j > 0 && v(j - 1) > half {
@@ -148,15 +163,15 @@ fn outgoing_sigma_ns(p: &Pulse) -> Option<f64> {
         left = (j - 1) as f64 + (half - v(j - 1)) / (v(j) - v(j - 1));
     }
     let mut r = k;
-    while r + 1 < raw.len() && v(r + 1) > half {
+    while r + 1 < n && v(r + 1) > half {
         r += 1;
     }
-    let right = if r + 1 < raw.len() {
+    let right = if r + 1 < n {
         r as f64 + (v(r) - half) / (v(r) - v(r + 1))
     } else {
         r as f64
     };
-    let fwhm = (right - left) * p.sample_ns;
+    let fwhm = (right - left) * sample_ns;
     (fwhm > 0.0 && fwhm.is_finite()).then_some(fwhm / FWHM_PER_SIGMA)
 }
 

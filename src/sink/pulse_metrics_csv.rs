@@ -116,57 +116,6 @@ impl PulseMetricsCsvSink {
     }
 
     fn row(&mut self, p: &Pulse, m: &WaveformMetrics) {
-        use std::fmt::Write as _;
-        let l = &mut self.line;
-        l.clear();
-        let _ = write!(l, "{},{:.9}", p.pulse_id, p.gps_time);
-        if self.shot_number {
-            let _ = write!(l, ",{}", p.pulse_id);
-        }
-        if m.ground_xyz.iter().all(|v| v.is_finite()) {
-            let [x, y, z] = m.ground_xyz;
-            let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
-        } else {
-            l.push_str(",,,");
-        }
-        let _ = write!(l, ",{}", m.status.as_str());
-        let ok = m.status == MetricsStatus::Ok;
-        let f = |l: &mut String, v: f32, digits: usize| {
-            if ok && v.is_finite() {
-                let _ = write!(l, ",{v:.digits$}");
-            } else {
-                l.push(',');
-            }
-        };
-        f(l, m.canopy_height, 3);
-        for v in m.rh {
-            f(l, v, 3);
-        }
-        f(l, m.energy_10_90_ns, 3);
-        if ok {
-            let _ = write!(l, ",{}", m.modes);
-        } else {
-            l.push(',');
-        }
-        f(l, m.crown_thickness_m, 3);
-        f(l, m.energy_total, 2);
-        f(l, m.energy_ground, 2);
-        f(l, m.energy_canopy, 2);
-        f(l, m.cover, 5);
-        f(l, m.pgap, 5);
-        f(l, m.pai, 5);
-        f(l, m.fhd, 5);
-        for b in 0..self.profile_bins {
-            let v = if b < m.pavd_bins as usize {
-                m.pavd[b]
-            } else {
-                f32::NAN
-            };
-            f(l, v, 6);
-        }
-        f(l, m.ground_sigma_m, 4);
-        f(l, m.ground_skew, 4);
-        f(l, m.energy_lowest_m, 5);
         let [x, y, z] = p.geometry.map_or([f64::NAN; 3], |g| g.at(m.mode_ns));
         let above = match &self.dem {
             Some(dem) if x.is_finite() && y.is_finite() => {
@@ -174,31 +123,112 @@ impl PulseMetricsCsvSink {
             }
             _ => f32::NAN,
         };
-        f(l, above, 4);
-        f(l, m.zenith_deg, 3);
-        f(l, m.noise_mean, 4);
-        f(l, m.noise_sd, 4);
-        f(l, m.smoothing_ns, 3);
-        for v in [m.top_ns, m.ground_ns, m.bottom_ns, m.mode_ns] {
-            if ok && v.is_finite() {
-                let _ = write!(l, ",{v:.3}");
-            } else {
-                l.push(',');
-            }
+        format_row(
+            &mut self.line,
+            p.pulse_id,
+            Some(p.gps_time),
+            self.shot_number,
+            m,
+            self.profile_bins,
+            above,
+        );
+    }
+}
+
+/// Writes one row of `pulse_metrics.csv` (with its newline) into `l`, cleared first: the
+/// columns of [`header`] for `profile_bins` PAVD bins. `gps_time` `None` leaves its cell empty
+/// (inputs without time, `fwlidar process`); `shot_number` repeats `pulse_id` in the GEDI
+/// column; `above_dem` is `ground_above_dem_m` (NaN: empty).
+pub fn format_row(
+    l: &mut String,
+    pulse_id: u64,
+    gps_time: Option<f64>,
+    shot_number: bool,
+    m: &WaveformMetrics,
+    profile_bins: usize,
+    above_dem: f32,
+) {
+    use std::fmt::Write as _;
+    l.clear();
+    match gps_time {
+        Some(t) => {
+            let _ = write!(l, "{pulse_id},{t:.9}");
         }
-        if ok {
-            let _ = write!(l, ",{}", m.ground_from.as_str());
+        None => {
+            let _ = write!(l, "{pulse_id},");
+        }
+    }
+    if shot_number {
+        let _ = write!(l, ",{pulse_id}");
+    }
+    if m.ground_xyz.iter().all(|v| v.is_finite()) {
+        let [x, y, z] = m.ground_xyz;
+        let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
+    } else {
+        l.push_str(",,,");
+    }
+    let _ = write!(l, ",{}", m.status.as_str());
+    let ok = m.status == MetricsStatus::Ok;
+    let f = |l: &mut String, v: f32, digits: usize| {
+        if ok && v.is_finite() {
+            let _ = write!(l, ",{v:.digits$}");
         } else {
             l.push(',');
         }
-        if ok && m.top_xyz.iter().all(|v| v.is_finite()) {
-            let [x, y, z] = m.top_xyz;
-            let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
-        } else {
-            l.push_str(",,,");
-        }
-        l.push('\n');
+    };
+    f(l, m.canopy_height, 3);
+    for v in m.rh {
+        f(l, v, 3);
     }
+    f(l, m.energy_10_90_ns, 3);
+    if ok {
+        let _ = write!(l, ",{}", m.modes);
+    } else {
+        l.push(',');
+    }
+    f(l, m.crown_thickness_m, 3);
+    f(l, m.energy_total, 2);
+    f(l, m.energy_ground, 2);
+    f(l, m.energy_canopy, 2);
+    f(l, m.cover, 5);
+    f(l, m.pgap, 5);
+    f(l, m.pai, 5);
+    f(l, m.fhd, 5);
+    for b in 0..profile_bins {
+        let v = if b < m.pavd_bins as usize {
+            m.pavd[b]
+        } else {
+            f32::NAN
+        };
+        f(l, v, 6);
+    }
+    f(l, m.ground_sigma_m, 4);
+    f(l, m.ground_skew, 4);
+    f(l, m.energy_lowest_m, 5);
+    f(l, above_dem, 4);
+    f(l, m.zenith_deg, 3);
+    f(l, m.noise_mean, 4);
+    f(l, m.noise_sd, 4);
+    f(l, m.smoothing_ns, 3);
+    for v in [m.top_ns, m.ground_ns, m.bottom_ns, m.mode_ns] {
+        if ok && v.is_finite() {
+            let _ = write!(l, ",{v:.3}");
+        } else {
+            l.push(',');
+        }
+    }
+    if ok {
+        let _ = write!(l, ",{}", m.ground_from.as_str());
+    } else {
+        l.push(',');
+    }
+    if ok && m.top_xyz.iter().all(|v| v.is_finite()) {
+        let [x, y, z] = m.top_xyz;
+        let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
+    } else {
+        l.push_str(",,,");
+    }
+    l.push('\n');
 }
 
 impl PulseSink for PulseMetricsCsvSink {
