@@ -17,7 +17,20 @@
 //! geometry, which must be projected (an EPSG code, stated by the input or decided by
 //! georeferencing). Pulses without metrics or geometry are counted, not placed.
 //!
-//! The tiles are kept in memory (20 bytes per cell and band) and written when the run ends.
+//! Tiles are written as the flight leaves them. A tile closes by the voxel tiles' rule
+//! ([`CloseRule`]: `[voxels] close_after_s` of GPS time without a pulse and outside the swath, or
+//! early when `[voxels] max_open_tiles` are open): its COGs are written (atomically) and the VRTs
+//! rewritten (atomically), so a reader sees a valid mosaic of the tiles closed so far during the
+//! flight. The rest close at the end. Closing also saves the tile's per-cell accumulators
+//! (`rasters/accumulators/<chm|metrics>_<ix>_<iy>.cells`, [`CellGrid::save_cells`]: the cells
+//! holding a value); a pulse landing in a closed tile (a later flight line, a late pulse)
+//! reopens it and reads them back exactly, so the final rasters are bit-identical to keeping
+//! every tile to the end. The accumulators are removed when the run ends.
+//!
+//! Memory: at most `max_open_tiles` open tiles (one more while a pulse straddles two), each 20
+//! bytes per cell and grid — (`raster_tile_m`/`chm_cell_m`)² CHM cells plus 10 ×
+//! (`raster_tile_m`/`profile_cell_m`)² profile cells, 22 MB at the defaults — and about 200
+//! bytes per tile written (the VRT lists); nothing grows with the number of pulses.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -128,6 +141,9 @@ pub struct RasterTileStats {
     pub vrt_writes: u64,
     /// Accumulator files written for closed tiles, bytes in all.
     pub accumulator_bytes: u64,
+    /// Time spent closing tiles (COGs, VRTs, accumulators) and reading accumulators back,
+    /// seconds (the lifecycle's cost; placing the pulses is not in it).
+    pub io_s: f64,
 }
 
 /// An open tile: its grids (made at the first pulse of each product) and when a pulse last
@@ -306,6 +322,7 @@ impl MetricsRastersSink {
                 self.chm_written.contains_key(&key),
                 self.metrics_written.contains_key(&key),
             );
+            let started = std::time::Instant::now();
             if chm || metrics {
                 self.stats.reopened += 1;
             }
@@ -330,6 +347,7 @@ impl MetricsRastersSink {
                 }
                 t.profile = Some(grids);
             }
+            self.stats.io_s += started.elapsed().as_secs_f64();
             self.open.insert(key, t);
             self.stats.opened += 1;
             self.stats.peak_open = self.stats.peak_open.max(self.open.len());
@@ -377,6 +395,7 @@ impl MetricsRastersSink {
         let Some(epsg) = self.crs_epsg() else {
             return Ok(());
         };
+        let started = std::time::Instant::now();
         self.ready_dirs()?;
         if let Some(g) = &t.chm {
             let r = chm_raster(g, epsg);
@@ -405,6 +424,7 @@ impl MetricsRastersSink {
                 self.save_accumulators(key, "metrics")?;
             }
         }
+        self.stats.io_s += started.elapsed().as_secs_f64();
         Ok(())
     }
 
@@ -419,6 +439,7 @@ impl MetricsRastersSink {
     /// Rewrites (atomically) the VRTs that lack closed tiles: a reader sees the mosaic of the
     /// tiles closed so far.
     fn write_vrts(&mut self) -> Result<(), RasterError> {
+        let started = std::time::Instant::now();
         if self.chm_vrt_stale && !self.chm_written.is_empty() {
             let tiles: Vec<VrtTile> = self.chm_written.values().cloned().collect();
             write_vrt(&self.dir.join("chm.vrt"), &tiles)?;
@@ -431,6 +452,7 @@ impl MetricsRastersSink {
             self.stats.vrt_writes += 1;
         }
         self.metrics_vrt_stale = false;
+        self.stats.io_s += started.elapsed().as_secs_f64();
         Ok(())
     }
 

@@ -6,7 +6,8 @@
 //! it lies outside the current swath (the bounding box of everything deposited during the last
 //! `close_after_s` to `2·close_after_s`). When `max_open_tiles` are open and another is
 //! needed, the one deposited least recently closes early (counted `closed_early`): memory stays
-//! bounded by `max_open_tiles` tiles whatever the flight's length.
+//! bounded by `max_open_tiles` tiles whatever the flight's length. The rule alone is
+//! [`CloseRule`], which the metrics rasters' tiles follow too (`src/sink/metrics_rasters.rs`).
 
 use std::collections::HashMap;
 
