@@ -428,10 +428,12 @@ impl MetricsRastersSink {
         Ok(())
     }
 
+    /// Writes `self.buf` as the accumulators of tile `key`. Not synced: they serve this run
+    /// only (the next run in the folder clears them), so a crash cannot leave one to be misread.
     fn save_accumulators(&mut self, key: (i64, i64), product: &str) -> Result<(), RasterError> {
         let path = self.accumulators(key, product);
         let buf = &self.buf;
-        crate::raster::write_atomic(&path, |w| std::io::Write::write_all(w, buf))?;
+        std::fs::write(&path, buf).map_err(|e| RasterError::io(&path, e))?;
         self.stats.accumulator_bytes += buf.len() as u64;
         Ok(())
     }
