@@ -778,7 +778,7 @@ mod tests {
         for (k, v) in m.rh.iter_mut().enumerate() {
             *v = h * k as f32 / 100.0;
         }
-        if i % 13 == 0 {
+        if i.is_multiple_of(13) {
             m.rh[50] = f32::NAN;
         }
         Pulse {
