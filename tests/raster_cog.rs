@@ -363,3 +363,100 @@ fn vrt_of_four_cellgrid_tiles_mosaics_them() {
         );
     }
 }
+
+/// The run's metrics rasters while the flight goes on (`MetricsRastersSink`, issue 20 "rasters
+/// as flown"): once the flight has left two tiles, GDAL and rasterio open `chm.vrt` and
+/// `metrics.vrt` as a mosaic of those two, with the canopy heights of the pulses that landed
+/// there; at the end the mosaic spans all three.
+#[test]
+fn the_run_s_mosaic_of_the_tiles_closed_so_far_opens_during_the_flight() {
+    use fwlidar::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+    use fwlidar::pulse::Pulse;
+    use fwlidar::sink::PulseSink;
+    use fwlidar::sink::metrics_rasters::{MetricsRastersSink, RasterCrs, RasterSettings};
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut sink = MetricsRastersSink::new(
+        dir.path(),
+        RasterSettings {
+            chm_cell_m: 1.0,
+            profile_cell_m: 10.0,
+            tile_m: 100.0,
+            close_after_s: 0.5,
+            max_open_tiles: 64,
+        },
+        RasterCrs::Known(Some("EPSG:32618".into())),
+    );
+    // East at 50 m/s over x ∈ [0, 300) m, y ∈ [10, 90) m, a pulse per 0.1 m; canopy heights
+    // vary. The highest in the first two tiles, and the cells they hit.
+    let n = 3000u64;
+    let mut highest = f32::MIN;
+    let mut cells = std::collections::HashSet::new();
+    let vrt = dir.path().join("rasters/chm.vrt");
+    let mut seen_midflight = false;
+    for i in 0..n {
+        let (x, y) = (i as f64 * 0.1, 10.0 + ((i * 37) % 800) as f64 * 0.1);
+        let h = 3.0 + ((i * 7919) % 1000) as f32 / 50.0;
+        let mut m = WaveformMetrics {
+            status: MetricsStatus::Ok,
+            ground_xyz: [x, y, 50.0],
+            ..Default::default()
+        };
+        m.rh = [h; 101];
+        m.canopy_height = h;
+        let p = Pulse {
+            pulse_id: i,
+            gps_time: i as f64 * 0.002,
+            metrics: Some(m),
+            ..Default::default()
+        };
+        sink.write(&p).unwrap();
+        if x < 200.0 {
+            highest = highest.max(h);
+            cells.insert((x.floor() as i64, y.floor() as i64));
+        }
+        // Flying over the third tile, 1.5 s after leaving the second (the rule: 0.5 s idle,
+        // outside the swath of the last 0.5 to 1 s).
+        if i == 2750 {
+            assert_eq!(
+                sink.tile_stats().closed_during_run,
+                2,
+                "{:?}",
+                sink.tile_stats()
+            );
+            seen_midflight = true;
+            if let Some(info) = gdalinfo(&vrt) {
+                assert_eq!(info["size"], serde_json::json!([200, 100]), "{info}");
+                assert_eq!(info["bands"][0]["description"], "canopy_height");
+            }
+            let metrics = dir.path().join("rasters/metrics.vrt");
+            if let Some(info) = gdalinfo(&metrics) {
+                assert_eq!(info["size"], serde_json::json!([20, 10]), "{info}");
+                let bands = info["bands"].as_array().unwrap();
+                assert_eq!(bands.len(), 11);
+                assert_eq!(bands[10]["description"], "pulse_density");
+            }
+            if let Some(py) = rasterio_python() {
+                let script = "import sys, json, numpy as np, rasterio\n\
+                    with rasterio.open(sys.argv[1]) as ds:\n    \
+                    a = ds.read(1)\n    v = a[a != ds.nodata]\n    \
+                    print(json.dumps({'max': float(v.max()), 'cells': int(v.size)}))";
+                let o = Command::new(py)
+                    .args(["-c", script])
+                    .arg(&vrt)
+                    .output()
+                    .unwrap();
+                assert!(o.status.success(), "{}", common::text(&o.stderr));
+                let v: Value = serde_json::from_slice(&o.stdout).unwrap();
+                assert_eq!(v["max"].as_f64().unwrap() as f32, highest, "{v}");
+                assert_eq!(v["cells"].as_u64().unwrap() as usize, cells.len(), "{v}");
+            }
+        }
+    }
+    assert!(seen_midflight);
+    sink.finish().unwrap();
+    if let Some(info) = gdalinfo(&vrt) {
+        assert_eq!(info["size"], serde_json::json!([300, 100]), "{info}");
+    }
+    assert!(!dir.path().join("rasters/accumulators").exists());
+}

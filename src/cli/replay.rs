@@ -310,6 +310,9 @@ fn build_sinks(
                 chm_cell_m: out.chm_cell_m,
                 profile_cell_m: out.profile_cell_m,
                 tile_m: out.raster_tile_m,
+                // Raster tiles close behind the flight by the voxel tiles' rule.
+                close_after_s: config.voxels.close_after_s,
+                max_open_tiles: config.voxels.max_open_tiles,
             },
             crs,
         )));

@@ -251,7 +251,83 @@ impl CellGrid {
         }
         r
     }
+
+    /// Appends the accumulators of the cells holding a value to `out` (a tile closed behind
+    /// the flight keeps them in a file to be read back if it reopens, `src/sink/metrics_rasters.rs`):
+    /// `FWCG`, width, height, the number of such cells (u32 each), then per cell its index
+    /// (row-major), count, finite values (u32), maximum (f32) and sum (f64), little-endian:
+    /// 16 + 24 bytes per cell with a value.
+    pub fn save_cells(&self, out: &mut Vec<u8>) {
+        let used = self.count.iter().filter(|&&c| c > 0).count();
+        out.reserve(16 + 24 * used);
+        out.extend_from_slice(CELLS_MAGIC);
+        for v in [self.width as u32, self.height as u32, used as u32] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        for (i, &c) in self.count.iter().enumerate() {
+            if c == 0 {
+                continue;
+            }
+            out.extend_from_slice(&(i as u32).to_le_bytes());
+            out.extend_from_slice(&c.to_le_bytes());
+            out.extend_from_slice(&self.valid[i].to_le_bytes());
+            out.extend_from_slice(&self.max[i].to_le_bytes());
+            out.extend_from_slice(&self.sum[i].to_le_bytes());
+        }
+    }
+
+    /// Sets the cells [`CellGrid::save_cells`] wrote at the start of `bytes` (read from `file`,
+    /// named in errors) into this grid, which must have the same size; cells not in `bytes`
+    /// keep their values (an empty grid becomes the one saved, exactly). Returns the bytes after
+    /// them. Errors on anything malformed, changing no cell.
+    pub fn load_cells<'a>(
+        &mut self,
+        bytes: &'a [u8],
+        file: &Path,
+    ) -> Result<&'a [u8], RasterError> {
+        let bad = |what: &str| RasterError::invalid(file, format!("cell accumulators: {what}"));
+        let u32_at = |b: &[u8], at: usize| -> Option<u32> {
+            Some(u32::from_le_bytes(b.get(at..at + 4)?.try_into().ok()?))
+        };
+        if bytes.get(..4) != Some(CELLS_MAGIC.as_slice()) {
+            return Err(bad("no FWCG header"));
+        }
+        let (Some(w), Some(h), Some(used)) =
+            (u32_at(bytes, 4), u32_at(bytes, 8), u32_at(bytes, 12))
+        else {
+            return Err(bad("truncated header"));
+        };
+        if (w as usize, h as usize) != (self.width, self.height) {
+            return Err(bad(&format!(
+                "{w} × {h} cells, the grid has {} × {}",
+                self.width, self.height
+            )));
+        }
+        let end = 16usize.saturating_add((used as usize).saturating_mul(24));
+        let Some(cells) = bytes.get(16..end) else {
+            return Err(bad("truncated cells"));
+        };
+        let n = self.count.len();
+        let index = |rec: &[u8]| u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]]) as usize;
+        if let Some(i) = cells.chunks_exact(24).map(index).find(|&i| i >= n) {
+            return Err(bad(&format!("cell {i} outside the {n} cells")));
+        }
+        for rec in cells.chunks_exact(24) {
+            let field = |a: usize| -> [u8; 4] { [rec[a], rec[a + 1], rec[a + 2], rec[a + 3]] };
+            let i = index(rec);
+            self.count[i] = u32::from_le_bytes(field(4));
+            self.valid[i] = u32::from_le_bytes(field(8));
+            self.max[i] = f32::from_le_bytes(field(12));
+            let mut sum = [0u8; 8];
+            sum.copy_from_slice(&rec[16..24]);
+            self.sum[i] = f64::from_le_bytes(sum);
+        }
+        Ok(&bytes[end..])
+    }
 }
+
+/// First bytes of [`CellGrid::save_cells`].
+const CELLS_MAGIC: &[u8; 4] = b"FWCG";
 
 #[cfg(test)]
 mod tests {
@@ -282,6 +358,48 @@ mod tests {
         let r = g.to_raster(32618, -1.0, &[CellStat::Max, CellStat::Count]);
         assert_eq!(r.band_names, ["max", "count"]);
         assert_eq!(r.geotransform(), [100.0, 2.0, 0.0, 200.0, 0.0, -2.0]);
+    }
+
+    #[test]
+    fn saved_cells_load_back_exactly_and_malformed_ones_are_refused() {
+        let mut g = CellGrid::new(0.0, 10.0, 1.0, 4, 3).unwrap();
+        g.add(0.5, 9.5, 0.1);
+        g.add(0.7, 9.2, 0.2);
+        g.add(3.5, 7.5, f32::NAN);
+        let mut bytes = Vec::new();
+        g.save_cells(&mut bytes);
+        assert_eq!(bytes.len(), 16 + 2 * 24, "only the cells with a value");
+        bytes.extend_from_slice(b"rest");
+        let mut back = CellGrid::new(0.0, 10.0, 1.0, 4, 3).unwrap();
+        let rest = back.load_cells(&bytes, Path::new("t")).unwrap();
+        assert_eq!(rest, b"rest");
+        // Adding the same value to both keeps them equal, bit for bit.
+        g.add(0.5, 9.5, 0.3);
+        back.add(0.5, 9.5, 0.3);
+        for stat in [CellStat::Max, CellStat::Mean, CellStat::Count] {
+            let (a, b) = (g.band(stat, -1.0), back.band(stat, -1.0));
+            assert!(
+                a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "{stat:?}"
+            );
+        }
+        assert_eq!(back.sum, g.sum);
+        let mut other = CellGrid::new(0.0, 10.0, 1.0, 3, 4).unwrap();
+        assert!(
+            other.load_cells(&bytes, Path::new("t")).is_err(),
+            "size differs"
+        );
+        assert!(
+            back.load_cells(&bytes[..30], Path::new("t")).is_err(),
+            "truncated"
+        );
+        assert!(back.load_cells(b"FWC", Path::new("t")).is_err());
+        let mut outside = bytes[..16 + 24].to_vec();
+        outside[16..20].copy_from_slice(&99u32.to_le_bytes());
+        assert!(
+            back.load_cells(&outside, Path::new("t")).is_err(),
+            "index outside"
+        );
     }
 
     #[test]

@@ -19,9 +19,22 @@
 //! at their ground position (`x`, `y`), in the CRS of their geometry, which must be projected (an EPSG code, stated by the input or decided by
 //! georeferencing). Pulses without metrics or geometry are counted, not placed.
 //!
-//! The tiles are kept in memory (20 bytes per cell and band) and written when the run ends.
+//! Tiles are written as the flight leaves them. A tile closes by the voxel tiles' rule
+//! ([`CloseRule`]: `[voxels] close_after_s` of GPS time without a pulse and outside the swath, or
+//! early when `[voxels] max_open_tiles` are open): its COGs are written (atomically) and the VRTs
+//! rewritten (atomically), so a reader sees a valid mosaic of the tiles closed so far during the
+//! flight. The rest close at the end. Closing also saves the tile's per-cell accumulators
+//! (`rasters/accumulators/<chm|metrics>_<ix>_<iy>.cells`, [`CellGrid::save_cells`]: the cells
+//! holding a value); a pulse landing in a closed tile (a later flight line, a late pulse)
+//! reopens it and reads them back exactly, so the final rasters are bit-identical to keeping
+//! every tile to the end. The accumulators are removed when the run ends.
+//!
+//! Memory: at most `max_open_tiles` open tiles (one more while a pulse straddles two), each 20
+//! bytes per cell and grid — (`raster_tile_m`/`chm_cell_m`)² CHM cells plus 10 ×
+//! (`raster_tile_m`/`profile_cell_m`)² profile cells, 22 MB at the defaults — and about 200
+//! bytes per tile written (the VRT lists); nothing grows with the number of pulses.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
@@ -32,6 +45,7 @@ use crate::raster::grid::{CellGrid, CellStat};
 use crate::raster::vrt::{VrtTile, write_vrt};
 use crate::raster::{Raster, RasterError};
 use crate::sink::{PulseSink, SinkError};
+use crate::voxel::tiles::CloseRule;
 
 /// Nodata value of the rasters.
 pub const NODATA: f32 = -9999.0;
@@ -85,6 +99,13 @@ pub struct RasterSettings {
     pub profile_cell_m: f64,
     /// Tile side, m (a multiple of both cells).
     pub tile_m: f64,
+    /// A tile closes (its COGs written, the VRTs rewritten) once no pulse has landed in it for
+    /// this long (pulse time, s) and it lies outside the swath: `[voxels] close_after_s`, the
+    /// voxel tiles' rule ([`CloseRule`]). `f64::INFINITY`: every tile at the end of the run.
+    pub close_after_s: f64,
+    /// Tiles open at most; beyond, the one landed in least recently closes early
+    /// (`[voxels] max_open_tiles`).
+    pub max_open_tiles: usize,
 }
 
 /// Where the CRS comes from: stated by the input, or decided by georeferencing during the run.
@@ -109,35 +130,125 @@ pub fn epsg_of(crs: &str) -> Option<u32> {
     digits.parse().ok()
 }
 
+/// Counters of the raster tiles' lifecycle (`summary.json`: `sinks.metrics_rasters.tiles`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct RasterTileStats {
+    /// Tiles opened in memory (a tile holds its CHM and profile grids), reopenings included.
+    pub opened: u64,
+    /// Tiles closed while pulses were still coming: their COGs written and the VRTs rewritten
+    /// then.
+    pub closed_during_run: u64,
+    /// Of those, closed because `max_open_tiles` were open.
+    pub closed_early: u64,
+    /// Tiles closed when the run ended.
+    pub closed_at_end: u64,
+    /// Tiles opened again after closing (a later flight line, or a late pulse), their
+    /// accumulators read back from `rasters/accumulators/`.
+    pub reopened: u64,
+    /// Most tiles open at once.
+    pub peak_open: usize,
+    /// Memory of one open tile's grids, bytes (20 per cell: CHM cells + 10 × profile cells).
+    pub tile_bytes: usize,
+    /// VRT mosaics written (each rewrite counts).
+    pub vrt_writes: u64,
+    /// Accumulator files written for closed tiles, bytes in all.
+    pub accumulator_bytes: u64,
+    /// Time spent closing tiles (COGs, VRTs, accumulators) and reading accumulators back,
+    /// seconds (the lifecycle's cost; placing the pulses is not in it).
+    pub io_s: f64,
+}
+
+/// An open tile: its grids (made at the first pulse of each product) and when a pulse last
+/// landed in it.
+struct OpenTile {
+    chm: Option<CellGrid>,
+    profile: Option<Vec<CellGrid>>,
+    /// Pulse time of the latest pulse placed, GPS seconds.
+    last_s: f64,
+    /// The latest pulse (the sink's count) placed.
+    last_pulse: u64,
+}
+
 /// Writes the metrics rasters.
 pub struct MetricsRastersSink {
     dir: PathBuf,
     settings: RasterSettings,
     crs: RasterCrs,
     epsg: Option<u32>,
-    chm: BTreeMap<(i64, i64), CellGrid>,
-    profile: BTreeMap<(i64, i64), Vec<CellGrid>>,
+    /// Open tiles by number ([`CellGrid::tile_of`]).
+    open: HashMap<(i64, i64), OpenTile>,
+    rule: CloseRule,
+    /// The tiles closed so far (their COGs on disk, listed by the VRTs), per product.
+    chm_written: BTreeMap<(i64, i64), VrtTile>,
+    metrics_written: BTreeMap<(i64, i64), VrtTile>,
+    /// The VRT of the product lists tiles not yet in the file.
+    chm_vrt_stale: bool,
+    metrics_vrt_stale: bool,
+    /// `rasters/` and its subfolders are made (and stale accumulators removed).
+    dirs_ready: bool,
+    bands: Vec<ProfileBand>,
+    stats: RasterTileStats,
     placed: u64,
     without_metrics: u64,
     without_position: u64,
     written: Vec<String>,
+    /// Reused: the tiles to close, the bytes of an accumulator file.
+    idle: Vec<(i64, i64)>,
+    buf: Vec<u8>,
 }
 
 impl MetricsRastersSink {
-    /// Rasters into `out_dir/rasters` (created at the end, when there is something to write).
+    /// Rasters into `out_dir/rasters` (created when the first tile closes).
     pub fn new(out_dir: &Path, settings: RasterSettings, crs: RasterCrs) -> Self {
+        let mut bands: Vec<ProfileBand> = PROFILE_BANDS
+            .iter()
+            .enumerate()
+            .map(|(i, &(name, unit))| ProfileBand {
+                name,
+                unit,
+                grid: i,
+                stat: CellStat::Mean,
+            })
+            .collect();
+        bands.push(ProfileBand {
+            name: "pulse_density",
+            unit: "1/m2",
+            grid: 0,
+            stat: CellStat::Density,
+        });
+        let cells = |c: f64| (settings.tile_m / c).round().max(1.0) as usize;
+        let tile_bytes = 20
+            * (cells(settings.chm_cell_m).pow(2)
+                + PROFILE_BANDS.len() * cells(settings.profile_cell_m).pow(2));
         MetricsRastersSink {
             dir: out_dir.join("rasters"),
             settings,
             crs,
             epsg: None,
-            chm: BTreeMap::new(),
-            profile: BTreeMap::new(),
+            open: HashMap::new(),
+            rule: CloseRule::new(settings.close_after_s),
+            chm_written: BTreeMap::new(),
+            metrics_written: BTreeMap::new(),
+            chm_vrt_stale: false,
+            metrics_vrt_stale: false,
+            dirs_ready: false,
+            bands,
+            stats: RasterTileStats {
+                tile_bytes,
+                ..RasterTileStats::default()
+            },
             placed: 0,
             without_metrics: 0,
             without_position: 0,
             written: Vec::new(),
+            idle: Vec::new(),
+            buf: Vec::new(),
         }
+    }
+
+    /// The lifecycle's counters so far.
+    pub fn tile_stats(&self) -> &RasterTileStats {
+        &self.stats
     }
 
     /// The EPSG code of the pulses' CRS, when it is one we can project with (a code found in a
@@ -158,7 +269,7 @@ impl MetricsRastersSink {
         (self.settings.tile_m / cell).round().max(1.0) as usize
     }
 
-    fn place(&mut self, m: &WaveformMetrics) -> Result<(), RasterError> {
+    fn place(&mut self, m: &WaveformMetrics, now_s: f64) -> Result<(), RasterError> {
         let [x, y, _] = m.ground_xyz;
         let s = self.settings;
         let n = self.cells(s.chm_cell_m);
@@ -166,23 +277,25 @@ impl MetricsRastersSink {
         // the ground point: the angular rectification); the profiles at the ground point.
         let [cx, cy] = chm_position(m);
         let key = CellGrid::tile_of(cx, cy, n, s.chm_cell_m);
-        let g = match self.chm.entry(key) {
-            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::btree_map::Entry::Vacant(e) => {
-                e.insert(CellGrid::for_tile(key.0, key.1, n, s.chm_cell_m)?)
-            }
+        let t = self.open_tile(key, now_s)?;
+        let g = match &mut t.chm {
+            Some(g) => g,
+            None => t
+                .chm
+                .insert(CellGrid::for_tile(key.0, key.1, n, s.chm_cell_m)?),
         };
         g.add(cx, cy, m.canopy_height);
         let n = self.cells(s.profile_cell_m);
         let key = CellGrid::tile_of(x, y, n, s.profile_cell_m);
-        let grids = match self.profile.entry(key) {
-            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::btree_map::Entry::Vacant(e) => {
+        let t = self.open_tile(key, now_s)?;
+        let grids = match &mut t.profile {
+            Some(g) => g,
+            None => {
                 let mut grids = Vec::with_capacity(PROFILE_BANDS.len());
                 for _ in 0..PROFILE_BANDS.len() {
                     grids.push(CellGrid::for_tile(key.0, key.1, n, s.profile_cell_m)?);
                 }
-                e.insert(grids)
+                t.profile.insert(grids)
             }
         };
         for (g, v) in grids.iter_mut().zip(profile_values(m)) {
@@ -192,36 +305,285 @@ impl MetricsRastersSink {
         Ok(())
     }
 
-    fn write_all(&mut self) -> Result<(), RasterError> {
+    /// The open tile `key`, noting the pulse (`self.placed`, at `now_s`) in it; opening it
+    /// (closing the tile landed in least recently when `max_open_tiles` are open) and reading
+    /// back what it held when it closed before.
+    fn open_tile(&mut self, key: (i64, i64), now_s: f64) -> Result<&mut OpenTile, RasterError> {
+        self.rule.touched([key.0, key.1]);
+        let pulse = self.placed;
+        if !self.open.contains_key(&key) {
+            if self.open.len() >= self.settings.max_open_tiles.max(1) {
+                // Not a tile this pulse has landed in (the bound gives way by one then).
+                let oldest = self
+                    .open
+                    .iter()
+                    .filter(|(_, t)| t.last_pulse < pulse)
+                    .min_by(|a, b| a.1.last_s.total_cmp(&b.1.last_s).then(a.0.cmp(b.0)))
+                    .map(|(k, _)| *k);
+                if let Some(k) = oldest {
+                    self.close_tile(k, true)?;
+                    self.stats.closed_early += 1;
+                    self.stats.closed_during_run += 1;
+                    self.write_vrts()?;
+                }
+            }
+            let mut t = OpenTile {
+                chm: None,
+                profile: None,
+                last_s: now_s,
+                last_pulse: pulse,
+            };
+            let (chm, metrics) = (
+                self.chm_written.contains_key(&key),
+                self.metrics_written.contains_key(&key),
+            );
+            let started = std::time::Instant::now();
+            if chm || metrics {
+                self.stats.reopened += 1;
+            }
+            if chm {
+                let n = self.cells(self.settings.chm_cell_m);
+                let mut g = CellGrid::for_tile(key.0, key.1, n, self.settings.chm_cell_m)?;
+                let path = self.accumulators(key, "chm");
+                let bytes = std::fs::read(&path).map_err(|e| RasterError::io(&path, e))?;
+                g.load_cells(&bytes, &path)?;
+                t.chm = Some(g);
+            }
+            if metrics {
+                let n = self.cells(self.settings.profile_cell_m);
+                let path = self.accumulators(key, "metrics");
+                let bytes = std::fs::read(&path).map_err(|e| RasterError::io(&path, e))?;
+                let mut rest = bytes.as_slice();
+                let mut grids = Vec::with_capacity(PROFILE_BANDS.len());
+                for _ in 0..PROFILE_BANDS.len() {
+                    let mut g = CellGrid::for_tile(key.0, key.1, n, self.settings.profile_cell_m)?;
+                    rest = g.load_cells(rest, &path)?;
+                    grids.push(g);
+                }
+                t.profile = Some(grids);
+            }
+            self.stats.io_s += started.elapsed().as_secs_f64();
+            self.open.insert(key, t);
+            self.stats.opened += 1;
+            self.stats.peak_open = self.stats.peak_open.max(self.open.len());
+        }
+        let t = self
+            .open
+            .get_mut(&key)
+            .ok_or_else(|| RasterError::invalid(&self.dir, "an open tile went missing"))?;
+        t.last_s = now_s;
+        t.last_pulse = pulse;
+        Ok(t)
+    }
+
+    /// The accumulator file of tile `key` of `product` (`chm` or `metrics`).
+    fn accumulators(&self, key: (i64, i64), product: &str) -> PathBuf {
+        self.dir
+            .join("accumulators")
+            .join(format!("{product}_{}_{}.cells", key.0, key.1))
+    }
+
+    /// Makes `rasters/chm`, `rasters/metrics` and an empty `rasters/accumulators` (those of an
+    /// earlier run in the same folder are not this run's).
+    fn ready_dirs(&mut self) -> Result<(), RasterError> {
+        if self.dirs_ready {
+            return Ok(());
+        }
+        let acc = self.dir.join("accumulators");
+        if acc.exists() {
+            std::fs::remove_dir_all(&acc).map_err(|e| RasterError::io(&acc, e))?;
+        }
+        for d in [self.dir.join("chm"), self.dir.join("metrics"), acc] {
+            std::fs::create_dir_all(&d).map_err(|e| RasterError::io(&d, e))?;
+        }
+        self.dirs_ready = true;
+        Ok(())
+    }
+
+    /// Writes the COGs of tile `key` and frees it; with `keep`, also its accumulators, for the
+    /// tile to reopen exactly (not at the end of the run). The VRTs are rewritten by
+    /// [`Self::write_vrts`].
+    fn close_tile(&mut self, key: (i64, i64), keep: bool) -> Result<(), RasterError> {
+        let Some(t) = self.open.remove(&key) else {
+            return Ok(());
+        };
         let Some(epsg) = self.crs_epsg() else {
             return Ok(());
         };
-        if self.chm.is_empty() {
-            return Ok(());
+        let started = std::time::Instant::now();
+        self.ready_dirs()?;
+        if let Some(g) = &t.chm {
+            let r = chm_raster(g, epsg);
+            let path = tile_path(&self.dir, "chm", key);
+            write_cog(&path, &r, &cog_options())?;
+            self.chm_written.insert(key, VrtTile::of(&path, &r));
+            self.chm_vrt_stale = true;
+            if keep {
+                self.buf.clear();
+                g.save_cells(&mut self.buf);
+                self.save_accumulators(key, "chm")?;
+            }
         }
-        let mut bands: Vec<ProfileBand> = PROFILE_BANDS
-            .iter()
-            .enumerate()
-            .map(|(i, &(name, unit))| ProfileBand {
-                name,
-                unit,
-                grid: i,
-                stat: CellStat::Mean,
-            })
-            .collect();
-        bands.push(ProfileBand {
-            name: "pulse_density",
-            unit: "1/m2",
-            grid: 0,
-            stat: CellStat::Density,
-        });
-        let (chm, metrics) = write_rasters(&self.dir, epsg, &self.chm, &self.profile, &bands)?;
-        self.written = vec![
-            format!("rasters/chm.vrt ({chm} tiles)"),
-            format!("rasters/metrics.vrt ({metrics} tiles)"),
-        ];
+        if let Some(grids) = &t.profile {
+            let vrt = self.dir.join("metrics.vrt");
+            let r = metrics_raster(grids, &self.bands, epsg, &vrt)?;
+            let path = tile_path(&self.dir, "metrics", key);
+            write_cog(&path, &r, &cog_options())?;
+            self.metrics_written.insert(key, VrtTile::of(&path, &r));
+            self.metrics_vrt_stale = true;
+            if keep {
+                self.buf.clear();
+                for g in grids {
+                    g.save_cells(&mut self.buf);
+                }
+                self.save_accumulators(key, "metrics")?;
+            }
+        }
+        self.stats.io_s += started.elapsed().as_secs_f64();
         Ok(())
     }
+
+    /// Writes `self.buf` as the accumulators of tile `key`. Not synced: they serve this run
+    /// only (the next run in the folder clears them), so a crash cannot leave one to be misread.
+    fn save_accumulators(&mut self, key: (i64, i64), product: &str) -> Result<(), RasterError> {
+        let path = self.accumulators(key, product);
+        let buf = &self.buf;
+        std::fs::write(&path, buf).map_err(|e| RasterError::io(&path, e))?;
+        self.stats.accumulator_bytes += buf.len() as u64;
+        Ok(())
+    }
+
+    /// Rewrites (atomically) the VRTs that lack closed tiles: a reader sees the mosaic of the
+    /// tiles closed so far.
+    fn write_vrts(&mut self) -> Result<(), RasterError> {
+        let started = std::time::Instant::now();
+        if self.chm_vrt_stale && !self.chm_written.is_empty() {
+            let tiles: Vec<VrtTile> = self.chm_written.values().cloned().collect();
+            write_vrt(&self.dir.join("chm.vrt"), &tiles)?;
+            self.stats.vrt_writes += 1;
+        }
+        self.chm_vrt_stale = false;
+        if self.metrics_vrt_stale && !self.metrics_written.is_empty() {
+            let tiles: Vec<VrtTile> = self.metrics_written.values().cloned().collect();
+            write_vrt(&self.dir.join("metrics.vrt"), &tiles)?;
+            self.stats.vrt_writes += 1;
+        }
+        self.metrics_vrt_stale = false;
+        self.stats.io_s += started.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Closes the tiles the flight has left (the voxel tiles' rule, [`CloseRule`]), given the
+    /// time of the pulse about to be placed.
+    fn close_idle(&mut self, now_s: f64) -> Result<(), RasterError> {
+        let Some(swath) = self.rule.due(now_s) else {
+            return Ok(());
+        };
+        let mut idle = std::mem::take(&mut self.idle);
+        idle.clear();
+        for (k, t) in &self.open {
+            if self.rule.closes(&swath, [k.0, k.1], t.last_s, now_s) {
+                idle.push(*k);
+            }
+        }
+        // Deterministic order (the files do not depend on it; the order they appear does).
+        idle.sort_unstable();
+        let mut result = Ok(());
+        for &k in &idle {
+            result = self.close_tile(k, true);
+            if result.is_err() {
+                break;
+            }
+            self.stats.closed_during_run += 1;
+        }
+        if result.is_ok() && !idle.is_empty() {
+            result = self.write_vrts();
+        }
+        self.idle = idle;
+        result
+    }
+
+    /// Closes every open tile, rewrites the VRTs and removes the accumulators (end of the run).
+    fn close_all(&mut self) -> Result<(), RasterError> {
+        let mut keys: Vec<(i64, i64)> = self.open.keys().copied().collect();
+        keys.sort_unstable();
+        for k in keys {
+            self.close_tile(k, false)?;
+            self.stats.closed_at_end += 1;
+        }
+        self.write_vrts()?;
+        let acc = self.dir.join("accumulators");
+        if self.dirs_ready && acc.exists() {
+            std::fs::remove_dir_all(&acc).map_err(|e| RasterError::io(&acc, e))?;
+        }
+        if !self.chm_written.is_empty() {
+            self.written = vec![
+                format!("rasters/chm.vrt ({} tiles)", self.chm_written.len()),
+                format!("rasters/metrics.vrt ({} tiles)", self.metrics_written.len()),
+            ];
+        }
+        Ok(())
+    }
+}
+
+/// The COG options of the rasters: DEFLATE level 1 (the run's pace; the predictor does most of
+/// the work).
+fn cog_options() -> CogOptions {
+    CogOptions {
+        deflate_level: 1,
+        ..CogOptions::default()
+    }
+}
+
+/// `dir/<product>/<product>_<ix>_<iy>.tif`.
+fn tile_path(dir: &Path, product: &str, key: (i64, i64)) -> PathBuf {
+    dir.join(product)
+        .join(format!("{product}_{}_{}.tif", key.0, key.1))
+}
+
+/// The CHM tile of a grid: band `canopy_height` (m), the per-cell maximum.
+fn chm_raster(g: &CellGrid, epsg: u32) -> Raster {
+    let mut r = g.to_raster(epsg, NODATA, &[CellStat::Max]);
+    r.band_names[0] = "canopy_height".into();
+    r.band_units[0] = "m".into();
+    r
+}
+
+/// The metrics tile of a tile's grids: one band per [`ProfileBand`] (`vrt` names errors).
+fn metrics_raster(
+    grids: &[CellGrid],
+    bands: &[ProfileBand],
+    epsg: u32,
+    vrt: &Path,
+) -> Result<Raster, RasterError> {
+    let g0 = grids
+        .first()
+        .ok_or_else(|| RasterError::invalid(vrt, "a tile without grids"))?;
+    let (ox, oy) = g0.origin();
+    let mut r = Raster::new(
+        g0.width(),
+        g0.height(),
+        ox,
+        oy,
+        g0.cell_size(),
+        epsg,
+        NODATA,
+    );
+    for b in bands {
+        let g = grids.get(b.grid).ok_or_else(|| {
+            RasterError::invalid(
+                vrt,
+                format!(
+                    "band {} reads grid {}, the tile has {}",
+                    b.name,
+                    b.grid,
+                    grids.len()
+                ),
+            )
+        })?;
+        r.push_band(b.name, b.unit, g.band(b.stat, NODATA));
+    }
+    Ok(r)
 }
 
 /// One band of the profile-resolution raster: its name and unit, which of a tile's
@@ -251,24 +613,15 @@ pub fn write_rasters(
     profile: &BTreeMap<(i64, i64), Vec<CellGrid>>,
     bands: &[ProfileBand],
 ) -> Result<(usize, usize), RasterError> {
-    let opt = CogOptions {
-        deflate_level: 1,
-        ..CogOptions::default()
-    };
-    let io = |e: std::io::Error, p: &Path| RasterError::Io {
-        file: p.display().to_string(),
-        source: e,
-    };
+    let opt = cog_options();
     for sub in ["chm", "metrics"] {
         let d = dir.join(sub);
-        std::fs::create_dir_all(&d).map_err(|e| io(e, &d))?;
+        std::fs::create_dir_all(&d).map_err(|e| RasterError::io(&d, e))?;
     }
     let mut chm_tiles = Vec::new();
-    for (&(ix, iy), g) in chm {
-        let mut r = g.to_raster(epsg, NODATA, &[CellStat::Max]);
-        r.band_names[0] = "canopy_height".into();
-        r.band_units[0] = "m".into();
-        let path = dir.join("chm").join(format!("chm_{ix}_{iy}.tif"));
+    for (&key, g) in chm {
+        let r = chm_raster(g, epsg);
+        let path = tile_path(dir, "chm", key);
         write_cog(&path, &r, &opt)?;
         chm_tiles.push(VrtTile::of(&path, &r));
     }
@@ -276,38 +629,15 @@ pub fn write_rasters(
         write_vrt(&dir.join("chm.vrt"), &chm_tiles)?;
     }
     let mut tiles = Vec::new();
-    for (&(ix, iy), grids) in profile {
-        let g0 = &grids[0];
-        let (ox, oy) = g0.origin();
-        let mut r = Raster::new(
-            g0.width(),
-            g0.height(),
-            ox,
-            oy,
-            g0.cell_size(),
-            epsg,
-            NODATA,
-        );
-        for b in bands {
-            let g = grids.get(b.grid).ok_or_else(|| {
-                RasterError::invalid(
-                    &dir.join("metrics.vrt"),
-                    format!(
-                        "band {} reads grid {}, the tile has {}",
-                        b.name,
-                        b.grid,
-                        grids.len()
-                    ),
-                )
-            })?;
-            r.push_band(b.name, b.unit, g.band(b.stat, NODATA));
-        }
-        let path = dir.join("metrics").join(format!("metrics_{ix}_{iy}.tif"));
+    let vrt = dir.join("metrics.vrt");
+    for (&key, grids) in profile {
+        let r = metrics_raster(grids, bands, epsg, &vrt)?;
+        let path = tile_path(dir, "metrics", key);
         write_cog(&path, &r, &opt)?;
         tiles.push(VrtTile::of(&path, &r));
     }
     if !tiles.is_empty() {
-        write_vrt(&dir.join("metrics.vrt"), &tiles)?;
+        write_vrt(&vrt, &tiles)?;
     }
     Ok((chm_tiles.len(), tiles.len()))
 }
@@ -325,6 +655,9 @@ impl PulseSink for MetricsRastersSink {
     }
 
     fn write(&mut self, p: &Pulse) -> Result<(), SinkError> {
+        if !self.open.is_empty() {
+            self.close_idle(p.gps_time).map_err(sink_error)?;
+        }
         let Some(m) = p.metrics.as_ref().filter(|m| m.status == MetricsStatus::Ok) else {
             self.without_metrics += 1;
             return Ok(());
@@ -334,7 +667,7 @@ impl PulseSink for MetricsRastersSink {
             return Ok(());
         }
         let m = *m;
-        self.place(&m).map_err(sink_error)
+        self.place(&m, p.gps_time).map_err(sink_error)
     }
 
     fn flush(&mut self) -> Result<(), SinkError> {
@@ -349,7 +682,7 @@ impl PulseSink for MetricsRastersSink {
                  [georeference] output_epsg, or the input's CRS); pulse_metrics.csv has them"
             );
         }
-        self.write_all().map_err(sink_error)
+        self.close_all().map_err(sink_error)
     }
 
     fn report(&self) -> serde_json::Value {
@@ -361,6 +694,9 @@ impl PulseSink for MetricsRastersSink {
             "chm_cell_m": self.settings.chm_cell_m,
             "profile_cell_m": self.settings.profile_cell_m,
             "written": self.written,
+            "close_after_s": self.settings.close_after_s,
+            "max_open_tiles": self.settings.max_open_tiles,
+            "tiles": self.stats,
         })
     }
 }
@@ -387,18 +723,24 @@ mod tests {
         assert_eq!(epsg_of("LOCAL_CS[\"x\"]"), None);
     }
 
+    fn settings(close_after_s: f64, max_open_tiles: usize) -> RasterSettings {
+        RasterSettings {
+            chm_cell_m: 1.0,
+            profile_cell_m: 10.0,
+            tile_m: 100.0,
+            close_after_s,
+            max_open_tiles,
+        }
+    }
+
+    fn sink(dir: &Path, settings: RasterSettings) -> MetricsRastersSink {
+        MetricsRastersSink::new(dir, settings, RasterCrs::Known(Some("EPSG:32618".into())))
+    }
+
     #[test]
     fn pulses_land_in_their_cells_and_tiles_are_written() {
         let dir = tempfile::tempdir().unwrap();
-        let mut sink = MetricsRastersSink::new(
-            dir.path(),
-            RasterSettings {
-                chm_cell_m: 1.0,
-                profile_cell_m: 10.0,
-                tile_m: 100.0,
-            },
-            RasterCrs::Known(Some("EPSG:32618".into())),
-        );
+        let mut sink = sink(dir.path(), settings(2.0, 64));
         let mut p = Pulse::default();
         // The last pulse met its canopy top 3 m east of its ground point (off nadir).
         for (i, (x, y, h, dx)) in [
@@ -425,20 +767,171 @@ mod tests {
         }
         p.metrics = None;
         sink.write(&p).unwrap();
-        sink.finish().unwrap();
-        let r = sink.report();
-        assert_eq!(r["pulses_placed"], 4);
-        assert_eq!(r["without_metrics"], 1);
-        let d = dir.path().join("rasters");
-        assert!(d.join("chm/chm_0_0.tif").exists() && d.join("chm/chm_1_0.tif").exists());
-        assert!(d.join("metrics/metrics_0_0.tif").exists() && d.join("chm.vrt").exists());
         // The CHM cell holding the two first pulses keeps the higher.
-        let g = &sink.chm[&(0, 0)];
+        let g = sink.open[&(0, 0)].chm.as_ref().unwrap();
         let band = g.band(CellStat::Max, NODATA);
         let (col, row) = g.cell_of(5.5, 5.5).unwrap();
         assert_eq!(band[row * g.width() + col], 14.0);
         // The off-nadir pulse's height stands where its beam met the canopy top.
         let (col, row) = g.cell_of(8.5, 5.5).unwrap();
         assert_eq!(band[row * g.width() + col], 20.0);
+        sink.finish().unwrap();
+        let r = sink.report();
+        assert_eq!(r["pulses_placed"], 4);
+        assert_eq!(r["without_metrics"], 1);
+        assert_eq!(r["tiles"]["closed_at_end"], 2, "{r}");
+        assert_eq!(r["tiles"]["closed_during_run"], 0, "{r}");
+        let d = dir.path().join("rasters");
+        assert!(d.join("chm/chm_0_0.tif").exists() && d.join("chm/chm_1_0.tif").exists());
+        assert!(d.join("metrics/metrics_0_0.tif").exists() && d.join("chm.vrt").exists());
+        assert!(!d.join("accumulators").exists(), "removed at the end");
+    }
+
+    /// Pulse `i` of a synthetic flight at time `t` with its ground at (x, y): heights and the
+    /// other metrics vary from pulse to pulse (some RH50 NaN).
+    fn flight_pulse(i: u64, t: f64, x: f64, y: f64) -> Pulse {
+        let h = 5.0 + ((i * 7919) % 1000) as f32 / 97.0;
+        let mut m = WaveformMetrics {
+            status: MetricsStatus::Ok,
+            ground_xyz: [x, y, 100.0],
+            cover: (i % 10) as f32 / 10.0 + 0.05,
+            pai: h / 7.0,
+            fhd: (i % 7) as f32 / 3.0,
+            ground_sigma_m: 0.3 + (i % 5) as f32 * 0.01,
+            energy_lowest_m: 0.1,
+            ..Default::default()
+        };
+        for (k, v) in m.rh.iter_mut().enumerate() {
+            *v = h * k as f32 / 100.0;
+        }
+        m.canopy_height = m.rh[100];
+        if i.is_multiple_of(13) {
+            m.rh[50] = f32::NAN;
+        }
+        Pulse {
+            pulse_id: i,
+            gps_time: t,
+            metrics: Some(m),
+            ..Default::default()
+        }
+    }
+
+    /// Two passes at 50 m/s over x ∈ [0, 400) m (4 tiles of 100 m), y ∈ [20, 80) m: east, then
+    /// 10 s later back west 3 m further north; the first pass's pulses and the second's.
+    fn flight() -> (Vec<Pulse>, Vec<Pulse>) {
+        let n = 4000u64;
+        let one = (0..n)
+            .map(|i| {
+                let y = 20.0 + ((i * 37) % 600) as f64 * 0.1;
+                flight_pulse(i, i as f64 * 0.002, i as f64 * 0.1, y)
+            })
+            .collect();
+        let two = (0..n)
+            .map(|i| {
+                let y = 23.0 + ((i * 53) % 570) as f64 * 0.1;
+                flight_pulse(n + i, 18.0 + i as f64 * 0.002, 399.95 - i as f64 * 0.1, y)
+            })
+            .collect();
+        (one, two)
+    }
+
+    /// Every file under `dir`, by path relative to it, with its bytes.
+    fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+        let mut out = BTreeMap::new();
+        let mut todo = vec![dir.to_path_buf()];
+        while let Some(d) = todo.pop() {
+            for e in std::fs::read_dir(&d).unwrap() {
+                let p = e.unwrap().path();
+                if p.is_dir() {
+                    todo.push(p);
+                } else {
+                    let rel = p.strip_prefix(dir).unwrap().to_path_buf();
+                    out.insert(rel, std::fs::read(&p).unwrap());
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn tiles_close_behind_the_flight_and_the_rasters_equal_keeping_all_to_the_end() {
+        let (one, two) = flight();
+        // Reference: nothing closes before the end.
+        let all = tempfile::tempdir().unwrap();
+        let mut kept = sink(all.path(), settings(f64::INFINITY, usize::MAX));
+        for p in one.iter().chain(&two) {
+            kept.write(p).unwrap();
+        }
+        assert!(
+            !all.path().join("rasters").exists(),
+            "nothing written before the end"
+        );
+        kept.finish().unwrap();
+        let s = kept.tile_stats();
+        assert_eq!(
+            (s.closed_during_run, s.closed_at_end, s.reopened),
+            (0, 4, 0)
+        );
+        let expected = files(&all.path().join("rasters"));
+        assert_eq!(
+            expected.len(),
+            2 * 4 + 2,
+            "4 tiles of each product and two VRTs"
+        );
+
+        // Closing behind the flight (0.5 s), and closing early by the cap (one tile open).
+        for (close_after_s, max_open) in [(0.5, 64), (f64::INFINITY, 1), (0.5, 2)] {
+            let dir = tempfile::tempdir().unwrap();
+            let mut flown = sink(dir.path(), settings(close_after_s, max_open));
+            for p in &one {
+                flown.write(p).unwrap();
+            }
+            let d = dir.path().join("rasters");
+            // The tiles the first pass left are on disk, with mosaics of them, before the end.
+            let vrt = std::fs::read_to_string(d.join("chm.vrt")).unwrap();
+            for ix in 0..3 {
+                assert!(d.join(format!("chm/chm_{ix}_0.tif")).exists());
+                assert!(d.join(format!("metrics/metrics_{ix}_0.tif")).exists());
+                assert!(vrt.contains(&format!("chm_{ix}_0.tif")), "{vrt}");
+            }
+            assert!(d.join("metrics.vrt").exists());
+            assert!(
+                flown.open.len() <= max_open,
+                "{} tiles open, at most {max_open}",
+                flown.open.len()
+            );
+            let closed = flown.tile_stats().closed_during_run;
+            assert!(closed >= 3, "{closed} closed during the first pass");
+            for p in &two {
+                flown.write(p).unwrap();
+            }
+            assert!(flown.tile_stats().reopened >= 3, "{:?}", flown.tile_stats());
+            flown.finish().unwrap();
+            let s = flown.tile_stats().clone();
+            assert!(s.peak_open <= max_open, "{s:?}");
+            if max_open == 1 {
+                assert!(s.closed_early > 0, "{s:?}");
+            }
+            let got = files(&d);
+            assert_eq!(
+                got.keys().collect::<Vec<_>>(),
+                expected.keys().collect::<Vec<_>>(),
+                "{close_after_s} s, {max_open} open"
+            );
+            for (k, v) in &expected {
+                assert!(
+                    got[k] == *v,
+                    "{} differs ({close_after_s} s, {max_open} open)",
+                    k.display()
+                );
+            }
+            let r = flown.report();
+            assert_eq!(
+                r["tiles"]["closed_during_run"].as_u64().unwrap()
+                    + r["tiles"]["closed_at_end"].as_u64().unwrap(),
+                r["tiles"]["opened"].as_u64().unwrap(),
+                "{r}"
+            );
+        }
     }
 }

@@ -84,7 +84,8 @@ pub struct VoxelConfig {
     #[serde(default = "default_auto_extent")]
     pub auto_extent_m: f64,
     /// Tiles held in memory at most; beyond, the tile deposited least recently is closed early
-    /// (and merged again if touched later). Default 64.
+    /// (and merged again if touched later). Default 64. The metrics rasters' tiles follow this
+    /// and `close_after_s` too (`src/sink/metrics_rasters.rs`).
     #[serde(default = "default_max_open")]
     pub max_open_tiles: usize,
     /// A tile closes when no bin has been deposited in it for this long (pulse time, seconds)

@@ -6,7 +6,8 @@
 //! it lies outside the current swath (the bounding box of everything deposited during the last
 //! `close_after_s` to `2·close_after_s`). When `max_open_tiles` are open and another is
 //! needed, the one deposited least recently closes early (counted `closed_early`): memory stays
-//! bounded by `max_open_tiles` tiles whatever the flight's length.
+//! bounded by `max_open_tiles` tiles whatever the flight's length. The rule alone is
+//! [`CloseRule`], which the metrics rasters' tiles follow too (`src/sink/metrics_rasters.rs`).
 
 use std::collections::HashMap;
 
@@ -97,6 +98,83 @@ impl Drop for Writer {
     }
 }
 
+/// The closing rule of [`TileSet`], on its own so that other products tiled behind the flight
+/// close by the same rule (the metrics rasters, `src/sink/metrics_rasters.rs`): a tile closes
+/// when nothing has been deposited in it for `close_after_s` of pulse time and it lies outside
+/// the swath, the bounding box of the tiles deposited in during the last `close_after_s` to
+/// `2·close_after_s`. Tiles are numbered `[ix, iy]` in the caller's tiling.
+#[derive(Clone, Debug)]
+pub struct CloseRule {
+    close_after_s: f64,
+    /// Swath boxes `[cx0, cy0, cx1, cy1]` (tiles) of the current and the previous period.
+    swath: [[i64; 4]; 2],
+    period_end_s: f64,
+    next_check_s: f64,
+}
+
+impl CloseRule {
+    /// The rule closing tiles idle for `close_after_s` seconds of pulse time.
+    pub fn new(close_after_s: f64) -> CloseRule {
+        CloseRule {
+            close_after_s,
+            swath: [EMPTY_BOX; 2],
+            period_end_s: f64::NEG_INFINITY,
+            next_check_s: f64::NEG_INFINITY,
+        }
+    }
+
+    /// Notes a deposit into `tile` (it joins the current swath).
+    #[inline]
+    pub fn touched(&mut self, tile: [i64; 2]) {
+        let b = &mut self.swath[0];
+        b[0] = b[0].min(tile[0]);
+        b[1] = b[1].min(tile[1]);
+        b[2] = b[2].max(tile[0]);
+        b[3] = b[3].max(tile[1]);
+    }
+
+    /// Advances the rule's clock to pulse time `now_s` (GPS seconds). Returns the swath when the
+    /// open tiles are due to be examined (at most eight times per `close_after_s`), `None`
+    /// otherwise or when `now_s` is not finite.
+    pub fn due(&mut self, now_s: f64) -> Option<[i64; 4]> {
+        if !now_s.is_finite() {
+            return None;
+        }
+        if now_s >= self.period_end_s {
+            self.swath[1] = self.swath[0];
+            self.swath[0] = EMPTY_BOX;
+            self.period_end_s = now_s + self.close_after_s;
+        }
+        if now_s < self.next_check_s {
+            return None;
+        }
+        self.next_check_s = now_s + self.close_after_s / 8.0;
+        Some([
+            self.swath[0][0].min(self.swath[1][0]),
+            self.swath[0][1].min(self.swath[1][1]),
+            self.swath[0][2].max(self.swath[1][2]),
+            self.swath[0][3].max(self.swath[1][3]),
+        ])
+    }
+
+    /// Whether `tile`, last deposited in at `last_deposit_s`, closes at `now_s` given the
+    /// `swath` that [`CloseRule::due`] returned.
+    #[inline]
+    pub fn closes(
+        &self,
+        swath: &[i64; 4],
+        tile: [i64; 2],
+        last_deposit_s: f64,
+        now_s: f64,
+    ) -> bool {
+        let inside = tile[0] >= swath[0]
+            && tile[0] <= swath[2]
+            && tile[1] >= swath[1]
+            && tile[1] <= swath[3];
+        now_s - last_deposit_s > self.close_after_s && !inside
+    }
+}
+
 /// Open tiles over a store.
 pub struct TileSet {
     store: ZarrStore,
@@ -104,11 +182,7 @@ pub struct TileSet {
     free: Vec<usize>,
     open: HashMap<[i64; 2], usize>,
     max_open: usize,
-    close_after_s: f64,
-    /// Swath boxes `[cx0, cy0, cx1, cy1]` (tiles) of the current and the previous period.
-    swath: [[i64; 4]; 2],
-    period_end_s: f64,
-    next_check_s: f64,
+    rule: CloseRule,
     stats: TileStats,
     /// Reused list of the slots to close.
     idle: Vec<usize>,
@@ -130,10 +204,7 @@ impl TileSet {
             free: Vec::new(),
             open: HashMap::with_capacity(max_open + 1),
             max_open: max_open.max(1),
-            close_after_s,
-            swath: [EMPTY_BOX; 2],
-            period_end_s: f64::NEG_INFINITY,
-            next_check_s: f64::NEG_INFINITY,
+            rule: CloseRule::new(close_after_s),
             stats: TileStats {
                 chunk_bytes,
                 ..TileStats::default()
@@ -340,12 +411,7 @@ impl TileSet {
     pub fn touched(&mut self, slot: usize, now_s: f64) {
         let s = &mut self.slots[slot];
         s.last_deposit_s = now_s;
-        let t = s.tile;
-        let b = &mut self.swath[0];
-        b[0] = b[0].min(t[0]);
-        b[1] = b[1].min(t[1]);
-        b[2] = b[2].max(t[0]);
-        b[3] = b[3].max(t[1]);
+        self.rule.touched(s.tile);
     }
 
     fn close_slot(&mut self, s: usize, watermark: u64) -> Result<(), StoreError> {
@@ -409,32 +475,17 @@ impl TileSet {
     /// (`seq`, everything before it deposited). Cheap when called per pulse: the open tiles are
     /// examined at most eight times per `close_after_s`.
     pub fn close_idle(&mut self, seq: u64, now_s: f64) -> Result<(), StoreError> {
-        if !now_s.is_finite() {
+        let Some(swath) = self.rule.due(now_s) else {
             return Ok(());
-        }
-        if now_s >= self.period_end_s {
-            self.swath[1] = self.swath[0];
-            self.swath[0] = EMPTY_BOX;
-            self.period_end_s = now_s + self.close_after_s;
-        }
-        if now_s < self.next_check_s {
-            return Ok(());
-        }
-        self.next_check_s = now_s + self.close_after_s / 8.0;
-        let swath = [
-            self.swath[0][0].min(self.swath[1][0]),
-            self.swath[0][1].min(self.swath[1][1]),
-            self.swath[0][2].max(self.swath[1][2]),
-            self.swath[0][3].max(self.swath[1][3]),
-        ];
+        };
         let mut idle = std::mem::take(&mut self.idle);
         idle.clear();
         for &s in self.open.values() {
             let slot = &self.slots[s];
-            let t = slot.tile;
-            let inside =
-                t[0] >= swath[0] && t[0] <= swath[2] && t[1] >= swath[1] && t[1] <= swath[3];
-            if now_s - slot.last_deposit_s > self.close_after_s && !inside {
+            if self
+                .rule
+                .closes(&swath, slot.tile, slot.last_deposit_s, now_s)
+            {
                 idle.push(s);
             }
         }
