@@ -1,6 +1,6 @@
 """Tree heights and crown thickness of replays of the tree plot against the scene's trees.
 
-Usage: tree_heights.py TREES.csv LABEL=RUN_DIR [LABEL=RUN_DIR ...] > result.json
+Usage: tree_heights.py [--extent SIDE_M] TREES.csv LABEL=RUN_DIR [LABEL=RUN_DIR ...] > result.json
 
 TREES.csv is `fwlidar simulate`'s `<stem>.trees.csv` (every tree's stem position in the
 replay's UTM, height, crown shape, base and radius). Each RUN_DIR is a replay output with
@@ -14,6 +14,9 @@ Per tree and run:
 - crown thickness: the median `crown_thickness_m` of the pulses whose canopy top lies within
   half the crown radius of the stem, and the crown envelope's median vertical extent at those
   pulses (ellipsoid 2a sqrt(1 - r^2/R^2), cone (H - base)(1 - r/R)).
+Only trees whose top is seen are scored (`visible`): the stem inside the scanned area (the
+first rows of `--extent` below) and the apex not under a taller neighbour's crown; the others are
+listed with `visible: false`.
 Prints one JSON object: {label: {"trees": [...], "median_abs_chm": ..., ...}}.
 """
 import json
@@ -36,6 +39,31 @@ def envelope_thickness(t, r):
     return depth * np.sqrt(1.0 - rr * rr)
 
 
+def crown_top_at(o, d):
+    """Height of tree o's crown envelope top at horizontal distance d from its stem (NaN outside)."""
+    if d >= o.crown_radius_m:
+        return float("nan")
+    rr = d / o.crown_radius_m
+    if o.crown_shape == "cone":
+        return o.height_m - (o.height_m - o.crown_base_m) * rr
+    if o.crown_shape == "cylinder":
+        return o.height_m
+    a = 0.5 * (o.height_m - o.crown_base_m)
+    return o.crown_base_m + a + a * np.sqrt(1.0 - rr * rr)
+
+
+def visible(trees, t, half_extent):
+    if max(abs(t.scene_x), abs(t.scene_y)) > half_extent:
+        return False
+    for o in trees.itertuples():
+        if o.tree_id == t.tree_id:
+            continue
+        top = crown_top_at(o, np.hypot(o.scene_x - t.scene_x, o.scene_y - t.scene_y))
+        if top == top and top > t.height_m:
+            return False
+    return True
+
+
 def chm_cells(run):
     with rasterio.open(f"{run}/rasters/chm.vrt") as r:
         a = r.read(1, masked=True)
@@ -50,10 +78,28 @@ def highest_within(xs, ys, v, x, y):
     return float(v[sel].max()) if sel.any() else float("nan")
 
 
+def finite_or_null(v):
+    """NaN (no pulse near a tree, no crown pulses) as JSON null."""
+    if isinstance(v, dict):
+        return {k: finite_or_null(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [finite_or_null(x) for x in v]
+    if isinstance(v, float) and v != v:
+        return None
+    return v
+
+
 def main():
-    trees = pd.read_csv(sys.argv[1])
+    args = sys.argv[1:]
+    half_extent = float("inf")
+    if args[0] == "--extent":
+        # Half the side of the scanned square, m in the scene frame, less a margin of 0.5 m.
+        half_extent = float(args[1]) / 2.0 - 0.5
+        args = args[2:]
+    trees = pd.read_csv(args[0])
+    seen = {t.tree_id: visible(trees, t, half_extent) for t in trees.itertuples()}
     out = {}
-    for arg in sys.argv[2:]:
+    for arg in args[1:]:
         label, run = arg.split("=", 1)
         m = pd.read_csv(f"{run}/pulse_metrics.csv")
         m = m[m.status == "ok"]
@@ -71,6 +117,7 @@ def main():
             rows.append(
                 {
                     "tree": int(t.tree_id),
+                    "visible": bool(seen[t.tree_id]),
                     "shape": t.crown_shape,
                     "leaf_area_density": float(t.leaf_area_density),
                     "height_m": float(t.height_m),
@@ -86,7 +133,7 @@ def main():
             )
 
         def med_abs(key):
-            return float(np.nanmedian([abs(x[key]) for x in rows]))
+            return float(np.nanmedian([abs(x[key]) for x in rows if x["visible"]]))
 
         out[label] = {
             "trees": rows,
@@ -94,8 +141,9 @@ def main():
             "median_abs_rectified_m": med_abs("rectified_error_m"),
             "median_abs_unrectified_m": med_abs("unrectified_error_m"),
             "pulses_ok": int(len(m)),
+            "trees_scored": int(sum(x["visible"] for x in rows)),
         }
-    json.dump(out, sys.stdout, indent=1)
+    json.dump(finite_or_null(out), sys.stdout, indent=1)
 
 
 if __name__ == "__main__":
