@@ -4,7 +4,9 @@
 //! - `metrics/gedi_shot`: the 32 real GEDI shots of the fixture (760–823 samples, 6.5 ns
 //!   smoothing), one at a time;
 //! - `metrics/survey_line`: the survey line's mix of raw simulated pulses (1 000, every 4th of
-//!   the first 4 000 of `config/scenes/survey_line.toml`) through the stage as replay runs it.
+//!   the first 4 000 of `config/scenes/survey_line.toml`) through the stage as replay runs it;
+//! - `metrics/survey_line_dem_edge`: the same with `ground = "dem"` (each pulse given a nadir
+//!   geometry that crosses a flat 1 m DEM inside its window) and `top = "leading_edge"`.
 //!
 //! Criterion reports the mean per pulse (throughput); the bench also prints the mean, p50, p99
 //! and p99.9 of single-pulse timings (three passes, `Instant` per pulse) for the tail.
@@ -116,5 +118,61 @@ fn survey_line(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, gedi, survey_line);
+fn survey_line_dem_edge(c: &mut Criterion) {
+    use fwlidar::forest::pulse_metrics::{GroundFrom, RunDem, TopFrom};
+    use fwlidar::pulse::{PulseGeometry, SegmentKind};
+    let half_c = fwlidar::forest::pulse_metrics::HALF_C_M_PER_NS;
+    let pulses: Vec<_> = survey::survey_line_pulses(1000, 4, None)
+        .into_iter()
+        .map(|(mut p, _)| {
+            // Nadir, over (500, 500), the DEM (z = 0) crossed 2/3 into the return window.
+            let ret = p
+                .segments
+                .iter()
+                .find(|s| s.kind == SegmentKind::Return)
+                .copied();
+            if let Some(s) = ret {
+                let t = s.start_ns + 2.0 / 3.0 * s.len as f64 * p.sample_ns;
+                p.geometry = Some(PulseGeometry {
+                    anchor: [500.0, 500.0, t * half_c],
+                    direction: [0.0, 0.0, -half_c],
+                });
+            }
+            p
+        })
+        .collect();
+    let dem = fwlidar::geo::dem::Dem::from_heights(
+        (100, 100),
+        [450.5, 549.5],
+        [1.0, 1.0],
+        None,
+        vec![0.0; 10_000],
+    )
+    .unwrap();
+    let config = MetricsConfig {
+        ground: GroundFrom::Dem,
+        top: TopFrom::LeadingEdge,
+        dem: Some(RunDem(std::sync::Arc::new(dem))),
+        ..MetricsConfig::default()
+    };
+    let mut stage = Metrics::new(config);
+    let mut times = Vec::new();
+    for _ in 0..3 {
+        for p in &pulses {
+            let t0 = Instant::now();
+            black_box(stage.measure(p));
+            times.push(t0.elapsed().as_nanos() as u64);
+        }
+    }
+    tail("metrics/survey_line_dem_edge", times);
+    let mut i = 0;
+    c.bench_function("metrics/survey_line_dem_edge", |b| {
+        b.iter(|| {
+            i += 1;
+            black_box(stage.measure(&pulses[i % pulses.len()]))
+        })
+    });
+}
+
+criterion_group!(benches, gedi, survey_line, survey_line_dem_edge);
 criterion_main!(benches);
