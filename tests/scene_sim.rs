@@ -390,3 +390,89 @@ fn the_experiment_matrix_runs_every_combination() {
             .contains("| 16 | 20 | 90 |")
     );
 }
+
+/// `fwlidar simulate` writes the trees and their first-order branches it traces
+/// (`<stem>.trees.csv`, `<stem>.branches.csv`): every branch echo of the tree plot lies on one
+/// of its tree's listed branch cylinders, and the counts are the scene's (`branch_count`).
+#[test]
+fn the_branch_truth_is_what_the_simulator_traces() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("plot.fwcap");
+    let o = fwlidar(&[
+        "simulate",
+        "--scene",
+        "config/scenes/tree_plot.toml",
+        "--no-truth-voxels",
+        "--out",
+        cap.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let rows = |name: &str| -> Vec<HashMap<String, String>> {
+        let t = std::fs::read_to_string(dir.path().join(name)).unwrap();
+        let mut lines = t.lines();
+        let head: Vec<String> = lines.next().unwrap().split(',').map(String::from).collect();
+        lines
+            .map(|l| {
+                head.iter()
+                    .cloned()
+                    .zip(l.split(',').map(String::from))
+                    .collect()
+            })
+            .collect()
+    };
+    let f = |r: &HashMap<String, String>, k: &str| -> f64 { r[k].parse().unwrap() };
+    let trees = rows("plot.trees.csv");
+    let branches = rows("plot.branches.csv");
+    // tree_plot's branch_count per tree: 6, 5, 8, 5, 6, 10.
+    let mut per_tree = [0usize; 6];
+    for b in &branches {
+        per_tree[f(b, "tree_id") as usize] += 1;
+    }
+    assert_eq!(per_tree, [6, 5, 8, 5, 6, 10]);
+    // Each branch in the scene frame: base on the stem, unit axis, length, radius.
+    let axes: Vec<(usize, [f64; 3], [f64; 3], f64, f64)> = branches
+        .iter()
+        .map(|b| {
+            let t = &trees[f(b, "tree_id") as usize];
+            let (z, a) = (
+                f(b, "zenith_deg").to_radians(),
+                f(b, "azimuth_deg").to_radians(),
+            );
+            (
+                f(b, "tree_id") as usize,
+                [f(t, "scene_x"), f(t, "scene_y"), f(b, "base_height_m")],
+                [z.sin() * a.sin(), z.sin() * a.cos(), z.cos()],
+                f(b, "length_m"),
+                f(b, "radius_m"),
+            )
+        })
+        .collect();
+    let mut hits = 0;
+    for s in rows("plot.scatterers.csv") {
+        if s["kind"] != "branch" {
+            continue;
+        }
+        hits += 1;
+        let tree: usize = s["object"].parse().unwrap();
+        let p = [f(&s, "east_m"), f(&s, "north_m"), f(&s, "up_m")];
+        let nearest = axes
+            .iter()
+            .filter(|a| a.0 == tree)
+            .map(|(_, b, d, len, r)| {
+                let v = [p[0] - b[0], p[1] - b[1], p[2] - b[2]];
+                let along = (v[0] * d[0] + v[1] * d[1] + v[2] * d[2]).clamp(0.0, *len);
+                let q = [
+                    b[0] + along * d[0],
+                    b[1] + along * d[1],
+                    b[2] + along * d[2],
+                ];
+                ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt() - r
+            })
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            nearest < 0.01,
+            "branch echo {p:?} of tree {tree} is {nearest} m off its branches"
+        );
+    }
+    assert!(hits > 100, "{hits} branch echoes");
+}

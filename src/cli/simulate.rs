@@ -196,8 +196,9 @@ fn tick(bar: &Option<ProgressBar>, pulses: u64) {
 
 /// The files written beside a described scene's capture `out`: `<stem>.truth.fwcap`,
 /// `<stem>.scatterers.csv`, `<stem>.truth.json`, the folder `<stem>.truth/` (the truth
-/// voxelised: `voxels.zarr`) and `<stem>.trees.csv` (every tree in map coordinates).
-pub fn truth_paths(out: &Path) -> [PathBuf; 5] {
+/// voxelised: `voxels.zarr`), `<stem>.trees.csv` (every tree in map coordinates) and
+/// `<stem>.branches.csv` (every first-order branch).
+pub fn truth_paths(out: &Path) -> [PathBuf; 6] {
     let stem = out.with_extension("");
     let with = |suffix: &str| {
         let mut s = stem.as_os_str().to_owned();
@@ -210,8 +211,13 @@ pub fn truth_paths(out: &Path) -> [PathBuf; 5] {
         with(".truth.json"),
         with(".truth"),
         with(".trees.csv"),
+        with(".branches.csv"),
     ]
 }
+
+/// Header of `<stem>.branches.csv`.
+pub const BRANCHES_CSV_HEADER: &str = "tree_id,branch_id,x,y,base_height_m,end_x,end_y,\
+end_height_m,azimuth_deg,zenith_deg,length_m,radius_m";
 
 /// Header of `<stem>.trees.csv`.
 pub const TREES_CSV_HEADER: &str = "tree_id,x,y,epsg,height_m,crown_shape,crown_base_m,\
@@ -222,7 +228,16 @@ crown_radius_m,stem_radius_m,leaf_area_density,scene_x,scene_y";
 /// decides, EPSG code in `epsg`), height and crown above the terrain (m), the crown's shape,
 /// the stem radius (m), the leaf area density (m²/m³) and the position in the scene's frame
 /// (m east and north of the origin). Returns the number of trees.
-fn write_tree_truth(scene: &WorldScene, path: &Path) -> Result<usize, Failure> {
+///
+/// Beside it, `branches_path`: every first-order branch the simulator traces
+/// ([`crate::sim::world::geometry::tree_branches`]): its tree, its base (on the stem, x, y in the
+/// same UTM, height above the terrain, m) and end, its azimuth (degrees clockwise from the
+/// scene's north), zenith (degrees from vertical), length and radius (m).
+fn write_tree_truth(
+    scene: &WorldScene,
+    path: &Path,
+    branches_path: &Path,
+) -> Result<usize, Failure> {
     use crate::geo::crs::{OutputCrs, utm_epsg};
     use crate::sim::world::flight::Frames;
     use crate::sim::world::scene::CrownShape;
@@ -235,14 +250,41 @@ fn write_tree_truth(scene: &WorldScene, path: &Path) -> Result<usize, Failure> {
     for (i, f) in scene.forest.iter().enumerate() {
         trees.extend(f.trees(scene.seed, i));
     }
-    let mut text = String::from(TREES_CSV_HEADER);
-    text.push('\n');
-    for (i, t) in trees.iter().enumerate() {
-        let [sx, sy] = t.position_m;
+    let utm = |sx: f64, sy: f64| -> Result<[f64; 2], Failure> {
         let g = frames.geodetic([sx, sy, 0.0]);
         let [x, y, _] = crs
             .project(g.lat_deg, g.lon_deg, g.height_m)
             .map_err(Failure::job)?;
+        Ok([x, y])
+    };
+    let mut text = String::from(TREES_CSV_HEADER);
+    text.push('\n');
+    let mut branches = String::from(BRANCHES_CSV_HEADER);
+    branches.push('\n');
+    for (i, t) in trees.iter().enumerate() {
+        let [sx, sy] = t.position_m;
+        let [x, y] = utm(sx, sy)?;
+        for (k, b) in crate::sim::world::geometry::tree_branches(scene.seed, i as u32, t)
+            .iter()
+            .enumerate()
+        {
+            let (z, a) = (b.zenith_deg.to_radians(), b.azimuth_deg.to_radians());
+            let (ex, ey) = (
+                sx + b.length_m * z.sin() * a.sin(),
+                sy + b.length_m * z.sin() * a.cos(),
+            );
+            let [ux, uy] = utm(ex, ey)?;
+            let _ = writeln!(
+                branches,
+                "{i},{k},{x:.3},{y:.3},{:.3},{ux:.3},{uy:.3},{:.3},{:.3},{:.3},{:.3},{}",
+                b.height_m,
+                b.height_m + b.length_m * z.cos(),
+                b.azimuth_deg,
+                b.zenith_deg,
+                b.length_m,
+                b.radius_m
+            );
+        }
         let shape = match t.crown.shape {
             CrownShape::Ellipsoid => "ellipsoid",
             CrownShape::Cone => "cone",
@@ -256,6 +298,8 @@ fn write_tree_truth(scene: &WorldScene, path: &Path) -> Result<usize, Failure> {
     }
     std::fs::write(path, text)
         .map_err(|e| Failure::job(format!("cannot write {}: {e}", path.display())))?;
+    std::fs::write(branches_path, branches)
+        .map_err(|e| Failure::job(format!("cannot write {}: {e}", branches_path.display())))?;
     Ok(trees.len())
 }
 
@@ -278,7 +322,14 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
             return run_live(&args, items);
         }
     };
-    let [truth_path, csv_path, json_path, truth_dir, trees_path] = truth_paths(&out);
+    let [
+        truth_path,
+        csv_path,
+        json_path,
+        truth_dir,
+        trees_path,
+        branches_path,
+    ] = truth_paths(&out);
     for p in [
         &out,
         &truth_path,
@@ -286,6 +337,7 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
         &json_path,
         &truth_dir,
         &trees_path,
+        &branches_path,
     ] {
         if p.exists() {
             return Err(Failure::usage(format!(
@@ -395,8 +447,9 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
         "truth_steps_per_count": truth_steps,
         "scatterers": csv_path.display().to_string(),
         "trees": trees_path.display().to_string(),
+        "branches": branches_path.display().to_string(),
     });
-    write_tree_truth(&scene, &trees_path)?;
+    write_tree_truth(&scene, &trees_path, &branches_path)?;
     std::fs::write(
         &json_path,
         serde_json::to_string_pretty(&summary).unwrap_or_default(),

@@ -220,6 +220,32 @@ fn splitmix(state: &mut u64) -> f64 {
     ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
 }
 
+/// Every first-order branch of tree number `index` (listed trees first, then each stand's, as
+/// [`Scene::build`] numbers them) of a scene with `seed`: its listed `branches`, then its
+/// `branch_count` generated ones (heights spread over the lower 80 % of the crown, zenith
+/// 50–70°, azimuths a golden angle apart with a random offset, reaching the crown's edge).
+/// The simulator traces exactly these; `fwlidar simulate` writes them as the branch truth.
+pub fn tree_branches(seed: u64, index: u32, t: &cfg::Tree) -> Vec<cfg::Branch> {
+    let depth = t.height_m - t.crown.base_m;
+    let mut branches = t.branches.clone();
+    let mut rng = seed ^ (0xB4A2_C0DE_u64.wrapping_mul(u64::from(index) + 1));
+    for k in 0..t.branch_count {
+        let f = (k as f64 + 0.5) / t.branch_count as f64;
+        let h = t.crown.base_m + f * 0.8 * depth;
+        let zen = 50.0 + 20.0 * splitmix(&mut rng);
+        let az = (k as f64 * 137.507_764 + 360.0 * splitmix(&mut rng)).rem_euclid(360.0);
+        let reach = crown_radius_at(&t.crown, t.height_m, h).max(t.crown.radius_m * 0.3);
+        branches.push(cfg::Branch {
+            height_m: h,
+            azimuth_deg: az,
+            zenith_deg: zen,
+            length_m: reach / zen.to_radians().sin(),
+            radius_m: t.branch_radius_m,
+        });
+    }
+    branches
+}
+
 impl Scene {
     /// Builds the traced scene from its description (`base_dir`: where relative paths start).
     pub fn build(s: &WorldScene, base_dir: &Path) -> Result<Scene, SceneError> {
@@ -331,23 +357,7 @@ impl Scene {
             }
             let cb = z0 + t.crown.base_m;
             let depth = top - cb;
-            let mut branches = t.branches.clone();
-            let mut rng = s.seed ^ (0xB4A2_C0DE_u64.wrapping_mul(i as u64 + 1));
-            for k in 0..t.branch_count {
-                let f = (k as f64 + 0.5) / t.branch_count as f64;
-                let h = t.crown.base_m + f * 0.8 * depth;
-                let zen = 50.0 + 20.0 * splitmix(&mut rng);
-                let az = (k as f64 * 137.507_764 + 360.0 * splitmix(&mut rng)).rem_euclid(360.0);
-                let reach = crown_radius_at(&t.crown, t.height_m, h).max(t.crown.radius_m * 0.3);
-                branches.push(cfg::Branch {
-                    height_m: h,
-                    azimuth_deg: az,
-                    zenith_deg: zen,
-                    length_m: reach / zen.to_radians().sin(),
-                    radius_m: t.branch_radius_m,
-                });
-            }
-            for b in &branches {
+            for b in &tree_branches(s.seed, i, t) {
                 let (z, a) = (b.zenith_deg.to_radians(), b.azimuth_deg.to_radians());
                 objects.push(cylinder(
                     [x, y, z0 + b.height_m],
