@@ -429,8 +429,9 @@ fn the_branch_truth_is_what_the_simulator_traces() {
         per_tree[f(b, "tree_id") as usize] += 1;
     }
     assert_eq!(per_tree, [6, 5, 8, 5, 6, 10]);
-    // Each branch in the scene frame: base on the stem, unit axis, length, radius.
-    let axes: Vec<(usize, [f64; 3], [f64; 3], f64, f64)> = branches
+    // Each branch in the scene frame: tree, base on the stem, unit axis, length, radius.
+    type Axis = (usize, [f64; 3], [f64; 3], f64, f64);
+    let axes: Vec<Axis> = branches
         .iter()
         .map(|b| {
             let t = &trees[f(b, "tree_id") as usize];
