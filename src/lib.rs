@@ -32,4 +32,5 @@ pub mod signal;
 pub mod sim;
 pub mod sink;
 pub mod source;
+pub mod trees;
 pub mod voxel;

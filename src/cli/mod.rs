@@ -19,6 +19,7 @@ pub mod replay;
 pub mod run;
 pub mod simulate;
 pub mod tradeoff;
+pub mod trees;
 pub mod validate;
 
 /// fwlidar — streaming processing of airborne full-waveform LiDAR.
@@ -83,6 +84,9 @@ pub enum Command {
     /// Draw the relative heights (RH25–RH98 above the ground) and cover of every waveform of a
     /// pulse_metrics.csv as an SVG figure.
     MetricsPlot(metrics_plot::MetricsPlotArgs),
+    /// Reconstruct stems and first-order branches as cylinders from waveform points (a capture
+    /// or a replay's hyper point cloud); score them against a simulated scene's trees.
+    Trees(trees::TreesArgs),
     /// Print the shell completion script (bash, zsh, fish, elvish, powershell).
     Completions(completions::CompletionsArgs),
     /// Write the manual pages (fwlidar.1 and one per command) into a folder.
@@ -157,6 +161,7 @@ pub fn main() -> i32 {
         Command::Biomass(a) => biomass::run(a),
         Command::Metrics(a) => metrics::run(a),
         Command::MetricsPlot(a) => metrics_plot::run(a),
+        Command::Trees(a) => trees::run(a),
         Command::Completions(a) => completions::run(a),
         Command::Man(a) => man::run(a),
     };

@@ -229,6 +229,8 @@ impl WavePacketDescriptor {
 
 /// Extra Bytes `data_type` of a 4-byte float.
 pub const EXTRA_BYTES_F32: u8 = 9;
+/// Extra Bytes data type of a 4-byte signed integer ("long").
+pub const EXTRA_BYTES_I32: u8 = 6;
 /// Extra Bytes `data_type` of an 8-byte float.
 pub const EXTRA_BYTES_F64: u8 = 10;
 /// Extra Bytes options bit 0: the `no_data` field is meaningful.
@@ -263,13 +265,15 @@ pub enum ExtraKind {
     F32,
     /// 8-byte IEEE float (data type 10).
     F64,
+    /// 4-byte signed integer (data type 6), e.g. a cluster number.
+    I32,
 }
 
 impl ExtraKind {
     /// Bytes per value.
     pub fn size(self) -> usize {
         match self {
-            ExtraKind::F32 => 4,
+            ExtraKind::F32 | ExtraKind::I32 => 4,
             ExtraKind::F64 => 8,
         }
     }
@@ -278,6 +282,7 @@ impl ExtraKind {
         match self {
             ExtraKind::F32 => EXTRA_BYTES_F32,
             ExtraKind::F64 => EXTRA_BYTES_F64,
+            ExtraKind::I32 => EXTRA_BYTES_I32,
         }
     }
 }
@@ -304,6 +309,16 @@ impl ExtraDim {
             name: name.to_string(),
             description: description.to_string(),
             kind: ExtraKind::F32,
+            no_data: None,
+        }
+    }
+
+    /// A 4-byte signed integer dimension (values are rounded toward zero; NaN is written 0).
+    pub fn i32(name: &str, description: &str) -> Self {
+        ExtraDim {
+            name: name.to_string(),
+            description: description.to_string(),
+            kind: ExtraKind::I32,
             no_data: None,
         }
     }
@@ -338,6 +353,7 @@ impl ExtraDim {
         match self.kind {
             ExtraKind::F32 => b[..4].copy_from_slice(&(v as f32).to_le_bytes()),
             ExtraKind::F64 => b[..8].copy_from_slice(&v.to_le_bytes()),
+            ExtraKind::I32 => b[..4].copy_from_slice(&(v as i32).to_le_bytes()),
         }
     }
 }
