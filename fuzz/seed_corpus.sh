@@ -16,6 +16,8 @@
 #   live_frames:    the first three digitizer frames of that capture as a live stream (28-byte
 #                   headers with sequence numbers and CRC-32C, docs/formats.md), behind a mode
 #                   byte 0x00 (pushed whole) and 0x05 (pushed in reads of 5 bytes).
+#   hyper_points:   a LAS 1.4 point format 6 file of 20 points with the extra dimension
+#                   `signal` (f32), as a replay's hyper_points.las, written here.
 #   las_reader:     the real RIEGL LAS 1.4 file cut to its first 20 points with the .wdp bytes
 #                   they use (u32 LE .las length, .las, .wdp), and the same with the packets
 #                   internal (global encoding bit 1, appended EVLR); with a Python holding laspy
@@ -27,7 +29,7 @@ root=$(dirname "$here")
 cap="$root/replay/two_layer.fwcap"
 mkdir -p "$here/corpus/capture_reader" "$here/corpus/frame_decode" "$here/corpus/config_load" \
     "$here/corpus/waveform_table" "$here/corpus/pulsewaves_reader" "$here/corpus/las_reader" \
-    "$here/corpus/nav_decoder" "$here/corpus/live_frames"
+    "$here/corpus/nav_decoder" "$here/corpus/live_frames" "$here/corpus/hyper_points"
 
 # capture_reader
 { printf '\000'; head -c 8192 "$cap"; } > "$here/corpus/capture_reader/two_layer_8k_raw"
@@ -201,6 +203,26 @@ seed("riegl_20_points_laz9_chunks", dest.getvalue())
 PY
     fi
 fi
+
+# hyper_points
+python3 - "$here/corpus/hyper_points/format6_signal_20_points.las" <<'PY'
+import struct, sys
+n, rec = 20, 34
+vlr_data = bytearray(192)
+vlr_data[2] = 9  # float
+vlr_data[4:10] = b"signal"
+vlr = struct.pack("<H16sHH32s", 0, b"LASF_Spec", 4, 192, b"extra bytes") + bytes(vlr_data)
+offset = 375 + len(vlr)
+h = bytearray(375)
+h[0:4] = b"LASF"
+h[24], h[25] = 1, 4
+struct.pack_into("<HIIBHI", h, 94, 375, offset, 1, 6, rec, n)
+struct.pack_into("<3d3d", h, 131, 0.001, 0.001, 0.001, 500000.0, 7000000.0, 0.0)
+struct.pack_into("<Q", h, 247, n)
+pts = b"".join(struct.pack("<3iHBBBBhHd", i * 250, i * 100, 1000 + i * 150, 100, 0x11, 0, 1, 0, 0, 0, 1.0 + i // 4)
+               + struct.pack("<f", 0.5 + i) for i in range(n))
+open(sys.argv[1], "wb").write(bytes(h) + vlr + pts)
+PY
 
 # nav_decoder
 nv="${FWLIDAR_FIXTURES:-$root/tests/data}/nav"

@@ -60,21 +60,26 @@ fn leaf_off_branches_are_found_with_their_angles_and_lengths_and_the_outputs_ope
     assert!(s["zenith_err_deg"].as_f64().unwrap() <= 10.0, "{s}");
     assert!(s["length_err_rel"].as_f64().unwrap() <= 0.2, "{s}");
     assert!(s["extra_branches"].as_u64().unwrap() <= 3, "{s}");
-    // The threshold was chosen from a curve, above the noise, and the curve peaks there.
+    // The threshold was chosen from a curve, above the noise: the lowest threshold with 90 %
+    // of the most branch-sized clusters.
     let th = &j["reconstruction"]["threshold"];
     let chosen = th["chosen_v"].as_f64().unwrap();
     let curve = th["curve"].as_array().unwrap();
     assert!(curve.len() >= 10);
-    let best = curve
+    let counts: Vec<f64> = curve
         .iter()
-        .map(|r| r["branch_clusters"].as_u64().unwrap())
-        .max()
-        .unwrap();
-    let at = curve
+        .map(|r| r["branch_clusters"].as_f64().unwrap())
+        .collect();
+    let best = counts.iter().copied().fold(0.0, f64::max);
+    let k = curve
         .iter()
-        .find(|r| (r["threshold_v"].as_f64().unwrap() - chosen).abs() < 1e-9)
+        .position(|r| (r["threshold_v"].as_f64().unwrap() - chosen).abs() < 1e-6)
         .unwrap();
-    assert_eq!(at["branch_clusters"].as_u64().unwrap(), best);
+    assert!(counts[k] >= 0.9 * best, "{counts:?} {k}");
+    assert!(
+        counts[..k].iter().all(|c| *c < 0.9 * best),
+        "{counts:?} {k}"
+    );
     let floor = j["reconstruction"]["noise_floor_v"].as_f64().unwrap();
     assert!(chosen >= floor, "{chosen} {floor}");
     let svg = std::fs::read_to_string(out.join("threshold.svg")).unwrap();

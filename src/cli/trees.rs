@@ -74,8 +74,9 @@ pub struct TreesArgs {
 }
 
 /// The products `fwlidar trees` writes into its folder.
-pub const PRODUCTS: [&str; 8] = [
+pub const PRODUCTS: [&str; 9] = [
     "cylinders.csv",
+    "trees.svg",
     "cylinders.ply",
     "clustered_points.las",
     "threshold.csv",
@@ -386,6 +387,7 @@ pub fn run(args: TreesArgs) -> Result<(), Failure> {
         set.crs_wkt.as_deref(),
         &r,
         sc.as_ref(),
+        truth.as_ref().map(|(_, b)| b.as_slice()),
     )
     .map_err(Failure::job)?;
     let branches: usize = r.trees.iter().map(|t| t.cylinders.len() - 1).sum();
@@ -447,7 +449,7 @@ pub fn run(args: TreesArgs) -> Result<(), Failure> {
         );
     }
     println!(
-        "wrote {} (cylinders.csv, cylinders.ply, clustered_points.las, threshold.svg{})",
+        "wrote {} (cylinders.csv, cylinders.ply, clustered_points.las, trees.svg, threshold.svg{})",
         args.out.display(),
         if sc.is_some() { ", scores.csv" } else { "" }
     );

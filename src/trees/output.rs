@@ -287,6 +287,128 @@ pub fn threshold_svg(r: &Reconstruction) -> String {
     s
 }
 
+/// A picture of the reconstruction: a top view (x, y) and a side view looking north (x, z) of
+/// the samples above the threshold (stem and branch samples coloured by cylinder, the rest
+/// grey, at most 6 000 drawn), the cylinders as thick lines, and with a truth its branches as
+/// thin black lines (heights above the reconstruction's mean ground).
+pub fn trees_svg(
+    points: &[TreePoint],
+    r: &Reconstruction,
+    truth: Option<&[crate::trees::score::TruthBranch]>,
+) -> String {
+    const PALETTE: [&str; 10] = [
+        "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#17becf",
+        "#bcbd22", "#7f7f7f",
+    ];
+    let shown: Vec<usize> = (0..points.len())
+        .filter(|&i| !matches!(r.labels[i].part, Part::Unused | Part::Ground))
+        .collect();
+    let ground = if r.trees.is_empty() {
+        0.0
+    } else {
+        r.trees.iter().map(|t| t.ground_z).sum::<f64>() / r.trees.len() as f64
+    };
+    let mut segs: Vec<([f64; 3], [f64; 3], &str, f64)> = Vec::new();
+    for t in &r.trees {
+        for c in &t.cylinders {
+            segs.push((c.start, c.end(), PALETTE[c.id % PALETTE.len()], 3.0));
+        }
+    }
+    if let Some(tb) = truth {
+        for b in tb {
+            segs.push((
+                [b.base[0], b.base[1], b.base[2] + ground],
+                [b.end[0], b.end[1], b.end[2] + ground],
+                "#000000",
+                1.0,
+            ));
+        }
+    }
+    let mut lo = [f64::MAX; 3];
+    let mut hi = [f64::MIN; 3];
+    let mut grow = |p: [f64; 3]| {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    };
+    for &i in &shown {
+        grow(points[i].xyz);
+    }
+    for (a, b, _, _) in &segs {
+        grow(*a);
+        grow(*b);
+    }
+    if shown.is_empty() && segs.is_empty() {
+        lo = [0.0; 3];
+        hi = [1.0; 3];
+    }
+    let (pw, ph, m) = (440.0, 440.0, 40.0);
+    let span_xy = (hi[0] - lo[0]).max(hi[1] - lo[1]).max(1e-6);
+    let span_xz = (hi[0] - lo[0]).max(hi[2] - lo[2]).max(1e-6);
+    let top = |p: [f64; 3]| {
+        (
+            m + (pw - 2.0 * m) * (p[0] - lo[0]) / span_xy,
+            ph - m - (ph - 2.0 * m) * (p[1] - lo[1]) / span_xy,
+        )
+    };
+    let side = |p: [f64; 3]| {
+        (
+            pw + m + (pw - 2.0 * m) * (p[0] - lo[0]) / span_xz,
+            ph - m - (ph - 2.0 * m) * (p[2] - lo[2]) / span_xz,
+        )
+    };
+    let mut s = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{}\" height=\"{}\" \
+         font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" \
+         fill=\"white\"/>\n<text x=\"{m}\" y=\"20\" font-size=\"14\">{} trees, {} cylinders; \
+         top view (left, {:.1} m across) and side view looking north (right, {:.1} m)</text>\n",
+        2.0 * pw,
+        ph + 20.0,
+        r.trees.len(),
+        r.trees.iter().map(|t| t.cylinders.len()).sum::<usize>(),
+        span_xy,
+        span_xz
+    );
+    let stride = shown.len().div_ceil(6000).max(1);
+    for &i in shown.iter().step_by(stride) {
+        let l = r.labels[i];
+        let colour = if matches!(l.part, Part::Stem | Part::Branch) && l.cluster >= 0 {
+            PALETTE[l.cluster as usize % PALETTE.len()]
+        } else {
+            "#cccccc"
+        };
+        for (x, y) in [top(points[i].xyz), side(points[i].xyz)] {
+            let _ = writeln!(
+                s,
+                "<circle cx=\"{x:.1}\" cy=\"{y:.1}\" r=\"1.2\" fill=\"{colour}\"/>"
+            );
+        }
+    }
+    for (a, b, colour, wdt) in &segs {
+        for f in [&top as &dyn Fn([f64; 3]) -> (f64, f64), &side] {
+            let ((x1, y1), (x2, y2)) = (f(*a), f(*b));
+            let _ = writeln!(
+                s,
+                "<line x1=\"{x1:.1}\" y1=\"{y1:.1}\" x2=\"{x2:.1}\" y2=\"{y2:.1}\" \
+                 stroke=\"{colour}\" stroke-width=\"{wdt}\" stroke-linecap=\"round\"/>"
+            );
+        }
+    }
+    let _ = writeln!(
+        s,
+        "<text x=\"{m}\" y=\"{}\">thick: reconstructed cylinders (colour = cylinder){}; \
+         dots: samples above the threshold (grey: in no cylinder)</text>\n</svg>",
+        ph + 10.0,
+        if truth.is_some() {
+            "; thin black: the scene's branches"
+        } else {
+            ""
+        }
+    );
+    s
+}
+
 /// The scores, one row per truth branch.
 pub fn scores_csv(score: &Score) -> String {
     let mut s = String::from(
@@ -318,8 +440,10 @@ pub fn write_all(
     crs_wkt: Option<&str>,
     r: &Reconstruction,
     score: Option<&Score>,
+    truth: Option<&[crate::trees::score::TruthBranch]>,
 ) -> Result<(), TreesError> {
     write(&dir.join("cylinders.csv"), &cylinders_csv(r))?;
+    write(&dir.join("trees.svg"), &trees_svg(points, r, truth))?;
     write(&dir.join("cylinders.ply"), &cylinders_ply(r))?;
     write(&dir.join("threshold.csv"), &threshold_csv(r))?;
     if !r.threshold.curve.is_empty() {

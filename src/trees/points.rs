@@ -70,6 +70,10 @@ fn extra_size(data_type: u8) -> Option<usize> {
 /// Reads `path` (a LAS 1.4 file of point format 6, 7 or 8 with an Extra Bytes dimension named
 /// `signal` of type float or double, as `hyper_points.las`).
 pub fn read_hyper_points(path: &Path) -> Result<PointSet, TreesError> {
+    let meta = std::fs::metadata(path).map_err(|e| bad(path, "file", e))?;
+    if !meta.is_file() {
+        return Err(bad(path, "file", "not a regular file"));
+    }
     let bytes = std::fs::read(path).map_err(|e| bad(path, "file", e))?;
     parse_hyper_points(path, &bytes)
 }

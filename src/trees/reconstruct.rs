@@ -11,10 +11,13 @@ use crate::trees::cluster::{NOISE, Neighbours, dbscan, members, pulse_spacing};
 use crate::trees::cylinder::{Cylinder, CylinderKind, fit_line, principal_axes};
 use crate::trees::points::TreePoint;
 
+/// Share of the most branch-sized clusters at which the threshold curve's plateau starts.
+pub const PLATEAU: f64 = 0.9;
+
 /// How the intensity threshold is chosen.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Threshold {
-    /// The threshold of the scan that gives the most branch-sized clusters.
+    /// The lowest threshold of the scan with [`PLATEAU`] of the most branch-sized clusters.
     Auto,
     /// This signal, V.
     Fixed(f32),
@@ -667,6 +670,7 @@ pub fn reconstruct(
     // more than the noise it does not rise above the lowest so far), so that a long pulse's
     // tail does not join the stems and branches into one cluster.
     let tol = noise_floor.unwrap_or(0.0);
+    let mut in_echo = vec![false; n];
     for (i, p) in points.iter().enumerate() {
         if p.xyz[2] - ground.at(p.xyz[0], p.xyz[1]) < opts.ground_clearance_m {
             labels[i].part = Part::Ground;
@@ -689,6 +693,7 @@ pub fn reconstruct(
             b.signal <= low + tol && (b.xyz[2] - a.xyz[2]).abs() < 0.5
         };
         labels[idx[peak]].part = Part::Ground;
+        in_echo[idx[peak]] = true;
         for dir in [1i64, -1] {
             let (mut k, mut low) = (peak, points[idx[peak]].signal);
             loop {
@@ -699,10 +704,23 @@ pub fn reconstruct(
                 k = j as usize;
                 low = low.min(points[idx[k]].signal);
                 labels[idx[k]].part = Part::Ground;
+                in_echo[idx[k]] = true;
             }
         }
     }
     let above: Vec<usize> = (0..n).filter(|&i| labels[i].part != Part::Ground).collect();
+    // The noise again, without the ground echoes' lower tails (a long pulse's reaches more
+    // than 1 m below the ground).
+    let mut noise: Vec<f32> = points
+        .iter()
+        .zip(&in_echo)
+        .filter(|(p, e)| !**e && p.xyz[2] < ground.at(p.xyz[0], p.xyz[1]) - below)
+        .map(|(p, _)| p.signal)
+        .collect();
+    noise.sort_by(f32::total_cmp);
+    let noise_floor = (noise.len() >= 100)
+        .then(|| quantile(&noise, 0.999))
+        .or(noise_floor);
     let ground_points = n - above.len();
     let xyz: Vec<[f64; 3]> = above.iter().map(|&i| points[i].xyz).collect();
     let signal: Vec<f32> = above.iter().map(|&i| points[i].signal).collect();
@@ -743,23 +761,29 @@ pub fn reconstruct(
                     opts.min_branch_points,
                 ));
             }
+            let most = curve
+                .iter()
+                .map(|r| r.branch_clusters)
+                .max()
+                .ok_or_else(|| TreesError::Input("no point above the ground".into()))?;
+            // The plateau's start: the lowest threshold with 90 % of the most branch-sized
+            // clusters. Above it the count creeps up as branches break into pieces while
+            // samples are lost.
             let best = curve
                 .iter()
-                .enumerate()
-                .max_by(|(ia, a), (ib, b)| {
-                    a.branch_clusters.cmp(&b.branch_clusters).then(ib.cmp(ia)) // ties: the lower threshold
-                })
-                .map(|(i, _)| i)
-                .ok_or_else(|| TreesError::Input("no point above the ground".into()))?;
+                .position(|r| r.branch_clusters as f64 >= PLATEAU * most as f64)
+                .unwrap_or(0);
             let r = &curve[best];
             ThresholdChoice {
                 chosen_v: r.threshold_v,
                 reason: format!(
-                    "the most clusters of at least {} points ({}) over {} thresholds from {} \
-                     to the {:.0}th percentile of the above-ground signal: lower thresholds \
-                     merge branches through foliage and noise, higher ones break them",
+                    "the lowest threshold with 90 % of the most clusters of at least {} points \
+                     ({} of {}) over {} thresholds from {} to the {:.0}th percentile of the \
+                     above-ground signal: lower thresholds merge branches through foliage and \
+                     noise, higher ones break them and lose samples",
                     opts.min_branch_points,
                     r.branch_clusters,
+                    most,
                     curve.len(),
                     match noise_floor {
                         Some(f) => format!(
@@ -1054,17 +1078,22 @@ mod tests {
     }
 
     #[test]
-    fn the_threshold_curve_peaks_where_it_was_chosen() {
+    fn the_threshold_is_where_the_curve_reaches_its_plateau() {
         let (pts, _) = synthetic();
         let r = reconstruct(&pts, &TreesOptions::default()).unwrap();
         let c = &r.threshold.curve;
         assert!(c.len() >= 2);
-        let best = c.iter().map(|r| r.branch_clusters).max().unwrap();
-        let chosen = c
+        let best = c.iter().map(|r| r.branch_clusters).max().unwrap() as f64;
+        let k = c
             .iter()
-            .find(|row| row.threshold_v == r.threshold.chosen_v)
+            .position(|row| row.threshold_v == r.threshold.chosen_v)
             .unwrap();
-        assert_eq!(chosen.branch_clusters, best);
+        assert!(c[k].branch_clusters as f64 >= PLATEAU * best);
+        assert!(
+            c[..k]
+                .iter()
+                .all(|row| (row.branch_clusters as f64) < PLATEAU * best)
+        );
     }
 
     #[test]
