@@ -422,11 +422,12 @@ fn man_pages_render_and_are_never_written_over() {
         "fwlidar-run.1",
         "fwlidar-biomass.1",
         "fwlidar-metrics.1",
+        "fwlidar-trees.1",
     ] {
         assert!(names.iter().any(|n| n == want), "{want} missing: {names:?}");
     }
     assert!(!names.iter().any(|n| n == "fwlidar-help.1"), "{names:?}");
-    assert_eq!(names.len(), 1 + 15, "{names:?}");
+    assert_eq!(names.len(), 1 + 16, "{names:?}");
 
     let main = std::fs::read_to_string(out.join("fwlidar.1")).unwrap();
     assert!(

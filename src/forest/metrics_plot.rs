@@ -218,7 +218,8 @@ fn nice_step(span: f64, ticks: f64) -> f64 {
     10.0 * mag
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+/// Median of `v` (the mean of the middle two for an even count), NaN when empty.
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     if v.is_empty() {
         return f64::NAN;
     }

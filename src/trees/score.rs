@@ -215,17 +215,7 @@ pub struct Score {
 }
 
 fn median_abs(v: impl Iterator<Item = f64>) -> f64 {
-    let mut v: Vec<f64> = v.filter(|x| x.is_finite()).map(f64::abs).collect();
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
+    crate::forest::metrics_plot::median(v.filter(|x| x.is_finite()).map(f64::abs).collect())
 }
 
 fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
