@@ -15,6 +15,7 @@
 // its buffers never copied, so `Vec<Box<Pulse>>` is the right shape for emit buffers.
 #![allow(clippy::vec_box)]
 
+pub mod campaign;
 pub mod cli;
 pub mod config;
 pub mod daemon;

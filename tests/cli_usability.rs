@@ -427,7 +427,7 @@ fn man_pages_render_and_are_never_written_over() {
         assert!(names.iter().any(|n| n == want), "{want} missing: {names:?}");
     }
     assert!(!names.iter().any(|n| n == "fwlidar-help.1"), "{names:?}");
-    assert_eq!(names.len(), 1 + 16, "{names:?}");
+    assert_eq!(names.len(), 1 + 17, "{names:?}");
 
     let main = std::fs::read_to_string(out.join("fwlidar.1")).unwrap();
     assert!(

@@ -1,4 +1,5 @@
-//! `fwlidar merge STORE... --out STORE`: combines voxel stores of several flights or replays.
+//! `fwlidar merge STORE... --out STORE`: combines voxel stores of several flights or replays
+//! (`crate::voxel::merge`).
 //!
 //! The stores must share their grid (voxel size, tile-grid anchor, height range and mode, tile
 //! size, intensity quantum), CRS and intensity units; their extents may differ and the result
@@ -12,8 +13,7 @@ use std::path::PathBuf;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
-use crate::voxel::tile::TileData;
-use crate::voxel::zarr::{StoreInfo, ZarrStore};
+use crate::voxel::merge::{MergeMeta, merge_stores};
 
 /// Arguments of `fwlidar merge`.
 #[derive(Debug, clap::Args)]
@@ -31,69 +31,8 @@ pub struct MergeArgs {
 
 /// Runs `fwlidar merge`.
 pub fn run(args: MergeArgs) -> Result<(), Failure> {
-    if args.out.exists() {
-        return Err(Failure::usage(format!(
-            "{} exists; merge writes a new store and never overwrites one",
-            args.out.display()
-        )));
-    }
-    // A fixed order (by path) for everything that is not commutative: attributes, file order.
-    let mut paths = args.stores.clone();
-    paths.sort();
-    paths.dedup();
-    let mut stores = Vec::with_capacity(paths.len());
-    for p in &paths {
-        stores.push(ZarrStore::open(p).map_err(Failure::job)?);
-    }
-    let first = &stores[0];
-    let mut grid = first.grid().clone();
-    for (s, p) in stores.iter().zip(&paths).skip(1) {
-        grid.compatible(s.grid()).map_err(|why| {
-            Failure::job(format!(
-                "{} and {} cannot be merged: {why}",
-                paths[0].display(),
-                p.display()
-            ))
-        })?;
-        if s.info().epsg != first.info().epsg || s.info().crs_wkt != first.info().crs_wkt {
-            return Err(Failure::job(format!(
-                "{} and {} cannot be merged: their CRS differ (EPSG {:?} and {:?})",
-                paths[0].display(),
-                p.display(),
-                first.info().epsg,
-                s.info().epsg
-            )));
-        }
-        if s.info().intensity_units != first.info().intensity_units {
-            return Err(Failure::job(format!(
-                "{} and {} cannot be merged: intensities in {:?} and {:?}",
-                paths[0].display(),
-                p.display(),
-                first.info().intensity_units,
-                s.info().intensity_units
-            )));
-        }
-        grid = grid.union(s.grid());
-    }
-    let names: Vec<String> = paths.iter().map(|p| p.display().to_string()).collect();
-    let info = StoreInfo {
-        crs_wkt: first.info().crs_wkt.clone(),
-        epsg: first.info().epsg,
-        intensity_units: first.info().intensity_units.clone(),
-        run_key: format!("merged from {}", names.join(", ")),
-        configuration: stores
-            .iter()
-            .zip(&names)
-            .map(|(s, n)| format!("# {n}\n{}", s.info().configuration))
-            .collect::<Vec<_>>()
-            .join("\n"),
-    };
-    let mut tiles: Vec<[i64; 2]> = stores.iter().flat_map(|s| s.tiles()).collect();
-    tiles.sort();
-    tiles.dedup();
-    let mut out = ZarrStore::create_or_open(&args.out, grid.clone(), info).map_err(Failure::job)?;
     let bar = (!args.no_progress).then(|| {
-        let bar = ProgressBar::new(tiles.len() as u64);
+        let bar = ProgressBar::new(0);
         bar.set_style(
             ProgressStyle::with_template(
                 "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} tiles",
@@ -102,43 +41,33 @@ pub fn run(args: MergeArgs) -> Result<(), Failure> {
         );
         bar
     });
-    let (mut acc, mut part) = (TileData::for_grid(&grid), TileData::for_grid(&grid));
-    let mut merged_from_several = 0u64;
-    for &t in &tiles {
-        acc.clear();
-        let mut holders = 0;
-        for s in stores.iter_mut() {
-            if s.read_tile(t, &mut part).map_err(Failure::job)? {
-                acc.merge(&part);
-                holders += 1;
-            }
-        }
-        if holders > 1 {
-            merged_from_several += 1;
-        }
-        // A merged store is not resumed: its tiles carry watermark 0.
-        out.write_tile(t, &acc, 0).map_err(Failure::job)?;
+    let s = merge_stores(&args.stores, &args.out, &MergeMeta::FromInputs, |k, n| {
         if let Some(b) = &bar {
-            b.inc(1);
+            b.set_length(n as u64);
+            b.set_position(k as u64);
         }
-    }
+    })
+    .map_err(|e| {
+        if args.out.exists() && e.ends_with("never overwrites one") {
+            Failure::usage(e)
+        } else {
+            Failure::job(e)
+        }
+    })?;
     if let Some(b) = bar {
         b.finish_and_clear();
     }
-    // The arrays span the bounding box of the tiles, whatever the inputs' extents.
-    out.fit().map_err(Failure::job)?;
-    let span = *out.span();
     println!(
         "merged {} stores into {}: {} tiles ({} present in more than one), arrays of {} × {} \
          tiles of {} columns × {} levels",
-        stores.len(),
+        s.stores,
         args.out.display(),
-        tiles.len(),
-        merged_from_several,
-        span.tiles[0],
-        span.tiles[1],
-        grid.tile_columns,
-        grid.levels
+        s.tiles,
+        s.tiles_from_several,
+        s.span_tiles[0],
+        s.span_tiles[1],
+        s.tile_columns,
+        s.levels
     );
     Ok(())
 }

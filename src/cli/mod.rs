@@ -5,6 +5,7 @@
 use clap::{Parser, Subcommand, ValueEnum};
 
 pub mod biomass;
+pub mod campaign;
 pub mod completions;
 pub mod import;
 pub mod inspect;
@@ -84,6 +85,9 @@ pub enum Command {
     /// Draw the relative heights (RH25–RH98 above the ground) and cover of every waveform of a
     /// pulse_metrics.csv as an SVG figure.
     MetricsPlot(metrics_plot::MetricsPlotArgs),
+    /// A survey campaign: plan its flight lines, run them (here with N processes) and merge
+    /// their voxel stores exactly into one mosaic.
+    Campaign(campaign::CampaignArgs),
     /// Reconstruct stems and first-order branches as cylinders from waveform points (a capture
     /// or a replay's hyper point cloud); score them against a simulated scene's trees.
     Trees(trees::TreesArgs),
@@ -162,6 +166,7 @@ pub fn main() -> i32 {
         Command::Metrics(a) => metrics::run(a),
         Command::MetricsPlot(a) => metrics_plot::run(a),
         Command::Trees(a) => trees::run(a),
+        Command::Campaign(a) => campaign::run(a),
         Command::Completions(a) => completions::run(a),
         Command::Man(a) => man::run(a),
     };

@@ -1,9 +1,10 @@
 //! Voxel tiles: the grid (`grid`), per-tile accumulators (`tile`), depositing pulses bin by bin
 //! (`voxelise`), the tile lifecycle (`tiles`) and the Zarr v3 store they are written to
 //! (`zarr`). The sink that drives them in a run is `crate::sink::voxel_tiles`; combining stores
-//! is `fwlidar merge` (`crate::cli::merge`).
+//! is `merge` (`fwlidar merge`, the campaign's merge tree).
 
 pub mod grid;
+pub mod merge;
 pub mod tile;
 pub mod tiles;
 pub mod voxelise;

@@ -1,0 +1,374 @@
+//! Running a campaign's plan on one machine (`fwlidar campaign run FILE --local N`): each line
+//! replayed by a `fwlidar replay` process (N at a time) into `lines/<name>/`, then the line
+//! stores merged as a tree (`fan_in` stores per merge, the merges of a level in parallel) into
+//! `mosaic.zarr`, and `campaign.json` (what each line did, wall and CPU time per line, the
+//! merge). Resumable: a line whose folder holds `done.json` is not replayed again; a line folder
+//! without it (a killed replay) is cleared and replayed.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use crate::campaign::{CampaignError, DONE, Plan, Task};
+use crate::voxel::merge::{MergeMeta, merge_stores};
+
+/// How to run the plan here.
+#[derive(Clone, Debug)]
+pub struct LocalOptions {
+    /// Replays (and merges) at once.
+    pub processes: usize,
+    /// Stores per merge in the merge tree (2 or more).
+    pub fan_in: usize,
+    /// The `fwlidar` executable the replays run.
+    pub exe: PathBuf,
+}
+
+/// What one line did.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct LineReport {
+    /// Line name.
+    pub name: String,
+    /// The capture.
+    pub capture: String,
+    /// Replayed by this run (false: done before and skipped).
+    pub ran: bool,
+    /// Wall time of its replay, s.
+    pub wall_s: f64,
+    /// CPU time (user + system) of its replay, s.
+    pub cpu_s: f64,
+    /// Pulses read and written, and dropped, from its `summary.json`.
+    pub pulses_in: u64,
+    /// Pulses out.
+    pub pulses_out: u64,
+    /// Pulses dropped (every reason).
+    pub dropped: u64,
+    /// Damage the source reported (bytes skipped, records rejected), from `summary.json`.
+    pub source: serde_json::Value,
+}
+
+/// The merge tree.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct MergeReport {
+    /// Stores per merge.
+    pub fan_in: usize,
+    /// Levels of merges.
+    pub levels: usize,
+    /// Merges made.
+    pub merges: usize,
+    /// Tiles of the mosaic.
+    pub tiles: usize,
+    /// Wall time of the whole tree, s.
+    pub wall_s: f64,
+}
+
+/// `campaign.json`.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct CampaignReport {
+    /// Campaign name.
+    pub campaign: String,
+    /// Lines, by name.
+    pub lines: Vec<LineReport>,
+    /// The merge tree.
+    pub merge: MergeReport,
+    /// The mosaic.
+    pub mosaic: String,
+    /// Wall time of this run, s.
+    pub wall_s: f64,
+    /// Processes at once.
+    pub processes: usize,
+}
+
+/// A running replay.
+struct Running {
+    task: Task,
+    child: Child,
+    started: Instant,
+}
+
+/// CPU time (user + system, s) of a finished child reaped with `wait4`, and its exit status;
+/// `None` while it runs.
+#[cfg(unix)]
+fn reap(child: &Child) -> Option<(bool, f64)> {
+    let mut status = 0;
+    // SAFETY: zeroed rusage is a valid out-parameter; wait4 writes it for our own child.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: the pid is our child's, not yet reaped (we reap it only here).
+    let pid = unsafe { libc::wait4(child.id() as i32, &mut status, libc::WNOHANG, &mut usage) };
+    if pid <= 0 {
+        return None;
+    }
+    let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    let ok = libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0;
+    Some((ok, tv(usage.ru_utime) + tv(usage.ru_stime)))
+}
+
+fn io(what: &str, p: &Path, e: std::io::Error) -> CampaignError {
+    CampaignError::Run(format!("cannot {what} {}: {e}", p.display()))
+}
+
+fn start(task: &Task, run_toml: &Path, exe: &Path) -> Result<Running, CampaignError> {
+    if task.out.exists() {
+        std::fs::remove_dir_all(&task.out).map_err(|e| io("clear", &task.out, e))?;
+    }
+    std::fs::create_dir_all(&task.out).map_err(|e| io("create", &task.out, e))?;
+    let log = task.out.with_extension("log");
+    let log_file = std::fs::File::create(&log).map_err(|e| io("create", &log, e))?;
+    let err_file = log_file.try_clone().map_err(|e| io("open", &log, e))?;
+    let child = Command::new(exe)
+        .arg("replay")
+        .arg(&task.capture)
+        .arg("--out")
+        .arg(&task.out)
+        .arg("--config")
+        .arg(run_toml)
+        .arg("--no-progress")
+        .stdin(Stdio::null())
+        .stdout(log_file)
+        .stderr(err_file)
+        .spawn()
+        .map_err(|e| io("start", exe, e))?;
+    Ok(Running {
+        task: task.clone(),
+        child,
+        started: Instant::now(),
+    })
+}
+
+fn line_report(task: &Task, ran: bool, wall_s: f64, cpu_s: f64) -> LineReport {
+    let summary: serde_json::Value = std::fs::read_to_string(task.out.join("summary.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or_default();
+    let n = |k: &str| summary[k].as_u64().unwrap_or(0);
+    LineReport {
+        name: task.name.clone(),
+        capture: task.capture.display().to_string(),
+        ran,
+        wall_s,
+        cpu_s,
+        pulses_in: n("pulses_in"),
+        pulses_out: n("pulses_out"),
+        dropped: n("dropped_total"),
+        source: summary["source"].clone(),
+    }
+}
+
+/// Replays the lines not yet done, `opts.processes` at a time; returns every line's report.
+fn run_lines(plan: &Plan, opts: &LocalOptions) -> Result<Vec<LineReport>, CampaignError> {
+    let run_toml = plan.out.join("run.toml");
+    let mut reports: Vec<LineReport> = Vec::new();
+    let mut waiting: Vec<&Task> = Vec::new();
+    for t in &plan.tasks {
+        match std::fs::read_to_string(t.out.join(DONE))
+            .ok()
+            .and_then(|s| serde_json::from_str::<LineReport>(&s).ok())
+        {
+            Some(mut r) => {
+                r.ran = false;
+                reports.push(r);
+            }
+            None => waiting.push(t),
+        }
+    }
+    waiting.reverse();
+    let total = waiting.len();
+    let mut running: Vec<Running> = Vec::new();
+    let mut failed: Vec<String> = Vec::new();
+    while !waiting.is_empty() || !running.is_empty() {
+        while running.len() < opts.processes.max(1)
+            && let Some(t) = waiting.pop()
+        {
+            running.push(start(t, &run_toml, &opts.exe)?);
+        }
+        let mut k = 0;
+        while k < running.len() {
+            match reap(&running[k].child) {
+                None => k += 1,
+                Some((ok, cpu)) => {
+                    let r = running.swap_remove(k);
+                    let wall = r.started.elapsed().as_secs_f64();
+                    if ok {
+                        let rep = line_report(&r.task, true, wall, cpu);
+                        let text = serde_json::to_string_pretty(&rep).unwrap_or_default();
+                        let done = r.task.out.join(DONE);
+                        std::fs::write(&done, text).map_err(|e| io("write", &done, e))?;
+                        eprintln!(
+                            "line {} done ({}/{total}): {:.1} s wall, {:.1} s CPU",
+                            r.task.name,
+                            total - waiting.len() - running.len(),
+                            wall,
+                            cpu
+                        );
+                        reports.push(rep);
+                    } else {
+                        eprintln!(
+                            "line {} failed: see {}",
+                            r.task.name,
+                            r.task.out.with_extension("log").display()
+                        );
+                        failed.push(r.task.name.clone());
+                    }
+                }
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    if !failed.is_empty() {
+        return Err(CampaignError::Run(format!(
+            "{} line(s) failed: {}; their logs are lines/<name>.log; run again to retry them \
+             (finished lines are kept)",
+            failed.len(),
+            failed.join(", ")
+        )));
+    }
+    reports.sort_by(|a, b| a.name.cmp(&b.name));
+    Ok(reports)
+}
+
+/// Merges `stores` as a tree of `fan_in`-way merges (the merges of one level on up to
+/// `processes` threads) into `mosaic`, every merge with the campaign's metadata. Returns the
+/// report; intermediate stores (`merge/`) are removed.
+pub fn merge_tree(
+    stores: &[PathBuf],
+    work: &Path,
+    mosaic: &Path,
+    meta: &MergeMeta,
+    fan_in: usize,
+    processes: usize,
+) -> Result<MergeReport, CampaignError> {
+    let started = Instant::now();
+    let fan_in = fan_in.max(2);
+    let mut level: Vec<PathBuf> = stores.to_vec();
+    level.sort();
+    if work.exists() {
+        std::fs::remove_dir_all(work).map_err(|e| io("clear", work, e))?;
+    }
+    let (mut levels, mut merges, mut tiles) = (0, 0, 0);
+    loop {
+        let last = level.len() <= fan_in;
+        let groups: Vec<Vec<PathBuf>> = level.chunks(fan_in).map(<[PathBuf]>::to_vec).collect();
+        let outs: Vec<PathBuf> = if last {
+            vec![mosaic.to_path_buf()]
+        } else {
+            (0..groups.len())
+                .map(|k| work.join(format!("level{levels}_{k:04}.zarr")))
+                .collect()
+        };
+        if !last {
+            std::fs::create_dir_all(work).map_err(|e| io("create", work, e))?;
+        }
+        let results: Vec<Result<crate::voxel::merge::MergeSummary, String>> =
+            std::thread::scope(|s| {
+                let mut results = Vec::new();
+                for (batch_g, batch_o) in groups
+                    .chunks(processes.max(1))
+                    .zip(outs.chunks(processes.max(1)))
+                {
+                    let handles: Vec<_> = batch_g
+                        .iter()
+                        .zip(batch_o)
+                        .map(|(g, o)| s.spawn(move || merge_stores(g, o, meta, |_, _| {})))
+                        .collect();
+                    results.extend(handles.into_iter().map(|h| {
+                        h.join()
+                            .unwrap_or_else(|_| Err("a merge thread panicked".to_string()))
+                    }));
+                }
+                results
+            });
+        for r in results {
+            let s = r.map_err(CampaignError::Run)?;
+            tiles = s.tiles;
+            merges += 1;
+        }
+        levels += 1;
+        if last {
+            break;
+        }
+        level = outs;
+    }
+    if work.exists() {
+        std::fs::remove_dir_all(work).map_err(|e| io("remove", work, e))?;
+    }
+    Ok(MergeReport {
+        fan_in,
+        levels,
+        merges,
+        tiles,
+        wall_s: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// Runs `plan` here: the lines not done, then the merge tree into `mosaic.zarr` (rebuilt on
+/// every run), then `campaign.json`.
+pub fn run_local(plan: &Plan, opts: &LocalOptions) -> Result<CampaignReport, CampaignError> {
+    let started = Instant::now();
+    std::fs::create_dir_all(&plan.out).map_err(|e| io("create", &plan.out, e))?;
+    let run_toml = plan.out.join("run.toml");
+    match std::fs::read_to_string(&run_toml) {
+        Ok(old) if old != plan.config_text => {
+            return Err(CampaignError::Field {
+                file: plan.file.display().to_string(),
+                field: "campaign.config".into(),
+                why: format!(
+                    "{} holds lines run with another configuration ({}); give the campaign a \
+                     new `out` folder",
+                    plan.out.display(),
+                    run_toml.display()
+                ),
+            });
+        }
+        Ok(_) => {}
+        Err(_) => {
+            std::fs::write(&run_toml, &plan.config_text).map_err(|e| io("write", &run_toml, e))?
+        }
+    }
+    let lines = run_lines(plan, opts)?;
+    let stores: Vec<PathBuf> = plan
+        .tasks
+        .iter()
+        .map(|t| t.out.join("voxels.zarr"))
+        .collect();
+    let mosaic = plan.out.join("mosaic.zarr");
+    let partial = plan.out.join("mosaic.zarr.partial");
+    for p in [&partial] {
+        if p.exists() {
+            std::fs::remove_dir_all(p).map_err(|e| io("clear", p, e))?;
+        }
+    }
+    let meta = MergeMeta::Given {
+        run_key: format!(
+            "campaign {}: {} lines",
+            plan.campaign.name,
+            plan.tasks.len()
+        ),
+        configuration: plan.config_text.clone(),
+    };
+    let merge = merge_tree(
+        &stores,
+        &plan.out.join("merge"),
+        &partial,
+        &meta,
+        opts.fan_in,
+        opts.processes,
+    )?;
+    if mosaic.exists() {
+        std::fs::remove_dir_all(&mosaic).map_err(|e| io("replace", &mosaic, e))?;
+    }
+    std::fs::rename(&partial, &mosaic).map_err(|e| io("rename", &partial, e))?;
+    let report = CampaignReport {
+        campaign: plan.campaign.name.clone(),
+        lines,
+        merge,
+        mosaic: mosaic.display().to_string(),
+        wall_s: started.elapsed().as_secs_f64(),
+        processes: opts.processes,
+    };
+    let path = plan.out.join("campaign.json");
+    std::fs::write(
+        &path,
+        serde_json::to_string_pretty(&report).unwrap_or_default() + "\n",
+    )
+    .map_err(|e| io("write", &path, e))?;
+    Ok(report)
+}

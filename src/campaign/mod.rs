@@ -1,0 +1,282 @@
+//! A survey campaign: many flight lines replayed with one configuration into one CRS and one
+//! voxel grid, each line's store written on its own, then merged exactly into one mosaic
+//! (`docs/campaign.md`).
+//!
+//! - this file: the campaign file (`[campaign]`: captures or globs, run configuration, output
+//!   folder, EPSG code) and the plan made from it (`fwlidar campaign plan`);
+//! - `local.rs`: running the plan with N processes on one machine and merging the line stores
+//!   as a tree (`fwlidar campaign run --local N`).
+//!
+//! The mosaic is byte-identical whatever the number of processes, the order lines finish in
+//! and the shape of the merge tree: voxel accumulators are integers (`crate::voxel::merge`) and
+//! every merge writes the campaign's metadata, not its inputs' names.
+
+pub mod local;
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::config::load::{Validate, Validator, field, index};
+use crate::config::{ConfigErrors, RunConfig};
+
+/// A campaign file: one `[campaign]` table.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CampaignFile {
+    /// The campaign.
+    pub campaign: Campaign,
+}
+
+/// What a campaign is made of. Relative paths start at the campaign file's folder.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Campaign {
+    /// Name (letters, digits, `-`, `_`, `.`): the mosaic's run key.
+    pub name: String,
+    /// The flight lines: capture files (or any file `replay` reads), or glob patterns
+    /// (`lines/*.fwcap`). Each line's store is named after its file's stem, which must be
+    /// unique.
+    pub captures: Vec<String>,
+    /// Run configuration of every line (default: the embedded one). `voxels.enabled` must be
+    /// true: the mosaic is the voxel store.
+    #[serde(default)]
+    pub config: Option<String>,
+    /// Changes to it, as `replay --set` takes them.
+    #[serde(default)]
+    pub set: Vec<String>,
+    /// The campaign folder: `lines/<stem>/` per line, `mosaic.zarr`, `campaign.json`.
+    pub out: String,
+    /// EPSG code of the CRS every line is projected into (`georeference.output_epsg`), so that
+    /// lines in two UTM zones still share one grid.
+    pub epsg: u32,
+}
+
+impl Validate for CampaignFile {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        let c = &self.campaign;
+        let p = field(path, "campaign");
+        v.require(
+            !c.name.is_empty()
+                && c.name
+                    .chars()
+                    .all(|ch| ch.is_ascii_alphanumeric() || "-_.".contains(ch)),
+            field(&p, "name"),
+            format!("must be letters, digits, '-', '_' or '.', got {:?}", c.name),
+        );
+        v.require(
+            !c.captures.is_empty(),
+            field(&p, "captures"),
+            "must name at least one capture or pattern",
+        );
+        for (i, s) in c.captures.iter().enumerate() {
+            v.require(
+                !s.trim().is_empty(),
+                index(&field(&p, "captures"), i),
+                "is empty",
+            );
+        }
+        v.require(!c.out.is_empty(), field(&p, "out"), "must name a folder");
+        v.require(
+            c.epsg > 0,
+            field(&p, "epsg"),
+            "must be an EPSG code, e.g. 32736",
+        );
+    }
+}
+
+/// Why a campaign cannot be planned or run.
+#[derive(Debug, thiserror::Error)]
+pub enum CampaignError {
+    /// The campaign file is malformed.
+    #[error("{0}")]
+    File(#[from] ConfigErrors),
+    /// A field names something that is not there or cannot be read.
+    #[error("{file}: {field}: {why}")]
+    Field {
+        /// The campaign file.
+        file: String,
+        /// The field at fault.
+        field: String,
+        /// What is wrong.
+        why: String,
+    },
+    /// A line or the merge failed.
+    #[error("{0}")]
+    Run(String),
+}
+
+/// One task: a flight line replayed into its own store.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Task {
+    /// Number in the plan (0-based; the Slurm array index).
+    pub id: usize,
+    /// The line's name (its file's stem).
+    pub name: String,
+    /// The capture.
+    pub capture: PathBuf,
+    /// Its size, bytes.
+    pub bytes: u64,
+    /// The folder its replay writes (`lines/<name>`).
+    pub out: PathBuf,
+    /// Already done (a finished replay left `done.json`).
+    pub done: bool,
+}
+
+/// A checked campaign: its tasks and the configuration every line runs with.
+#[derive(Clone, Debug)]
+pub struct Plan {
+    /// The campaign file.
+    pub file: PathBuf,
+    /// The campaign.
+    pub campaign: Campaign,
+    /// The campaign folder.
+    pub out: PathBuf,
+    /// One task per line, by name.
+    pub tasks: Vec<Task>,
+    /// The run configuration of every line, with the campaign's CRS.
+    pub config: RunConfig,
+    /// Its TOML text (written as `run.toml` in the campaign folder and recorded in the mosaic).
+    pub config_text: String,
+}
+
+/// Name of the marker a finished line's replay leaves in its folder.
+pub const DONE: &str = "done.json";
+
+/// Reads and checks the campaign file `path`: every capture pattern matches, every capture
+/// opens, line names are unique, the configuration loads with voxels on, and the CRS is the
+/// campaign's. Errors name the file and the field.
+pub fn plan(path: &Path) -> Result<Plan, CampaignError> {
+    let file: CampaignFile = crate::config::load::load_file_with(path, &[] as &[&str])?;
+    let c = file.campaign;
+    let base = path.parent().unwrap_or(Path::new("."));
+    let at = |f: String, why: String| CampaignError::Field {
+        file: path.display().to_string(),
+        field: f,
+        why,
+    };
+    let mut captures: Vec<PathBuf> = Vec::new();
+    for (i, pat) in c.captures.iter().enumerate() {
+        let f = format!("campaign.captures[{i}]");
+        let full = base.join(pat);
+        let text = full.to_string_lossy().to_string();
+        let matched: Vec<PathBuf> = if pat.contains(['*', '?', '[']) {
+            glob::glob(&text)
+                .map_err(|e| at(f.clone(), format!("bad pattern {pat:?}: {e}")))?
+                .filter_map(Result::ok)
+                .filter(|p| p.is_file())
+                .collect()
+        } else {
+            vec![full.clone()]
+        };
+        if matched.is_empty() {
+            return Err(at(f, format!("{pat:?} matches no file")));
+        }
+        for m in matched {
+            if !m.is_file() {
+                return Err(at(f.clone(), format!("{}: no such file", m.display())));
+            }
+            crate::source::open_file(&m).map_err(|e| at(f.clone(), e.to_string()))?;
+            captures.push(m);
+        }
+    }
+    captures.sort();
+    captures.dedup();
+    let out = base.join(&c.out);
+    let mut tasks: Vec<Task> = Vec::new();
+    for cap in captures {
+        let name = cap
+            .file_stem()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_default();
+        if let Some(t) = tasks.iter().find(|t| t.name == name) {
+            return Err(at(
+                "campaign.captures".into(),
+                format!(
+                    "{} and {} are both line {name:?}: line names (file stems) must be unique",
+                    t.capture.display(),
+                    cap.display()
+                ),
+            ));
+        }
+        let dir = out.join("lines").join(&name);
+        tasks.push(Task {
+            id: 0,
+            bytes: std::fs::metadata(&cap).map(|m| m.len()).unwrap_or(0),
+            done: dir.join(DONE).is_file(),
+            out: dir,
+            name,
+            capture: cap,
+        });
+    }
+    tasks.sort_by(|a, b| a.name.cmp(&b.name));
+    for (i, t) in tasks.iter_mut().enumerate() {
+        t.id = i;
+    }
+    let config_path = c.config.as_ref().map(|p| base.join(p));
+    let mut config = crate::config::load_run_config_with(config_path.as_deref(), &c.set)?;
+    if !config.voxels.enabled {
+        return Err(at(
+            "campaign.config".into(),
+            "voxels.enabled is false: the campaign's mosaic is the voxel store".into(),
+        ));
+    }
+    match config.georeference.output_epsg {
+        Some(e) if e != c.epsg => {
+            return Err(at(
+                "campaign.epsg".into(),
+                format!(
+                    "{} but the run configuration's georeference.output_epsg is {e}",
+                    c.epsg
+                ),
+            ));
+        }
+        _ => config.georeference.output_epsg = Some(c.epsg),
+    }
+    // Every line writes where `--out` tells it; the folder named here is never used.
+    config.output.dir = "out".into();
+    let config_text =
+        toml::to_string(&config).map_err(|e| at("campaign.config".into(), e.to_string()))?;
+    Ok(Plan {
+        file: path.to_path_buf(),
+        campaign: c,
+        out,
+        tasks,
+        config,
+        config_text,
+    })
+}
+
+impl Plan {
+    /// The plan as text: one line per task.
+    pub fn describe(&self) -> String {
+        use std::fmt::Write as _;
+        let mut s = format!(
+            "campaign {} ({}): {} lines into {} (EPSG {}), {} done\n",
+            self.campaign.name,
+            self.file.display(),
+            self.tasks.len(),
+            self.out.display(),
+            self.campaign.epsg,
+            self.tasks.iter().filter(|t| t.done).count()
+        );
+        for t in &self.tasks {
+            let _ = writeln!(
+                s,
+                "  task {:>3}  {:<24} {:>10.1} MB  {}  -> {}",
+                t.id,
+                t.name,
+                t.bytes as f64 / 1e6,
+                if t.done { "done   " } else { "to run " },
+                t.out.display()
+            );
+        }
+        let _ = writeln!(
+            s,
+            "  then a merge of {} stores into {}",
+            self.tasks.len(),
+            self.out.join("mosaic.zarr").display()
+        );
+        s
+    }
+}

@@ -1,0 +1,160 @@
+//! Combining voxel stores (`fwlidar merge`, and the merge tree of `fwlidar campaign`).
+//!
+//! The stores must share their grid (voxel size, tile-grid anchor, height range and mode, tile
+//! size, intensity quantum), CRS and intensity units; their extents may differ and the result
+//! covers them all. A tile present in several stores is the sum of their counts and intensity
+//! sums (integers of the quantum, so exact) and the larger of their maxima: the data do not
+//! depend on the order of the stores nor on how a merge is split into merges of merges, bit for
+//! bit. The metadata (`run_key`, `configuration`) name the inputs unless the caller gives them
+//! ([`MergeMeta::Given`]), which a campaign does so that its mosaic is byte-identical whatever
+//! its merge tree.
+
+use std::path::{Path, PathBuf};
+
+use crate::voxel::tile::TileData;
+use crate::voxel::zarr::{StoreInfo, ZarrStore};
+
+/// The metadata of a merged store.
+#[derive(Clone, Debug, PartialEq)]
+pub enum MergeMeta {
+    /// `run_key` "merged from <paths>", `configuration` every input's under its path.
+    FromInputs,
+    /// As given.
+    Given {
+        /// `fwlidar.run_key`.
+        run_key: String,
+        /// The `configuration` attribute (TOML text).
+        configuration: String,
+    },
+}
+
+/// What a merge did.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct MergeSummary {
+    /// Input stores.
+    pub stores: usize,
+    /// Tiles written.
+    pub tiles: usize,
+    /// Tiles present in more than one input.
+    pub tiles_from_several: u64,
+    /// Tiles of the result's arrays along x and y.
+    pub span_tiles: [u32; 2],
+    /// Columns per tile side.
+    pub tile_columns: u32,
+    /// Height levels of the grid.
+    pub levels: u32,
+}
+
+/// Merges `stores` into the new store `out` (which must not exist); `tick` is called once per
+/// tile written. Errors name the stores at fault.
+pub fn merge_stores(
+    stores: &[PathBuf],
+    out: &Path,
+    meta: &MergeMeta,
+    mut tick: impl FnMut(usize, usize),
+) -> Result<MergeSummary, String> {
+    if out.exists() {
+        return Err(format!(
+            "{} exists; merge writes a new store and never overwrites one",
+            out.display()
+        ));
+    }
+    if stores.is_empty() {
+        return Err("no store to merge".into());
+    }
+    // A fixed order (by path) for everything that is not commutative: attributes, file order.
+    let mut paths = stores.to_vec();
+    paths.sort();
+    paths.dedup();
+    let mut opened = Vec::with_capacity(paths.len());
+    for p in &paths {
+        opened.push(ZarrStore::open(p).map_err(|e| e.to_string())?);
+    }
+    let first = &opened[0];
+    let mut grid = first.grid().clone();
+    for (s, p) in opened.iter().zip(&paths).skip(1) {
+        grid.compatible(s.grid()).map_err(|why| {
+            format!(
+                "{} and {} cannot be merged: {why}",
+                paths[0].display(),
+                p.display()
+            )
+        })?;
+        if s.info().epsg != first.info().epsg || s.info().crs_wkt != first.info().crs_wkt {
+            return Err(format!(
+                "{} and {} cannot be merged: their CRS differ (EPSG {:?} and {:?})",
+                paths[0].display(),
+                p.display(),
+                first.info().epsg,
+                s.info().epsg
+            ));
+        }
+        if s.info().intensity_units != first.info().intensity_units {
+            return Err(format!(
+                "{} and {} cannot be merged: intensities in {:?} and {:?}",
+                paths[0].display(),
+                p.display(),
+                first.info().intensity_units,
+                s.info().intensity_units
+            ));
+        }
+        grid = grid.union(s.grid());
+    }
+    let names: Vec<String> = paths.iter().map(|p| p.display().to_string()).collect();
+    let (run_key, configuration) = match meta {
+        MergeMeta::FromInputs => (
+            format!("merged from {}", names.join(", ")),
+            opened
+                .iter()
+                .zip(&names)
+                .map(|(s, n)| format!("# {n}\n{}", s.info().configuration))
+                .collect::<Vec<_>>()
+                .join("\n"),
+        ),
+        MergeMeta::Given {
+            run_key,
+            configuration,
+        } => (run_key.clone(), configuration.clone()),
+    };
+    let info = StoreInfo {
+        crs_wkt: first.info().crs_wkt.clone(),
+        epsg: first.info().epsg,
+        intensity_units: first.info().intensity_units.clone(),
+        run_key,
+        configuration,
+    };
+    let mut tiles: Vec<[i64; 2]> = opened.iter().flat_map(|s| s.tiles()).collect();
+    tiles.sort();
+    tiles.dedup();
+    let mut result =
+        ZarrStore::create_or_open(out, grid.clone(), info).map_err(|e| e.to_string())?;
+    let (mut acc, mut part) = (TileData::for_grid(&grid), TileData::for_grid(&grid));
+    let mut from_several = 0u64;
+    for (k, &t) in tiles.iter().enumerate() {
+        acc.clear();
+        let mut holders = 0;
+        for s in opened.iter_mut() {
+            if s.read_tile(t, &mut part).map_err(|e| e.to_string())? {
+                acc.merge(&part);
+                holders += 1;
+            }
+        }
+        if holders > 1 {
+            from_several += 1;
+        }
+        // A merged store is not resumed: its tiles carry watermark 0.
+        result.write_tile(t, &acc, 0).map_err(|e| e.to_string())?;
+        tick(k + 1, tiles.len());
+    }
+    // The arrays span the bounding box of the tiles, whatever the inputs' extents.
+    result.fit().map_err(|e| e.to_string())?;
+    let span = *result.span();
+    Ok(MergeSummary {
+        stores: opened.len(),
+        tiles: tiles.len(),
+        tiles_from_several: from_several,
+        span_tiles: span.tiles,
+        tile_columns: grid.tile_columns,
+        levels: grid.levels,
+    })
+}

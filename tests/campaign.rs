@@ -1,0 +1,212 @@
+//! `fwlidar campaign` (issue 22, first part): four simulated survey lines that cross each other,
+//! planned, run here with one and two processes and merge trees of different shapes: the
+//! mosaics are byte-identical; a line whose replay was killed (no `done.json`, a half-written
+//! folder) is replayed alone on the next run and the mosaic is again the same bytes. Bad
+//! campaign files name the file and the field.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+/// Every file under `dir` with its bytes, by relative path.
+fn tree(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push((
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                ));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+fn lines(dir: &Path) {
+    std::fs::create_dir_all(dir.join("lines")).unwrap();
+    let tracks = [
+        ("[-1.0, 0.0]", "[300.0, 0.0]"),
+        ("[0.0, -1.0]", "[0.0, 300.0]"),
+        ("[-1.0, -1.0]", "[200.0, 200.0]"),
+        ("[1.0, -1.0]", "[-200.0, 200.0]"),
+    ];
+    for (i, (a, b)) in tracks.iter().enumerate() {
+        let cap = dir.join(format!("lines/line{i}.fwcap"));
+        let set = format!("flight.lines=[{{start_m={a}, end_m={b}}}]");
+        let o = common::fwlidar(&[
+            "simulate",
+            "--scene",
+            "config/scenes/survey_line.toml",
+            "--pulses",
+            "12000",
+            "--no-truth-voxels",
+            "--out",
+            cap.to_str().unwrap(),
+            "--set",
+            &set,
+        ]);
+        assert!(o.status.success(), "{}", common::text(&o.stderr));
+    }
+}
+
+fn campaign_file(dir: &Path, name: &str, out: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(
+        &p,
+        format!(
+            "[campaign]\nname = \"crossing\"\ncaptures = [\"lines/line?.fwcap\"]\n\
+             set = [\"output.waveforms=false\", \"output.las=false\", \"output.rasters=false\"]\n\
+             out = \"{out}\"\nepsg = 32736\n"
+        ),
+    )
+    .unwrap();
+    p
+}
+
+fn run(file: &Path, local: &str, fan_in: &str) -> serde_json::Value {
+    let o = common::fwlidar(&[
+        "campaign",
+        "run",
+        file.to_str().unwrap(),
+        "--local",
+        local,
+        "--fan-in",
+        fan_in,
+    ]);
+    assert!(
+        o.status.success(),
+        "{}\n{}",
+        common::text(&o.stdout),
+        common::text(&o.stderr)
+    );
+    let report = file.parent().unwrap().join(if file.ends_with("a.toml") {
+        "out_a/campaign.json"
+    } else {
+        "out_b/campaign.json"
+    });
+    serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap()
+}
+
+#[test]
+fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_line() {
+    let dir = tempfile::tempdir().unwrap();
+    lines(dir.path());
+    let a = campaign_file(dir.path(), "a.toml", "out_a");
+    let b = campaign_file(dir.path(), "b.toml", "out_b");
+    // The plan: four tasks.
+    let o = common::fwlidar(&["campaign", "plan", a.to_str().unwrap()]);
+    let plan = common::text(&o.stdout);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    assert_eq!(plan.matches("to run").count(), 4, "{plan}");
+    // Two processes, pairwise merges (two levels) / one process, one merge of all four.
+    let ra = run(&a, "2", "2");
+    let rb = run(&b, "1", "8");
+    assert_eq!(ra["merge"]["levels"], 2);
+    assert_eq!(rb["merge"]["levels"], 1);
+    let lines = ra["lines"].as_array().unwrap();
+    assert_eq!(lines.len(), 4);
+    for l in lines {
+        assert_eq!(l["pulses_in"], 12000, "{l}");
+        assert!(l["cpu_s"].as_f64().unwrap() > 0.0, "{l}");
+    }
+    let mosaic_a = tree(&dir.path().join("out_a/mosaic.zarr"));
+    let mosaic_b = tree(&dir.path().join("out_b/mosaic.zarr"));
+    assert!(mosaic_a.len() > 10);
+    assert!(mosaic_a == mosaic_b, "the mosaics differ");
+    // The lines cross: some tiles hold several lines, and the mosaic holds every line's
+    // samples (its data equal a plain `fwlidar merge` of the line stores).
+    let flat = dir.path().join("flat.zarr");
+    let mut args = vec!["merge", "--no-progress", "--out", flat.to_str().unwrap()];
+    let stores: Vec<String> = (0..4)
+        .map(|i| {
+            dir.path()
+                .join(format!("out_a/lines/line{i}/voxels.zarr"))
+                .display()
+                .to_string()
+        })
+        .collect();
+    args.extend(stores.iter().map(String::as_str));
+    let o = common::fwlidar(&args);
+    let said = common::text(&o.stdout);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let several: u64 = said
+        .split('(')
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap();
+    assert!(several > 0, "{said}");
+    let flat_files = tree(&flat);
+    for (p, bytes) in &mosaic_a {
+        if p != Path::new("zarr.json") {
+            let f = flat_files.iter().find(|(q, _)| q == p).unwrap();
+            assert!(&f.1 == bytes, "{} differs from a plain merge", p.display());
+        }
+    }
+    // A killed line: its done marker gone and its store half-written. The next run replays it
+    // alone and the mosaic is the same bytes.
+    let line2 = dir.path().join("out_a/lines/line2");
+    std::fs::remove_file(line2.join("done.json")).unwrap();
+    std::fs::remove_dir_all(line2.join("voxels.zarr/pulse_count")).unwrap();
+    let again = run(&a, "2", "3");
+    let replayed: Vec<&str> = again["lines"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|l| l["ran"] == true)
+        .map(|l| l["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(replayed, ["line2"]);
+    assert!(
+        tree(&dir.path().join("out_a/mosaic.zarr")) == mosaic_b,
+        "the mosaic after the killed line's rerun differs"
+    );
+}
+
+#[test]
+fn bad_campaign_files_name_the_file_and_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("c.toml");
+    std::fs::write(
+        &f,
+        "[campaign]\nname = \"x\"\ncaptures = [\"nothing/*.fwcap\"]\nout = \"o\"\nepsg = 32736\n",
+    )
+    .unwrap();
+    let o = common::fwlidar(&["campaign", "plan", f.to_str().unwrap()]);
+    let e = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(
+        e.contains("c.toml") && e.contains("campaign.captures[0]"),
+        "{e}"
+    );
+    std::fs::write(
+        &f,
+        "[campaign]\nname = \"x y\"\ncaptures = []\nout = \"o\"\nepsg = 32736\nlines = 3\n",
+    )
+    .unwrap();
+    let o = common::fwlidar(&["campaign", "plan", f.to_str().unwrap()]);
+    let e = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("c.toml") && e.contains("lines"), "{e}");
+    // A configuration without voxels cannot make a mosaic.
+    std::fs::create_dir_all(dir.path().join("l")).unwrap();
+    std::fs::copy("replay/two_layer.fwcap", dir.path().join("l/a.fwcap")).unwrap();
+    std::fs::write(
+        &f,
+        "[campaign]\nname = \"x\"\ncaptures = [\"l/a.fwcap\"]\nset = [\"voxels.enabled=false\"]\n\
+         out = \"o\"\nepsg = 32736\n",
+    )
+    .unwrap();
+    let o = common::fwlidar(&["campaign", "run", f.to_str().unwrap()]);
+    let e = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("campaign.config") && e.contains("voxels"), "{e}");
+    assert!(!dir.path().join("o").exists());
+}
