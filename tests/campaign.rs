@@ -168,6 +168,54 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
         tree(&dir.path().join("out_a/mosaic.zarr")) == mosaic_b,
         "the mosaic after the killed line's rerun differs"
     );
+    // The Slurm path without Slurm: the scripts `submit --dry-run` writes, their array tasks
+    // run one by one as `campaign task`, then the merge job's `campaign merge`: the same bytes.
+    let c = campaign_file(dir.path(), "c.toml", "out_c");
+    let o = common::fwlidar(&[
+        "campaign",
+        "submit",
+        c.to_str().unwrap(),
+        "--dry-run",
+        "--partition",
+        "short",
+    ]);
+    let said = common::text(&o.stdout);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    assert!(said.contains("--dependency=afterok"), "{said}");
+    let script = std::fs::read_to_string(dir.path().join("out_c/slurm/lines.sbatch")).unwrap();
+    assert!(script.contains("#SBATCH --array=0,1,2,3"), "{script}");
+    assert!(script.contains("#SBATCH --partition=short"), "{script}");
+    assert!(script.contains("#SBATCH --mem="), "{script}");
+    assert!(script.contains("campaign task"), "{script}");
+    let merge = std::fs::read_to_string(dir.path().join("out_c/slurm/merge.sbatch")).unwrap();
+    assert!(merge.contains("campaign merge"), "{merge}");
+    // The merge job refuses to run before the lines.
+    let o = common::fwlidar(&["campaign", "merge", c.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(common::text(&o.stderr).contains("not done"));
+    for i in [3, 1, 0, 2] {
+        let idx = i.to_string();
+        let o = common::fwlidar(&["campaign", "task", c.to_str().unwrap(), "--index", &idx]);
+        assert!(o.status.success(), "{}", common::text(&o.stderr));
+    }
+    // A resubmission now has no array left: the merge job alone.
+    let o = common::fwlidar(&["campaign", "submit", c.to_str().unwrap(), "--dry-run"]);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    assert!(!common::text(&o.stdout).contains("lines.sbatch"));
+    let o = common::fwlidar(&[
+        "campaign",
+        "merge",
+        c.to_str().unwrap(),
+        "--processes",
+        "2",
+        "--fan-in",
+        "2",
+    ]);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    assert!(
+        tree(&dir.path().join("out_c/mosaic.zarr")) == mosaic_b,
+        "the mosaic of the task-by-task run differs"
+    );
 }
 
 #[test]

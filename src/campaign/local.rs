@@ -299,31 +299,102 @@ pub fn merge_tree(
     })
 }
 
-/// Runs `plan` here: the lines not done, then the merge tree into `mosaic.zarr` (rebuilt on
-/// every run), then `campaign.json`.
-pub fn run_local(plan: &Plan, opts: &LocalOptions) -> Result<CampaignReport, CampaignError> {
-    let started = Instant::now();
+/// Writes the campaign folder's `run.toml` (the configuration every line runs with), or checks
+/// that the one there is the same: a folder holding lines run with another configuration is
+/// refused.
+pub fn prepare_folder(plan: &Plan) -> Result<(), CampaignError> {
     std::fs::create_dir_all(&plan.out).map_err(|e| io("create", &plan.out, e))?;
     let run_toml = plan.out.join("run.toml");
     match std::fs::read_to_string(&run_toml) {
-        Ok(old) if old != plan.config_text => {
-            return Err(CampaignError::Field {
-                file: plan.file.display().to_string(),
-                field: "campaign.config".into(),
-                why: format!(
-                    "{} holds lines run with another configuration ({}); give the campaign a \
-                     new `out` folder",
-                    plan.out.display(),
-                    run_toml.display()
-                ),
-            });
-        }
-        Ok(_) => {}
+        Ok(old) if old != plan.config_text => Err(CampaignError::Field {
+            file: plan.file.display().to_string(),
+            field: "campaign.config".into(),
+            why: format!(
+                "{} holds lines run with another configuration ({}); give the campaign a new \
+                 `out` folder",
+                plan.out.display(),
+                run_toml.display()
+            ),
+        }),
+        Ok(_) => Ok(()),
         Err(_) => {
-            std::fs::write(&run_toml, &plan.config_text).map_err(|e| io("write", &run_toml, e))?
+            std::fs::write(&run_toml, &plan.config_text).map_err(|e| io("write", &run_toml, e))
         }
     }
-    let lines = run_lines(plan, opts)?;
+}
+
+/// Runs one task (a Slurm array task): its line's replay unless it is done. Returns its report.
+pub fn run_task(plan: &Plan, index: usize, exe: &Path) -> Result<LineReport, CampaignError> {
+    let task = plan.tasks.get(index).ok_or_else(|| {
+        CampaignError::Run(format!(
+            "task {index} does not exist: the plan has {} tasks (0..{})",
+            plan.tasks.len(),
+            plan.tasks.len()
+        ))
+    })?;
+    prepare_folder(plan)?;
+    if let Some(mut r) = std::fs::read_to_string(task.out.join(DONE))
+        .ok()
+        .and_then(|s| serde_json::from_str::<LineReport>(&s).ok())
+    {
+        r.ran = false;
+        return Ok(r);
+    }
+    let r = start(task, &plan.out.join("run.toml"), exe)?;
+    loop {
+        if let Some((ok, cpu)) = reap(&r.child) {
+            let wall = r.started.elapsed().as_secs_f64();
+            if !ok {
+                return Err(CampaignError::Run(format!(
+                    "line {} failed: see {}",
+                    task.name,
+                    task.out.with_extension("log").display()
+                )));
+            }
+            let rep = line_report(task, true, wall, cpu);
+            let done = task.out.join(DONE);
+            std::fs::write(
+                &done,
+                serde_json::to_string_pretty(&rep).unwrap_or_default(),
+            )
+            .map_err(|e| io("write", &done, e))?;
+            return Ok(rep);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// The merge job: every line must be done; merges their stores as a tree into `mosaic.zarr`
+/// (rebuilt) and writes `campaign.json`.
+pub fn merge_campaign(
+    plan: &Plan,
+    processes: usize,
+    fan_in: usize,
+    lines_ran_now: &[String],
+    started: Instant,
+) -> Result<CampaignReport, CampaignError> {
+    let mut lines = Vec::new();
+    let mut missing = Vec::new();
+    for t in &plan.tasks {
+        match std::fs::read_to_string(t.out.join(DONE))
+            .ok()
+            .and_then(|s| serde_json::from_str::<LineReport>(&s).ok())
+        {
+            Some(mut r) => {
+                r.ran = lines_ran_now.contains(&r.name);
+                lines.push(r);
+            }
+            None => missing.push(t.name.clone()),
+        }
+    }
+    if !missing.is_empty() {
+        return Err(CampaignError::Run(format!(
+            "{} line(s) not done: {}; run their tasks first (a killed task is run again by \
+             resubmitting the campaign)",
+            missing.len(),
+            missing.join(", ")
+        )));
+    }
     let stores: Vec<PathBuf> = plan
         .tasks
         .iter()
@@ -331,10 +402,8 @@ pub fn run_local(plan: &Plan, opts: &LocalOptions) -> Result<CampaignReport, Cam
         .collect();
     let mosaic = plan.out.join("mosaic.zarr");
     let partial = plan.out.join("mosaic.zarr.partial");
-    for p in [&partial] {
-        if p.exists() {
-            std::fs::remove_dir_all(p).map_err(|e| io("clear", p, e))?;
-        }
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).map_err(|e| io("clear", &partial, e))?;
     }
     let meta = MergeMeta::Given {
         run_key: format!(
@@ -349,8 +418,8 @@ pub fn run_local(plan: &Plan, opts: &LocalOptions) -> Result<CampaignReport, Cam
         &plan.out.join("merge"),
         &partial,
         &meta,
-        opts.fan_in,
-        opts.processes,
+        fan_in,
+        processes,
     )?;
     if mosaic.exists() {
         std::fs::remove_dir_all(&mosaic).map_err(|e| io("replace", &mosaic, e))?;
@@ -362,7 +431,7 @@ pub fn run_local(plan: &Plan, opts: &LocalOptions) -> Result<CampaignReport, Cam
         merge,
         mosaic: mosaic.display().to_string(),
         wall_s: started.elapsed().as_secs_f64(),
-        processes: opts.processes,
+        processes,
     };
     let path = plan.out.join("campaign.json");
     std::fs::write(
@@ -371,4 +440,18 @@ pub fn run_local(plan: &Plan, opts: &LocalOptions) -> Result<CampaignReport, Cam
     )
     .map_err(|e| io("write", &path, e))?;
     Ok(report)
+}
+
+/// Runs `plan` here: the lines not done, then the merge tree into `mosaic.zarr` (rebuilt on
+/// every run), then `campaign.json`.
+pub fn run_local(plan: &Plan, opts: &LocalOptions) -> Result<CampaignReport, CampaignError> {
+    let started = Instant::now();
+    prepare_folder(plan)?;
+    let lines = run_lines(plan, opts)?;
+    let ran: Vec<String> = lines
+        .iter()
+        .filter(|l| l.ran)
+        .map(|l| l.name.clone())
+        .collect();
+    merge_campaign(plan, opts.processes, opts.fan_in, &ran, started)
 }

@@ -12,6 +12,7 @@
 //! every merge writes the campaign's metadata, not its inputs' names.
 
 pub mod local;
+pub mod slurm;
 
 use std::path::{Path, PathBuf};
 

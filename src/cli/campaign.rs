@@ -37,6 +37,53 @@ pub enum CampaignAction {
         #[arg(long, default_value_t = 4)]
         fan_in: usize,
     },
+    /// Write the Slurm jobs into `<out>/slurm/` — an array job with one task per line not yet
+    /// done, and a merge job after it (`--dependency=afterok`) — and submit them with sbatch.
+    Submit {
+        /// The campaign file.
+        file: PathBuf,
+        /// `#SBATCH --partition` (default: the cluster's).
+        #[arg(long)]
+        partition: Option<String>,
+        /// `#SBATCH --time` of a line task.
+        #[arg(long, default_value = "04:00:00")]
+        time: String,
+        /// `#SBATCH --time` of the merge job.
+        #[arg(long, default_value = "04:00:00")]
+        merge_time: String,
+        /// `#SBATCH --cpus-per-task`.
+        #[arg(long, default_value_t = 2)]
+        cpus: usize,
+        /// `#SBATCH --mem` of a line task, MB (default: the tile budget's model, in the script).
+        #[arg(long)]
+        mem_mb: Option<u64>,
+        /// Stores per merge in the merge job's tree.
+        #[arg(long, default_value_t = 4)]
+        fan_in: usize,
+        /// Write the scripts and print the sbatch commands without running them.
+        #[arg(long)]
+        dry_run: bool,
+    },
+    /// One line of the plan (what a Slurm array task runs): its replay, unless done.
+    Task {
+        /// The campaign file.
+        file: PathBuf,
+        /// The task's number in the plan (`$SLURM_ARRAY_TASK_ID`).
+        #[arg(long)]
+        index: usize,
+    },
+    /// The merge job: every line's store merged as a tree into `mosaic.zarr`, then
+    /// `campaign.json`. Refused while a line is not done.
+    Merge {
+        /// The campaign file.
+        file: PathBuf,
+        /// Merges at once.
+        #[arg(long, default_value_t = 1)]
+        processes: usize,
+        /// Stores per merge.
+        #[arg(long, default_value_t = 4)]
+        fan_in: usize,
+    },
 }
 
 fn failure(e: CampaignError) -> Failure {
@@ -46,9 +93,107 @@ fn failure(e: CampaignError) -> Failure {
     }
 }
 
+fn exe() -> Result<PathBuf, Failure> {
+    std::env::current_exe()
+        .map_err(|e| Failure::job(format!("cannot find the fwlidar executable: {e}")))
+}
+
 /// Runs `fwlidar campaign`.
 pub fn run(args: CampaignArgs) -> Result<(), Failure> {
     match args.action {
+        CampaignAction::Submit {
+            file,
+            partition,
+            time,
+            merge_time,
+            cpus,
+            mem_mb,
+            fan_in,
+            dry_run,
+        } => {
+            if cpus == 0 || fan_in < 2 {
+                return Err(Failure::usage(format!(
+                    "--cpus must be at least 1 and --fan-in at least 2 (got {cpus} and {fan_in})"
+                )));
+            }
+            let p = plan(&file).map_err(failure)?;
+            let o = crate::campaign::slurm::SlurmOptions {
+                partition,
+                line_time: time,
+                merge_time,
+                cpus,
+                mem_mb,
+                fan_in,
+                exe: exe()?,
+            };
+            let s = crate::campaign::slurm::submit(&p, &o, dry_run).map_err(failure)?;
+            if let Some(l) = &s.lines_script {
+                println!("wrote {}", l.display());
+            }
+            println!("wrote {}", s.merge_script.display());
+            for c in &s.commands {
+                println!(
+                    "{}{c}",
+                    if dry_run {
+                        "to submit: "
+                    } else {
+                        "submitted: "
+                    }
+                );
+            }
+            if !s.job_ids.is_empty() {
+                println!("jobs {}", s.job_ids.join(", "));
+            }
+            Ok(())
+        }
+        CampaignAction::Task { file, index } => {
+            let p = plan(&file).map_err(failure)?;
+            let r = crate::campaign::local::run_task(&p, index, &exe()?).map_err(failure)?;
+            println!(
+                "line {}: {} ({} pulses in, {} dropped, {:.1} s wall, {:.1} s CPU)",
+                r.name,
+                if r.ran { "replayed" } else { "already done" },
+                r.pulses_in,
+                r.dropped,
+                r.wall_s,
+                r.cpu_s
+            );
+            Ok(())
+        }
+        CampaignAction::Merge {
+            file,
+            processes,
+            fan_in,
+        } => {
+            if processes == 0 || fan_in < 2 {
+                return Err(Failure::usage(format!(
+                    "--processes must be at least 1 and --fan-in at least 2 (got {processes} and \
+                     {fan_in})"
+                )));
+            }
+            let p = plan(&file).map_err(failure)?;
+            let r = crate::campaign::local::merge_campaign(
+                &p,
+                processes,
+                fan_in,
+                &[],
+                std::time::Instant::now(),
+            )
+            .map_err(failure)?;
+            println!(
+                "campaign {}: {} lines merged in {} levels ({} merges, fan-in {}) into {}: {} \
+                 tiles; {:.1} s",
+                r.campaign,
+                r.lines.len(),
+                r.merge.levels,
+                r.merge.merges,
+                r.merge.fan_in,
+                r.mosaic,
+                r.merge.tiles,
+                r.wall_s
+            );
+            Ok(())
+        }
         CampaignAction::Plan { file } => {
             let p = plan(&file).map_err(failure)?;
             print!("{}", p.describe());
@@ -66,8 +211,7 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
             }
             let p = plan(&file).map_err(failure)?;
             eprint!("{}", p.describe());
-            let exe = std::env::current_exe()
-                .map_err(|e| Failure::job(format!("cannot find the fwlidar executable: {e}")))?;
+            let exe = exe()?;
             let r = run_local(
                 &p,
                 &LocalOptions {
