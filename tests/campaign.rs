@@ -1,8 +1,9 @@
 //! `fwlidar campaign` (issue 22, first part): four simulated survey lines that cross each other,
 //! planned, run here with one and two processes and merge trees of different shapes: the
 //! mosaics are byte-identical; a line whose replay was killed (no `done.json`, a half-written
-//! folder) is replayed alone on the next run and the mosaic is again the same bytes. Bad
-//! campaign files name the file and the field.
+//! folder) is replayed alone on the next run and the mosaic is again the same bytes; xarray +
+//! dask read the mosaic lazily and reduce it chunk by chunk. Bad campaign files name the file
+//! and the field.
 
 mod common;
 
@@ -150,6 +151,30 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
             assert!(&f.1 == bytes, "{} differs from a plain merge", p.display());
         }
     }
+    // xarray + dask open the mosaic lazily and reduce it chunk by chunk: its samples are the
+    // lines' samples, every one.
+    let mut args: Vec<String> = vec![
+        "tests/python/read_mosaic_dask.py".into(),
+        dir.path().join("out_a/mosaic.zarr").display().to_string(),
+    ];
+    args.extend(stores.iter().cloned());
+    let o = std::process::Command::new(common::python())
+        .args(&args)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    eprintln!("{r}");
+    assert_eq!(r["lazy"], true, "{r}");
+    assert!(r["npartitions"].as_u64().unwrap() > 1, "{r}");
+    let lines_total: u64 = r["line_samples"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    assert!(lines_total > 0);
+    assert_eq!(r["mosaic_samples"].as_u64().unwrap(), lines_total, "{r}");
     // A killed line: its done marker gone and its store half-written. The next run replays it
     // alone and the mosaic is the same bytes.
     let line2 = dir.path().join("out_a/lines/line2");
