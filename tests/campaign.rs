@@ -7,69 +7,7 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
-
-/// Every file under `dir` with its bytes, by relative path.
-fn tree(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                out.push((
-                    p.strip_prefix(dir).unwrap().to_path_buf(),
-                    std::fs::read(&p).unwrap(),
-                ));
-            }
-        }
-    }
-    out.sort();
-    out
-}
-
-fn lines(dir: &Path) {
-    std::fs::create_dir_all(dir.join("lines")).unwrap();
-    let tracks = [
-        ("[-1.0, 0.0]", "[300.0, 0.0]"),
-        ("[0.0, -1.0]", "[0.0, 300.0]"),
-        ("[-1.0, -1.0]", "[200.0, 200.0]"),
-        ("[1.0, -1.0]", "[-200.0, 200.0]"),
-    ];
-    for (i, (a, b)) in tracks.iter().enumerate() {
-        let cap = dir.join(format!("lines/line{i}.fwcap"));
-        let set = format!("flight.lines=[{{start_m={a}, end_m={b}}}]");
-        let o = common::fwlidar(&[
-            "simulate",
-            "--scene",
-            "config/scenes/survey_line.toml",
-            "--pulses",
-            "12000",
-            "--no-truth-voxels",
-            "--out",
-            cap.to_str().unwrap(),
-            "--set",
-            &set,
-        ]);
-        assert!(o.status.success(), "{}", common::text(&o.stderr));
-    }
-}
-
-fn campaign_file(dir: &Path, name: &str, out: &str) -> PathBuf {
-    let p = dir.join(name);
-    std::fs::write(
-        &p,
-        format!(
-            "[campaign]\nname = \"crossing\"\ncaptures = [\"lines/line?.fwcap\"]\n\
-             set = [\"output.waveforms=false\", \"output.las=false\", \"output.rasters=false\"]\n\
-             out = \"{out}\"\nepsg = 32736\n"
-        ),
-    )
-    .unwrap();
-    p
-}
+use std::path::Path;
 
 fn run(file: &Path, local: &str, fan_in: &str) -> serde_json::Value {
     let o = common::fwlidar(&[
@@ -98,9 +36,9 @@ fn run(file: &Path, local: &str, fan_in: &str) -> serde_json::Value {
 #[test]
 fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_line() {
     let dir = tempfile::tempdir().unwrap();
-    lines(dir.path());
-    let a = campaign_file(dir.path(), "a.toml", "out_a");
-    let b = campaign_file(dir.path(), "b.toml", "out_b");
+    common::crossing_lines(dir.path());
+    let a = common::crossing_campaign(dir.path(), "a.toml", "out_a");
+    let b = common::crossing_campaign(dir.path(), "b.toml", "out_b");
     // The plan: four tasks.
     let o = common::fwlidar(&["campaign", "plan", a.to_str().unwrap()]);
     let plan = common::text(&o.stdout);
@@ -117,8 +55,8 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
         assert_eq!(l["pulses_in"], 12000, "{l}");
         assert!(l["cpu_s"].as_f64().unwrap() > 0.0, "{l}");
     }
-    let mosaic_a = tree(&dir.path().join("out_a/mosaic.zarr"));
-    let mosaic_b = tree(&dir.path().join("out_b/mosaic.zarr"));
+    let mosaic_a = common::file_tree(&dir.path().join("out_a/mosaic.zarr"));
+    let mosaic_b = common::file_tree(&dir.path().join("out_b/mosaic.zarr"));
     assert!(mosaic_a.len() > 10);
     assert!(mosaic_a == mosaic_b, "the mosaics differ");
     // The lines cross: some tiles hold several lines, and the mosaic holds every line's
@@ -144,7 +82,7 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
         .and_then(|n| n.parse().ok())
         .unwrap();
     assert!(several > 0, "{said}");
-    let flat_files = tree(&flat);
+    let flat_files = common::file_tree(&flat);
     for (p, bytes) in &mosaic_a {
         if p != Path::new("zarr.json") {
             let f = flat_files.iter().find(|(q, _)| q == p).unwrap();
@@ -190,12 +128,12 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
         .collect();
     assert_eq!(replayed, ["line2"]);
     assert!(
-        tree(&dir.path().join("out_a/mosaic.zarr")) == mosaic_b,
+        common::file_tree(&dir.path().join("out_a/mosaic.zarr")) == mosaic_b,
         "the mosaic after the killed line's rerun differs"
     );
     // The Slurm path without Slurm: the scripts `submit --dry-run` writes, their array tasks
     // run one by one as `campaign task`, then the merge job's `campaign merge`: the same bytes.
-    let c = campaign_file(dir.path(), "c.toml", "out_c");
+    let c = common::crossing_campaign(dir.path(), "c.toml", "out_c");
     let o = common::fwlidar(&[
         "campaign",
         "submit",
@@ -238,7 +176,7 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
     ]);
     assert!(o.status.success(), "{}", common::text(&o.stderr));
     assert!(
-        tree(&dir.path().join("out_c/mosaic.zarr")) == mosaic_b,
+        common::file_tree(&dir.path().join("out_c/mosaic.zarr")) == mosaic_b,
         "the mosaic of the task-by-task run differs"
     );
 }

@@ -219,26 +219,6 @@ fn submit(c: &Cluster, file: &Path) -> Vec<String> {
         .collect()
 }
 
-fn files(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                out.push((
-                    p.strip_prefix(dir).unwrap().to_path_buf(),
-                    std::fs::read(&p).unwrap(),
-                ));
-            }
-        }
-    }
-    out.sort();
-    out
-}
-
 #[test]
 fn a_campaign_on_a_one_node_slurm_gives_the_local_runs_bytes_even_after_a_killed_task() {
     let missing: Vec<&str> = [
@@ -270,48 +250,13 @@ fn a_campaign_on_a_one_node_slurm_gives_the_local_runs_bytes_even_after_a_killed
     let cluster = start(&dir.path().join("slurm"));
     // Four crossing lines, as tests/campaign.rs makes them.
     let work = dir.path().join("work");
-    std::fs::create_dir_all(work.join("lines")).unwrap();
-    let tracks = [
-        ("[-1.0, 0.0]", "[300.0, 0.0]"),
-        ("[0.0, -1.0]", "[0.0, 300.0]"),
-        ("[-1.0, -1.0]", "[200.0, 200.0]"),
-        ("[1.0, -1.0]", "[-200.0, 200.0]"),
-    ];
-    for (i, (a, b)) in tracks.iter().enumerate() {
-        let cap = work.join(format!("lines/line{i}.fwcap"));
-        let set = format!("flight.lines=[{{start_m={a}, end_m={b}}}]");
-        let o = common::fwlidar(&[
-            "simulate",
-            "--scene",
-            "config/scenes/survey_line.toml",
-            "--pulses",
-            "12000",
-            "--no-truth-voxels",
-            "--out",
-            cap.to_str().unwrap(),
-            "--set",
-            &set,
-        ]);
-        assert!(o.status.success(), "{}", common::text(&o.stderr));
-    }
-    let file = |name: &str, out: &str| {
-        let p = work.join(name);
-        std::fs::write(
-            &p,
-            format!(
-                "[campaign]\nname = \"crossing\"\ncaptures = [\"lines/line?.fwcap\"]\n\
-                 set = [\"output.waveforms=false\", \"output.las=false\", \"output.rasters=false\"]\n\
-                 out = \"{out}\"\nepsg = 32736\n"
-            ),
-        )
-        .unwrap();
-        p
-    };
+    common::crossing_lines(&work);
+    let file = |name: &str, out: &str| common::crossing_campaign(&work, name, out);
     // The reference: here, two processes.
     let local = file("local.toml", "out_local");
     let o = common::fwlidar(&["campaign", "run", local.to_str().unwrap(), "--local", "2"]);
     assert!(o.status.success(), "{}", common::text(&o.stderr));
-    let reference = files(&work.join("out_local/mosaic.zarr"));
+    let reference = common::file_tree(&work.join("out_local/mosaic.zarr"));
     // On Slurm: the array of four lines and the merge after it.
     let on_slurm = file("slurm.toml", "out_slurm");
     let jobs = submit(&cluster, &on_slurm);
@@ -328,7 +273,7 @@ fn a_campaign_on_a_one_node_slurm_gives_the_local_runs_bytes_even_after_a_killed
     .unwrap();
     assert_eq!(report["lines"].as_array().unwrap().len(), 4);
     assert!(
-        files(&work.join("out_slurm/mosaic.zarr")) == reference,
+        common::file_tree(&work.join("out_slurm/mosaic.zarr")) == reference,
         "Slurm's mosaic differs"
     );
     // A killed array task: cancel line 3's task of a new submission before it runs (the node
@@ -348,7 +293,7 @@ fn a_campaign_on_a_one_node_slurm_gives_the_local_runs_bytes_even_after_a_killed
     assert!(script.contains("#SBATCH --array=3\n"), "{script}");
     wait(&cluster, &again);
     assert!(
-        files(&work.join("out_killed/mosaic.zarr")) == reference,
+        common::file_tree(&work.join("out_killed/mosaic.zarr")) == reference,
         "the mosaic after the killed task's resubmission differs"
     );
 }

@@ -121,3 +121,68 @@ pub fn write_utm36s_dem(
     e.write_tag(Tag::GdalNodata, "-9999").unwrap();
     img.write_data(&data).unwrap();
 }
+
+/// Four simulated survey lines that cross at the origin (`config/scenes/survey_line.toml`,
+/// 12 000 pulses each), as `dir/lines/line0..3.fwcap`: the campaign tests' flight lines.
+pub fn crossing_lines(dir: &Path) {
+    std::fs::create_dir_all(dir.join("lines")).unwrap();
+    let tracks = [
+        ("[-1.0, 0.0]", "[300.0, 0.0]"),
+        ("[0.0, -1.0]", "[0.0, 300.0]"),
+        ("[-1.0, -1.0]", "[200.0, 200.0]"),
+        ("[1.0, -1.0]", "[-200.0, 200.0]"),
+    ];
+    for (i, (a, b)) in tracks.iter().enumerate() {
+        let cap = dir.join(format!("lines/line{i}.fwcap"));
+        let set = format!("flight.lines=[{{start_m={a}, end_m={b}}}]");
+        let o = fwlidar(&[
+            "simulate",
+            "--scene",
+            "config/scenes/survey_line.toml",
+            "--pulses",
+            "12000",
+            "--no-truth-voxels",
+            "--out",
+            cap.to_str().unwrap(),
+            "--set",
+            &set,
+        ]);
+        assert!(o.status.success(), "{}", text(&o.stderr));
+    }
+}
+
+/// A campaign file `dir/name` over those lines, writing into `dir/out` (voxels only).
+pub fn crossing_campaign(dir: &Path, name: &str, out: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(
+        &p,
+        format!(
+            "[campaign]\nname = \"crossing\"\ncaptures = [\"lines/line?.fwcap\"]\n\
+             set = [\"output.waveforms=false\", \"output.las=false\", \"output.rasters=false\"]\n\
+             out = \"{out}\"\nepsg = 32736\n"
+        ),
+    )
+    .unwrap();
+    p
+}
+
+/// Every file under `dir` with its bytes, by relative path, sorted.
+pub fn file_tree(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push((
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                ));
+            }
+        }
+    }
+    out.sort();
+    out
+}
