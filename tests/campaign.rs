@@ -1,6 +1,7 @@
-//! `fwlidar campaign` (issue 22, first part): four simulated survey lines that cross each other,
-//! planned, run here with one and two processes and merge trees of different shapes: the
-//! mosaics are byte-identical; a line whose replay was killed (no `done.json`, a half-written
+//! `fwlidar campaign` (issue 22): four simulated survey lines that cross each other, planned,
+//! run here with one and two processes and merge trees of different shapes: the mosaics are
+//! byte-identical, and the store of one replay of the four lines in sequence (but its resume
+//! records); split into shards (`replay --shard`), the same bytes again; a line whose replay was killed (no `done.json`, a half-written
 //! folder) is replayed alone on the next run and the mosaic is again the same bytes; xarray +
 //! dask read the mosaic lazily and reduce it chunk by chunk. Bad campaign files name the file
 //! and the field.
@@ -59,6 +60,53 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
     let mosaic_b = common::file_tree(&dir.path().join("out_b/mosaic.zarr"));
     assert!(mosaic_a.len() > 10);
     assert!(mosaic_a == mosaic_b, "the mosaics differ");
+    // The mosaic is the store of one replay of the four lines in sequence with the campaign's
+    // run.toml: every file the same bytes, metadata included, but the tiles' resume records,
+    // whose watermarks say when each tile closed (a merged store's are 0); those list the same
+    // tiles and height chunks.
+    let seq = common::sequential_replay(
+        dir.path(),
+        &dir.path().join("out_a/run.toml"),
+        &dir.path().join("seq"),
+    );
+    common::assert_same_store_but_watermarks(&dir.path().join("out_a/mosaic.zarr"), &seq);
+    // The metrics rasters of the mosaic, written by the merge.
+    assert!(
+        ra["metrics"]["cells_ok"][0].as_u64().unwrap() > 1000,
+        "{}",
+        ra["metrics"]
+    );
+    assert!(dir.path().join("out_a/rasters/chm.vrt").is_file());
+    // Lines split into three shards each (`shard_gb`, `replay --shard i/3`): twelve tasks,
+    // and the same mosaic bytes.
+    let s = dir.path().join("s.toml");
+    let text = std::fs::read_to_string(&a)
+        .unwrap()
+        .replace("out_a", "out_s");
+    let bytes = std::fs::metadata(dir.path().join("lines/line0.fwcap"))
+        .unwrap()
+        .len() as f64;
+    std::fs::write(&s, format!("{text}shard_gb = {}\n", bytes / 2.5e9)).unwrap();
+    let o = common::fwlidar(&["campaign", "run", s.to_str().unwrap(), "--local", "2"]);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let rs: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("out_s/campaign.json")).unwrap(),
+    )
+    .unwrap();
+    let shards = rs["lines"].as_array().unwrap();
+    assert_eq!(shards.len(), 12, "{rs}");
+    assert_eq!(shards[1]["name"], "line0.shard2of3");
+    assert_eq!(
+        shards
+            .iter()
+            .map(|l| l["pulses_in"].as_u64().unwrap())
+            .sum::<u64>(),
+        48000
+    );
+    assert!(
+        common::file_tree(&dir.path().join("out_s/mosaic.zarr")) == mosaic_a,
+        "the mosaic of the shards differs"
+    );
     // The lines cross: some tiles hold several lines, and the mosaic holds every line's
     // samples (its data equal a plain `fwlidar merge` of the line stores).
     let flat = dir.path().join("flat.zarr");
@@ -220,4 +268,41 @@ fn bad_campaign_files_name_the_file_and_field() {
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert!(e.contains("campaign.config") && e.contains("voxels"), "{e}");
     assert!(!dir.path().join("o").exists());
+    std::fs::write(
+        &f,
+        "[campaign]\nname = \"x\"\ncaptures = [\"l/a.fwcap\"]\nout = \"o\"\nepsg = 32736\n\
+         shard_gb = 0\n",
+    )
+    .unwrap();
+    let o = common::fwlidar(&["campaign", "plan", f.to_str().unwrap()]);
+    let e = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(
+        e.contains("c.toml") && e.contains("campaign.shard_gb"),
+        "{e}"
+    );
+    // `replay --shard` takes i/n with 1 <= i <= n; several inputs need one named CRS.
+    let out = dir.path().join("r");
+    let o = common::fwlidar(&[
+        "replay",
+        "replay/two_layer.fwcap",
+        "--shard",
+        "4/3",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let e = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("--shard") && e.contains("i/n"), "{e}");
+    let o = common::fwlidar(&[
+        "replay",
+        "replay/two_layer.fwcap",
+        "replay/two_layer.fwcap",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let e = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("output_epsg"), "{e}");
+    assert!(!out.exists());
 }

@@ -3,7 +3,8 @@
 //! no cgroups: `proctrack/linuxproc`, `task/none`), everything in a temporary folder, ports
 //! 16917/16918 — submits a campaign of four simulated survey lines that cross each other with
 //! `fwlidar campaign submit`, waits for the array and the merge job, and compares the mosaic
-//! with a `campaign run --local 2` of the same lines byte for byte. Then it cancels one array
+//! with one `fwlidar replay` of the four lines in sequence byte for byte (but the tiles' resume
+//! records, whose watermarks say when a tile closed). Then it cancels one array
 //! task of a second submission (the killed task), sees the merge job never start, resubmits,
 //! and gets the same bytes. The daemons are stopped when the test ends, however it ends.
 //!
@@ -220,7 +221,7 @@ fn submit(c: &Cluster, file: &Path) -> Vec<String> {
 }
 
 #[test]
-fn a_campaign_on_a_one_node_slurm_gives_the_local_runs_bytes_even_after_a_killed_task() {
+fn a_campaign_on_a_one_node_slurm_gives_a_sequential_replays_bytes_even_after_a_killed_task() {
     let missing: Vec<&str> = [
         "munged",
         "slurmctld",
@@ -252,11 +253,6 @@ fn a_campaign_on_a_one_node_slurm_gives_the_local_runs_bytes_even_after_a_killed
     let work = dir.path().join("work");
     common::crossing_lines(&work);
     let file = |name: &str, out: &str| common::crossing_campaign(&work, name, out);
-    // The reference: here, two processes.
-    let local = file("local.toml", "out_local");
-    let o = common::fwlidar(&["campaign", "run", local.to_str().unwrap(), "--local", "2"]);
-    assert!(o.status.success(), "{}", common::text(&o.stderr));
-    let reference = common::file_tree(&work.join("out_local/mosaic.zarr"));
     // On Slurm: the array of four lines and the merge after it.
     let on_slurm = file("slurm.toml", "out_slurm");
     let jobs = submit(&cluster, &on_slurm);
@@ -272,10 +268,11 @@ fn a_campaign_on_a_one_node_slurm_gives_the_local_runs_bytes_even_after_a_killed
     )
     .unwrap();
     assert_eq!(report["lines"].as_array().unwrap().len(), 4);
-    assert!(
-        common::file_tree(&work.join("out_slurm/mosaic.zarr")) == reference,
-        "Slurm's mosaic differs"
-    );
+    // The reference: one replay of the four lines in sequence, with the campaign's run.toml.
+    let seq = common::sequential_replay(&work, &work.join("out_slurm/run.toml"), &work.join("seq"));
+    common::assert_same_store_but_watermarks(&work.join("out_slurm/mosaic.zarr"), &seq);
+    assert!(work.join("out_slurm/rasters/chm.vrt").is_file());
+    let reference = common::file_tree(&work.join("out_slurm/mosaic.zarr"));
     // A killed array task: cancel line 3's task of a new submission before it runs (the node
     // runs one 2-CPU task at a time), so the merge job's dependency can never be met.
     let killed = file("killed.toml", "out_killed");

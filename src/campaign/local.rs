@@ -76,6 +76,8 @@ pub struct CampaignReport {
     pub wall_s: f64,
     /// Processes at once.
     pub processes: usize,
+    /// The mosaic's forest-metrics rasters (`rasters/`), when the campaign asks for them.
+    pub metrics: Option<serde_json::Value>,
 }
 
 /// A running replay.
@@ -114,14 +116,18 @@ fn start(task: &Task, run_toml: &Path, exe: &Path) -> Result<Running, CampaignEr
     let log = task.out.with_extension("log");
     let log_file = std::fs::File::create(&log).map_err(|e| io("create", &log, e))?;
     let err_file = log_file.try_clone().map_err(|e| io("open", &log, e))?;
-    let child = Command::new(exe)
-        .arg("replay")
+    let mut cmd = Command::new(exe);
+    cmd.arg("replay")
         .arg(&task.capture)
         .arg("--out")
         .arg(&task.out)
         .arg("--config")
         .arg(run_toml)
-        .arg("--no-progress")
+        .arg("--no-progress");
+    if let Some(shard) = task.shard {
+        cmd.arg("--shard").arg(shard.to_string());
+    }
+    let child = cmd
         .stdin(Stdio::null())
         .stdout(log_file)
         .stderr(err_file)
@@ -237,7 +243,8 @@ pub fn merge_tree(
     processes: usize,
 ) -> Result<MergeReport, CampaignError> {
     let started = Instant::now();
-    let fan_in = fan_in.max(2);
+    // 0: every store in one merge (the fastest on one node, docs/performance.md).
+    let fan_in = if fan_in == 0 { stores.len() } else { fan_in }.max(2);
     let mut level: Vec<PathBuf> = stores.to_vec();
     level.sort();
     if work.exists() {
@@ -405,12 +412,9 @@ pub fn merge_campaign(
     if partial.exists() {
         std::fs::remove_dir_all(&partial).map_err(|e| io("clear", &partial, e))?;
     }
+    // The metadata of one replay of every line in sequence, the store the mosaic equals.
     let meta = MergeMeta::Given {
-        run_key: format!(
-            "campaign {}: {} lines",
-            plan.campaign.name,
-            plan.tasks.len()
-        ),
+        run_key: plan.run_key.clone(),
         configuration: plan.config_text.clone(),
     };
     let merge = merge_tree(
@@ -425,7 +429,13 @@ pub fn merge_campaign(
         std::fs::remove_dir_all(&mosaic).map_err(|e| io("replace", &mosaic, e))?;
     }
     std::fs::rename(&partial, &mosaic).map_err(|e| io("rename", &partial, e))?;
+    let metrics = if plan.campaign.metrics {
+        Some(mosaic_rasters(plan, &mosaic)?)
+    } else {
+        None
+    };
     let report = CampaignReport {
+        metrics,
         campaign: plan.campaign.name.clone(),
         lines,
         merge,
@@ -440,6 +450,43 @@ pub fn merge_campaign(
     )
     .map_err(|e| io("write", &path, e))?;
     Ok(report)
+}
+
+/// The forest-metrics rasters of the mosaic into `<out>/rasters/` (rebuilt; as `fwlidar metrics
+/// mosaic.zarr --out rasters` writes them): returns what was done, with its time.
+fn mosaic_rasters(plan: &Plan, mosaic: &Path) -> Result<serde_json::Value, CampaignError> {
+    use crate::forest::store_metrics::{
+        DEFAULT_NOISE_FLOOR, DEFAULT_SMOOTHING_NS, StoreMetricsOptions, compute_store_metrics,
+    };
+    let started = Instant::now();
+    let dir = plan.out.join("rasters");
+    let partial = plan.out.join("rasters.partial");
+    for d in [&partial, &dir] {
+        if d.exists() {
+            std::fs::remove_dir_all(d).map_err(|e| io("clear", d, e))?;
+        }
+    }
+    std::fs::create_dir_all(&partial).map_err(|e| io("create", &partial, e))?;
+    let opts = StoreMetricsOptions {
+        cell_m: plan.campaign.chm_cell_m,
+        profile_cell_m: plan.campaign.profile_cell_m,
+        smoothing_ns: DEFAULT_SMOOTHING_NS,
+        min_pulses: 1,
+        noise_floor: DEFAULT_NOISE_FLOOR,
+    };
+    let report = compute_store_metrics(mosaic, &partial, &opts, &mut |_, _| {})
+        .map_err(|e| CampaignError::Run(format!("metrics rasters of the mosaic: {e}")))?;
+    let mut json = serde_json::to_value(&report).unwrap_or_default();
+    json["store"] = serde_json::Value::String(mosaic.display().to_string());
+    json["seconds"] = serde_json::json!(started.elapsed().as_secs_f64());
+    let jpath = partial.join("metrics.json");
+    std::fs::write(
+        &jpath,
+        serde_json::to_string_pretty(&json).unwrap_or_default() + "\n",
+    )
+    .map_err(|e| io("write", &jpath, e))?;
+    std::fs::rename(&partial, &dir).map_err(|e| io("rename", &partial, e))?;
+    Ok(json)
 }
 
 /// Runs `plan` here: the lines not done, then the merge tree into `mosaic.zarr` (rebuilt on

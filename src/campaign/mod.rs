@@ -20,6 +20,7 @@ use serde::Deserialize;
 
 use crate::config::load::{Validate, Validator, field, index};
 use crate::config::{ConfigErrors, RunConfig};
+use crate::source::shard::Shard;
 
 /// A campaign file: one `[campaign]` table.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
@@ -51,6 +52,25 @@ pub struct Campaign {
     /// EPSG code of the CRS every line is projected into (`georeference.output_epsg`), so that
     /// lines in two UTM zones still share one grid.
     pub epsg: u32,
+    /// A capture larger than this many GB is replayed as `ceil(size / shard_gb)` shards
+    /// (`replay --shard i/n`, contiguous pulse ranges), each a task of its own: for lines too
+    /// long for one node's time limit. Default: never split.
+    #[serde(default)]
+    pub shard_gb: Option<f64>,
+    /// Whether the merge also writes the forest-metrics rasters of the mosaic (`rasters/`, as
+    /// `fwlidar metrics` does). Default true.
+    #[serde(default = "yes")]
+    pub metrics: bool,
+    /// Cell of the canopy height model, m (default: the voxel column).
+    #[serde(default)]
+    pub chm_cell_m: Option<f64>,
+    /// Cell of the metrics raster, m (default: `chm_cell_m`).
+    #[serde(default)]
+    pub profile_cell_m: Option<f64>,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl Validate for CampaignFile {
@@ -83,6 +103,25 @@ impl Validate for CampaignFile {
             field(&p, "epsg"),
             "must be an EPSG code, e.g. 32736",
         );
+        if let Some(g) = c.shard_gb {
+            v.require(
+                g.is_finite() && g > 0.0,
+                field(&p, "shard_gb"),
+                format!("must be a size in GB above 0, got {g}"),
+            );
+        }
+        for (name, cell) in [
+            ("chm_cell_m", c.chm_cell_m),
+            ("profile_cell_m", c.profile_cell_m),
+        ] {
+            if let Some(m) = cell {
+                v.require(
+                    m.is_finite() && m > 0.0,
+                    field(&p, name),
+                    format!("must be a cell size in metres above 0, got {m}"),
+                );
+            }
+        }
     }
 }
 
@@ -107,13 +146,15 @@ pub enum CampaignError {
     Run(String),
 }
 
-/// One task: a flight line replayed into its own store.
+/// One task: a flight line (or one shard of it) replayed into its own store.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct Task {
     /// Number in the plan (0-based; the Slurm array index).
     pub id: usize,
-    /// The line's name (its file's stem).
+    /// The task's name: the line's (its file's stem), `<line>.shard<i>of<n>` for a shard.
     pub name: String,
+    /// The shard of the line, when the line is split (`Campaign::shard_gb`).
+    pub shard: Option<Shard>,
     /// The capture.
     pub capture: PathBuf,
     /// Its size, bytes.
@@ -139,6 +180,11 @@ pub struct Plan {
     pub config: RunConfig,
     /// Its TOML text (written as `run.toml` in the campaign folder and recorded in the mosaic).
     pub config_text: String,
+    /// The captures, in task order.
+    pub captures: Vec<PathBuf>,
+    /// The mosaic's run key: that of one `fwlidar replay` of every capture in this order with
+    /// `run.toml`, the store the mosaic equals byte for byte.
+    pub run_key: String,
 }
 
 /// Name of the marker a finished line's replay leaves in its folder.
@@ -200,17 +246,39 @@ pub fn plan(path: &Path) -> Result<Plan, CampaignError> {
                 ),
             ));
         }
-        let dir = out.join("lines").join(&name);
-        tasks.push(Task {
-            id: 0,
-            bytes: std::fs::metadata(&cap).map(|m| m.len()).unwrap_or(0),
-            done: dir.join(DONE).is_file(),
-            out: dir,
-            name,
-            capture: cap,
-        });
+        let bytes = std::fs::metadata(&cap).map(|m| m.len()).unwrap_or(0);
+        let shards = match c.shard_gb {
+            Some(g) => ((bytes as f64 / (g * 1e9)).ceil() as u32).max(1),
+            None => 1,
+        };
+        for index in 1..=shards {
+            let (task_name, shard) = if shards == 1 {
+                (name.clone(), None)
+            } else {
+                (
+                    format!("{name}.shard{index}of{shards}"),
+                    Some(Shard {
+                        index,
+                        count: shards,
+                    }),
+                )
+            };
+            let dir = out.join("lines").join(&task_name);
+            tasks.push(Task {
+                id: 0,
+                bytes: bytes / u64::from(shards),
+                done: dir.join(DONE).is_file(),
+                out: dir,
+                name: task_name,
+                shard,
+                capture: cap.clone(),
+            });
+        }
     }
-    tasks.sort_by(|a, b| a.name.cmp(&b.name));
+    // By line, then shard (names sort `line.shard10of12` after `line.shard9of12` this way).
+    tasks.sort_by(|a, b| {
+        (&a.capture, a.shard.map(|s| s.index)).cmp(&(&b.capture, b.shard.map(|s| s.index)))
+    });
     for (i, t) in tasks.iter_mut().enumerate() {
         t.id = i;
     }
@@ -236,8 +304,25 @@ pub fn plan(path: &Path) -> Result<Plan, CampaignError> {
     }
     // Every line writes where `--out` tells it; the folder named here is never used.
     config.output.dir = "out".into();
+    // One grid for every line: unless the configuration bounds it, the extent is the square a
+    // replay would centre on its first pulse, centred on the first line's.
+    if config.voxels.extent_m.is_none() {
+        let first = &tasks[0].capture;
+        let centre = first_position(first, &config).map_err(|why| {
+            at(
+                "campaign.captures".into(),
+                format!("{}: cannot place the grid: {why}", first.display()),
+            )
+        })?;
+        let h = config.voxels.auto_extent_m / 2.0;
+        let c = [centre[0].round(), centre[1].round()];
+        config.voxels.extent_m = Some([c[0] - h, c[1] - h, c[0] + h, c[1] + h]);
+    }
     let config_text =
         toml::to_string(&config).map_err(|e| at("campaign.config".into(), e.to_string()))?;
+    let mut captures: Vec<PathBuf> = tasks.iter().map(|t| t.capture.clone()).collect();
+    captures.dedup();
+    let run_key = crate::sink::voxel_tiles::replay_run_key(&captures, None, &config);
     Ok(Plan {
         file: path.to_path_buf(),
         campaign: c,
@@ -245,7 +330,41 @@ pub fn plan(path: &Path) -> Result<Plan, CampaignError> {
         tasks,
         config,
         config_text,
+        captures,
+        run_key,
     })
+}
+
+/// Where the first georeferenced pulse of `capture` looks, in the configuration's output CRS
+/// (x, y in m): the middle of its first return segment, as the voxel store places its automatic
+/// extent.
+fn first_position(capture: &Path, config: &RunConfig) -> Result<[f64; 2], String> {
+    use crate::source::{Source, SourceEvent};
+    let raw = crate::source::open_file(capture)?;
+    let mut src: Box<dyn Source> = if config.georeference.enabled {
+        Box::new(
+            crate::geo::georeferencing_source::GeoreferencingSource::new(
+                raw,
+                config.georeference.clone(),
+            )?
+            .with_earliest_date(config.navigation.earliest_days()),
+        )
+    } else {
+        raw
+    };
+    let pool = crate::pulse::PulsePool::new(16);
+    loop {
+        match src.next(&pool).map_err(|e| e.to_string())? {
+            SourceEvent::Pulse(p) => {
+                if let Some(xy) = crate::sink::voxel_tiles::extent_centre(&p) {
+                    return Ok(xy);
+                }
+                pool.give(p);
+            }
+            SourceEvent::End => return Err("no pulse of it has a position".into()),
+            SourceEvent::Nav(_) | SourceEvent::Idle => {}
+        }
+    }
 }
 
 impl Plan {
@@ -253,9 +372,10 @@ impl Plan {
     pub fn describe(&self) -> String {
         use std::fmt::Write as _;
         let mut s = format!(
-            "campaign {} ({}): {} lines into {} (EPSG {}), {} done\n",
+            "campaign {} ({}): {} lines in {} tasks into {} (EPSG {}), {} done\n",
             self.campaign.name,
             self.file.display(),
+            self.captures.len(),
             self.tasks.len(),
             self.out.display(),
             self.campaign.epsg,
@@ -264,7 +384,7 @@ impl Plan {
         for t in &self.tasks {
             let _ = writeln!(
                 s,
-                "  task {:>3}  {:<24} {:>10.1} MB  {}  -> {}",
+                "  task {:>3}  {:<28} {:>10.1} MB  {}  -> {}",
                 t.id,
                 t.name,
                 t.bytes as f64 / 1e6,
@@ -274,9 +394,14 @@ impl Plan {
         }
         let _ = writeln!(
             s,
-            "  then a merge of {} stores into {}",
+            "  then a merge of {} stores into {}{}",
             self.tasks.len(),
-            self.out.join("mosaic.zarr").display()
+            self.out.join("mosaic.zarr").display(),
+            if self.campaign.metrics {
+                " and its metrics rasters into rasters/"
+            } else {
+                ""
+            }
         );
         s
     }

@@ -23,7 +23,7 @@ pub struct SlurmOptions {
     pub cpus: usize,
     /// Memory per line task, MB (default: [`line_memory_mb`]).
     pub mem_mb: Option<u64>,
-    /// Stores per merge in the merge job's tree.
+    /// Stores per merge in the merge job's tree (0: all in one merge).
     pub fan_in: usize,
     /// The `fwlidar` executable on the cluster's nodes.
     pub exe: PathBuf,
@@ -67,18 +67,7 @@ pub fn lines_script(plan: &Plan, ids: &[usize], o: &SlurmOptions) -> String {
         v.chunk_levels,
         line_memory_mb(plan)
     );
-    let _ = writeln!(s, "#SBATCH --job-name=fwlidar-{}-lines", plan.campaign.name);
-    if let Some(p) = &o.partition {
-        let _ = writeln!(s, "#SBATCH --partition={p}");
-    }
-    let _ = writeln!(s, "#SBATCH --time={}", o.line_time);
-    let _ = writeln!(s, "#SBATCH --cpus-per-task={}", o.cpus);
-    let _ = writeln!(s, "#SBATCH --mem={mem}M");
-    let _ = writeln!(
-        s,
-        "#SBATCH --output={}/slurm/line_%a.log",
-        abs(&plan.out).display()
-    );
+    sbatch_lines(&mut s, plan, o, "lines", &o.line_time, mem, "line_%a.log");
     let list: Vec<String> = ids.iter().map(usize::to_string).collect();
     let _ = writeln!(s, "#SBATCH --array={}", list.join(","));
     let _ = writeln!(
@@ -93,36 +82,57 @@ pub fn lines_script(plan: &Plan, ids: &[usize], o: &SlurmOptions) -> String {
 /// The merge job's script.
 pub fn merge_script(plan: &Plan, o: &SlurmOptions) -> String {
     let mut s = String::from("#!/bin/bash\n");
+    let (shape, flag) = if o.fan_in == 0 {
+        ("in one merge".to_string(), String::new())
+    } else {
+        (
+            format!("as a tree of {}-way merges", o.fan_in),
+            format!(" --fan-in {}", o.fan_in),
+        )
+    };
     let _ = writeln!(
         s,
-        "# fwlidar campaign {:?}: merges the {} line stores as a tree of {}-way merges into\n\
-         # {}/mosaic.zarr and writes campaign.json. Submitted with --dependency=afterok on the\n\
-         # lines' array job, so it starts only when every line succeeded.",
+        "# fwlidar campaign {:?}: merges the {} task stores {shape} into\n\
+         # {}/mosaic.zarr (the bytes of one replay of every line in sequence), writes the\n\
+         # forest-metrics rasters of it into rasters/ unless the campaign says metrics = false,\n\
+         # and campaign.json. Submitted with --dependency=afterok on the lines' array job, so it\n\
+         # starts only when every task succeeded. Memory: one tile per store at a time.",
         plan.campaign.name,
         plan.tasks.len(),
-        o.fan_in,
         abs(&plan.out).display()
     );
-    let _ = writeln!(s, "#SBATCH --job-name=fwlidar-{}-merge", plan.campaign.name);
+    sbatch_lines(&mut s, plan, o, "merge", &o.merge_time, 2048, "merge.log");
+    let _ = writeln!(
+        s,
+        "set -euo pipefail\nexec {:?} campaign merge {:?} --processes \"${{SLURM_CPUS_PER_TASK:-1}}\"{flag}",
+        o.exe.display().to_string(),
+        abs(&plan.file).display().to_string(),
+    );
+    s
+}
+
+/// The `#SBATCH` lines both jobs share: name, partition, time, CPUs, memory (MB), log file.
+fn sbatch_lines(
+    s: &mut String,
+    plan: &Plan,
+    o: &SlurmOptions,
+    job: &str,
+    time: &str,
+    mem_mb: u64,
+    log: &str,
+) {
+    let _ = writeln!(s, "#SBATCH --job-name=fwlidar-{}-{job}", plan.campaign.name);
     if let Some(p) = &o.partition {
         let _ = writeln!(s, "#SBATCH --partition={p}");
     }
-    let _ = writeln!(s, "#SBATCH --time={}", o.merge_time);
+    let _ = writeln!(s, "#SBATCH --time={time}");
     let _ = writeln!(s, "#SBATCH --cpus-per-task={}", o.cpus);
-    let _ = writeln!(s, "#SBATCH --mem=2048M");
+    let _ = writeln!(s, "#SBATCH --mem={mem_mb}M");
     let _ = writeln!(
         s,
-        "#SBATCH --output={}/slurm/merge.log",
+        "#SBATCH --output={}/slurm/{log}",
         abs(&plan.out).display()
     );
-    let _ = writeln!(
-        s,
-        "set -euo pipefail\nexec {:?} campaign merge {:?} --processes \"${{SLURM_CPUS_PER_TASK:-1}}\" --fan-in {}",
-        o.exe.display().to_string(),
-        abs(&plan.file).display().to_string(),
-        o.fan_in
-    );
-    s
 }
 
 /// What `submit` wrote and did.

@@ -33,9 +33,10 @@ pub enum CampaignAction {
         /// Processes at once.
         #[arg(long, default_value_t = 1)]
         local: usize,
-        /// Stores per merge in the merge tree (2 or more).
-        #[arg(long, default_value_t = 4)]
-        fan_in: usize,
+        /// Stores per merge of the merge tree, 2 or more (default: every store in one merge,
+        /// the fastest on one node; a tree pays one more pass over the tiles per level).
+        #[arg(long)]
+        fan_in: Option<usize>,
     },
     /// Write the Slurm jobs into `<out>/slurm/` — an array job with one task per line not yet
     /// done, and a merge job after it (`--dependency=afterok`) — and submit them with sbatch.
@@ -57,9 +58,10 @@ pub enum CampaignAction {
         /// `#SBATCH --mem` of a line task, MB (default: the tile budget's model, in the script).
         #[arg(long)]
         mem_mb: Option<u64>,
-        /// Stores per merge in the merge job's tree.
-        #[arg(long, default_value_t = 4)]
-        fan_in: usize,
+        /// Stores per merge of the merge tree, 2 or more (default: every store in one merge,
+        /// the fastest on one node; a tree pays one more pass over the tiles per level).
+        #[arg(long)]
+        fan_in: Option<usize>,
         /// Write the scripts and print the sbatch commands without running them.
         #[arg(long)]
         dry_run: bool,
@@ -80,9 +82,10 @@ pub enum CampaignAction {
         /// Merges at once.
         #[arg(long, default_value_t = 1)]
         processes: usize,
-        /// Stores per merge.
-        #[arg(long, default_value_t = 4)]
-        fan_in: usize,
+        /// Stores per merge of the merge tree, 2 or more (default: every store in one merge,
+        /// the fastest on one node; a tree pays one more pass over the tiles per level).
+        #[arg(long)]
+        fan_in: Option<usize>,
     },
 }
 
@@ -98,6 +101,49 @@ fn exe() -> Result<PathBuf, Failure> {
         .map_err(|e| Failure::job(format!("cannot find the fwlidar executable: {e}")))
 }
 
+/// `--fan-in`: 2 or more; `None` becomes 0, every store in one merge.
+fn check_fan_in(fan_in: Option<usize>) -> Result<usize, Failure> {
+    match fan_in {
+        Some(k) if k < 2 => Err(Failure::usage(format!(
+            "--fan-in must be at least 2 (got {k}); leave it out to merge every store at once"
+        ))),
+        k => Ok(k.unwrap_or(0)),
+    }
+}
+
+/// The few lines a campaign run or merge ends with (the whole report is `campaign.json`).
+fn print_report(r: &crate::campaign::local::CampaignReport) {
+    let ran = r.lines.iter().filter(|l| l.ran).count();
+    println!(
+        "campaign {}: {} tasks ({} replayed now, {} done before), {} pulses in, {} dropped",
+        r.campaign,
+        r.lines.len(),
+        ran,
+        r.lines.len() - ran,
+        r.lines.iter().map(|l| l.pulses_in).sum::<u64>(),
+        r.lines.iter().map(|l| l.dropped).sum::<u64>(),
+    );
+    println!(
+        "  merge of {} stores in {} levels ({} merges, fan-in {}) into {}: {} tiles, {:.1} s",
+        r.lines.len(),
+        r.merge.levels,
+        r.merge.merges,
+        r.merge.fan_in,
+        r.mosaic,
+        r.merge.tiles,
+        r.merge.wall_s
+    );
+    if let Some(m) = &r.metrics {
+        println!(
+            "  metrics rasters: {} of {} cells with a canopy height, {:.1} s",
+            m["cells_ok"][0],
+            m["cells"][0],
+            m["seconds"].as_f64().unwrap_or(0.0)
+        );
+    }
+    println!("  {:.1} s wall; report in campaign.json", r.wall_s);
+}
+
 /// Runs `fwlidar campaign`.
 pub fn run(args: CampaignArgs) -> Result<(), Failure> {
     match args.action {
@@ -111,11 +157,10 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
             fan_in,
             dry_run,
         } => {
-            if cpus == 0 || fan_in < 2 {
-                return Err(Failure::usage(format!(
-                    "--cpus must be at least 1 and --fan-in at least 2 (got {cpus} and {fan_in})"
-                )));
+            if cpus == 0 {
+                return Err(Failure::usage("--cpus must be at least 1 (got 0)"));
             }
+            let fan_in = check_fan_in(fan_in)?;
             let p = plan(&file).map_err(failure)?;
             let o = crate::campaign::slurm::SlurmOptions {
                 partition,
@@ -165,12 +210,10 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
             processes,
             fan_in,
         } => {
-            if processes == 0 || fan_in < 2 {
-                return Err(Failure::usage(format!(
-                    "--processes must be at least 1 and --fan-in at least 2 (got {processes} and \
-                     {fan_in})"
-                )));
+            if processes == 0 {
+                return Err(Failure::usage("--processes must be at least 1 (got 0)"));
             }
+            let fan_in = check_fan_in(fan_in)?;
             let p = plan(&file).map_err(failure)?;
             let r = crate::campaign::local::merge_campaign(
                 &p,
@@ -180,18 +223,7 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
                 std::time::Instant::now(),
             )
             .map_err(failure)?;
-            println!(
-                "campaign {}: {} lines merged in {} levels ({} merges, fan-in {}) into {}: {} \
-                 tiles; {:.1} s",
-                r.campaign,
-                r.lines.len(),
-                r.merge.levels,
-                r.merge.merges,
-                r.merge.fan_in,
-                r.mosaic,
-                r.merge.tiles,
-                r.wall_s
-            );
+            print_report(&r);
             Ok(())
         }
         CampaignAction::Plan { file } => {
@@ -204,11 +236,10 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
             local,
             fan_in,
         } => {
-            if local == 0 || fan_in < 2 {
-                return Err(Failure::usage(format!(
-                    "--local must be at least 1 and --fan-in at least 2 (got {local} and {fan_in})"
-                )));
+            if local == 0 {
+                return Err(Failure::usage("--local must be at least 1 (got 0)"));
             }
+            let fan_in = check_fan_in(fan_in)?;
             let p = plan(&file).map_err(failure)?;
             eprint!("{}", p.describe());
             let exe = exe()?;
@@ -221,25 +252,7 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
                 },
             )
             .map_err(failure)?;
-            let ran = r.lines.iter().filter(|l| l.ran).count();
-            println!(
-                "campaign {}: {} lines ({} replayed now, {} done before), {} pulses in, {} \
-                 dropped; merge of {} stores in {} levels ({} merges, fan-in {}) into {}: {} \
-                 tiles; {:.1} s wall",
-                r.campaign,
-                r.lines.len(),
-                ran,
-                r.lines.len() - ran,
-                r.lines.iter().map(|l| l.pulses_in).sum::<u64>(),
-                r.lines.iter().map(|l| l.dropped).sum::<u64>(),
-                r.lines.len(),
-                r.merge.levels,
-                r.merge.merges,
-                r.merge.fan_in,
-                r.mosaic,
-                r.merge.tiles,
-                r.wall_s
-            );
+            print_report(&r);
             Ok(())
         }
     }

@@ -18,10 +18,11 @@ use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use crate::sink::nav_decode::NavDecode;
 use crate::sink::pulse_metrics_csv::PulseMetricsCsvSink;
 use crate::sink::returns_csv::ReturnsCsvSink;
-use crate::sink::voxel_tiles::{CrsSource, VoxelTilesSink};
+use crate::sink::voxel_tiles::{CrsSource, VoxelTilesSink, replay_run_key};
 use crate::sink::waveform_csv::WaveformCsvSink;
 use crate::sink::waveform_npy::WaveformNpySink;
 use crate::sink::{FanOut, PulseSink};
+use crate::source::shard::Shard;
 use crate::voxel::zarr::StoreInfo;
 
 /// The sample replayed when no input is named.
@@ -30,9 +31,11 @@ pub const DEFAULT_SAMPLE: &str = "replay/two_layer.fwcap";
 /// Arguments of `fwlidar replay`.
 #[derive(Debug, clap::Args)]
 pub struct ReplayArgs {
-    /// Capture file to replay.
-    #[arg(default_value = DEFAULT_SAMPLE)]
-    pub input: PathBuf,
+    /// Capture file to replay (or any file `replay` reads). Several are replayed one after
+    /// another into the one output folder and voxel store, as one recording (each georeferenced
+    /// by its own navigation; they must share the sensor and the output CRS).
+    #[arg(default_value = DEFAULT_SAMPLE, num_args = 1..)]
+    pub inputs: Vec<PathBuf>,
     /// Output folder (created if missing; files in it are replaced only by complete new ones).
     #[arg(long, short)]
     pub out: Option<PathBuf>,
@@ -45,6 +48,12 @@ pub struct ReplayArgs {
     /// Do not draw a progress bar.
     #[arg(long)]
     pub no_progress: bool,
+    /// Replay only the `i`-th of `n` contiguous ranges of the input's pulses (1 ≤ i ≤ n; the
+    /// inputs in sequence count as one), e.g. `--shard 2/4`: a line too long for one node
+    /// split across nodes. All navigation is still read. The `n` shards' voxel stores merge
+    /// (`fwlidar merge`) into exactly the whole input's.
+    #[arg(long, value_name = "I/N")]
+    pub shard: Option<Shard>,
     /// Override a key of the run configuration, `KEY=VALUE` (dotted key with list indices,
     /// TOML value), checked like the file, e.g. `--set output.las=true --set
     /// 'pipeline.stages[1].max_taps=128'`. Repeatable; a later one wins.
@@ -109,11 +118,12 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         spec,
         source,
         sinks,
-    } = prepare(&args.input, &out_dir, &config, args.workers)?;
+    } = prepare(&args.inputs, args.shard, &out_dir, &config, args.workers)?;
     let control = RunControl::default();
     install_signal_handlers(&control)?;
+    let label = inputs_label(&args.inputs, args.shard);
     tracing::info!(
-        input = %args.input.display(),
+        input = %label,
         out = %out_dir.display(),
         workers = spec.workers,
         stages = ?spec.stage_names,
@@ -121,7 +131,16 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
     );
     let mut report = run_with_progress(&spec, source, sinks, &config, &control, &args);
     report.warnings = run_warnings(&report, &config);
-    finish(&report, &args.input, &out_dir)
+    finish(&report, &label, &out_dir)
+}
+
+/// The inputs as the summary names them: their paths, and the shard.
+fn inputs_label(inputs: &[PathBuf], shard: Option<Shard>) -> String {
+    let names: Vec<String> = inputs.iter().map(|p| p.display().to_string()).collect();
+    match shard {
+        Some(s) => format!("{} (shard {s})", names.join(" + ")),
+        None => names.join(" + "),
+    }
 }
 
 /// A replay without the command's trimmings (no progress bar, signal handlers, summary or
@@ -138,7 +157,7 @@ pub fn replay_quiet(
         spec,
         source,
         sinks,
-    } = prepare(input, out_dir, config, workers)?;
+    } = prepare(&[input.to_path_buf()], None, out_dir, config, workers)?;
     let control = RunControl::default();
     Ok(run_pipeline(
         &spec,
@@ -159,15 +178,17 @@ struct Prepared {
 }
 
 fn prepare(
-    input: &Path,
+    inputs: &[PathBuf],
+    shard: Option<Shard>,
     out_dir: &Path,
     config: &RunConfig,
     workers: Option<usize>,
 ) -> Result<Prepared, Failure> {
-    let opened = open_input(input, config)?;
+    let opened = open_inputs(inputs, shard, config)?;
     prepare_out_dir(out_dir)?;
     let spec = build_spec(config, workers, &opened.source.facts(), opened.dem.as_ref());
-    let sinks = build_sinks(config, &spec, &opened, input, out_dir)?;
+    let key = replay_run_key(inputs, shard, config);
+    let sinks = build_sinks(config, &spec, &opened, &inputs[0], &key, out_dir)?;
     Ok(Prepared {
         spec,
         source: opened.source,
@@ -191,14 +212,73 @@ struct Input {
     decided_crs: Option<std::sync::Arc<std::sync::OnceLock<String>>>,
 }
 
-/// Opens the input file and wraps it in the georeferencing.
-fn open_input(path: &Path, config: &RunConfig) -> Result<Input, Failure> {
-    let source = crate::source::open_file(path).map_err(Failure::job)?;
-    let (source, dem, decided_crs) = georeferenced(source, config)?;
+/// Opens the input files (only the shard's pulses of them when `shard` is given), wraps each
+/// in the georeferencing (its own trajectory), and chains them when there are several.
+fn open_inputs(
+    paths: &[PathBuf],
+    shard: Option<Shard>,
+    config: &RunConfig,
+) -> Result<Input, Failure> {
+    let dem = open_dem(config)?;
+    let several = paths.len() > 1;
+    if several
+        && config.georeference.enabled
+        && config.georeference.output_epsg.is_none()
+        && dem.as_ref().and_then(|d| d.epsg).is_none()
+    {
+        return Err(Failure::usage(
+            "several inputs are replayed into one CRS, and the configuration names none (each \
+             line would get the UTM zone of its own first fix): set [georeference] output_epsg, \
+             e.g. --set georeference.output_epsg=32736",
+        ));
+    }
+    // The shard's pulse range over the inputs in sequence, and each input's share of it.
+    let ranges: Option<Vec<(u64, u64)>> = match shard {
+        None => None,
+        Some(s) => {
+            let counts = paths
+                .iter()
+                .map(|p| crate::source::shard::count_pulses(p))
+                .collect::<Result<Vec<u64>, String>>()
+                .map_err(Failure::job)?;
+            let (lo, hi) = s.range(counts.iter().sum());
+            let mut offset = 0;
+            let mut r = Vec::new();
+            for c in counts {
+                r.push((
+                    lo.clamp(offset, offset + c) - offset,
+                    hi.clamp(offset, offset + c) - offset,
+                ));
+                offset += c;
+            }
+            tracing::info!(shard = %s, first_pulse = lo, end_pulse = hi, "replaying one shard");
+            Some(r)
+        }
+    };
+    let mut sources = Vec::new();
+    let mut decided = None;
+    for (k, path) in paths.iter().enumerate() {
+        let mut source = crate::source::open_file(path).map_err(Failure::job)?;
+        if let Some(r) = &ranges {
+            let (lo, hi) = r[k];
+            if lo == hi && several {
+                continue; // none of this input's pulses is in the shard
+            }
+            source = Box::new(crate::source::shard::ShardSource::new(source, lo, hi));
+        }
+        let (source, cell) = georeference_with(source, config, dem.clone())?;
+        decided = decided.or(cell);
+        sources.push((path.display().to_string(), source));
+    }
+    let source: Box<dyn crate::source::Source> = if sources.len() == 1 {
+        sources.pop().map(|(_, s)| s).expect("one source")
+    } else {
+        Box::new(crate::source::chain::ChainSource::new(sources).map_err(Failure::usage)?)
+    };
     Ok(Input {
         source,
         dem,
-        decided_crs,
+        decided_crs: decided,
     })
 }
 
@@ -239,6 +319,7 @@ fn build_sinks(
     spec: &PipelineSpec,
     input: &Input,
     input_path: &Path,
+    run_key: &str,
     out_dir: &Path,
 ) -> Result<Box<dyn PulseSink>, Failure> {
     let out = &config.output;
@@ -318,9 +399,7 @@ fn build_sinks(
         )));
     }
     if config.voxels.enabled {
-        sinks.push(voxel_sink(
-            config, spec, input, &facts, input_path, out_dir,
-        )?);
+        sinks.push(voxel_sink(config, spec, input, &facts, run_key, out_dir)?);
     }
     Ok(Box::new(FanOut(sinks)))
 }
@@ -369,7 +448,7 @@ fn voxel_sink(
     spec: &PipelineSpec,
     input: &Input,
     facts: &crate::source::SourceFacts,
-    input_path: &Path,
+    run_key: &str,
     out_dir: &Path,
 ) -> Result<Box<dyn PulseSink>, Failure> {
     let crs = match (facts.crs.clone(), input.decided_crs.clone()) {
@@ -381,7 +460,7 @@ fn voxel_sink(
         crs_wkt: None,
         epsg: None,
         intensity_units: intensity_units(&spec.stage_names).into(),
-        run_key: run_key(input_path, config),
+        run_key: run_key.to_string(),
         configuration: toml::to_string(config).unwrap_or_default(),
     };
     let sink = VoxelTilesSink::create(
@@ -450,7 +529,7 @@ fn progress_bar() -> ProgressBar {
 
 /// Writes `summary.json`, prints the summary and logs the warnings; the run's own failure
 /// comes first (a full disk usually stops an output and then the summary too).
-fn finish(report: &RunReport, input: &Path, out_dir: &Path) -> Result<(), Failure> {
+fn finish(report: &RunReport, input: &str, out_dir: &Path) -> Result<(), Failure> {
     let summary_path = out_dir.join("summary.json");
     let json = serde_json::to_vec_pretty(report)
         .map_err(|e| Failure::job(format!("cannot encode summary: {e}")))?;
@@ -459,8 +538,7 @@ fn finish(report: &RunReport, input: &Path, out_dir: &Path) -> Result<(), Failur
     log_warnings(&report.warnings);
     if let Some(f) = &report.fatal {
         return Err(Failure::job(format!(
-            "replay of {} failed: {f}{}",
-            input.display(),
+            "replay of {input} failed: {f}{}",
             match &summary_written {
                 Ok(()) => String::new(),
                 Err(e) => format!(" (and the summary could not be written: {e})"),
@@ -489,14 +567,36 @@ pub fn georeferenced(
     source: Box<dyn crate::source::Source>,
     config: &RunConfig,
 ) -> Result<Georeferenced, Failure> {
-    let dem = match &config.georeference.dem {
-        Some(path) => Some(std::sync::Arc::new(
+    let dem = open_dem(config)?;
+    let (source, decided) = georeference_with(source, config, dem.clone())?;
+    Ok((source, dem, decided))
+}
+
+/// The DEM `[georeference] dem` names, opened.
+fn open_dem(config: &RunConfig) -> Result<Option<std::sync::Arc<crate::geo::dem::Dem>>, Failure> {
+    match &config.georeference.dem {
+        Some(path) => Ok(Some(std::sync::Arc::new(
             crate::geo::dem::Dem::open(Path::new(path)).map_err(Failure::job)?,
-        )),
-        None => None,
-    };
+        ))),
+        None => Ok(None),
+    }
+}
+
+/// [`georeferenced`] with the DEM already open: the source and the decided-CRS cell.
+#[allow(clippy::type_complexity)]
+fn georeference_with(
+    source: Box<dyn crate::source::Source>,
+    config: &RunConfig,
+    dem: Option<std::sync::Arc<crate::geo::dem::Dem>>,
+) -> Result<
+    (
+        Box<dyn crate::source::Source>,
+        Option<std::sync::Arc<std::sync::OnceLock<String>>>,
+    ),
+    Failure,
+> {
     if !config.georeference.enabled {
-        return Ok((source, dem, None));
+        return Ok((source, None));
     }
     let mut geo_cfg = config.georeference.clone();
     // Register to the ground in the DEM's own CRS unless an output CRS is named (a named one
@@ -513,7 +613,7 @@ pub fn georeferenced(
         g = g.with_dem(d.clone(), path.clone());
     }
     let decided = g.decided_crs();
-    Ok((Box::new(g), dem, Some(decided)))
+    Ok((Box::new(g), Some(decided)))
 }
 
 /// The LAS output's CRS and time base from what the input states: its WKT when it gave one, or
@@ -546,23 +646,6 @@ fn intensity_units(stages: &[&str]) -> &'static str {
     }
 }
 
-/// Identifies a run for resuming its voxel store: the input's name and size and a checksum of
-/// the configuration (apart from the output folder).
-fn run_key(input: &Path, config: &RunConfig) -> String {
-    let size = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0);
-    let mut c = config.clone();
-    c.output.dir.clear();
-    let text = toml::to_string(&c).unwrap_or_default();
-    format!(
-        "{} ({size} bytes), configuration crc32c {:08x}",
-        input
-            .file_name()
-            .map(|n| n.to_string_lossy().to_string())
-            .unwrap_or_default(),
-        crc32c::crc32c(text.as_bytes())
-    )
-}
-
 fn prepare_out_dir(dir: &Path) -> Result<(), Failure> {
     if dir.exists() && !dir.is_dir() {
         return Err(Failure::job(format!(
@@ -583,9 +666,9 @@ fn us(ns: u64) -> f64 {
 }
 
 /// Prints the one-screen summary of a run to stdout, its warnings last.
-pub fn print_summary(r: &RunReport, input: &Path, out: &Path, summary: &Path) {
+pub fn print_summary(r: &RunReport, input: &str, out: &Path, summary: &Path) {
     println!();
-    println!("fwlidar replay  {}  ->  {}", input.display(), out.display());
+    println!("fwlidar replay  {input}  ->  {}", out.display());
     print_pulses(r);
     print_capture_damage(&r.source);
     print_navigation_ports(&r.nav);

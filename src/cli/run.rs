@@ -402,7 +402,12 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     let json = serde_json::to_vec_pretty(&summary)
         .map_err(|e| Failure::job(format!("cannot encode summary: {e}")))?;
     let written = write_atomic(&summary_path, &json);
-    print_summary(&report, &segment, &out_dir, &summary_path);
+    print_summary(
+        &report,
+        &segment.display().to_string(),
+        &out_dir,
+        &summary_path,
+    );
     println!(
         "  recording: {} frames received, {} recorded, {} lost on the network; {} dropped from \
          processing",

@@ -530,7 +530,8 @@ fn voxelise_truth(truth: &Path, dir: &Path) -> Result<(), Failure> {
     std::fs::write(&config, TRUTH_VOXELS_CONFIG)
         .map_err(|e| Failure::job(format!("cannot write {}: {e}", config.display())))?;
     crate::cli::replay::run(crate::cli::replay::ReplayArgs {
-        input: truth.to_path_buf(),
+        inputs: vec![truth.to_path_buf()],
+        shard: None,
         out: Some(dir.to_path_buf()),
         config: Some(config),
         workers: Some(1),

@@ -19,6 +19,54 @@ use crate::voxel::tiles::TileSet;
 use crate::voxel::voxelise::{DepositParams, DepositStats, deposit_pulse};
 use crate::voxel::zarr::{StoreError, StoreInfo, ZarrStore};
 
+/// Where the automatic extent is centred when `pulse` is the first with geometry: the middle of
+/// its first return segment (x, y in the output CRS, m); `None` without a finite position.
+pub fn extent_centre(pulse: &Pulse) -> Option<[f64; 2]> {
+    let g = pulse.geometry?;
+    let t = pulse
+        .segments
+        .iter()
+        .find(|s| s.kind == SegmentKind::Return)
+        .map(|s| s.start_ns + s.len as f64 * pulse.sample_ns / 2.0)
+        .unwrap_or(0.0);
+    let c = [
+        g.anchor[0] + t * g.direction[0],
+        g.anchor[1] + t * g.direction[1],
+    ];
+    c.iter().all(|v| v.is_finite()).then_some(c)
+}
+
+/// Identifies a replay for resuming its voxel store (`StoreInfo::run_key`): each input's file
+/// name and size, a checksum of the configuration (apart from the output folder), and the shard.
+/// A campaign's mosaic carries the key of one replay of all its lines in sequence, the store it
+/// equals (`crate::campaign`).
+pub fn replay_run_key(
+    inputs: &[PathBuf],
+    shard: Option<crate::source::shard::Shard>,
+    config: &crate::config::RunConfig,
+) -> String {
+    let mut c = config.clone();
+    c.output.dir.clear();
+    let text = toml::to_string(&c).unwrap_or_default();
+    let files: Vec<String> = inputs
+        .iter()
+        .map(|p| {
+            let size = std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
+            let name = p
+                .file_name()
+                .map(|n| n.to_string_lossy().to_string())
+                .unwrap_or_default();
+            format!("{name} ({size} bytes)")
+        })
+        .collect();
+    format!(
+        "{}, configuration crc32c {:08x}{}",
+        files.join(", "),
+        crc32c::crc32c(text.as_bytes()),
+        shard.map(|s| format!(", shard {s}")).unwrap_or_default()
+    )
+}
+
 /// Where the output CRS comes from.
 #[derive(Clone, Debug)]
 pub enum CrsSource {
@@ -131,23 +179,9 @@ impl VoxelTilesSink {
     }
 
     fn start(&mut self, pulse: &Pulse) -> Result<(), SinkError> {
-        let Some(g) = pulse.geometry else {
+        let Some(first) = extent_centre(pulse) else {
             return Ok(());
         };
-        // Centre of the automatic extent: the middle of the pulse's first return segment.
-        let t = pulse
-            .segments
-            .iter()
-            .find(|s| s.kind == SegmentKind::Return)
-            .map(|s| s.start_ns + s.len as f64 * pulse.sample_ns / 2.0)
-            .unwrap_or(0.0);
-        let first = [
-            g.anchor[0] + t * g.direction[0],
-            g.anchor[1] + t * g.direction[1],
-        ];
-        if !first.iter().all(|v| v.is_finite()) {
-            return Ok(());
-        }
         let crs = match &self.crs {
             CrsSource::Known(c) => c.clone(),
             CrsSource::Decided(cell) => cell.get().cloned(),

@@ -2,11 +2,13 @@
 //! waveforms, PulseWaves files, NASA GEDI Level 1B granules; the network and serial ports).
 
 pub mod capture;
+pub mod chain;
 pub mod gedi;
 pub mod las;
 pub mod live_frames;
 pub mod pulsewaves;
 pub mod serial;
+pub mod shard;
 
 use std::io::Read;
 use std::path::Path;

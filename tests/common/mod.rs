@@ -186,3 +186,55 @@ pub fn file_tree(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
     out.sort();
     out
 }
+
+/// One `fwlidar replay` of the four crossing lines (`crossing_lines`) in sequence into
+/// `out`, with the campaign's `run.toml`: the store a campaign's mosaic must equal.
+pub fn sequential_replay(dir: &Path, run_toml: &Path, out: &Path) -> PathBuf {
+    let caps: Vec<String> = (0..4)
+        .map(|i| {
+            dir.join(format!("lines/line{i}.fwcap"))
+                .display()
+                .to_string()
+        })
+        .collect();
+    let mut args = vec!["replay"];
+    args.extend(caps.iter().map(String::as_str));
+    args.extend([
+        "--config",
+        run_toml.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    let o = fwlidar(&args);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let said = text(&o.stdout);
+    assert!(said.contains("48000 in, 48000 out"), "{said}");
+    out.join("voxels.zarr")
+}
+
+/// Asserts that the store `mosaic` is the store `replayed` byte for byte, metadata included,
+/// apart from the tiles' resume records, whose watermarks say when each tile closed (a merged
+/// store's are 0); those must list the same tiles and height chunks.
+pub fn assert_same_store_but_watermarks(mosaic: &Path, replayed: &Path) {
+    let (m, r) = (file_tree(mosaic), file_tree(replayed));
+    let names = |t: &[(PathBuf, Vec<u8>)]| t.iter().map(|f| f.0.clone()).collect::<Vec<_>>();
+    assert_eq!(names(&m), names(&r), "the stores hold different files");
+    assert!(m.len() > 10);
+    let records = Path::new("fwlidar_state/tiles");
+    for ((p, mine), (_, theirs)) in m.iter().zip(&r) {
+        if p.starts_with(records) {
+            let chunks = |b: &[u8]| {
+                serde_json::from_slice::<serde_json::Value>(b).unwrap()["chunks"].clone()
+            };
+            assert_eq!(chunks(mine), chunks(theirs), "{}", p.display());
+        } else {
+            assert!(
+                mine == theirs,
+                "{} of {} differs from the sequential replay's",
+                p.display(),
+                mosaic.display()
+            );
+        }
+    }
+}
