@@ -57,6 +57,9 @@ pub struct MergeReport {
     pub merges: usize,
     /// Tiles of the mosaic.
     pub tiles: usize,
+    /// Tiles the merges copied as their chunk files were (one input held them), over all
+    /// levels.
+    pub tiles_copied: u64,
     /// Wall time of the whole tree, s.
     pub wall_s: f64,
 }
@@ -250,7 +253,7 @@ pub fn merge_tree(
     if work.exists() {
         std::fs::remove_dir_all(work).map_err(|e| io("clear", work, e))?;
     }
-    let (mut levels, mut merges, mut tiles) = (0, 0, 0);
+    let (mut levels, mut merges, mut tiles, mut copied) = (0, 0, 0, 0);
     loop {
         let last = level.len() <= fan_in;
         let groups: Vec<Vec<PathBuf>> = level.chunks(fan_in).map(<[PathBuf]>::to_vec).collect();
@@ -286,6 +289,7 @@ pub fn merge_tree(
         for r in results {
             let s = r.map_err(CampaignError::Run)?;
             tiles = s.tiles;
+            copied += s.tiles_copied;
             merges += 1;
         }
         levels += 1;
@@ -302,6 +306,7 @@ pub fn merge_tree(
         levels,
         merges,
         tiles,
+        tiles_copied: copied,
         wall_s: started.elapsed().as_secs_f64(),
     })
 }

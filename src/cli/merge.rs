@@ -58,12 +58,13 @@ pub fn run(args: MergeArgs) -> Result<(), Failure> {
         b.finish_and_clear();
     }
     println!(
-        "merged {} stores into {}: {} tiles ({} present in more than one), arrays of {} × {} \
-         tiles of {} columns × {} levels",
+        "merged {} stores into {}: {} tiles ({} present in more than one, {} copied as they \
+         were), arrays of {} × {} tiles of {} columns × {} levels",
         s.stores,
         args.out.display(),
         s.tiles,
         s.tiles_from_several,
+        s.tiles_copied,
         s.span_tiles[0],
         s.span_tiles[1],
         s.tile_columns,

@@ -5,7 +5,8 @@
 //! covers them all. A tile present in several stores is the sum of their counts and intensity
 //! sums (integers of the quantum, so exact) and the larger of their maxima: the data do not
 //! depend on the order of the stores nor on how a merge is split into merges of merges, bit for
-//! bit. The metadata (`run_key`, `configuration`) name the inputs unless the caller gives them
+//! bit. A tile only one input holds is copied as its chunk files are (the encoding is
+//! deterministic, so these are the bytes a decode and re-encode would give, without the cost). The metadata (`run_key`, `configuration`) name the inputs unless the caller gives them
 //! ([`MergeMeta::Given`]), which a campaign does so that its mosaic is byte-identical whatever
 //! its merge tree.
 
@@ -37,6 +38,8 @@ pub struct MergeSummary {
     pub tiles: usize,
     /// Tiles present in more than one input.
     pub tiles_from_several: u64,
+    /// Tiles one input held, copied as its chunk files are (not decoded and encoded again).
+    pub tiles_copied: u64,
     /// Tiles of the result's arrays along x and y.
     pub span_tiles: [u32; 2],
     /// Columns per tile side.
@@ -129,21 +132,34 @@ pub fn merge_stores(
     let mut result =
         ZarrStore::create_or_open(out, grid.clone(), info).map_err(|e| e.to_string())?;
     let (mut acc, mut part) = (TileData::for_grid(&grid), TileData::for_grid(&grid));
-    let mut from_several = 0u64;
+    let (mut from_several, mut copied) = (0u64, 0u64);
     for (k, &t) in tiles.iter().enumerate() {
-        acc.clear();
-        let mut holders = 0;
-        for s in opened.iter_mut() {
-            if s.read_tile(t, &mut part).map_err(|e| e.to_string())? {
-                acc.merge(&part);
-                holders += 1;
+        // A merged store is not resumed: its tiles carry watermark 0.
+        let holders: Vec<usize> = (0..opened.len())
+            .filter(|&i| opened[i].tile_chunks(t).is_some())
+            .collect();
+        if let [only] = holders[..]
+            && result
+                .copy_tile(&opened[only], t, 0)
+                .map_err(|e| e.to_string())?
+        {
+            // One input holds the tile: its chunk files are the merged tile's bytes.
+            copied += 1;
+        } else {
+            acc.clear();
+            for &i in &holders {
+                if opened[i]
+                    .read_tile(t, &mut part)
+                    .map_err(|e| e.to_string())?
+                {
+                    acc.merge(&part);
+                }
             }
+            result.write_tile(t, &acc, 0).map_err(|e| e.to_string())?;
         }
-        if holders > 1 {
+        if holders.len() > 1 {
             from_several += 1;
         }
-        // A merged store is not resumed: its tiles carry watermark 0.
-        result.write_tile(t, &acc, 0).map_err(|e| e.to_string())?;
         tick(k + 1, tiles.len());
     }
     // The arrays span the bounding box of the tiles, whatever the inputs' extents.
@@ -153,6 +169,7 @@ pub fn merge_stores(
         stores: opened.len(),
         tiles: tiles.len(),
         tiles_from_several: from_several,
+        tiles_copied: copied,
         span_tiles: span.tiles,
         tile_columns: grid.tile_columns,
         levels: grid.levels,

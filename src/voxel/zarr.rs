@@ -1334,6 +1334,70 @@ impl ZarrStore {
                 pending.push((f, path, self.chunk_path(a, tile, kc)?));
             }
         }
+        self.commit(tile, pending, chunks, watermark, cost)
+    }
+
+    /// Writes `tile` of `src` into this store as its chunk files are, without decoding them: a
+    /// tile that only one input of a merge holds. The bytes are those [`write_tile`](Self::write_tile)
+    /// would write for the decoded data (the encoding is deterministic: the same blocks, codec
+    /// and level). `Ok(false)`, nothing written, when it cannot be copied — the stores' layouts
+    /// or tile shapes differ, `src` lacks the tile, or this store holds it already — so the
+    /// caller decodes and writes it instead.
+    pub fn copy_tile(
+        &mut self,
+        src: &ZarrStore,
+        tile: [i64; 2],
+        watermark: u64,
+    ) -> Result<bool, StoreError> {
+        let same_shape = src.layout == self.layout
+            && src.grid.tile_columns == self.grid.tile_columns
+            && src.grid.chunk_levels == self.grid.chunk_levels
+            && src.grid.levels == self.grid.levels;
+        let Some((_, chunks)) = src.records.get(&tile) else {
+            return Ok(false);
+        };
+        if !same_shape || self.records.contains_key(&tile) || !self.span.contains(tile) {
+            return Ok(false);
+        }
+        let chunks = chunks.clone();
+        let mut cost = WriteCost::default();
+        let mut dirs = BTreeSet::new();
+        let mut pending = Vec::with_capacity(chunks.len() * ARRAYS.len());
+        for &kc in &chunks {
+            for a in ARRAYS {
+                let from = src.chunk_path(a, tile, kc)?;
+                let bytes = match fs::read(&from) {
+                    Ok(b) => b,
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+                    Err(e) => return Err(io(&from)(e)),
+                };
+                let path = self.pending_path(a, tile, kc)?;
+                let dir = path.parent().unwrap_or(&self.root).to_path_buf();
+                if dirs.insert(dir.clone()) {
+                    fs::create_dir_all(&dir).map_err(io(&dir))?;
+                }
+                let mut f = File::create(&path).map_err(io(&path))?;
+                f.write_all(&bytes).map_err(io(&path))?;
+                cost.chunks += 1;
+                cost.stored_bytes += bytes.len() as u64;
+                pending.push((f, path, self.chunk_path(a, tile, kc)?));
+            }
+        }
+        self.commit(tile, pending, chunks, watermark, cost)?;
+        Ok(true)
+    }
+
+    /// The end of a tile's write: the pending chunk files `(file, pending path, final path)`
+    /// made durable, the record committed, the chunks renamed into place, the record marked
+    /// done (the module documentation's protocol).
+    fn commit(
+        &mut self,
+        tile: [i64; 2],
+        pending: Vec<(File, PathBuf, PathBuf)>,
+        chunks: Vec<u32>,
+        watermark: u64,
+        cost: WriteCost,
+    ) -> Result<(Vec<u32>, WriteCost), StoreError> {
         // The chunks' data durable before the commit record: one syncfs, else a sync each.
         if !pending.is_empty() && !syncfs(&self.root) {
             for (f, path, _) in &pending {
@@ -2095,6 +2159,38 @@ mod tests {
             assert!(r.read_tile([0, 0], &mut back).unwrap());
             assert_same(&back, &a);
         }
+    }
+
+    #[test]
+    fn a_copied_tile_is_the_bytes_a_decode_and_write_gives() {
+        let dir = tempfile::tempdir().unwrap();
+        let g = shard_grid();
+        let mut src =
+            ZarrStore::create_or_open(&dir.path().join("a"), g.clone(), info("a")).unwrap();
+        src.write_tile([0, 0], &sample_for(&g, 1), 7).unwrap();
+        src.write_tile([1, 0], &sample_for(&g, 2), 7).unwrap();
+        let (mut copied, mut written) = (
+            ZarrStore::create_or_open(&dir.path().join("c"), g.clone(), info("m")).unwrap(),
+            ZarrStore::create_or_open(&dir.path().join("w"), g.clone(), info("m")).unwrap(),
+        );
+        let mut t = TileData::for_grid(&g);
+        for tile in [[0, 0], [1, 0]] {
+            assert!(copied.copy_tile(&src, tile, 0).unwrap());
+            assert!(src.read_tile(tile, &mut t).unwrap());
+            written.write_tile(tile, &t, 0).unwrap();
+        }
+        // Held already, or absent from the source: not copied, nothing written.
+        assert!(!copied.copy_tile(&src, [0, 0], 0).unwrap());
+        assert!(!copied.copy_tile(&src, [0, 1], 0).unwrap());
+        copied.fit().unwrap();
+        written.fit().unwrap();
+        let (c, w) = (files(&dir.path().join("c")), files(&dir.path().join("w")));
+        assert!(c.len() > 8);
+        assert!(c == w, "copying differs from decoding and writing");
+        let mut back = TileData::for_grid(&g);
+        let mut reopened = ZarrStore::open(&dir.path().join("c")).unwrap();
+        assert!(reopened.read_tile([1, 0], &mut back).unwrap());
+        assert_same(&back, &sample_for(&g, 2));
     }
 
     /// A grid of 4 m tiles over [-32, 32)² m (16 × 16 tiles).
