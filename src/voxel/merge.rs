@@ -48,8 +48,9 @@ pub struct MergeSummary {
     pub levels: u32,
 }
 
-/// Merges `stores` into the new store `out` (which must not exist); `tick` is called once per
-/// tile written. Errors name the stores at fault.
+/// Merges `stores` into the new store `out` (which must not exist; it appears when complete,
+/// written as `<out>.partial` first); `tick` is called once per tile written. Errors name the
+/// stores at fault.
 pub fn merge_stores(
     stores: &[PathBuf],
     out: &Path,
@@ -129,8 +130,18 @@ pub fn merge_stores(
     let mut tiles: Vec<[i64; 2]> = opened.iter().flat_map(|s| s.tiles()).collect();
     tiles.sort();
     tiles.dedup();
-    let mut result =
-        ZarrStore::create_or_open(out, grid.clone(), info).map_err(|e| e.to_string())?;
+    // Written whole into `<out>.partial` (a killed merge's is cleared), without a sync per
+    // tile, then synced once and renamed: `out` is complete or absent.
+    let mut tmp = out.as_os_str().to_owned();
+    tmp.push(".partial");
+    let tmp = PathBuf::from(tmp);
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp)
+            .map_err(|e| format!("cannot clear {}: {e}", tmp.display()))?;
+    }
+    let mut result = ZarrStore::create_or_open(&tmp, grid.clone(), info)
+        .map_err(|e| e.to_string())?
+        .unsynced();
     let (mut acc, mut part) = (TileData::for_grid(&grid), TileData::for_grid(&grid));
     let (mut from_several, mut copied) = (0u64, 0u64);
     for (k, &t) in tiles.iter().enumerate() {
@@ -164,7 +175,11 @@ pub fn merge_stores(
     }
     // The arrays span the bounding box of the tiles, whatever the inputs' extents.
     result.fit().map_err(|e| e.to_string())?;
+    result.sync();
     let span = *result.span();
+    drop(result);
+    std::fs::rename(&tmp, out)
+        .map_err(|e| format!("cannot rename {} to {}: {e}", tmp.display(), out.display()))?;
     Ok(MergeSummary {
         stores: opened.len(),
         tiles: tiles.len(),
