@@ -189,6 +189,8 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
         "--dry-run",
         "--partition",
         "short",
+        "--merge-nodes",
+        "2",
     ]);
     let said = common::text(&o.stdout);
     assert!(o.status.success(), "{}", common::text(&o.stderr));
@@ -199,7 +201,19 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
     assert!(script.contains("#SBATCH --mem="), "{script}");
     assert!(script.contains("campaign task"), "{script}");
     let merge = std::fs::read_to_string(dir.path().join("out_c/slurm/merge.sbatch")).unwrap();
-    assert!(merge.contains("campaign merge"), "{merge}");
+    assert!(
+        merge.contains("campaign merge") && merge.contains("--groups 2"),
+        "{merge}"
+    );
+    // The merge spread over two nodes: an array of two group merges between lines and merge.
+    let groups =
+        std::fs::read_to_string(dir.path().join("out_c/slurm/merge_groups.sbatch")).unwrap();
+    assert!(groups.contains("#SBATCH --array=0-1"), "{groups}");
+    assert!(groups.contains("--groups 2 --group"), "{groups}");
+    assert!(
+        said.contains("afterok:<lines job>") && said.contains("afterok:<groups job>"),
+        "{said}"
+    );
     // The merge job refuses to run before the lines.
     let o = common::fwlidar(&["campaign", "merge", c.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(1));
@@ -213,16 +227,46 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
     let o = common::fwlidar(&["campaign", "submit", c.to_str().unwrap(), "--dry-run"]);
     assert!(o.status.success(), "{}", common::text(&o.stderr));
     assert!(!common::text(&o.stdout).contains("lines.sbatch"));
+    // The two group merges (what the array's tasks run), then the last merge.
+    for g in ["1", "0"] {
+        let o = common::fwlidar(&[
+            "campaign",
+            "merge",
+            c.to_str().unwrap(),
+            "--groups",
+            "2",
+            "--group",
+            g,
+        ]);
+        assert!(o.status.success(), "{}", common::text(&o.stderr));
+        assert!(
+            common::text(&o.stdout).contains("2 tasks"),
+            "{}",
+            common::text(&o.stdout)
+        );
+    }
+    assert!(
+        dir.path()
+            .join("out_c/merge/group0of2.zarr/zarr.json")
+            .is_file()
+    );
     let o = common::fwlidar(&[
         "campaign",
         "merge",
         c.to_str().unwrap(),
-        "--processes",
+        "--groups",
         "2",
-        "--fan-in",
+        "--processes",
         "2",
     ]);
     assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let rc: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("out_c/campaign.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(rc["merge"]["groups"], 2, "{rc}");
+    assert_eq!(rc["merge"]["groups_merged_here"], 0, "{rc}");
+    assert!(!dir.path().join("out_c/merge").exists());
     assert!(
         common::file_tree(&dir.path().join("out_c/mosaic.zarr")) == mosaic_b,
         "the mosaic of the task-by-task run differs"

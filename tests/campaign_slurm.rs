@@ -2,7 +2,8 @@
 //! — `munged`, `slurmctld` and `slurmd` with a generated `slurm.conf` for localhost (2 CPUs,
 //! no cgroups: `proctrack/linuxproc`, `task/none`), everything in a temporary folder, ports
 //! 16917/16918 — submits a campaign of four simulated survey lines that cross each other with
-//! `fwlidar campaign submit`, waits for the array and the merge job, and compares the mosaic
+//! `fwlidar campaign submit --merge-nodes 2`, waits for the array, the two group merges and the
+//! merge job, and compares the mosaic
 //! with one `fwlidar replay` of the four lines in sequence byte for byte (but the tiles' resume
 //! records, whose watermarks say when a tile closed). Then it cancels one array
 //! task of a second submission (the killed task), sees the merge job never start, resubmits,
@@ -196,7 +197,7 @@ fn wait(c: &Cluster, jobs: &[String]) {
     }
 }
 
-fn submit(c: &Cluster, file: &Path) -> Vec<String> {
+fn submit(c: &Cluster, file: &Path, extra: &[&str]) -> Vec<String> {
     let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
         .args([
             "campaign",
@@ -207,6 +208,7 @@ fn submit(c: &Cluster, file: &Path) -> Vec<String> {
             "--time",
             "00:10:00",
         ])
+        .args(extra)
         .env("SLURM_CONF", &c.conf)
         .output()
         .unwrap();
@@ -253,10 +255,11 @@ fn a_campaign_on_a_one_node_slurm_gives_a_sequential_replays_bytes_even_after_a_
     let work = dir.path().join("work");
     common::crossing_lines(&work);
     let file = |name: &str, out: &str| common::crossing_campaign(&work, name, out);
-    // On Slurm: the array of four lines and the merge after it.
+    // On Slurm: the array of four lines, the array of two group merges after it (the merge
+    // spread over two nodes), and the last merge after that.
     let on_slurm = file("slurm.toml", "out_slurm");
-    let jobs = submit(&cluster, &on_slurm);
-    assert_eq!(jobs.len(), 2, "{jobs:?}");
+    let jobs = submit(&cluster, &on_slurm, &["--merge-nodes", "2"]);
+    assert_eq!(jobs.len(), 3, "{jobs:?}");
     wait(&cluster, &jobs);
     let report: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(work.join("out_slurm/campaign.json")).unwrap_or_else(|e| {
@@ -268,6 +271,8 @@ fn a_campaign_on_a_one_node_slurm_gives_a_sequential_replays_bytes_even_after_a_
     )
     .unwrap();
     assert_eq!(report["lines"].as_array().unwrap().len(), 4);
+    assert_eq!(report["merge"]["groups"], 2, "{report}");
+    assert_eq!(report["merge"]["groups_merged_here"], 0, "{report}");
     // The reference: one replay of the four lines in sequence, with the campaign's run.toml.
     let seq = common::sequential_replay(&work, &work.join("out_slurm/run.toml"), &work.join("seq"));
     common::assert_same_store_but_watermarks(&work.join("out_slurm/mosaic.zarr"), &seq);
@@ -276,7 +281,7 @@ fn a_campaign_on_a_one_node_slurm_gives_a_sequential_replays_bytes_even_after_a_
     // A killed array task: cancel line 3's task of a new submission before it runs (the node
     // runs one 2-CPU task at a time), so the merge job's dependency can never be met.
     let killed = file("killed.toml", "out_killed");
-    let jobs = submit(&cluster, &killed);
+    let jobs = submit(&cluster, &killed, &[]);
     let cancelled = slurm(&cluster, "scancel", &[&format!("{}_3", jobs[0])]);
     let _ = cancelled;
     wait(&cluster, &jobs[..1]);
@@ -285,7 +290,7 @@ fn a_campaign_on_a_one_node_slurm_gives_a_sequential_replays_bytes_even_after_a_
     let _ = slurm(&cluster, "scancel", &[&jobs[1]]);
     wait(&cluster, &jobs[1..]);
     // Resubmitting runs the missing line alone, then the merge: the same bytes.
-    let again = submit(&cluster, &killed);
+    let again = submit(&cluster, &killed, &[]);
     let script = std::fs::read_to_string(work.join("out_killed/slurm/lines.sbatch")).unwrap();
     assert!(script.contains("#SBATCH --array=3\n"), "{script}");
     wait(&cluster, &again);

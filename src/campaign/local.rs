@@ -60,8 +60,12 @@ pub struct MergeReport {
     /// Tiles the merges copied as their chunk files were (one input held them), over all
     /// levels.
     pub tiles_copied: u64,
-    /// Wall time of the whole tree, s.
+    /// Wall time of the whole tree, s (without the group merges).
     pub wall_s: f64,
+    /// Merge groups whose stores were merged last (1: none, the task stores were).
+    pub groups: usize,
+    /// Of those, merged by this merge job (the others by the groups' array tasks).
+    pub groups_merged_here: usize,
 }
 
 /// `campaign.json`.
@@ -112,6 +116,10 @@ fn io(what: &str, p: &Path, e: std::io::Error) -> CampaignError {
 }
 
 fn start(task: &Task, run_toml: &Path, exe: &Path) -> Result<Running, CampaignError> {
+    // Group merges of an earlier attempt no longer hold this task's store: gone.
+    if let Some(campaign) = task.out.parent().and_then(Path::parent) {
+        let _ = std::fs::remove_dir_all(campaign.join("merge"));
+    }
     if task.out.exists() {
         std::fs::remove_dir_all(&task.out).map_err(|e| io("clear", &task.out, e))?;
     }
@@ -308,6 +316,8 @@ pub fn merge_tree(
         tiles,
         tiles_copied: copied,
         wall_s: started.elapsed().as_secs_f64(),
+        groups: 1,
+        groups_merged_here: 0,
     })
 }
 
@@ -376,12 +386,74 @@ pub fn run_task(plan: &Plan, index: usize, exe: &Path) -> Result<LineReport, Cam
     }
 }
 
-/// The merge job: every line must be done; merges their stores as a tree into `mosaic.zarr`
-/// (rebuilt) and writes `campaign.json`.
+/// The tasks of merge group `group` (0-based) of `groups`: the plan's tasks in order cut into
+/// `groups` contiguous runs of near-equal length, so that neighbouring lines (and a line's
+/// shards), which share most of the tiles any two share, fall in one group.
+pub fn group_tasks(plan: &Plan, group: usize, groups: usize) -> &[Task] {
+    let n = plan.tasks.len();
+    let at = |k: usize| n * k / groups.max(1);
+    &plan.tasks[at(group)..at(group + 1)]
+}
+
+/// Where merge group `group` of `groups` is written.
+pub fn group_store(plan: &Plan, group: usize, groups: usize) -> PathBuf {
+    plan.out
+        .join("merge")
+        .join(format!("group{group}of{groups}.zarr"))
+}
+
+/// One merge group (a task of the merge groups' Slurm array, on a node of its own): the stores
+/// of [`group_tasks`] merged into [`group_store`] with the campaign's metadata. `Ok(false)`
+/// when that store is there already (a store appears only complete). Refused while a task of
+/// the group is not done.
+pub fn merge_group(plan: &Plan, group: usize, groups: usize) -> Result<bool, CampaignError> {
+    if groups < 2 || group >= groups || groups > plan.tasks.len() {
+        return Err(CampaignError::Run(format!(
+            "merge group {group} of {groups} does not exist: groups must be 2..={} (the              tasks) and the group below them",
+            plan.tasks.len()
+        )));
+    }
+    let out = group_store(plan, group, groups);
+    if out.exists() {
+        return Ok(false);
+    }
+    let tasks = group_tasks(plan, group, groups);
+    let missing: Vec<&str> = tasks
+        .iter()
+        .filter(|t| !t.out.join(DONE).is_file())
+        .map(|t| t.name.as_str())
+        .collect();
+    if !missing.is_empty() {
+        return Err(CampaignError::Run(format!(
+            "merge group {group} of {groups}: task(s) not done: {}",
+            missing.join(", ")
+        )));
+    }
+    let dir = plan.out.join("merge");
+    std::fs::create_dir_all(&dir).map_err(|e| io("create", &dir, e))?;
+    let stores: Vec<PathBuf> = tasks.iter().map(|t| t.out.join("voxels.zarr")).collect();
+    merge_stores(&stores, &out, &campaign_meta(plan), |_, _| {}).map_err(CampaignError::Run)?;
+    Ok(true)
+}
+
+/// The metadata every merge of the campaign writes: those of one replay of every line in
+/// sequence, the store the mosaic equals.
+fn campaign_meta(plan: &Plan) -> MergeMeta {
+    MergeMeta::Given {
+        run_key: plan.run_key.clone(),
+        configuration: plan.config_text.clone(),
+    }
+}
+
+/// The merge job: every task must be done; merges their stores into `mosaic.zarr` (rebuilt) —
+/// when `groups` > 1, first the merge groups not merged yet (each normally a task of the
+/// merge groups' array on a node of its own), then the group stores — writes the metrics
+/// rasters and `campaign.json`.
 pub fn merge_campaign(
     plan: &Plan,
     processes: usize,
     fan_in: usize,
+    groups: usize,
     lines_ran_now: &[String],
     started: Instant,
 ) -> Result<CampaignReport, CampaignError> {
@@ -407,29 +479,39 @@ pub fn merge_campaign(
             missing.join(", ")
         )));
     }
-    let stores: Vec<PathBuf> = plan
-        .tasks
-        .iter()
-        .map(|t| t.out.join("voxels.zarr"))
-        .collect();
+    let mut groups_merged_here = 0;
+    let stores: Vec<PathBuf> = if groups > 1 {
+        for g in 0..groups {
+            if merge_group(plan, g, groups)? {
+                groups_merged_here += 1;
+            }
+        }
+        (0..groups).map(|g| group_store(plan, g, groups)).collect()
+    } else {
+        plan.tasks
+            .iter()
+            .map(|t| t.out.join("voxels.zarr"))
+            .collect()
+    };
     let mosaic = plan.out.join("mosaic.zarr");
     let partial = plan.out.join("mosaic.zarr.partial");
     if partial.exists() {
         std::fs::remove_dir_all(&partial).map_err(|e| io("clear", &partial, e))?;
     }
-    // The metadata of one replay of every line in sequence, the store the mosaic equals.
-    let meta = MergeMeta::Given {
-        run_key: plan.run_key.clone(),
-        configuration: plan.config_text.clone(),
-    };
-    let merge = merge_tree(
+    let mut merge = merge_tree(
         &stores,
-        &plan.out.join("merge"),
+        &plan.out.join("merge").join("tree"),
         &partial,
-        &meta,
+        &campaign_meta(plan),
         fan_in,
         processes,
     )?;
+    merge.groups = groups.max(1);
+    merge.groups_merged_here = groups_merged_here;
+    let dir = plan.out.join("merge");
+    if dir.exists() {
+        std::fs::remove_dir_all(&dir).map_err(|e| io("remove", &dir, e))?;
+    }
     if mosaic.exists() {
         std::fs::remove_dir_all(&mosaic).map_err(|e| io("replace", &mosaic, e))?;
     }
@@ -505,5 +587,5 @@ pub fn run_local(plan: &Plan, opts: &LocalOptions) -> Result<CampaignReport, Cam
         .filter(|l| l.ran)
         .map(|l| l.name.clone())
         .collect();
-    merge_campaign(plan, opts.processes, opts.fan_in, &ran, started)
+    merge_campaign(plan, opts.processes, opts.fan_in, 1, &ran, started)
 }

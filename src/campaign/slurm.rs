@@ -25,6 +25,9 @@ pub struct SlurmOptions {
     pub mem_mb: Option<u64>,
     /// Stores per merge in the merge job's tree (0: all in one merge).
     pub fan_in: usize,
+    /// Nodes the merge is spread over: more than 1 adds an array job of that many group merges
+    /// before the last merge.
+    pub merge_nodes: usize,
     /// The `fwlidar` executable on the cluster's nodes.
     pub exe: PathBuf,
 }
@@ -102,9 +105,48 @@ pub fn merge_script(plan: &Plan, o: &SlurmOptions) -> String {
         abs(&plan.out).display()
     );
     sbatch_lines(&mut s, plan, o, "merge", &o.merge_time, 2048, "merge.log");
+    let groups = if o.merge_nodes > 1 {
+        format!(" --groups {}", o.merge_nodes)
+    } else {
+        String::new()
+    };
     let _ = writeln!(
         s,
-        "set -euo pipefail\nexec {:?} campaign merge {:?} --processes \"${{SLURM_CPUS_PER_TASK:-1}}\"{flag}",
+        "set -euo pipefail\nexec {:?} campaign merge {:?} --processes \"${{SLURM_CPUS_PER_TASK:-1}}\"{groups}{flag}",
+        o.exe.display().to_string(),
+        abs(&plan.file).display().to_string(),
+    );
+    s
+}
+
+/// The merge groups' array job (`--merge-nodes G`): task `g` merges the stores of the `g`-th
+/// run of neighbouring lines into `merge/group<g>of<G>.zarr`, each on a node of its own.
+pub fn groups_script(plan: &Plan, o: &SlurmOptions) -> String {
+    let g = o.merge_nodes;
+    let mut s = String::from("#!/bin/bash\n");
+    let _ = writeln!(
+        s,
+        "# fwlidar campaign {:?}: the merge spread over {g} nodes. Array task g merges the\n\
+         # stores of the g-th of {g} runs of neighbouring tasks (in plan order) into\n\
+         # {}/merge/group<g>of{g}.zarr; the merge job after this array merges the {g} group\n\
+         # stores (tiles only one group holds are copied as they are). Submitted with\n\
+         # --dependency=afterok on the lines' array job.",
+        plan.campaign.name,
+        abs(&plan.out).display()
+    );
+    sbatch_lines(
+        &mut s,
+        plan,
+        o,
+        "groups",
+        &o.merge_time,
+        2048,
+        "group_%a.log",
+    );
+    let _ = writeln!(s, "#SBATCH --array=0-{}", g - 1);
+    let _ = writeln!(
+        s,
+        "set -euo pipefail\nexec {:?} campaign merge {:?} --groups {g} --group \"$SLURM_ARRAY_TASK_ID\"",
         o.exe.display().to_string(),
         abs(&plan.file).display().to_string(),
     );
@@ -140,6 +182,8 @@ fn sbatch_lines(
 pub struct Submitted {
     /// The array job's script (`None` when every line is done).
     pub lines_script: Option<PathBuf>,
+    /// The merge groups' array job's script (`--merge-nodes` > 1).
+    pub groups_script: Option<PathBuf>,
     /// The merge job's script.
     pub merge_script: PathBuf,
     /// The commands run (or to run, with `dry_run`).
@@ -200,33 +244,52 @@ pub fn submit(plan: &Plan, o: &SlurmOptions, dry_run: bool) -> Result<Submitted,
     } else {
         Some(write("lines.sbatch", lines_script(plan, &ids, o))?)
     };
+    if o.merge_nodes > plan.tasks.len() {
+        return Err(CampaignError::Run(format!(
+            "--merge-nodes {} is more than the campaign's {} tasks",
+            o.merge_nodes,
+            plan.tasks.len()
+        )));
+    }
+    let groups = if o.merge_nodes > 1 {
+        Some(write("merge_groups.sbatch", groups_script(plan, o))?)
+    } else {
+        None
+    };
     let merge = write("merge.sbatch", merge_script(plan, o))?;
+    // The jobs in order, each after the one before succeeded.
+    let chain: Vec<(&str, String)> = [
+        lines.as_ref().map(|l| ("lines", l.display().to_string())),
+        groups.as_ref().map(|g| ("groups", g.display().to_string())),
+        Some(("merge", merge.display().to_string())),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
     let mut commands = Vec::new();
-    let mut job_ids = Vec::new();
-    let merge_s = merge.display().to_string();
-    match &lines {
-        Some(l) => {
-            let l = l.display().to_string();
-            commands.push(format!("sbatch --parsable {l}"));
-            commands.push(format!(
-                "sbatch --parsable --dependency=afterok:<lines job> {merge_s}"
-            ));
-            if !dry_run {
-                let id = sbatch(&["--parsable", &l])?;
-                let dep = format!("--dependency=afterok:{id}");
-                let m = sbatch(&["--parsable", &dep, &merge_s])?;
-                job_ids = vec![id, m];
-            }
+    let mut job_ids: Vec<String> = Vec::new();
+    for (k, (_, script)) in chain.iter().enumerate() {
+        match k {
+            0 => commands.push(format!("sbatch --parsable {script}")),
+            _ => commands.push(format!(
+                "sbatch --parsable --dependency=afterok:<{} job> {script}",
+                chain[k - 1].0
+            )),
         }
-        None => {
-            commands.push(format!("sbatch --parsable {merge_s}"));
-            if !dry_run {
-                job_ids = vec![sbatch(&["--parsable", &merge_s])?];
-            }
+        if !dry_run {
+            let id = match job_ids.last() {
+                None => sbatch(&["--parsable", script])?,
+                Some(before) => {
+                    let dep = format!("--dependency=afterok:{before}");
+                    sbatch(&["--parsable", &dep, script])?
+                }
+            };
+            job_ids.push(id);
         }
     }
     Ok(Submitted {
         lines_script: lines,
+        groups_script: groups,
         merge_script: merge,
         commands,
         job_ids,

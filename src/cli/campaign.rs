@@ -62,6 +62,11 @@ pub enum CampaignAction {
         /// the fastest on one node; a tree pays one more pass over the tiles per level).
         #[arg(long)]
         fan_in: Option<usize>,
+        /// Nodes the merge is spread over: G > 1 adds an array job of G group merges (each the
+        /// stores of neighbouring lines, on a node of its own) between the lines and the last
+        /// merge, which then merges the G group stores.
+        #[arg(long, default_value_t = 1)]
+        merge_nodes: usize,
         /// Write the scripts and print the sbatch commands without running them.
         #[arg(long)]
         dry_run: bool,
@@ -74,11 +79,20 @@ pub enum CampaignAction {
         #[arg(long)]
         index: usize,
     },
-    /// The merge job: every line's store merged as a tree into `mosaic.zarr`, then
-    /// `campaign.json`. Refused while a line is not done.
+    /// The merge job: every task's store merged into `mosaic.zarr`, then the metrics rasters
+    /// and `campaign.json`. Refused while a task is not done. With `--groups G`, the G group
+    /// stores (merging those not there yet); with `--group g` too, only that group (a task of
+    /// the merge groups' array).
     Merge {
         /// The campaign file.
         file: PathBuf,
+        /// Merge groups (2 or more; `submit --merge-nodes`): the tasks cut into G runs of
+        /// neighbouring lines, each merged on its own first.
+        #[arg(long, default_value_t = 1)]
+        groups: usize,
+        /// Merge only this group (0-based; `$SLURM_ARRAY_TASK_ID`) into `merge/`, then stop.
+        #[arg(long)]
+        group: Option<usize>,
         /// Merges at once.
         #[arg(long, default_value_t = 1)]
         processes: usize,
@@ -155,6 +169,7 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
             cpus,
             mem_mb,
             fan_in,
+            merge_nodes,
             dry_run,
         } => {
             if cpus == 0 {
@@ -169,11 +184,12 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
                 cpus,
                 mem_mb,
                 fan_in,
+                merge_nodes: merge_nodes.max(1),
                 exe: exe()?,
             };
             let s = crate::campaign::slurm::submit(&p, &o, dry_run).map_err(failure)?;
-            if let Some(l) = &s.lines_script {
-                println!("wrote {}", l.display());
+            for script in [&s.lines_script, &s.groups_script].into_iter().flatten() {
+                println!("wrote {}", script.display());
             }
             println!("wrote {}", s.merge_script.display());
             for c in &s.commands {
@@ -207,6 +223,8 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
         }
         CampaignAction::Merge {
             file,
+            groups,
+            group,
             processes,
             fan_in,
         } => {
@@ -215,10 +233,26 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
             }
             let fan_in = check_fan_in(fan_in)?;
             let p = plan(&file).map_err(failure)?;
+            if let Some(g) = group {
+                let t = std::time::Instant::now();
+                let merged = crate::campaign::local::merge_group(&p, g, groups).map_err(failure)?;
+                println!(
+                    "merge group {g} of {groups} ({} tasks): {} {}",
+                    crate::campaign::local::group_tasks(&p, g, groups).len(),
+                    if merged {
+                        format!("merged in {:.1} s into", t.elapsed().as_secs_f64())
+                    } else {
+                        "already merged in".to_string()
+                    },
+                    crate::campaign::local::group_store(&p, g, groups).display()
+                );
+                return Ok(());
+            }
             let r = crate::campaign::local::merge_campaign(
                 &p,
                 processes,
                 fan_in,
+                groups,
                 &[],
                 std::time::Instant::now(),
             )
