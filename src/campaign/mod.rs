@@ -308,7 +308,10 @@ pub fn plan(path: &Path) -> Result<Plan, CampaignError> {
     // replay would centre on its first pulse, centred on the first line's.
     if config.voxels.extent_m.is_none() {
         let first = &tasks[0].capture;
-        let centre = first_position(first, &config).map_err(|why| {
+        // Quietly: the readers' "capture header" lines belong to the replays, not the plan.
+        let quiet = tracing::subscriber::NoSubscriber::default();
+        let centre = tracing::subscriber::with_default(quiet, || first_position(first, &config));
+        let centre = centre.map_err(|why| {
             at(
                 "campaign.captures".into(),
                 format!("{}: cannot place the grid: {why}", first.display()),
