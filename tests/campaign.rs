@@ -273,80 +273,56 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
     );
 }
 
+/// Runs `fwlidar args`, which must exit with 2 and say every one of `words` on stderr.
+fn refused(args: &[&str], words: &[&str]) {
+    let o = common::fwlidar(args);
+    let e = common::text(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{args:?}: {e}");
+    for w in words {
+        assert!(e.contains(w), "{args:?} does not say {w:?}: {e}");
+    }
+}
+
 #[test]
 fn bad_campaign_files_name_the_file_and_field() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("c.toml");
-    std::fs::write(
-        &f,
-        "[campaign]\nname = \"x\"\ncaptures = [\"nothing/*.fwcap\"]\nout = \"o\"\nepsg = 32736\n",
-    )
-    .unwrap();
-    let o = common::fwlidar(&["campaign", "plan", f.to_str().unwrap()]);
-    let e = common::text(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{e}");
-    assert!(
-        e.contains("c.toml") && e.contains("campaign.captures[0]"),
-        "{e}"
+    let file = f.to_str().unwrap();
+    let campaign = |body: &str| std::fs::write(&f, format!("[campaign]\n{body}")).unwrap();
+    campaign("name = \"x\"\ncaptures = [\"nothing/*.fwcap\"]\nout = \"o\"\nepsg = 32736\n");
+    refused(
+        &["campaign", "plan", file],
+        &["c.toml", "campaign.captures[0]"],
     );
-    std::fs::write(
-        &f,
-        "[campaign]\nname = \"x y\"\ncaptures = []\nout = \"o\"\nepsg = 32736\nlines = 3\n",
-    )
-    .unwrap();
-    let o = common::fwlidar(&["campaign", "plan", f.to_str().unwrap()]);
-    let e = common::text(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{e}");
-    assert!(e.contains("c.toml") && e.contains("lines"), "{e}");
+    campaign("name = \"x y\"\ncaptures = []\nout = \"o\"\nepsg = 32736\nlines = 3\n");
+    refused(&["campaign", "plan", file], &["c.toml", "lines"]);
     // A configuration without voxels cannot make a mosaic.
     std::fs::create_dir_all(dir.path().join("l")).unwrap();
     std::fs::copy("replay/two_layer.fwcap", dir.path().join("l/a.fwcap")).unwrap();
-    std::fs::write(
-        &f,
-        "[campaign]\nname = \"x\"\ncaptures = [\"l/a.fwcap\"]\nset = [\"voxels.enabled=false\"]\n\
+    campaign(
+        "name = \"x\"\ncaptures = [\"l/a.fwcap\"]\nset = [\"voxels.enabled=false\"]\n\
          out = \"o\"\nepsg = 32736\n",
-    )
-    .unwrap();
-    let o = common::fwlidar(&["campaign", "run", f.to_str().unwrap()]);
-    let e = common::text(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{e}");
-    assert!(e.contains("campaign.config") && e.contains("voxels"), "{e}");
+    );
+    refused(&["campaign", "run", file], &["campaign.config", "voxels"]);
     assert!(!dir.path().join("o").exists());
-    std::fs::write(
-        &f,
-        "[campaign]\nname = \"x\"\ncaptures = [\"l/a.fwcap\"]\nout = \"o\"\nepsg = 32736\n\
-         shard_gb = 0\n",
-    )
-    .unwrap();
-    let o = common::fwlidar(&["campaign", "plan", f.to_str().unwrap()]);
-    let e = common::text(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{e}");
-    assert!(
-        e.contains("c.toml") && e.contains("campaign.shard_gb"),
-        "{e}"
+    campaign("name = \"x\"\ncaptures = [\"l/a.fwcap\"]\nout = \"o\"\nepsg = 32736\nshard_gb = 0\n");
+    refused(
+        &["campaign", "plan", file],
+        &["c.toml", "campaign.shard_gb"],
     );
     // `replay --shard` takes i/n with 1 <= i <= n; several inputs need one named CRS.
     let out = dir.path().join("r");
-    let o = common::fwlidar(&[
-        "replay",
-        "replay/two_layer.fwcap",
-        "--shard",
-        "4/3",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let e = common::text(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{e}");
-    assert!(e.contains("--shard") && e.contains("i/n"), "{e}");
-    let o = common::fwlidar(&[
-        "replay",
-        "replay/two_layer.fwcap",
-        "replay/two_layer.fwcap",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let e = common::text(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{e}");
-    assert!(e.contains("output_epsg"), "{e}");
+    let out_s = out.to_str().unwrap();
+    let cap = "replay/two_layer.fwcap";
+    refused(
+        &["replay", cap, "--shard", "4/3", "--out", out_s],
+        &["--shard", "i/n"],
+    );
+    refused(&["replay", cap, cap, "--out", out_s], &["output_epsg"]);
     assert!(!out.exists());
+    // Merge groups: 2 or more, fewer than the tasks.
+    campaign("name = \"x\"\ncaptures = [\"l/a.fwcap\"]\nout = \"o\"\nepsg = 32736\n");
+    let o = common::fwlidar(&["campaign", "merge", file, "--groups", "2", "--group", "0"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(common::text(&o.stderr).contains("does not exist"));
 }
