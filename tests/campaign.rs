@@ -55,6 +55,9 @@ fn the_mosaic_is_the_same_bytes_whatever_the_processes_merge_tree_and_a_killed_l
     for l in lines {
         assert_eq!(l["pulses_in"], 12000, "{l}");
         assert!(l["cpu_s"].as_f64().unwrap() > 0.0, "{l}");
+        assert!(l["tiles"].as_u64().unwrap() > 10, "{l}");
+        assert!(l["store_bytes"].as_u64().unwrap() > 1_000_000, "{l}");
+        assert_eq!(l["bins_outside_grid"], 0, "{l}");
     }
     let mosaic_a = common::file_tree(&dir.path().join("out_a/mosaic.zarr"));
     let mosaic_b = common::file_tree(&dir.path().join("out_b/mosaic.zarr"));

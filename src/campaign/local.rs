@@ -44,6 +44,16 @@ pub struct LineReport {
     pub dropped: u64,
     /// Damage the source reported (bytes skipped, records rejected), from `summary.json`.
     pub source: serde_json::Value,
+    /// Tiles in its voxel store.
+    #[serde(default)]
+    pub tiles: u64,
+    /// Bytes of its voxel store's chunks.
+    #[serde(default)]
+    pub store_bytes: u64,
+    /// Samples that fell outside the campaign's grid extent (not deposited; see
+    /// `docs/campaign.md`, "One grid").
+    #[serde(default)]
+    pub bins_outside_grid: u64,
 }
 
 /// The merge tree.
@@ -157,6 +167,7 @@ fn line_report(task: &Task, ran: bool, wall_s: f64, cpu_s: f64) -> LineReport {
         .and_then(|t| serde_json::from_str(&t).ok())
         .unwrap_or_default();
     let n = |k: &str| summary[k].as_u64().unwrap_or(0);
+    let voxels = &summary["sinks"]["voxels"];
     LineReport {
         name: task.name.clone(),
         capture: task.capture.display().to_string(),
@@ -167,6 +178,11 @@ fn line_report(task: &Task, ran: bool, wall_s: f64, cpu_s: f64) -> LineReport {
         pulses_out: n("pulses_out"),
         dropped: n("dropped_total"),
         source: summary["source"].clone(),
+        tiles: voxels["tiles"]["in_store"].as_u64().unwrap_or(0),
+        store_bytes: voxels["tiles"]["bytes_stored"].as_u64().unwrap_or(0),
+        bins_outside_grid: voxels["deposits"]["bins_outside_extent"]
+            .as_u64()
+            .unwrap_or(0),
     }
 }
 

@@ -155,6 +155,19 @@ fn print_report(r: &crate::campaign::local::CampaignReport) {
             m["seconds"].as_f64().unwrap_or(0.0)
         );
     }
+    let outside: Vec<String> = r
+        .lines
+        .iter()
+        .filter(|l| l.bins_outside_grid > 0)
+        .map(|l| format!("{} ({})", l.name, l.bins_outside_grid))
+        .collect();
+    if !outside.is_empty() {
+        println!(
+            "  warning: samples outside the campaign's grid were not deposited: {}; give \
+             voxels.extent_m covering the campaign (docs/campaign.md, \"One grid\")",
+            outside.join(", ")
+        );
+    }
     println!("  {:.1} s wall; report in campaign.json", r.wall_s);
 }
 
