@@ -34,7 +34,7 @@ pub struct CampaignFile {
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Campaign {
-    /// Name (letters, digits, `-`, `_`, `.`): the mosaic's run key.
+    /// Name (letters, digits, `-`, `_`, `.`): in the reports and the Slurm jobs' names.
     pub name: String,
     /// The flight lines: capture files (or any file `replay` reads), or glob patterns
     /// (`lines/*.fwcap`). Each line's store is named after its file's stem, which must be
