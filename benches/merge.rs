@@ -12,42 +12,19 @@
 //! run`).
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use fwlidar::voxel::merge::{MergeMeta, merge_stores};
 
-fn fwlidar(args: &[&str]) {
-    let o = Command::new(env!("CARGO_BIN_EXE_fwlidar"))
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-}
+#[path = "../tests/common/mod.rs"]
+mod common;
 
-/// Simulates the lines `(start, end)` (12 000 pulses each) into `dir/name/`, runs them as a
-/// campaign, returns their stores and their size in bytes.
-fn line_stores(dir: &Path, name: &str, lines: &[(&str, &str)]) -> (Vec<PathBuf>, u64) {
+/// Simulates the lines along `tracks` into `dir/name/`, runs them as a campaign, returns their
+/// stores and their size in bytes.
+fn line_stores(dir: &Path, name: &str, tracks: &[(&str, &str)]) -> (Vec<PathBuf>, u64) {
     let root = std::path::absolute(dir.join(name)).unwrap();
-    std::fs::create_dir_all(root.join("lines")).unwrap();
-    for (i, (a, b)) in lines.iter().enumerate() {
-        let cap = root.join(format!("lines/line{i}.fwcap"));
-        let set = format!("flight.lines=[{{start_m={a}, end_m={b}}}]");
-        fwlidar(&[
-            "simulate",
-            "--scene",
-            "config/scenes/survey_line.toml",
-            "--pulses",
-            "12000",
-            "--no-truth-voxels",
-            "--out",
-            cap.to_str().unwrap(),
-            "--set",
-            &set,
-        ]);
-    }
+    common::survey_lines(&root, tracks);
     let file = root.join("c.toml");
     std::fs::write(
         &file,
@@ -56,8 +33,9 @@ fn line_stores(dir: &Path, name: &str, lines: &[(&str, &str)]) -> (Vec<PathBuf>,
          out = \"out\"\nepsg = 32736\nmetrics = false\n",
     )
     .unwrap();
-    fwlidar(&["campaign", "run", file.to_str().unwrap(), "--local", "2"]);
-    let stores: Vec<PathBuf> = (0..lines.len())
+    let o = common::fwlidar(&["campaign", "run", file.to_str().unwrap(), "--local", "2"]);
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    let stores: Vec<PathBuf> = (0..tracks.len())
         .map(|i| root.join(format!("out/lines/line{i}/voxels.zarr")))
         .collect();
     let bytes = stores.iter().map(|s| tree_bytes(s)).sum();
@@ -83,16 +61,7 @@ fn bench(c: &mut Criterion) {
     let cases = [
         (
             "four_crossing_lines",
-            line_stores(
-                dir.path(),
-                "crossing",
-                &[
-                    ("[-1.0, 0.0]", "[300.0, 0.0]"),
-                    ("[0.0, -1.0]", "[0.0, 300.0]"),
-                    ("[-1.0, -1.0]", "[200.0, 200.0]"),
-                    ("[1.0, -1.0]", "[-200.0, 200.0]"),
-                ],
-            ),
+            line_stores(dir.path(), "crossing", &common::CROSSING_TRACKS),
         ),
         (
             "four_parallel_lines_40m",

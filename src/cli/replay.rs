@@ -241,7 +241,14 @@ fn open_inputs(
                 .map(|p| crate::source::shard::count_pulses(p))
                 .collect::<Result<Vec<u64>, String>>()
                 .map_err(Failure::job)?;
-            let (lo, hi) = s.range(counts.iter().sum());
+            let total: u64 = counts.iter().sum();
+            let (lo, hi) = s.range(total);
+            if lo == hi {
+                return Err(Failure::usage(format!(
+                    "--shard {s}: the input holds {total} pulses, so shard {s} holds none; \
+                     give fewer shards than pulses"
+                )));
+            }
             let mut offset = 0;
             let mut r = Vec::new();
             for c in counts {

@@ -122,16 +122,19 @@ pub fn write_utm36s_dem(
     img.write_data(&data).unwrap();
 }
 
-/// Four simulated survey lines that cross at the origin (`config/scenes/survey_line.toml`,
-/// 12 000 pulses each), as `dir/lines/line0..3.fwcap`: the campaign tests' flight lines.
-pub fn crossing_lines(dir: &Path) {
+/// The tracks (start, end in m, scene coordinates) of four survey lines that cross at the
+/// origin: the campaign tests' flight lines.
+pub const CROSSING_TRACKS: [(&str, &str); 4] = [
+    ("[-1.0, 0.0]", "[300.0, 0.0]"),
+    ("[0.0, -1.0]", "[0.0, 300.0]"),
+    ("[-1.0, -1.0]", "[200.0, 200.0]"),
+    ("[1.0, -1.0]", "[-200.0, 200.0]"),
+];
+
+/// Simulated survey lines along `tracks` (`config/scenes/survey_line.toml`, 12 000 pulses
+/// each), as `dir/lines/line<i>.fwcap`.
+pub fn survey_lines(dir: &Path, tracks: &[(&str, &str)]) {
     std::fs::create_dir_all(dir.join("lines")).unwrap();
-    let tracks = [
-        ("[-1.0, 0.0]", "[300.0, 0.0]"),
-        ("[0.0, -1.0]", "[0.0, 300.0]"),
-        ("[-1.0, -1.0]", "[200.0, 200.0]"),
-        ("[1.0, -1.0]", "[-200.0, 200.0]"),
-    ];
     for (i, (a, b)) in tracks.iter().enumerate() {
         let cap = dir.join(format!("lines/line{i}.fwcap"));
         let set = format!("flight.lines=[{{start_m={a}, end_m={b}}}]");
@@ -149,6 +152,11 @@ pub fn crossing_lines(dir: &Path) {
         ]);
         assert!(o.status.success(), "{}", text(&o.stderr));
     }
+}
+
+/// The four crossing lines ([`CROSSING_TRACKS`]) as `dir/lines/line0..3.fwcap`.
+pub fn crossing_lines(dir: &Path) {
+    survey_lines(dir, &CROSSING_TRACKS);
 }
 
 /// A campaign file `dir/name` over those lines, writing into `dir/out` (voxels only).
