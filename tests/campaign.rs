@@ -321,6 +321,10 @@ fn bad_campaign_files_name_the_file_and_field() {
         &["replay", cap, "--shard", "4/3", "--out", out_s],
         &["--shard", "i/n"],
     );
+    refused(
+        &["replay", cap, "--shard", "1/100000000", "--out", out_s],
+        &["--shard 1/100000000", "holds none"],
+    );
     refused(&["replay", cap, cap, "--out", out_s], &["output_epsg"]);
     assert!(!out.exists());
     // Merge groups: 2 or more, fewer than the tasks.
