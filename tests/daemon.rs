@@ -785,8 +785,16 @@ fn the_qc_page_shows_live_numbers_that_change_in_a_real_browser() {
         seq2 > seq1,
         "snapshot sequence did not move: {seq1} then {seq2}"
     );
-    // The waveform viewer drew the sampled pulse at each step.
-    let (code, wf) = get(qc, "/api/waveform");
+    // The waveform viewer drew the sampled pulse at each step (204 until the sampler has
+    // taken one, which a loaded machine can delay past the page's first refreshes).
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let (code, wf) = loop {
+        let (code, wf) = get(qc, "/api/waveform");
+        if code != 204 || Instant::now() > deadline {
+            break (code, wf);
+        }
+        std::thread::sleep(Duration::from_millis(250));
+    };
     assert_eq!(code, 200);
     let wf: serde_json::Value = serde_json::from_str(&wf).unwrap();
     let steps: Vec<&str> = wf["steps"]
