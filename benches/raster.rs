@@ -97,8 +97,8 @@ fn fly(
     writes: &mut Vec<Duration>,
 ) -> Duration {
     use fwlidar::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+    use fwlidar::pipeline::ports::PulseSink;
     use fwlidar::pulse::Pulse;
-    use fwlidar::sink::PulseSink;
     use fwlidar::sink::metrics_rasters::{MetricsRastersSink, RasterCrs};
     let _ = std::fs::remove_dir_all(dir.join("rasters"));
     let mut sink =

@@ -5,12 +5,12 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use fwlidar::config::FullPolicy;
+use fwlidar::nav::consumer::NavTally;
+use fwlidar::pipeline::edge::FullPolicy;
+use fwlidar::pipeline::ports::NullSink;
 use fwlidar::pipeline::runner::{PipelineSpec, StageFactory};
 use fwlidar::pipeline::testing::SyntheticSource;
 use fwlidar::pipeline::{Passthrough, RunControl, Stage, run};
-use fwlidar::sink::NullSink;
-use fwlidar::sink::nav_tally::NavTally;
 
 fn overhead(c: &mut Criterion) {
     let mut g = c.benchmark_group("runtime_overhead_per_pulse");

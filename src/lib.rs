@@ -18,6 +18,7 @@
 pub mod campaign;
 pub mod cli;
 pub mod config;
+pub mod core;
 pub mod daemon;
 pub mod eval;
 pub mod fixtures;

@@ -62,14 +62,15 @@ fn shipped_files_are_the_kinds_they_claim() {
     };
     assert_eq!(
         onboard.pipeline.input_edge,
-        fwlidar::config::FullPolicy::DropNewest
+        fwlidar::pipeline::edge::FullPolicy::DropNewest
     );
 }
 
 /// `[navigation]`: serial ports and the rollover date are checked with their field paths.
 #[test]
 fn navigation_serial_ports_and_earliest_date_are_checked() {
-    use fwlidar::config::{RunConfig, load_str};
+    use fwlidar::config::RunConfig;
+    use fwlidar::core::toml_load::load_str;
     let good = "[navigation]\nearliest_date = \"2019-04-07\"\n\
                 [[navigation.serial]]\ndevice = \"/dev/ttyUSB0\"\nbaud = 115200\nparity = \"none\"\n\
                 [[navigation.serial]]\ndevice = \"/dev/ttyUSB1\"\nbaud = 9600\nport = 1\n";

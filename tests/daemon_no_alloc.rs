@@ -11,14 +11,15 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
+use fwlidar::core::facts::SourceFacts;
 use fwlidar::daemon::frames::{FrameReceiver, channels};
 use fwlidar::daemon::recorder::{LiveInputs, LiveSource, RecorderState};
 use fwlidar::daemon::{FrameInput, InputState};
 use fwlidar::format::capture::FlushPolicy;
 use fwlidar::format::capture_writer::CaptureWriter;
+use fwlidar::pipeline::ports::{Source, SourceEvent};
 use fwlidar::pulse::{Pulse, PulsePool, Segment, SegmentKind};
 use fwlidar::source::live_frames::encode_live_frame;
-use fwlidar::source::{Source, SourceEvent, SourceFacts};
 
 struct Counting;
 static ALLOCS: AtomicU64 = AtomicU64::new(0);

@@ -1,7 +1,8 @@
 //! Regressions found while fuzzing (see `fuzz/README.md`): each test feeds the input that broke
 //! a parser or loader, which must return an error rather than panic, hang or exhaust memory.
 
-use fwlidar::config::{RunConfig, load_str};
+use fwlidar::config::RunConfig;
+use fwlidar::core::toml_load::load_str;
 use fwlidar::sim::SceneFile;
 
 /// Found while writing the `config_load` fuzz target (2026-11-22; spotted in the loader and

@@ -4,8 +4,8 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use fwlidar::pipeline::ports::PulseSink;
 use fwlidar::pulse::{FittedReturn, Pulse, PulseGeometry, SegmentKind};
-use fwlidar::sink::PulseSink;
 use fwlidar::sink::hyper_points::HyperPointSink;
 use fwlidar::sink::las_wave::{LasWaveOptions, LasWaveSink};
 

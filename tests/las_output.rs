@@ -9,8 +9,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use fwlidar::pipeline::ports::PulseSink;
 use fwlidar::pulse::{FittedReturn, Pulse, PulseGeometry, SegmentKind};
-use fwlidar::sink::PulseSink;
 use fwlidar::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use serde_json::json;
 

@@ -11,10 +11,10 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use fwlidar::format::las_read::{LasInfo, LasReadError, LasReader, WaveformLocation};
+use fwlidar::pipeline::ports::PulseSink;
+use fwlidar::pipeline::ports::SourceEvent;
 use fwlidar::pulse::{FittedReturn, Pulse, PulseGeometry, SegmentKind};
-use fwlidar::sink::PulseSink;
 use fwlidar::sink::las_wave::{LasWaveOptions, LasWaveSink};
-use fwlidar::source::SourceEvent;
 use proptest::prelude::*;
 
 const STEM: &str = "waveform/riegl_q680i/100429_152240_2535pt_UTM";

@@ -15,8 +15,8 @@ use common::{BIN, ROOT, python, text};
 use fwlidar::format::las_points::{PointSix, write_point_cloud};
 use fwlidar::format::las_repair::analyse;
 use fwlidar::format::las_write::ExtraDim;
+use fwlidar::pipeline::ports::PulseSink;
 use fwlidar::pulse::{FittedReturn, Pulse, PulseGeometry, SegmentKind};
-use fwlidar::sink::PulseSink;
 use fwlidar::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use proptest::prelude::*;
 

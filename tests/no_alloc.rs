@@ -7,13 +7,13 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use fwlidar::config::FullPolicy;
+use fwlidar::nav::consumer::NavTally;
+use fwlidar::pipeline::edge::FullPolicy;
+use fwlidar::pipeline::ports::NullSink;
 use fwlidar::pipeline::runner::{PipelineSpec, StageFactory};
 use fwlidar::pipeline::testing::SyntheticSource;
 use fwlidar::pipeline::{RunControl, Stage, run};
 use fwlidar::signal::{Calibrate, CalibrateConfig, Denoise, DenoiseConfig};
-use fwlidar::sink::NullSink;
-use fwlidar::sink::nav_tally::NavTally;
 
 struct Counting;
 static ALLOCS: AtomicU64 = AtomicU64::new(0);

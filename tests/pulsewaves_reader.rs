@@ -12,8 +12,9 @@ use std::process::Command;
 use std::sync::OnceLock;
 
 use fwlidar::format::pulsewaves::{PulseWavesError, PulseWavesReader, TimeBase};
+use fwlidar::pipeline::ports::SourceEvent;
 use fwlidar::pulse::{Pulse, SegmentKind};
-use fwlidar::source::{self, SourceEvent};
+use fwlidar::source;
 
 /// The fixtures folder (`tests/data`, or `$FWLIDAR_FIXTURES`).
 fn fixtures() -> PathBuf {

@@ -7,8 +7,9 @@
 
 use std::path::Path;
 
+use fwlidar::pipeline::ports::SourceEvent;
 use fwlidar::pulse::{Pulse, PulsePool, SegmentKind};
-use fwlidar::source::{SourceEvent, open_file};
+use fwlidar::source::open_file;
 
 mod common;
 use common::{fixture, fwlidar, text};

@@ -5,12 +5,12 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use fwlidar::config::FullPolicy;
+use fwlidar::nav::consumer::NavTally;
+use fwlidar::pipeline::edge::FullPolicy;
 use fwlidar::pipeline::runner::{INPUT_QUEUE_FULL, PipelineSpec, StageFactory};
 use fwlidar::pipeline::testing::{IdSink, SyntheticSource};
 use fwlidar::pipeline::{Emitter, Passthrough, RunControl, Stage, StageError, run};
 use fwlidar::pulse::Pulse;
-use fwlidar::sink::nav_tally::NavTally;
 
 fn spec(workers: usize, cap: usize, policy: FullPolicy, stages: StageFactory) -> PipelineSpec {
     PipelineSpec {

@@ -2,7 +2,9 @@
 //! capture Header parser. None of them may panic, whatever the text; errors are fine.
 #![no_main]
 
-use fwlidar::config::{RunConfig, SensorFile, load_str};
+use fwlidar::config::RunConfig;
+use fwlidar::core::sensor::SensorFile;
+use fwlidar::core::toml_load::load_str;
 use fwlidar::format::CaptureHeader;
 use fwlidar::sim::SceneFile;
 use libfuzzer_sys::fuzz_target;

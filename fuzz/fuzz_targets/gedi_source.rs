@@ -6,7 +6,7 @@
 use fwlidar::format::gedi::GediL1b;
 use fwlidar::pulse::PulsePool;
 use fwlidar::source::gedi::{GediOptions, GediSource};
-use fwlidar::source::{Source, SourceEvent};
+use fwlidar::pipeline::ports::{Source, SourceEvent};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

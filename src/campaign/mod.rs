@@ -18,8 +18,9 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
-use crate::config::load::{Validate, Validator, field, index};
-use crate::config::{ConfigErrors, RunConfig};
+use crate::config::RunConfig;
+use crate::core::config_error::ConfigErrors;
+use crate::core::validate::{Validate, Validator, field, index};
 use crate::source::shard::Shard;
 
 /// A campaign file: one `[campaign]` table.
@@ -194,7 +195,7 @@ pub const DONE: &str = "done.json";
 /// opens, line names are unique, the configuration loads with voxels on, and the CRS is the
 /// campaign's. Errors name the file and the field.
 pub fn plan(path: &Path) -> Result<Plan, CampaignError> {
-    let file: CampaignFile = crate::config::load::load_file_with(path, &[] as &[&str])?;
+    let file: CampaignFile = crate::core::toml_load::load_file_with(path, &[] as &[&str])?;
     let c = file.campaign;
     let base = path.parent().unwrap_or(Path::new("."));
     let at = |f: String, why: String| CampaignError::Field {
@@ -342,7 +343,7 @@ pub fn plan(path: &Path) -> Result<Plan, CampaignError> {
 /// (x, y in m): the middle of its first return segment, as the voxel store places its automatic
 /// extent.
 fn first_position(capture: &Path, config: &RunConfig) -> Result<[f64; 2], String> {
-    use crate::source::{Source, SourceEvent};
+    use crate::pipeline::ports::{Source, SourceEvent};
     let raw = crate::source::open_file(capture)?;
     let mut src: Box<dyn Source> = if config.georeference.enabled {
         Box::new(

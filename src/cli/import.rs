@@ -16,10 +16,11 @@ use std::path::{Path, PathBuf};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
-use crate::config::{SensorFile, SensorProfile};
+use crate::core::facts::SourceFacts;
+use crate::core::sensor::{SensorFile, SensorProfile};
 use crate::format::{CaptureHeader, CaptureMeta, CaptureWriter, FlushPolicy};
+use crate::pipeline::ports::SourceEvent;
 use crate::pulse::PulsePool;
-use crate::source::{SourceEvent, SourceFacts};
 
 /// Arguments of `fwlidar import`.
 #[derive(Debug, clap::Args)]
@@ -54,7 +55,7 @@ pub struct ImportCounts {
 pub fn run(args: ImportArgs) -> Result<(), Failure> {
     let sensor = match &args.sensor {
         Some(p) => Some(
-            crate::config::load::load_file::<SensorFile>(p)
+            crate::core::toml_load::load_file::<SensorFile>(p)
                 .map_err(Failure::usage)?
                 .sensor,
         ),

@@ -8,8 +8,9 @@ use serde::Serialize;
 
 use crate::cli::Failure;
 use crate::format::{CaptureHeader, CaptureReader, Record};
+use crate::pipeline::ports::SourceEvent;
 use crate::pulse::{Pulse, PulsePool, SegmentKind};
-use crate::source::{InputKind, SourceEvent};
+use crate::source::InputKind;
 
 /// Arguments of `fwlidar inspect`.
 #[derive(Debug, clap::Args)]
@@ -105,7 +106,7 @@ pub fn run(args: InspectArgs) -> Result<(), Failure> {
     }
 }
 
-/// Inspects a file read through its [`crate::source::Source`] (LAS, PulseWaves): every pulse, or
+/// Inspects a file read through its [`crate::pipeline::ports::Source`] (LAS, PulseWaves): every pulse, or
 /// an overview with the source's own report.
 fn inspect_source(args: InspectArgs) -> Result<(), Failure> {
     let mut source = crate::source::open_file(&args.file).map_err(Failure::job)?;

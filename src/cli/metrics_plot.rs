@@ -6,8 +6,8 @@
 use std::path::PathBuf;
 
 use crate::cli::Failure;
+use crate::core::atomic_file::write_atomic;
 use crate::forest::metrics_plot::{PlotOrder, read_metrics, svg};
-use crate::sink::atomic_file::write_atomic;
 
 /// Arguments of `fwlidar metrics-plot`.
 #[derive(Debug, clap::Args)]

@@ -15,6 +15,7 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
+use crate::core::atomic_file::{AtomicFile, write_atomic};
 use crate::forest::pulse_metrics::MetricsConfig;
 use crate::forest::stage::pulse_sigma_ns;
 use crate::forest::table_metrics::{TableMetrics, TableWaveform, read_geometry};
@@ -25,7 +26,6 @@ use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::deconvolve::{Deconvolver, MethodConfig, Targeted};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::kernel::{Kernel, remove_baseline};
-use crate::sink::atomic_file::{AtomicFile, write_atomic};
 
 pub use crate::signal::kernel::KERNEL_BASELINE_SAMPLES;
 

@@ -9,19 +9,19 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
 use crate::config::{RunConfig, WaveformFormat};
+use crate::core::atomic_file::write_atomic;
+use crate::nav::consumer::NavDecode;
+use crate::pipeline::ports::{FanOut, PulseSink};
 use crate::pipeline::runner::{LiveCounters, PipelineSpec};
 use crate::pipeline::warnings::{log_warnings, run_warnings, warnings_block};
 use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
-use crate::sink::atomic_file::write_atomic;
 use crate::sink::hyper_points::HyperPointSink;
 use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
-use crate::sink::nav_decode::NavDecode;
 use crate::sink::pulse_metrics_csv::PulseMetricsCsvSink;
 use crate::sink::returns_csv::ReturnsCsvSink;
 use crate::sink::voxel_tiles::{CrsSource, VoxelTilesSink, replay_run_key};
 use crate::sink::waveform_csv::WaveformCsvSink;
 use crate::sink::waveform_npy::WaveformNpySink;
-use crate::sink::{FanOut, PulseSink};
 use crate::source::shard::Shard;
 use crate::voxel::zarr::StoreInfo;
 
@@ -173,7 +173,7 @@ pub fn replay_quiet(
 /// output folder prepared, the stages and the sinks.
 struct Prepared {
     spec: PipelineSpec,
-    source: Box<dyn crate::source::Source>,
+    source: Box<dyn crate::pipeline::ports::Source>,
     sinks: Box<dyn PulseSink>,
 }
 
@@ -207,7 +207,7 @@ fn nav_consumer(config: &RunConfig) -> NavDecode {
 /// The opened input: the source (georeferenced per `[georeference]`), the DEM, and where the
 /// georeferencing puts the CRS it decides.
 struct Input {
-    source: Box<dyn crate::source::Source>,
+    source: Box<dyn crate::pipeline::ports::Source>,
     dem: Option<std::sync::Arc<crate::geo::dem::Dem>>,
     decided_crs: Option<std::sync::Arc<std::sync::OnceLock<String>>>,
 }
@@ -277,7 +277,7 @@ fn open_inputs(
         decided = decided.or(cell);
         sources.push((path.display().to_string(), source));
     }
-    let source: Box<dyn crate::source::Source> = if sources.len() == 1 {
+    let source: Box<dyn crate::pipeline::ports::Source> = if sources.len() == 1 {
         sources.pop().map(|(_, s)| s).expect("one source")
     } else {
         Box::new(crate::source::chain::ChainSource::new(sources).map_err(Failure::usage)?)
@@ -295,7 +295,7 @@ fn open_inputs(
 fn build_spec(
     config: &RunConfig,
     workers: Option<usize>,
-    facts: &crate::source::SourceFacts,
+    facts: &crate::core::facts::SourceFacts,
     dem: Option<&std::sync::Arc<crate::geo::dem::Dem>>,
 ) -> PipelineSpec {
     let p = &config.pipeline;
@@ -424,7 +424,7 @@ fn is_hdf5(path: &Path) -> bool {
 /// CRS the georeferencing decides during the run.
 fn las_sink(
     config: &RunConfig,
-    facts: &crate::source::SourceFacts,
+    facts: &crate::core::facts::SourceFacts,
     input: &Input,
     out_dir: &Path,
 ) -> Result<Box<dyn PulseSink>, Failure> {
@@ -454,7 +454,7 @@ fn voxel_sink(
     config: &RunConfig,
     spec: &PipelineSpec,
     input: &Input,
-    facts: &crate::source::SourceFacts,
+    facts: &crate::core::facts::SourceFacts,
     run_key: &str,
     out_dir: &Path,
 ) -> Result<Box<dyn PulseSink>, Failure> {
@@ -490,7 +490,7 @@ const TILE_WRITER_QUEUE: usize = 32;
 /// Runs the pipeline, drawing a progress bar unless `--no-progress`.
 fn run_with_progress(
     spec: &PipelineSpec,
-    source: Box<dyn crate::source::Source>,
+    source: Box<dyn crate::pipeline::ports::Source>,
     sinks: Box<dyn PulseSink>,
     config: &RunConfig,
     control: &RunControl,
@@ -563,7 +563,7 @@ fn finish(report: &RunReport, input: &str, out_dir: &Path) -> Result<(), Failure
 /// when one is configured, and the cell where the georeferencing will put the output CRS it
 /// decides (the UTM zone of the first fix) when it was wrapped.
 pub type Georeferenced = (
-    Box<dyn crate::source::Source>,
+    Box<dyn crate::pipeline::ports::Source>,
     Option<std::sync::Arc<crate::geo::dem::Dem>>,
     Option<std::sync::Arc<std::sync::OnceLock<String>>>,
 );
@@ -571,7 +571,7 @@ pub type Georeferenced = (
 /// Opens the DEM and wraps `source` in the georeferencing per `[georeference]` (replay and the
 /// daemon alike). The output CRS is the DEM's own unless the configuration names one.
 pub fn georeferenced(
-    source: Box<dyn crate::source::Source>,
+    source: Box<dyn crate::pipeline::ports::Source>,
     config: &RunConfig,
 ) -> Result<Georeferenced, Failure> {
     let dem = open_dem(config)?;
@@ -592,12 +592,12 @@ fn open_dem(config: &RunConfig) -> Result<Option<std::sync::Arc<crate::geo::dem:
 /// [`georeferenced`] with the DEM already open: the source and the decided-CRS cell.
 #[allow(clippy::type_complexity)]
 fn georeference_with(
-    source: Box<dyn crate::source::Source>,
+    source: Box<dyn crate::pipeline::ports::Source>,
     config: &RunConfig,
     dem: Option<std::sync::Arc<crate::geo::dem::Dem>>,
 ) -> Result<
     (
-        Box<dyn crate::source::Source>,
+        Box<dyn crate::pipeline::ports::Source>,
         Option<std::sync::Arc<std::sync::OnceLock<String>>>,
     ),
     Failure,
@@ -628,7 +628,7 @@ fn georeference_with(
 /// turned into the WKT LAS 1.4 requires without a CRS database, so the file then has no CRS
 /// record and the summary of the input says which EPSG it was), and
 /// adjusted standard GPS time when the input's times are in it.
-fn las_options(facts: &crate::source::SourceFacts) -> LasWaveOptions {
+fn las_options(facts: &crate::core::facts::SourceFacts) -> LasWaveOptions {
     LasWaveOptions {
         crs_wkt: facts
             .crs

@@ -10,7 +10,11 @@ use std::time::{Duration, Instant};
 
 use crate::cli::Failure;
 use crate::cli::replay::{install_signal_handlers, print_summary};
-use crate::config::{RunConfig, SensorFile, load_file};
+use crate::config::RunConfig;
+use crate::core::atomic_file::write_atomic;
+use crate::core::facts::SourceFacts;
+use crate::core::sensor::SensorFile;
+use crate::core::toml_load::load_file;
 use crate::daemon::frames::{FrameReceiver, channels};
 use crate::daemon::recorder::{LiveInputs, LiveSource, RecorderState};
 use crate::daemon::sampler::{InputView, Sampler, SamplerSetup};
@@ -18,16 +22,15 @@ use crate::daemon::{InputState, now_ns};
 use crate::format::capture::{FlushPolicy, FsyncPolicy};
 use crate::format::capture_writer::CaptureWriter;
 use crate::format::header::CaptureHeader;
+use crate::nav::consumer::NavDecode;
+use crate::pipeline::ports::Source;
+use crate::pipeline::ports::{FanOut, PulseSink};
 use crate::pipeline::runner::PipelineSpec;
 use crate::pipeline::{LivePublish, RunControl, run as run_pipeline};
 use crate::qc::QcHub;
-use crate::sink::atomic_file::write_atomic;
 use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
-use crate::sink::nav_decode::NavDecode;
 use crate::sink::voxel_tiles::{CrsSource, VoxelTilesSink};
-use crate::sink::{FanOut, PulseSink};
 use crate::source::serial::SerialReader;
-use crate::source::{Source, SourceFacts};
 use crate::voxel::zarr::StoreInfo;
 
 /// Closed voxel tiles waiting for the tile writer thread at most (then the sink waits).
@@ -240,7 +243,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     let (source, dem, decided_crs) = crate::cli::replay::georeferenced(source, &config)?;
 
     let p = &config.pipeline;
-    if p.input_edge != crate::config::FullPolicy::DropNewest {
+    if p.input_edge != crate::pipeline::edge::FullPolicy::DropNewest {
         tracing::warn!(
             "[pipeline] input_edge is \"block\": when processing falls behind, the recorder \
              waits too (TCP slows the digitizer, UDP frames are lost); \"drop_newest\" keeps \

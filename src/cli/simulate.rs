@@ -104,7 +104,7 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
             None => Ok(()),
         };
     };
-    let text = crate::config::load::read_bounded(&scene_path)
+    let text = crate::core::toml_load::read_bounded(&scene_path)
         .map_err(|e| Failure::usage(format!("cannot read {}: {e}", scene_path.display())))?;
     let described = toml::from_str::<toml::Table>(&String::from_utf8_lossy(&text))
         .is_ok_and(|t| t.contains_key("flight"));
@@ -484,7 +484,7 @@ pub fn truth_steps_per_count(bits: u8) -> f64 {
 fn truth_pulse_of(
     p: &Pulse,
     t: &crate::sim::world::ShotTruth,
-    sensor: &crate::config::sensor::SensorProfile,
+    sensor: &crate::core::sensor::SensorProfile,
     steps: f64,
     out: &mut Pulse,
 ) {

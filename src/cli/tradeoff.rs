@@ -9,11 +9,11 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::cli::Failure;
+use crate::core::atomic_file::write_atomic;
 use crate::eval::report::{Machine, csv, markdown};
 use crate::eval::tradeoff::{SweepConfig, default_settings, run_sweep, summarise};
 use crate::eval::{plot, report};
 use crate::sim::truth::TruthFamily;
-use crate::sink::atomic_file::write_atomic;
 
 /// Pulses per case of `--quick`.
 pub const QUICK_PULSES: usize = 24;
@@ -196,7 +196,7 @@ fn steps_of(
     args: &TradeoffArgs,
     scene_path: &std::path::Path,
     scene: &crate::sim::world::scene::WorldScene,
-    sensor: &crate::config::sensor::SensorProfile,
+    sensor: &crate::core::sensor::SensorProfile,
     pulses: usize,
 ) -> Result<Vec<crate::eval::scene_steps::StepResult>, Failure> {
     let base = scene_path.parent().unwrap_or(std::path::Path::new("."));

@@ -154,7 +154,7 @@ pub fn trees_beside(branches: &Path) -> PathBuf {
 /// FWHM of the first outgoing pulse of `path` and its sample interval (ns), `None` when no
 /// pulse has one.
 pub fn first_outgoing_fwhm_ns(path: &Path) -> Option<(f64, f64)> {
-    use crate::source::SourceEvent;
+    use crate::pipeline::ports::SourceEvent;
     let mut source = crate::source::open_file(path).ok()?;
     let pool = crate::pulse::PulsePool::new(4);
     for _ in 0..10_000 {

@@ -6,7 +6,10 @@ use std::path::PathBuf;
 use std::path::Path;
 
 use crate::cli::Failure;
-use crate::config::{ConfigErrors, RunConfig, SensorFile, load_str, read_top_level_keys};
+use crate::config::RunConfig;
+use crate::core::config_error::ConfigErrors;
+use crate::core::sensor::SensorFile;
+use crate::core::toml_load::{load_str, read_top_level_keys};
 use crate::pipeline::registry::StageConfig;
 use crate::signal::deconvolve::KernelSource;
 
@@ -167,7 +170,7 @@ mod tests {
 
     #[test]
     fn validate_any_decides_by_top_level_tables() {
-        use crate::config::IssueKind;
+        use crate::core::config_error::IssueKind;
         let dir = tempfile::tempdir().unwrap();
         let sensor = std::fs::read_to_string(
             Path::new(env!("CARGO_MANIFEST_DIR")).join("config/sensors/riegl_lms_q680i.toml"),

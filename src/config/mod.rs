@@ -1,26 +1,20 @@
-//! Configuration: what the user wrote (TOML, `deny_unknown_fields`, documented defaults), loaded
-//! with every error reported by the field's path, then validated into runtime objects.
+//! The run configuration of `fwlidar replay` and `fwlidar run` (`config/replay.toml`,
+//! `config/onboard.toml`): what the user wrote (TOML, `deny_unknown_fields`, documented
+//! defaults), loaded by `core::toml_load` with every error reported by the field's path.
 //!
-//! Entry points: [`load_file`] / [`load_str`] for a file of a known kind;
-//! [`read_top_level_keys`] for a caller that decides the kind by what a file holds (`fwlidar
-//! validate` does, in `cli/validate.rs`, which knows the simulator's scene kinds: this module
-//! does not depend on them). `load` and `error` are a leaf: generic loading and validation
-//! helpers that name no configuration kind. Errors are [`ConfigErrors`]: the file
-//! and every [`ConfigIssue`] found, printed one per line as `FILE:LINE:COL: field.path: reason`.
+//! Entry points: [`load_run_config`] / [`load_run_config_with`] (the embedded default when no
+//! file is named). Errors are `core::config_error::ConfigErrors`: the file and every issue
+//! found, printed one per line as `FILE:LINE:COL: field.path: reason`.
 
-pub mod error;
-pub mod load;
-pub mod overrides;
 pub mod run;
-pub mod sensor;
 mod stages;
+#[cfg(test)]
+mod tests;
 
-pub use error::{ConfigErrors, ConfigIssue, IssueKind, Location};
-pub use load::{
-    Validate, Validator, load_file, load_file_with, load_str, load_str_with, read_top_level_keys,
-};
-pub use run::{FullPolicy, OutputConfig, PipelineConfig, RunConfig, WaveformFormat};
-pub use sensor::{SensorFile, SensorProfile};
+pub use run::{OutputConfig, PipelineConfig, RunConfig, WaveformFormat};
+
+use crate::core::config_error::ConfigErrors;
+use crate::core::toml_load::{load_file_with, load_str_with};
 
 /// The default run configuration for `fwlidar replay`, embedded in the binary
 /// (`config/replay.toml`).
@@ -31,8 +25,8 @@ pub fn load_run_config(path: Option<&std::path::Path>) -> Result<RunConfig, Conf
     load_run_config_with(path, &[] as &[&str])
 }
 
-/// As [`load_run_config`], with `--set KEY=VALUE` overrides ([`overrides`]) applied before the
-/// configuration is checked: a misspelt key or a bad value is refused like one in the file.
+/// As [`load_run_config`], with `--set KEY=VALUE` overrides (`core::overrides`) applied before
+/// the configuration is checked: a misspelt key or a bad value is refused like one in the file.
 pub fn load_run_config_with(
     path: Option<&std::path::Path>,
     sets: &[impl AsRef<str>],

@@ -3,8 +3,10 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::load::{Validate, Validator, field, index, load_file};
-use super::sensor::SensorFile;
+use crate::core::sensor::SensorFile;
+use crate::core::toml_load::load_file;
+use crate::core::validate::{Validate, Validator, field, index};
+use crate::pipeline::edge::FullPolicy;
 use crate::pipeline::registry::StageConfig;
 
 /// Smallest edge capacity, pulses (one in flight, one being filled).
@@ -13,17 +15,6 @@ pub const MIN_QUEUE_CAPACITY: usize = 2;
 pub const MAX_QUEUE_CAPACITY: usize = 1_048_576;
 /// Most worker threads accepted (more is a typo).
 pub const MAX_WORKERS: usize = 1024;
-
-/// What to do when an edge (bounded queue) is full.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum FullPolicy {
-    /// Wait for room (replay: nothing is lost, the source slows down).
-    #[default]
-    Block,
-    /// Drop the newest item and count it (live input: never stall the receiver).
-    DropNewest,
-}
 
 /// The top level of a run configuration file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]

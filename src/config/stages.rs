@@ -1,7 +1,7 @@
 //! Semantic checks of the stage configurations of `[[pipeline.stages]]` (the configurations
 //! themselves live with their stages).
 
-use super::load::{Validate, Validator, field};
+use crate::core::validate::{Validate, Validator, field};
 use crate::pipeline::registry::StageConfig;
 use crate::signal::calibrate::CalibrateConfig;
 use crate::signal::decompose::{DecomposeConfig, MAX_RUNNING_MEAN_BINS};

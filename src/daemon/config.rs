@@ -5,7 +5,7 @@ use std::net::SocketAddr;
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::load::{Validate, Validator, field};
+use crate::core::validate::{Validate, Validator, field};
 
 /// Where digitizer frames come from (`docs/formats.md`, "Live digitizer stream").
 #[derive(Clone, Debug, PartialEq, Eq)]

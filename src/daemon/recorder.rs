@@ -22,11 +22,12 @@ use serde::Serialize;
 
 use super::InputState;
 use super::frames::{FrameMsg, FrameReceiver};
+use crate::core::facts::SourceFacts;
 use crate::format::capture_writer::CaptureWriter;
 use crate::format::frame::decode_frame;
+use crate::pipeline::ports::{NavChunk, Source, SourceError, SourceEvent};
 use crate::pulse::PulsePool;
 use crate::source::serial::{SerialEvent, SerialReader};
-use crate::source::{NavChunk, Source, SourceError, SourceEvent, SourceFacts};
 
 /// Counters of the recording, read by the QC sampler.
 #[derive(Debug, Default)]

@@ -7,7 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::SensorProfile;
+use crate::core::sensor::SensorProfile;
 
 /// The parsed Header record.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -12,7 +12,7 @@
 //! });
 //! let summary = write_point_cloud(std::path::Path::new("tile.las"), Some("PROJCS[...]"), &extra, pts)?;
 //! assert_eq!(summary.points, 10);
-//! # Ok::<(), fwlidar::sink::SinkError>(())
+//! # Ok::<(), fwlidar::format::las_points::LasFileError>(())
 //! ```
 //!
 //! Coordinates are stored with scale [`SCALE`] (1 mm) and an offset taken from the first point
@@ -24,11 +24,10 @@
 use std::io::{Seek, SeekFrom, Write};
 use std::path::Path;
 
+use crate::core::atomic_file::{AtomicFile, WriteError};
 use crate::format::las_write::{
     self as lw, ExtraDim, HEADER_SIZE, Header, LasWriteError, PF6_SIZE, PointRecord6,
 };
-use crate::sink::SinkError;
-use crate::sink::atomic_file::AtomicFile;
 
 /// Scale of the stored X, Y, Z (CRS units per count).
 pub const SCALE: f64 = 0.001;
@@ -81,8 +80,39 @@ pub struct PointCloudSummary {
     pub by_return: [u64; 15],
 }
 
-fn las_err(path: &Path, msg: String) -> SinkError {
-    SinkError::Las {
+/// A LAS point file that could not be written: an I/O error, or data the file cannot hold. Both
+/// name the file.
+#[derive(Debug, thiserror::Error)]
+pub enum LasFileError {
+    /// Writing failed.
+    #[error("cannot write {path}: {source}")]
+    Io {
+        /// The file being written.
+        path: String,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The data cannot be represented in the LAS file being written.
+    #[error("cannot write {path}: {source}")]
+    Las {
+        /// The file being written.
+        path: String,
+        /// What cannot be represented.
+        source: LasWriteError,
+    },
+}
+
+impl From<WriteError> for LasFileError {
+    fn from(e: WriteError) -> Self {
+        LasFileError::Io {
+            path: e.path,
+            source: e.source,
+        }
+    }
+}
+
+fn las_err(path: &Path, msg: String) -> LasFileError {
+    LasFileError::Las {
         path: path.display().to_string(),
         source: LasWriteError::Unrepresentable(msg),
     }
@@ -102,7 +132,7 @@ pub fn write_point_cloud<I, E>(
     crs_wkt: Option<&str>,
     extra: &[ExtraDim],
     points: I,
-) -> Result<PointCloudSummary, SinkError>
+) -> Result<PointCloudSummary, LasFileError>
 where
     I: IntoIterator<Item = (PointSix, E)>,
     E: AsRef<[f64]>,
@@ -146,7 +176,7 @@ impl PointCloudWriter {
         path: &Path,
         crs_wkt: Option<&str>,
         extra: &[ExtraDim],
-    ) -> Result<Self, SinkError> {
+    ) -> Result<Self, LasFileError> {
         let mut vlrs = Vec::new();
         let mut n_vlrs = 0u32;
         if let Some(wkt) = crs_wkt {
@@ -182,8 +212,8 @@ impl PointCloudWriter {
         Ok(w)
     }
 
-    fn io_err(&self, e: std::io::Error) -> SinkError {
-        SinkError::Io {
+    fn io_err(&self, e: std::io::Error) -> LasFileError {
+        LasFileError::Io {
             path: self.path.display().to_string(),
             source: e,
         }
@@ -247,7 +277,7 @@ impl PointCloudWriter {
     }
 
     /// Rewrites the header and VLRs in place and goes on at the end.
-    fn rewrite_preamble(&mut self) -> Result<(), SinkError> {
+    fn rewrite_preamble(&mut self) -> Result<(), LasFileError> {
         let pre = self.preamble();
         let path = self.path.clone();
         let w = self.file.writer()?;
@@ -255,14 +285,14 @@ impl PointCloudWriter {
             .and_then(|_| w.write_all(&pre))
             .and_then(|_| w.seek(SeekFrom::End(0)))
             .map(|_| ())
-            .map_err(|e| SinkError::Io {
+            .map_err(|e| LasFileError::Io {
                 path: path.display().to_string(),
                 source: e,
             })
     }
 
     /// Appends one point with its extra values (one per extra dimension).
-    pub fn push(&mut self, p: &PointSix, values: &[f64]) -> Result<(), SinkError> {
+    pub fn push(&mut self, p: &PointSix, values: &[f64]) -> Result<(), LasFileError> {
         let i = self.n;
         if values.len() != self.extra.len() {
             return Err(las_err(
@@ -325,7 +355,7 @@ impl PointCloudWriter {
         self.file
             .writer()?
             .write_all(&self.rec)
-            .map_err(|e| SinkError::Io {
+            .map_err(|e| LasFileError::Io {
                 path: path.display().to_string(),
                 source: e,
             })?;
@@ -339,12 +369,12 @@ impl PointCloudWriter {
     }
 
     /// Hands the buffered points to the OS (the file stays under its temporary name).
-    pub fn flush(&mut self) -> Result<(), SinkError> {
-        self.file.flush()
+    pub fn flush(&mut self) -> Result<(), LasFileError> {
+        Ok(self.file.flush()?)
     }
 
     /// Writes the final header, syncs and renames the file into place. Idempotent.
-    pub fn finish(&mut self) -> Result<PointCloudSummary, SinkError> {
+    pub fn finish(&mut self) -> Result<PointCloudSummary, LasFileError> {
         if !self.done {
             let pre = self.preamble();
             let w = self.file.writer()?;

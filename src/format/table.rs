@@ -26,7 +26,7 @@
 use std::io::Write;
 use std::path::Path;
 
-use crate::sink::atomic_file::AtomicFile;
+use crate::core::atomic_file::AtomicFile;
 
 /// Why a table could not be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -638,7 +638,7 @@ pub fn write_table(path: &Path, rows: &[Vec<f32>]) -> Result<(), TableError> {
         path: name.clone(),
         source,
     };
-    let sink = |e: crate::sink::SinkError| TableError::Io {
+    let sink = |e: crate::core::atomic_file::WriteError| TableError::Io {
         path: name.clone(),
         source: std::io::Error::other(e.to_string()),
     };

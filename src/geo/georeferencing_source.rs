@@ -22,12 +22,13 @@ use serde::{Deserialize, Serialize};
 use super::crs::OutputCrs;
 use super::dem::Dem;
 use super::direct_georeference::{Mounting, georeference};
-use crate::config::load::{Validate, Validator, field};
+use crate::core::facts::SourceFacts;
+use crate::core::validate::{Validate, Validator, field};
 use crate::nav::dating::{GpsTime, WEEK_S};
 use crate::nav::decoder::{LEAP_SECONDS_NOW, NavDecoder};
 use crate::nav::trajectory::{Interpolation, Miss, Trajectory, TrajectoryConfig};
+use crate::pipeline::ports::{Source, SourceError, SourceEvent};
 use crate::pulse::{Pulse, PulsePool, SegmentKind};
-use crate::source::{Source, SourceError, SourceEvent, SourceFacts};
 
 /// What to do with a pulse the trajectory cannot place.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -543,7 +544,7 @@ impl Source for GeoreferencingSource {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::source::NavChunk;
+    use crate::pipeline::ports::NavChunk;
 
     /// A source replaying a list of events.
     struct Script(VecDeque<Ev>);

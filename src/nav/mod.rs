@@ -9,6 +9,7 @@
 //! Units: angles in degrees, positions in degrees (WGS84 latitude/longitude) and metres, speeds in
 //! metres per second, times in seconds.
 
+pub mod consumer;
 pub mod crc;
 pub mod dating;
 pub mod decoder;

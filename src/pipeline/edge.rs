@@ -21,7 +21,16 @@ use crossbeam_utils::CachePadded;
 use ringbuf::traits::{Consumer, Observer, Producer, Split};
 use ringbuf::{HeapCons, HeapProd, HeapRb};
 
-use crate::config::FullPolicy;
+/// What to do when an edge (bounded queue) is full.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum FullPolicy {
+    /// Wait for room (replay: nothing is lost, the source slows down).
+    #[default]
+    Block,
+    /// Drop the newest item and count it (live input: never stall the receiver).
+    DropNewest,
+}
 
 /// How long a blocked sender parks before re-checking on its own.
 const PARK_TIMEOUT: Duration = Duration::from_millis(50);

@@ -1,6 +1,7 @@
 //! The streaming runtime: the stage contract, bounded edges, the runner and telemetry.
 
 pub mod edge;
+pub mod ports;
 pub mod registry;
 pub mod runner;
 pub mod stage;
@@ -8,5 +9,6 @@ pub mod telemetry;
 pub mod testing;
 pub mod warnings;
 
-pub use runner::{LivePublish, NavConsumer, PipelineSpec, RunControl, RunReport, run};
+pub use ports::{NavChunk, NavConsumer, PulseSink, SinkError, Source, SourceError, SourceEvent};
+pub use runner::{LivePublish, PipelineSpec, RunControl, RunReport, run};
 pub use stage::{DropCounts, Emitter, Passthrough, Stage, StageError};

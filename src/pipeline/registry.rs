@@ -66,7 +66,7 @@ impl StageConfig {
     /// Fills the keys a stage leaves to the input (the `calibrate` stage's system constant
     /// and time origin, [`CalibrateConfig::resolve_from_input`]) from what the opened input
     /// states. Run once, before the stages are built.
-    pub fn resolve_from_input(&mut self, facts: &crate::source::SourceFacts) {
+    pub fn resolve_from_input(&mut self, facts: &crate::core::facts::SourceFacts) {
         if let StageConfig::Calibrate(c) = self {
             c.resolve_from_input(facts);
         }

@@ -23,30 +23,20 @@ use crossbeam_channel::bounded;
 use crossbeam_utils::CachePadded;
 use serde::Serialize;
 
-use crate::config::FullPolicy;
+use crate::pipeline::edge::FullPolicy;
 use crate::pipeline::edge::{EdgeRx, EdgeTx, Sent, edge};
+use crate::pipeline::ports::{NavChunk, Source, SourceEvent};
+use crate::pipeline::ports::{NavConsumer, PulseSink};
 use crate::pipeline::registry::StageConfig;
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pipeline::telemetry::{LatencyHistogram, LatencySummary, StageReport, StageTelemetry};
 use crate::pulse::{Pulse, PulsePool};
-use crate::sink::PulseSink;
-use crate::source::{NavChunk, Source, SourceEvent};
 
 /// Drop reason counted when the input edge is full under the drop-newest policy.
 pub const INPUT_QUEUE_FULL: &str = "input_queue_full";
 
 /// Builds one worker's chain of stages (called once per worker thread).
 pub type StageFactory = Arc<dyn Fn() -> Vec<Box<dyn Stage>> + Send + Sync>;
-
-/// A consumer of navigation bytes, run on its own thread.
-pub trait NavConsumer: Send {
-    /// Takes one chunk of navigation bytes.
-    fn consume(&mut self, chunk: NavChunk);
-    /// Called once when no more chunks will come (the end of the input), before `report`.
-    fn finish(&mut self) {}
-    /// Its report for `summary.json`.
-    fn report(&self) -> serde_json::Value;
-}
 
 /// How to run a pipeline.
 #[derive(Clone)]

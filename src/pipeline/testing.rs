@@ -82,7 +82,7 @@ impl SyntheticSource {
     }
 }
 
-impl crate::source::Source for SyntheticSource {
+impl crate::pipeline::ports::Source for SyntheticSource {
     fn name(&self) -> &'static str {
         "synthetic"
     }
@@ -90,10 +90,10 @@ impl crate::source::Source for SyntheticSource {
     fn next(
         &mut self,
         pool: &PulsePool,
-    ) -> Result<crate::source::SourceEvent, crate::source::SourceError> {
+    ) -> Result<crate::pipeline::ports::SourceEvent, crate::pipeline::ports::SourceError> {
         use crate::pulse::SegmentKind;
         if self.produced == self.count {
-            return Ok(crate::source::SourceEvent::End);
+            return Ok(crate::pipeline::ports::SourceEvent::End);
         }
         let mut p = pool.take();
         p.pulse_id = self.produced;
@@ -108,7 +108,7 @@ impl crate::source::Source for SyntheticSource {
             );
         }
         self.produced += 1;
-        Ok(crate::source::SourceEvent::Pulse(p))
+        Ok(crate::pipeline::ports::SourceEvent::Pulse(p))
     }
 
     fn progress(&self) -> Option<(u64, u64)> {
@@ -125,18 +125,18 @@ pub struct IdSink {
     pub flushed: std::sync::Arc<std::sync::atomic::AtomicBool>,
 }
 
-impl crate::sink::PulseSink for IdSink {
+impl crate::pipeline::ports::PulseSink for IdSink {
     fn name(&self) -> &'static str {
         "ids"
     }
-    fn write(&mut self, pulse: &Pulse) -> Result<(), crate::sink::SinkError> {
+    fn write(&mut self, pulse: &Pulse) -> Result<(), crate::pipeline::ports::SinkError> {
         self.ids
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .push(pulse.pulse_id);
         Ok(())
     }
-    fn flush(&mut self) -> Result<(), crate::sink::SinkError> {
+    fn flush(&mut self) -> Result<(), crate::pipeline::ports::SinkError> {
         self.flushed
             .store(true, std::sync::atomic::Ordering::SeqCst);
         Ok(())

@@ -49,10 +49,10 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::core::facts::SourceFacts;
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::{Calibration, Pulse, SegmentKind};
 use crate::signal::kernel::{KERNEL_BASELINE_SAMPLES, peak_index};
-use crate::source::SourceFacts;
 
 /// Speed of light in vacuum, metres per nanosecond.
 pub const SPEED_OF_LIGHT_M_PER_NS: f64 = 0.299_792_458;

@@ -18,7 +18,7 @@
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::config::sensor::SensorProfile;
+use crate::core::sensor::SensorProfile;
 use crate::pulse::{Pulse, SegmentKind};
 use crate::sim::scene::{NoiseConfig, Scene, SceneError};
 

@@ -22,7 +22,7 @@ pub mod world;
 pub use analytic::{AnalyticSim, PulseTruth, SurfaceKind, SurfaceTruth};
 pub use scene::{FlightConfig, NoiseConfig, Scene, SceneError, SceneFile};
 
-use crate::config::sensor::SensorProfile;
+use crate::core::sensor::SensorProfile;
 use crate::pulse::Pulse;
 use nmea::FlightLine;
 
@@ -115,7 +115,7 @@ impl Iterator for SimItems {
 
 #[cfg(test)]
 pub(crate) mod test_support {
-    use crate::config::sensor::SensorProfile;
+    use crate::core::sensor::SensorProfile;
 
     /// A CAO-like inline sensor (the real profile file is maintained elsewhere): 16 ns FWHM,
     /// 1 ns sampling, 8-bit, 50 kHz.

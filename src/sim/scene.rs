@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::sensor::{SensorFile, SensorProfile};
+use crate::core::sensor::{SensorFile, SensorProfile};
 
 /// Errors of loading, validating or resolving a scene.
 #[derive(Debug, thiserror::Error)]
@@ -284,13 +284,13 @@ pub(crate) fn parse_toml<T: serde::de::DeserializeOwned>(
     })
 }
 
-/// Reads a referenced file as UTF-8 text, at most [`crate::config::load::MAX_CONFIG_BYTES`].
+/// Reads a referenced file as UTF-8 text, at most [`crate::core::toml_load::MAX_CONFIG_BYTES`].
 pub(crate) fn read(path: &Path) -> Result<String, SceneError> {
     let io = |source| SceneError::Io {
         path: path.to_path_buf(),
         source,
     };
-    let bytes = crate::config::load::read_bounded(path).map_err(io)?;
+    let bytes = crate::core::toml_load::read_bounded(path).map_err(io)?;
     String::from_utf8(bytes)
         .map_err(|e| io(std::io::Error::new(std::io::ErrorKind::InvalidData, e)))
 }
@@ -507,8 +507,8 @@ fn check_sensor(s: &SensorProfile) -> Result<(), SceneError> {
     )
 }
 
-impl crate::config::Validate for SceneFile {
-    fn validate(&self, _path: &str, v: &mut crate::config::Validator) {
+impl crate::core::validate::Validate for SceneFile {
+    fn validate(&self, _path: &str, v: &mut crate::core::validate::Validator) {
         let issue = |e: SceneError| match e {
             SceneError::Invalid { field, reason } => (field.to_string(), reason),
             SceneError::Parse { field, message, .. } => (

@@ -15,8 +15,8 @@ use std::path::Path;
 
 use crate::format::las_points::{PointCloudWriter, PointSix};
 use crate::format::las_write::ExtraDim;
+use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, SegmentKind};
-use crate::sink::{PulseSink, SinkError};
 
 /// Name of the file in the output folder.
 pub const FILE_NAME: &str = "hyper_points.las";
@@ -63,7 +63,8 @@ impl HyperPointSink {
             ExtraDim::f32("backscatter", "calibrated backscatter").with_no_data(),
         ];
         Ok(HyperPointSink {
-            w: PointCloudWriter::create(&dir.join(FILE_NAME), crs_wkt, &extra)?,
+            w: PointCloudWriter::create(&dir.join(FILE_NAME), crs_wkt, &extra)
+                .map_err(SinkError::output)?,
             threshold_v,
             flush_s,
             flushed_gps: f64::NAN,
@@ -136,7 +137,8 @@ impl PulseSink for HyperPointSink {
                 // Calibrated backscatter of the sample when a calibrate stage ran (NaN: no-data).
                 let backscatter = p.calibration.map_or(f32::NAN, |c| c.calibrated(v, t));
                 self.w
-                    .push(&point, &[f64::from(v), f64::from(backscatter)])?;
+                    .push(&point, &[f64::from(v), f64::from(backscatter)])
+                    .map_err(SinkError::output)?;
                 self.report.points += 1;
             }
         }
@@ -146,17 +148,17 @@ impl PulseSink for HyperPointSink {
             self.flushed_gps = p.gps_time;
         } else if self.flush_s > 0.0 && (elapsed >= self.flush_s || elapsed < 0.0) {
             self.flushed_gps = p.gps_time;
-            self.w.flush()?;
+            self.w.flush().map_err(SinkError::output)?;
         }
         Ok(())
     }
 
     fn flush(&mut self) -> Result<(), SinkError> {
-        self.w.flush()
+        self.w.flush().map_err(SinkError::output)
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {
-        self.w.finish()?;
+        self.w.finish().map_err(SinkError::output)?;
         tracing::info!(points = self.report.points, "hyper_points.las written");
         Ok(())
     }

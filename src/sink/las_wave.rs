@@ -35,14 +35,14 @@
 use std::io::{Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
+use crate::core::atomic_file::AtomicFile;
 use crate::format::las_write::{
     self as lw, DESCRIPTOR_SIZE, EVLR_HEADER_SIZE, ExtraDim, HEADER_SIZE, Header, LasWriteError,
     MAX_DESCRIPTORS, PF6_SIZE, PF9_SIZE, PointRecord6, PointRecord9, VLR_HEADER_SIZE,
     WavePacketDescriptor,
 };
+use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, PulseGeometry};
-use crate::sink::atomic_file::AtomicFile;
-use crate::sink::{PulseSink, SinkError};
 
 /// Scale of the stored X, Y, Z: 1 mm in a projected CRS in metres.
 pub const SCALE: f64 = 0.001;
@@ -195,10 +195,10 @@ pub struct LasWaveSink {
 }
 
 fn las_err(path: &Path, source: LasWriteError) -> SinkError {
-    SinkError::Las {
+    SinkError::output(crate::format::las_points::LasFileError::Las {
         path: path.display().to_string(),
         source,
-    }
+    })
 }
 
 fn io_err(path: &Path, source: std::io::Error) -> SinkError {

@@ -39,12 +39,12 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
 use crate::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::Pulse;
 use crate::raster::cog::{CogOptions, write_cog};
 use crate::raster::grid::{CellGrid, CellStat};
 use crate::raster::vrt::{VrtTile, write_vrt};
 use crate::raster::{Raster, RasterError};
-use crate::sink::{PulseSink, SinkError};
 use crate::voxel::tiles::CloseRule;
 
 /// Nodata value of the rasters.

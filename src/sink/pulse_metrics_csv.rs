@@ -31,11 +31,11 @@ use std::path::Path;
 
 use std::sync::Arc;
 
+use crate::core::atomic_file::AtomicFile;
 use crate::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
 use crate::geo::dem::Dem;
+use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::Pulse;
-use crate::sink::atomic_file::AtomicFile;
-use crate::sink::{PulseSink, SinkError};
 
 /// Writes `pulse_metrics.csv` into a folder.
 pub struct PulseMetricsCsvSink {
@@ -259,7 +259,7 @@ impl PulseSink for PulseMetricsCsvSink {
     }
 
     fn flush(&mut self) -> Result<(), SinkError> {
-        self.file.flush()
+        Ok(self.file.flush()?)
     }
 
     fn report(&self) -> serde_json::Value {
@@ -272,7 +272,7 @@ impl PulseSink for PulseMetricsCsvSink {
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {
-        self.file.commit()
+        Ok(self.file.commit()?)
     }
 }
 

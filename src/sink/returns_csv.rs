@@ -23,9 +23,9 @@
 use std::io::Write;
 use std::path::Path;
 
+use crate::core::atomic_file::AtomicFile;
+use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::Pulse;
-use crate::sink::atomic_file::AtomicFile;
-use crate::sink::{PulseSink, SinkError};
 
 /// Header line of `returns.csv` up to `z`; then `height_above_ground` when a DEM is
 /// configured, and `backscatter` last.
@@ -140,7 +140,7 @@ impl PulseSink for ReturnsCsvSink {
     }
 
     fn flush(&mut self) -> Result<(), SinkError> {
-        self.file.flush()
+        Ok(self.file.flush()?)
     }
 
     fn report(&self) -> serde_json::Value {
@@ -152,7 +152,7 @@ impl PulseSink for ReturnsCsvSink {
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {
-        self.file.commit()
+        Ok(self.file.commit()?)
     }
 }
 

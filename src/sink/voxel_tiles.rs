@@ -12,8 +12,8 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
 use crate::geo::dem::Dem;
+use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, SegmentKind};
-use crate::sink::{PulseSink, SinkError};
 use crate::voxel::grid::{Grid, Placer, VoxelConfig};
 use crate::voxel::tiles::TileSet;
 use crate::voxel::voxelise::{DepositParams, DepositStats, deposit_pulse};
@@ -110,8 +110,13 @@ pub struct VoxelTilesSink {
     writer_queue: usize,
 }
 
+/// The voxel store failed (the error names the file).
+#[derive(Debug, thiserror::Error)]
+#[error("voxel tiles: {0}")]
+pub struct VoxelStoreError(#[from] pub StoreError);
+
 fn store_err(e: StoreError) -> SinkError {
-    SinkError::Voxels(e)
+    SinkError::output(VoxelStoreError(e))
 }
 
 impl VoxelTilesSink {

@@ -11,9 +11,9 @@
 use std::io::Write;
 use std::path::Path;
 
+use crate::core::atomic_file::AtomicFile;
+use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, SegmentKind};
-use crate::sink::atomic_file::AtomicFile;
-use crate::sink::{PulseSink, SinkError};
 
 /// Writes `pulses.csv` and `waveforms.csv` into a folder.
 pub struct WaveformCsvSink {
@@ -113,12 +113,12 @@ impl PulseSink for WaveformCsvSink {
 
     fn flush(&mut self) -> Result<(), SinkError> {
         self.pulses.flush()?;
-        self.waveforms.flush()
+        Ok(self.waveforms.flush()?)
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {
         self.pulses.commit()?;
-        self.waveforms.commit()
+        Ok(self.waveforms.commit()?)
     }
 }
 

@@ -24,10 +24,10 @@
 use std::io::{Seek, SeekFrom, Write};
 use std::path::Path;
 
+use crate::core::atomic_file::AtomicFile;
 use crate::format::table::npy_preamble;
+use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, SegmentKind};
-use crate::sink::atomic_file::AtomicFile;
-use crate::sink::{PulseSink, SinkError};
 
 /// The fields of `waveform_index.npy`: name and NumPy type (little-endian).
 pub const INDEX_FIELDS: [(&str, &str); 11] = [
@@ -165,14 +165,14 @@ impl PulseSink for WaveformNpySink {
 
     fn flush(&mut self) -> Result<(), SinkError> {
         self.samples.flush()?;
-        self.index.flush()
+        Ok(self.index.flush()?)
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {
         Self::complete(&mut self.samples, "'<f4'", self.n_samples)?;
         Self::complete(&mut self.index, &index_descr(), self.n_segments)?;
         self.samples.commit()?;
-        self.index.commit()
+        Ok(self.index.commit()?)
     }
 
     fn report(&self) -> serde_json::Value {

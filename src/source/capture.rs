@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 
 use crate::format::{CaptureError, CaptureHeader, CaptureReader, Record, SkipReport};
+use crate::pipeline::ports::{NavChunk, Source, SourceError, SourceEvent};
 use crate::pulse::PulsePool;
-use crate::source::{NavChunk, Source, SourceError, SourceEvent};
 
 /// Reads a capture file as a [`Source`].
 pub struct CaptureSource {
@@ -133,9 +133,9 @@ impl Source for CaptureSource {
         Some((self.reader.position(), self.total_bytes))
     }
 
-    fn facts(&self) -> super::SourceFacts {
+    fn facts(&self) -> crate::core::facts::SourceFacts {
         match &self.header {
-            Some(h) => super::SourceFacts {
+            Some(h) => crate::core::facts::SourceFacts {
                 sensor: Some(h.sensor.clone()),
                 time_base: Some(h.capture.time_base.clone()),
                 crs: h.capture.crs.clone(),
@@ -143,7 +143,7 @@ impl Source for CaptureSource {
                 // ones keep their input's t0 (LAS: first sample, PulseWaves: anchor).
                 t0_is_emission: Some(h.capture.origin != "imported"),
             },
-            None => super::SourceFacts::default(),
+            None => crate::core::facts::SourceFacts::default(),
         }
     }
 

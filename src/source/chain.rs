@@ -4,8 +4,9 @@
 //! runner numbers the pulses on across the inputs, so the voxel store's per-tile watermarks
 //! stay in order.
 
+use crate::core::facts::SourceFacts;
+use crate::pipeline::ports::{Source, SourceError, SourceEvent};
 use crate::pulse::PulsePool;
-use crate::source::{Source, SourceError, SourceEvent, SourceFacts};
 
 /// The inputs in order, each already opened (and georeferenced).
 pub struct ChainSource {
@@ -177,7 +178,7 @@ mod tests {
         fn next(&mut self, pool: &PulsePool) -> Result<SourceEvent, SourceError> {
             if self.nav_next {
                 self.nav_next = false;
-                return Ok(SourceEvent::Nav(crate::source::NavChunk {
+                return Ok(SourceEvent::Nav(crate::pipeline::ports::NavChunk {
                     port: 0,
                     receive_time_ns: 0,
                     bytes: vec![self.k as u8],

@@ -44,11 +44,12 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::config::SensorProfile;
+use crate::core::facts::SourceFacts;
+use crate::core::sensor::SensorProfile;
 use crate::format::gedi::{GediBeam, GediError, GediL1b, GediShot};
 use crate::geo::crs::OutputCrs;
+use crate::pipeline::ports::{Source, SourceError, SourceEvent};
 use crate::pulse::{Pulse, PulseGeometry, PulsePool, SegmentKind, StatedNoise};
-use crate::source::{Source, SourceError, SourceEvent, SourceFacts};
 
 /// Raw counts per GEDI count: GEDI's `f32` samples are stored as `round(v × 32)` in the pulse's
 /// `u16` raw buffer. 1/32 count resolves the L1B values far below their noise (σ ≈ 3 counts)

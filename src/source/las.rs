@@ -6,9 +6,10 @@
 use std::fs::File;
 use std::path::Path;
 
+use crate::core::facts::SourceFacts;
 use crate::format::las_read::{LasReadError, LasReader, WaveformLocation};
+use crate::pipeline::ports::{Source, SourceError, SourceEvent};
 use crate::pulse::PulsePool;
-use crate::source::{Source, SourceError, SourceEvent, SourceFacts};
 
 /// Reads a LAS or LAZ file (and its `.wdp`) as a [`Source`].
 pub struct LasSource {

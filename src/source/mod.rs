@@ -13,75 +13,8 @@ pub mod shard;
 use std::io::Read;
 use std::path::Path;
 
+use crate::pipeline::ports::{Source, SourceEvent};
 use crate::pulse::{Pulse, PulsePool};
-
-/// Raw navigation bytes as they came off a port, kept intact so that replay runs the very same
-/// parsers as live flight.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct NavChunk {
-    /// Port identifier (index of the serial port in the configuration).
-    pub port: u8,
-    /// Host receive time, nanoseconds since the Unix epoch.
-    pub receive_time_ns: u64,
-    /// The bytes.
-    pub bytes: Vec<u8>,
-}
-
-/// What a source produced next.
-pub enum SourceEvent {
-    /// A pulse, taken from the pool and filled (its `seq` and `arrived` are set by the runner).
-    Pulse(Box<Pulse>),
-    /// Navigation bytes.
-    Nav(NavChunk),
-    /// Nothing came for a while (live sources only); ask again. Lets the source's thread look
-    /// at its stop flag and publish its telemetry while the input is quiet.
-    Idle,
-    /// Nothing more will come.
-    End,
-}
-
-/// Errors a source reports. Per-record damage (skipped bytes, bad checksums) is not an error: it
-/// is counted in the source's report.
-#[derive(Debug, thiserror::Error)]
-pub enum SourceError {
-    /// The input cannot be read any further.
-    #[error("{0}")]
-    Fatal(String),
-}
-
-/// A producer of pulses and navigation bytes, run on its own thread.
-pub trait Source: Send {
-    /// Short name for logs and reports (e.g. `"capture"`).
-    fn name(&self) -> &'static str;
-
-    /// Produces the next event, waiting if it must. Takes pulses from `pool`.
-    fn next(&mut self, pool: &PulsePool) -> Result<SourceEvent, SourceError>;
-
-    /// Progress as (done, total) in the source's own unit (bytes for files), when known.
-    fn progress(&self) -> Option<(u64, u64)> {
-        None
-    }
-
-    /// The source's own report for `summary.json` (e.g. bytes skipped in a damaged capture).
-    fn report(&self) -> serde_json::Value {
-        serde_json::Value::Null
-    }
-
-    /// What the input states about its sensor, time base and coordinates, as far as known so far
-    /// (a capture source reads its first header when it is opened). `fwlidar import` writes it
-    /// into the capture header.
-    fn facts(&self) -> SourceFacts {
-        SourceFacts::default()
-    }
-
-    /// At most how many pulses the source may hold at once between taking them from the pool
-    /// and handing them out (e.g. pulses waiting for the navigation that brackets them). The
-    /// runner sizes the pool's idle capacity with it, so that those pulses return to the pool
-    /// instead of being freed and allocated again on every pulse. Default 0.
-    fn held_pulses(&self) -> usize {
-        0
-    }
-}
 
 /// One pulse from a file reader into a pooled pulse: `Ok(true)` from `read` is a pulse, `Ok(false)`
 /// the end; the pool gets its pulse back unless one is handed out. The error is the reader's
@@ -102,25 +35,6 @@ pub(crate) fn next_pooled<E: std::fmt::Display>(
             Err(e.to_string())
         }
     }
-}
-
-/// What an input file states about itself ([`Source::facts`]).
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct SourceFacts {
-    /// A complete sensor description, when the file holds one (a capture header; a PulseWaves
-    /// scanner record with wavelength, pulse width, rate and divergence).
-    pub sensor: Option<crate::config::SensorProfile>,
-    /// Time base of the pulses' `gps_time`: `gps_seconds_of_week` or `gps_adjusted_standard`.
-    pub time_base: Option<String>,
-    /// Coordinate reference system of the pulses' geometry: OGC WKT or `EPSG:<code>`.
-    pub crs: Option<String>,
-    /// Whether the pulses' reference time t0 is the emission of the shot (so that a bin `t` ns
-    /// after t0 lies `t · c / (2 n)` from the sensor): true for digitizer frames recorded or
-    /// simulated by fwlidar (t0 = the outgoing pulse's peak), false for LAS (t0 = the first
-    /// digitised sample), PulseWaves (t0 = the anchor, anywhere on the beam) and imported
-    /// captures; `None` when the input does not say. Read by the `calibrate` stage for pulses
-    /// without an outgoing segment (`docs/calibration.md`).
-    pub t0_is_emission: Option<bool>,
 }
 
 /// The file formats an input file can be, told apart by their first bytes ([`InputKind::sniff`]).

@@ -4,10 +4,11 @@
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
-use crate::config::SensorProfile;
+use crate::core::facts::SourceFacts;
+use crate::core::sensor::SensorProfile;
 use crate::format::pulsewaves::{PulseWavesError, PulseWavesReader, waves_path_for};
+use crate::pipeline::ports::{Source, SourceError, SourceEvent};
 use crate::pulse::PulsePool;
-use crate::source::{Source, SourceError, SourceEvent, SourceFacts};
 
 /// Reads a PulseWaves file pair as a [`Source`].
 pub struct PulseWavesSource {

@@ -22,7 +22,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use crossbeam_channel::Sender;
 use serde::{Deserialize, Serialize};
 
-use crate::source::NavChunk;
+use crate::pipeline::ports::NavChunk;
 
 /// Parity of the serial line.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]

@@ -7,8 +7,9 @@
 
 use std::path::Path;
 
+use crate::core::facts::SourceFacts;
+use crate::pipeline::ports::{Source, SourceError, SourceEvent};
 use crate::pulse::PulsePool;
-use crate::source::{Source, SourceError, SourceEvent, SourceFacts};
 
 /// Which shard: the `index`-th (1-based) of `count`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]

@@ -21,7 +21,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::load::{Validate, Validator, field};
+use crate::core::validate::{Validate, Validator, field};
 
 /// How voxel heights are measured.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

@@ -530,7 +530,7 @@ pub fn tile_las(
     grid: &Grid,
     tile: [i64; 2],
     data: &TileData,
-) -> Result<(), crate::sink::SinkError> {
+) -> Result<(), crate::format::las_points::LasFileError> {
     use crate::format::las_points::{PointSix, write_point_cloud};
     use crate::format::las_write::ExtraDim;
     let t = grid.tile_columns as usize;

@@ -643,7 +643,7 @@ impl LasInfo {
         Ok(info)
     }
 
-    /// The coordinate reference system as [`crate::source::SourceFacts::crs`] wants it: the WKT
+    /// The coordinate reference system as [`crate::core::facts::SourceFacts::crs`] wants it: the WKT
     /// when global encoding bit 4 says WKT is authoritative, else `EPSG:<code>` from plain
     /// GeoKeys, else the WKT when there is one.
     pub fn crs(&self) -> Option<String> {

@@ -445,8 +445,8 @@ fn the_configuration_is_parsed_checked_and_an_invalid_one_is_fatal() {
     ] {
         let e = bad.validate().unwrap_err();
         assert!(e.to_string().starts_with(key), "{e}");
-        let mut v = crate::config::load::Validator::new(None);
-        crate::config::load::Validate::validate(&bad, "s", &mut v);
+        let mut v = crate::core::validate::Validator::new(None);
+        crate::core::validate::Validate::validate(&bad, "s", &mut v);
         let paths: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
         assert_eq!(paths, [format!("s.{key}").as_str()]);
         assert!(Calibrate::try_new(bad.clone()).is_err());

@@ -9,7 +9,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use crate::config::sensor::SensorProfile;
+use crate::core::sensor::SensorProfile;
 use crate::geo::crs::{ecef_of, geodetic_of_ecef};
 use crate::geo::direct_georeference::{beam_in_scanner, ned_to_ecef};
 use crate::nav::trajectory::{Geodetic, attitude_quaternion};

@@ -27,7 +27,7 @@ use std::path::Path;
 use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::config::sensor::SensorProfile;
+use crate::core::sensor::SensorProfile;
 use crate::pulse::{Pulse, SegmentKind};
 use crate::sim::SimItem;
 use crate::sim::analytic::FWHM_PER_SIGMA;

@@ -32,7 +32,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::sensor::SensorProfile;
+use crate::core::sensor::SensorProfile;
 use crate::sim::navstream::NavigationConfig;
 use crate::sim::scene::SceneError;
 
@@ -807,7 +807,7 @@ impl WorldScene {
     /// As [`WorldScene::load`], with `KEY=VALUE` overrides applied to the file's TOML first
     /// (`KEY` a dotted path such as `flight.scan.zenith_deg`, with list indices such as
     /// `tree[0].height_m`; `VALUE` a TOML value, anything else taken as a string):
-    /// [`crate::config::overrides`].
+    /// [`crate::core::overrides`].
     pub fn load_with(
         path: &Path,
         sets: &[String],
@@ -816,7 +816,7 @@ impl WorldScene {
         if !sets.is_empty() {
             let what = path.display().to_string();
             let mut table: toml::Table = crate::sim::scene::parse_toml(&text, &what)?;
-            crate::config::overrides::apply_all(&mut table, sets).map_err(|e| {
+            crate::core::overrides::apply_all(&mut table, sets).map_err(|e| {
                 SceneError::Invalid {
                     field: "--set",
                     reason: e.to_string(),
@@ -1229,8 +1229,8 @@ fn rect(r: &[f64; 4], field: &'static str) -> Result<(), SceneError> {
     )
 }
 
-impl crate::config::Validate for WorldScene {
-    fn validate(&self, _path: &str, v: &mut crate::config::Validator) {
+impl crate::core::validate::Validate for WorldScene {
+    fn validate(&self, _path: &str, v: &mut crate::core::validate::Validator) {
         let base = v.base_dir().map(Path::to_path_buf).unwrap_or_default();
         let issue = |e: SceneError| match e {
             SceneError::Invalid { field, reason } => (field.to_string(), reason),

@@ -1,14 +1,14 @@
 //! Replay's navigation consumer: each port's bytes through the framer, the NMEA/NovAtel
 //! decoders and the NMEA dater (`nav::decoder::NavDecoder`), so `summary.json` says what the
 //! navigation stream held — samples by type, their GPS time span, rejections by reason — not
-//! just how many bytes came. (The trajectory and the georeference stage build on it next.)
+//! just how many bytes came. The daemon and replay run it on the navigation thread.
 
 use std::collections::BTreeMap;
 
 use crate::nav::dating::GpsTime;
 use crate::nav::decoder::{LEAP_SECONDS_NOW, NavDecoder};
-use crate::pipeline::NavConsumer;
-use crate::source::NavChunk;
+use crate::pipeline::ports::NavChunk;
+use crate::pipeline::ports::NavConsumer;
 
 /// Samples held per port while waiting for the first date.
 const MAX_UNDATED: usize = 512;
@@ -140,5 +140,34 @@ impl NavConsumer for NavDecode {
             })
             .collect();
         serde_json::json!({ "ports": ports, "leap_seconds": self.leap_seconds })
+    }
+}
+
+/// Counts navigation chunks and bytes per port without decoding them: the consumer of runs
+/// where decoding is not the point (runtime tests and benchmarks).
+#[derive(Debug, Default)]
+pub struct NavTally {
+    ports: BTreeMap<u8, (u64, u64)>,
+}
+
+impl NavConsumer for NavTally {
+    fn consume(&mut self, chunk: NavChunk) {
+        let e = self.ports.entry(chunk.port).or_insert((0, 0));
+        e.0 += 1;
+        e.1 += chunk.bytes.len() as u64;
+    }
+
+    fn report(&self) -> serde_json::Value {
+        let ports: serde_json::Map<String, serde_json::Value> = self
+            .ports
+            .iter()
+            .map(|(p, (c, b))| {
+                (
+                    p.to_string(),
+                    serde_json::json!({ "chunks": c, "bytes": b }),
+                )
+            })
+            .collect();
+        serde_json::json!({ "ports": ports })
     }
 }

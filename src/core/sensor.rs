@@ -5,7 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::load::{Validate, Validator, field, index};
+use super::validate::{Validate, Validator, field, index};
 
 /// The top level of a sensor profile file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -6,8 +6,6 @@ use std::fs::{File, OpenOptions};
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-use crate::sink::SinkError;
-
 /// A buffered file written under a temporary name and moved into place by [`AtomicFile::commit`].
 pub struct AtomicFile {
     path: PathBuf,
@@ -15,16 +13,33 @@ pub struct AtomicFile {
     out: Option<BufWriter<File>>,
 }
 
-fn io_err(path: &Path, source: std::io::Error) -> SinkError {
-    SinkError::Io {
-        path: path.display().to_string(),
-        source,
+/// A file that could not be written: which file, and the operating system's error.
+#[derive(Debug, thiserror::Error)]
+#[error("cannot write {path}: {source}")]
+pub struct WriteError {
+    /// The file being written.
+    pub path: String,
+    /// The I/O error.
+    pub source: std::io::Error,
+}
+
+impl WriteError {
+    /// The error of writing `path`.
+    pub fn new(path: &Path, source: std::io::Error) -> Self {
+        WriteError {
+            path: path.display().to_string(),
+            source,
+        }
     }
+}
+
+fn io_err(path: &Path, source: std::io::Error) -> WriteError {
+    WriteError::new(path, source)
 }
 
 impl AtomicFile {
     /// Starts writing `path` (as `path.partial`).
-    pub fn create(path: impl Into<PathBuf>) -> Result<Self, SinkError> {
+    pub fn create(path: impl Into<PathBuf>) -> Result<Self, WriteError> {
         let path = path.into();
         let mut tmp = path.clone().into_os_string();
         tmp.push(".partial");
@@ -48,7 +63,7 @@ impl AtomicFile {
     }
 
     /// The writer (until committed).
-    pub fn writer(&mut self) -> Result<&mut BufWriter<File>, SinkError> {
+    pub fn writer(&mut self) -> Result<&mut BufWriter<File>, WriteError> {
         match self.out.as_mut() {
             Some(w) => Ok(w),
             None => Err(io_err(
@@ -59,7 +74,7 @@ impl AtomicFile {
     }
 
     /// Flushes buffered bytes to the operating system (the file stays under its temporary name).
-    pub fn flush(&mut self) -> Result<(), SinkError> {
+    pub fn flush(&mut self) -> Result<(), WriteError> {
         if let Some(w) = self.out.as_mut() {
             w.flush().map_err(|e| io_err(&self.tmp, e))?;
         }
@@ -67,7 +82,7 @@ impl AtomicFile {
     }
 
     /// Flushes, syncs and renames the file into place. Idempotent.
-    pub fn commit(&mut self) -> Result<(), SinkError> {
+    pub fn commit(&mut self) -> Result<(), WriteError> {
         let Some(w) = self.out.take() else {
             return Ok(());
         };
@@ -81,7 +96,7 @@ impl AtomicFile {
 }
 
 /// Writes `bytes` to `path` atomically (temporary file, sync, rename).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), SinkError> {
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), WriteError> {
     let mut f = AtomicFile::create(path)?;
     f.writer()?.write_all(bytes).map_err(|e| io_err(path, e))?;
     f.commit()
