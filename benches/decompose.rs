@@ -28,13 +28,13 @@ use std::time::{Duration, Instant};
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use fwlidar::config::RunConfig;
-use fwlidar::pipeline::registry::StageConfig;
 use fwlidar::pipeline::stage::{DropCounts, Emitter, Stage};
 use fwlidar::pipeline::testing::run_stage;
 use fwlidar::pulse::{Pulse, PulsePool, SegmentKind};
 use fwlidar::signal::DecomposeConfig;
 use fwlidar::signal::decompose::Decomposer;
 use fwlidar::sim::world::ShotTruth;
+use fwlidar::stages::StageConfig;
 
 /// Pulses per half of the survey-line mix.
 const MIX_PULSES: usize = 2500;
@@ -91,8 +91,8 @@ fn survey_line_mix() -> (Vec<Box<Pulse>>, Vec<ShotTruth>, StageConfig) {
     let mut raw = simulate(MIX_PULSES, None);
     raw.extend(simulate(MIX_PULSES, Some(-100.0)));
     let (pulses, truth): (Vec<Pulse>, Vec<ShotTruth>) = raw.into_iter().unzip();
-    let mut d = denoise.build();
-    let mut r = deconvolve.build();
+    let mut d = denoise.build().expect("denoise builds");
+    let mut r = deconvolve.build().expect("deconvolve builds");
     let den = run_stage(d.as_mut(), pulses).unwrap();
     assert_eq!(den.emitted.len(), truth.len(), "denoise dropped pulses");
     let dec = run_stage(r.as_mut(), den.emitted.into_iter().map(|p| *p)).unwrap();
@@ -144,7 +144,7 @@ fn dump(path: &str, pulses: &[Box<Pulse>], truth: &[ShotTruth]) {
 
 fn survey_line(c: &mut Criterion) {
     let (pulses, truth, config) = survey_line_mix();
-    let mut stage = config.build();
+    let mut stage = config.build().expect("the stage builds");
     let pool = PulsePool::new(4);
     let (mut dropped, mut errors) = (DropCounts::default(), 0u64);
     let mut slots: Vec<Option<Box<Pulse>>> = pulses.into_iter().map(Some).collect();

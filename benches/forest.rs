@@ -18,8 +18,8 @@ use std::hint::black_box;
 use std::time::Instant;
 
 use criterion::{Criterion, criterion_group, criterion_main};
+use fwlidar::forest::measure::Metrics;
 use fwlidar::forest::pulse_metrics::{MetricsComputer, MetricsConfig, WaveformInput};
-use fwlidar::forest::stage::Metrics;
 use fwlidar::format::gedi::GediL1b;
 
 fn tail(name: &str, mut times: Vec<u64>) {
@@ -119,9 +119,10 @@ fn survey_line(c: &mut Criterion) {
 }
 
 fn survey_line_dem_edge(c: &mut Criterion) {
-    use fwlidar::forest::pulse_metrics::{GroundFrom, RunDem, TopFrom};
+    use fwlidar::forest::pulse_metrics::{RunDem, TopFrom};
+    use fwlidar::pulse::waveform_metrics::GroundFrom;
     use fwlidar::pulse::{PulseGeometry, SegmentKind};
-    let half_c = fwlidar::forest::pulse_metrics::HALF_C_M_PER_NS;
+    let half_c = fwlidar::core::units::HALF_C_M_PER_NS;
     let pulses: Vec<_> = survey::survey_line_pulses(1000, 4, None)
         .into_iter()
         .map(|(mut p, _)| {

@@ -96,9 +96,9 @@ fn fly(
     settings: fwlidar::sink::metrics_rasters::RasterSettings,
     writes: &mut Vec<Duration>,
 ) -> Duration {
-    use fwlidar::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
     use fwlidar::pipeline::ports::PulseSink;
     use fwlidar::pulse::Pulse;
+    use fwlidar::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
     use fwlidar::sink::metrics_rasters::{MetricsRastersSink, RasterCrs};
     let _ = std::fs::remove_dir_all(dir.join("rasters"));
     let mut sink =

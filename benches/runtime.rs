@@ -10,7 +10,8 @@ use fwlidar::pipeline::edge::FullPolicy;
 use fwlidar::pipeline::ports::NullSink;
 use fwlidar::pipeline::runner::{PipelineSpec, StageFactory};
 use fwlidar::pipeline::testing::SyntheticSource;
-use fwlidar::pipeline::{Passthrough, RunControl, Stage, run};
+use fwlidar::pipeline::{RunControl, Stage, run};
+use fwlidar::stages::passthrough::Passthrough;
 
 fn overhead(c: &mut Criterion) {
     let mut g = c.benchmark_group("runtime_overhead_per_pulse");

@@ -16,11 +16,11 @@ mod waveforms;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use fwlidar::config::RunConfig;
-use fwlidar::pipeline::registry::StageConfig;
 use fwlidar::pipeline::{DropCounts, Emitter, Stage};
 use fwlidar::pulse::{FittedReturn, Pulse, PulsePool, SegmentKind};
 use fwlidar::signal::denoise::LowPass;
 use fwlidar::signal::{Calibrate, CalibrateConfig, Denoise, DenoiseConfig};
+use fwlidar::stages::StageConfig;
 use std::hint::black_box;
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -182,7 +182,9 @@ fn denoise_survey_line(c: &mut Criterion) {
     pulses.extend(simulate(MIX_PULSES, Some(-100.0)));
     let outgoing = pulses[0].segments[0].len;
     let ret = pulses[0].segments.get(1).map_or(0, |s| s.len);
-    let mut stage = replay_denoise().build();
+    let mut stage = replay_denoise()
+        .build()
+        .expect("the replay denoise stage builds");
     let pool = PulsePool::new(4);
     let mut slots: Vec<Option<Box<Pulse>>> =
         pulses.into_iter().map(|p| Some(Box::new(p))).collect();

@@ -7,7 +7,7 @@ mod common;
 use std::path::Path;
 
 /// Speed of light, metres per nanosecond (the simulator's scene is in vacuum).
-const C_M_PER_NS: f64 = 0.299_792_458;
+use fwlidar::core::units::C_M_PER_NS;
 
 /// Replays the sample with `config` (None: the embedded `config/replay.toml`); the rows of
 /// returns.csv as column name → value maps, and the summary.

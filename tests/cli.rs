@@ -183,7 +183,7 @@ fn replay_of_the_sample_writes_consistent_outputs() {
     );
     // ... and its discrete returns (returns.csv) sit where the physics puts the two surfaces:
     // two-way travel time 2R/c to the ground at 1000 m and to the plane 15 m above it.
-    let c_m_per_ns = 0.299_792_458;
+    let c_m_per_ns = fwlidar::core::units::C_M_PER_NS;
     let truth_ns = [2.0 * 985.0 / c_m_per_ns, 2.0 * 1000.0 / c_m_per_ns];
     let text_returns = std::fs::read_to_string(out.join("returns.csv")).unwrap();
     let mut lines = text_returns.lines();

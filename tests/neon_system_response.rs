@@ -14,10 +14,9 @@ use std::path::PathBuf;
 use fwlidar::pipeline::testing::run_stage;
 use fwlidar::pulse::{Pulse, SegmentKind};
 use fwlidar::signal::deconvolve::response::response_from_flat_target;
-use fwlidar::signal::deconvolve::{
-    Deconvolve, DeconvolveConfig, GoldConfig, KernelSource, MethodConfig,
-};
+use fwlidar::signal::deconvolve::{GoldConfig, MethodConfig};
 use fwlidar::signal::{Denoise, DenoiseConfig};
+use fwlidar::stages::deconvolve::{Deconvolve, DeconvolveConfig, KernelSource};
 
 /// The NEON fixtures folder (`tests/data/waveform/neon_harv`, or under `$FWLIDAR_FIXTURES`).
 fn neon() -> Option<PathBuf> {
@@ -123,8 +122,9 @@ fn neon_two_stage_system_response() {
             outgoing: imp_out.clone(),
         },
         ..DeconvolveConfig::with_method(gold())
-    });
-    let mut second = Deconvolve::new(DeconvolveConfig::with_method(gold()));
+    })
+    .unwrap();
+    let mut second = Deconvolve::new(DeconvolveConfig::with_method(gold())).unwrap();
     let run = run_stage(&mut first, denoised.emitted.into_iter().map(|p| *p)).unwrap();
     assert_eq!(run.emitted.len(), 500, "stage 1 dropped {:?}", run.dropped);
     let run = run_stage(&mut second, run.emitted.into_iter().map(|p| *p)).unwrap();

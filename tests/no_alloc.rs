@@ -112,8 +112,9 @@ fn calibrate_allocates_nothing_per_pulse() {
 /// above its noise over more than 16 samples).
 #[test]
 fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
-    use fwlidar::signal::deconvolve::{Deconvolve, KERNEL_OVER_MAX_TAPS};
-    use fwlidar::signal::deconvolve::{DeconvolveConfig, MethodConfig, NnlsConfig, RlConfig};
+    use fwlidar::signal::deconvolve::{MethodConfig, NnlsConfig, RlConfig};
+    use fwlidar::stages::deconvolve::DeconvolveConfig;
+    use fwlidar::stages::deconvolve::{Deconvolve, KERNEL_OVER_MAX_TAPS};
     let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     // Plain RL, and accelerated RL with the coarse-to-fine start (a coarse FWHM of 1 sample:
     // a decimation factor of ≥ 2 for any outgoing pulse at least 2 samples wide); RL stopping
@@ -144,11 +145,14 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
         let factory: StageFactory = Arc::new(move || {
             vec![
                 Box::new(Denoise::new(DenoiseConfig::default())) as Box<dyn Stage>,
-                Box::new(Deconvolve::new(DeconvolveConfig {
-                    max_taps,
-                    target_fwhm_ns,
-                    ..DeconvolveConfig::with_method(method.clone())
-                })),
+                Box::new(
+                    Deconvolve::new(DeconvolveConfig {
+                        max_taps,
+                        target_fwhm_ns,
+                        ..DeconvolveConfig::with_method(method.clone())
+                    })
+                    .unwrap(),
+                ),
             ]
         });
         let spec = |factory: &StageFactory| PipelineSpec {

@@ -370,9 +370,9 @@ fn vrt_of_four_cellgrid_tiles_mosaics_them() {
 /// there; at the end the mosaic spans all three.
 #[test]
 fn the_run_s_mosaic_of_the_tiles_closed_so_far_opens_during_the_flight() {
-    use fwlidar::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
     use fwlidar::pipeline::ports::PulseSink;
     use fwlidar::pulse::Pulse;
+    use fwlidar::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
     use fwlidar::sink::metrics_rasters::{MetricsRastersSink, RasterCrs, RasterSettings};
 
     let dir = tempfile::tempdir().unwrap();

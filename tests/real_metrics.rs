@@ -240,7 +240,7 @@ fn neon_harvard_forest_metrics_agree_with_the_package_and_neon_points() {
     // The replay's columns exactly (no shot number, 30 PAVD bins of 5 m).
     assert_eq!(
         raw.header.join(","),
-        fwlidar::sink::pulse_metrics_csv::header(false, 30, 5.0)
+        fwlidar::forest::products::header(false, 30, 5.0)
     );
     let f = figures("NEON raw", &raw);
     assert!(f.ok_share >= 0.95, "{}", f.ok_share);

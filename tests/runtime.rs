@@ -9,8 +9,9 @@ use fwlidar::nav::consumer::NavTally;
 use fwlidar::pipeline::edge::FullPolicy;
 use fwlidar::pipeline::runner::{INPUT_QUEUE_FULL, PipelineSpec, StageFactory};
 use fwlidar::pipeline::testing::{IdSink, SyntheticSource};
-use fwlidar::pipeline::{Emitter, Passthrough, RunControl, Stage, StageError, run};
+use fwlidar::pipeline::{Emitter, RunControl, Stage, StageError, run};
 use fwlidar::pulse::Pulse;
+use fwlidar::stages::passthrough::Passthrough;
 
 fn spec(workers: usize, cap: usize, policy: FullPolicy, stages: StageFactory) -> PipelineSpec {
     PipelineSpec {

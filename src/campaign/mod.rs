@@ -326,7 +326,7 @@ pub fn plan(path: &Path) -> Result<Plan, CampaignError> {
         toml::to_string(&config).map_err(|e| at("campaign.config".into(), e.to_string()))?;
     let mut captures: Vec<PathBuf> = tasks.iter().map(|t| t.capture.clone()).collect();
     captures.dedup();
-    let run_key = crate::sink::voxel_tiles::replay_run_key(&captures, None, &config);
+    let run_key = crate::run::outputs::replay_run_key(&captures, None, &config);
     Ok(Plan {
         file: path.to_path_buf(),
         campaign: c,
@@ -347,7 +347,7 @@ fn first_position(capture: &Path, config: &RunConfig) -> Result<[f64; 2], String
     let raw = crate::source::open_file(capture)?;
     let mut src: Box<dyn Source> = if config.georeference.enabled {
         Box::new(
-            crate::geo::georeferencing_source::GeoreferencingSource::new(
+            crate::source::georeferencing::GeoreferencingSource::new(
                 raw,
                 config.georeference.clone(),
             )?

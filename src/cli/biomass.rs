@@ -335,7 +335,7 @@ fn epsg_from_summary(metrics: &Path) -> Option<u32> {
     }
     v["source"]["georeference"]["output_crs"]
         .as_str()
-        .and_then(crate::sink::metrics_rasters::epsg_of)
+        .and_then(crate::geo::crs::epsg_of)
 }
 
 fn predict(a: PredictArgs) -> Result<(), Failure> {

@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 pub mod biomass;
 pub mod campaign;
 pub mod completions;
+pub mod daemon;
 pub mod import;
 pub mod inspect;
 pub mod inspect_nav;
@@ -17,7 +18,6 @@ pub mod metrics_plot;
 pub mod process;
 pub mod repair;
 pub mod replay;
-pub mod run;
 pub mod simulate;
 pub mod tradeoff;
 pub mod trees;
@@ -52,7 +52,7 @@ pub enum LogFormat {
 pub enum Command {
     /// The on-board daemon: record digitizer frames (network) and navigation (serial ports),
     /// process them live into voxel tiles, serve QC; SIGTERM stops it.
-    Run(run::RunArgs),
+    Run(daemon::RunArgs),
     /// Replay a recorded capture (or a LAS/LAZ / PulseWaves waveform file) through the processing
     /// chain into an output folder.
     Replay(replay::ReplayArgs),
@@ -123,6 +123,15 @@ impl Failure {
     }
 }
 
+impl From<crate::run::RunError> for Failure {
+    fn from(e: crate::run::RunError) -> Self {
+        match e {
+            crate::run::RunError::Usage(m) => Failure::usage(m),
+            crate::run::RunError::Job(m) => Failure::job(m),
+        }
+    }
+}
+
 fn init_logging(format: LogFormat, verbose: u8) {
     use tracing_subscriber::EnvFilter;
     let default = match verbose {
@@ -152,7 +161,7 @@ pub fn main() -> i32 {
     };
     init_logging(cli.log_format, cli.verbose);
     let result = match cli.command {
-        Command::Run(a) => run::run(a),
+        Command::Run(a) => daemon::run(a),
         Command::Replay(a) => replay::run(a),
         Command::Repair(a) => repair::run(a),
         Command::Simulate(a) => simulate::run(a),

@@ -16,8 +16,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
 use crate::core::atomic_file::{AtomicFile, write_atomic};
+use crate::forest::measure::pulse_sigma_ns;
 use crate::forest::pulse_metrics::MetricsConfig;
-use crate::forest::stage::pulse_sigma_ns;
 use crate::forest::table_metrics::{TableMetrics, TableWaveform, read_geometry};
 use crate::format::table::{Table, TableFormat, read_table, write_table};
 use crate::pulse::FittedReturn;

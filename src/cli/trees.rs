@@ -219,7 +219,7 @@ pub fn pulse_cutoff_ghz(fwhm_ns: f64) -> f64 {
 
 /// Replays `input` into `dir` with the hyper point cloud on; returns its path.
 fn replay_points(args: &TreesArgs, dir: &Path) -> Result<PathBuf, Failure> {
-    use crate::pipeline::registry::StageConfig;
+    use crate::stages::StageConfig;
     let mut config = crate::config::load_run_config_with(args.config.as_deref(), &args.sets)
         .map_err(Failure::usage)?;
     if !(args.floor_v.is_finite() && args.floor_v > 0.0) {

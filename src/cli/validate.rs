@@ -10,8 +10,7 @@ use crate::config::RunConfig;
 use crate::core::config_error::ConfigErrors;
 use crate::core::sensor::SensorFile;
 use crate::core::toml_load::{load_str, read_top_level_keys};
-use crate::pipeline::registry::StageConfig;
-use crate::signal::deconvolve::KernelSource;
+use crate::stages::StageConfig;
 
 /// A configuration file, validated, as recognised by [`validate_any`].
 #[derive(Clone, Debug, PartialEq)]
@@ -103,54 +102,14 @@ pub fn run(args: ValidateArgs) -> Result<(), Failure> {
     Ok(())
 }
 
-/// Groups the digits of `n` by thousands with spaces (`1 860 770`).
-fn grouped(n: u64) -> String {
-    let digits = n.to_string();
-    let mut out = String::new();
-    for (i, c) in digits.chars().enumerate() {
-        if i > 0 && (digits.len() - i).is_multiple_of(3) {
-            out.push(' ');
-        }
-        out.push(c);
-    }
-    out
-}
-
-/// One line per stage with a fixed per-pulse budget: the deconvolve stages' worst-case flops
-/// per return segment (method, iteration budget, segment and kernel sizes), the decompose
-/// stages' Levenberg-Marquardt budget.
+/// One line per stage with a fixed per-pulse budget (the deconvolve stages' worst-case flops
+/// per return segment, the decompose stages' Levenberg-Marquardt budget), as each stage states
+/// it.
 pub fn stage_costs(stages: &[StageConfig]) -> Vec<String> {
     let mut lines = Vec::new();
     for (i, stage) in stages.iter().enumerate() {
-        match stage {
-            StageConfig::Deconvolve(c) => {
-                let w = c.worst_case();
-                let kernel = match c.kernel {
-                    KernelSource::Outgoing => format!("outgoing pulse of <= {} taps", w.taps),
-                    KernelSource::Taps { .. } => format!("calibrated, {} taps", w.taps),
-                    KernelSource::FlatTarget { .. } => {
-                        format!("response measured on a flat target, {} taps", w.taps)
-                    }
-                };
-                let iterations = if w.iterations == 0 {
-                    "direct".to_string()
-                } else {
-                    format!("{} iterations", w.iterations)
-                };
-                lines.push(format!(
-                    "stage {i} deconvolve ({}, {iterations}, kernel: {kernel}): worst case {} flop \
-                     per return segment of <= {} samples",
-                    c.method.name(),
-                    grouped(w.flops),
-                    w.samples
-                ));
-            }
-            StageConfig::Decompose(c) => lines.push(format!(
-                "stage {i} decompose: at most {} Levenberg-Marquardt steps and {} components per \
-                 return segment of <= {} samples",
-                c.max_iterations, c.max_components, c.max_samples
-            )),
-            _ => {}
+        for line in stage.as_kind().cost_lines() {
+            lines.push(format!("stage {i} {line}"));
         }
     }
     lines
@@ -159,14 +118,6 @@ pub fn stage_costs(stages: &[StageConfig]) -> Vec<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn grouped_digits() {
-        assert_eq!(grouped(0), "0");
-        assert_eq!(grouped(999), "999");
-        assert_eq!(grouped(1000), "1 000");
-        assert_eq!(grouped(1_860_770), "1 860 770");
-    }
 
     #[test]
     fn validate_any_decides_by_top_level_tables() {

@@ -7,7 +7,6 @@
 //! found, printed one per line as `FILE:LINE:COL: field.path: reason`.
 
 pub mod run;
-mod stages;
 #[cfg(test)]
 mod tests;
 

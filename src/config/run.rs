@@ -7,7 +7,7 @@ use crate::core::sensor::SensorFile;
 use crate::core::toml_load::load_file;
 use crate::core::validate::{Validate, Validator, field, index};
 use crate::pipeline::edge::FullPolicy;
-use crate::pipeline::registry::StageConfig;
+use crate::stages::StageConfig;
 
 /// Smallest edge capacity, pulses (one in flight, one being filled).
 pub const MIN_QUEUE_CAPACITY: usize = 2;
@@ -30,9 +30,9 @@ pub struct RunConfig {
     /// Outputs.
     #[serde(default)]
     pub output: OutputConfig,
-    /// Georeferencing from the navigation stream (`src/geo/georeferencing_source.rs`).
+    /// Georeferencing from the navigation stream (`src/source/georeferencing.rs`).
     #[serde(default)]
-    pub georeference: crate::geo::georeferencing_source::GeoreferenceConfig,
+    pub georeference: crate::source::georeferencing::GeoreferenceConfig,
     /// Navigation inputs and their time handling.
     #[serde(default)]
     pub navigation: NavigationConfig,
@@ -330,12 +330,11 @@ impl Validate for RunConfig {
         self.voxels.validate(&field(path, "voxels"), v);
         self.daemon.validate(&field(path, "daemon"), v);
         for (i, stage) in self.pipeline.stages.iter().enumerate() {
-            if let crate::pipeline::registry::StageConfig::Metrics(m) = stage
-                && m.ground == crate::forest::pulse_metrics::GroundFrom::Dem
+            if let Some(key) = stage.as_kind().needs_dem()
                 && self.georeference.dem.is_none()
             {
                 v.report(
-                    format!("{}.stages[{i}].ground", field(path, "pipeline")),
+                    format!("{}.stages[{i}].{key}", field(path, "pipeline")),
                     "\"dem\" needs a DEM: set [georeference] dem",
                 );
             }

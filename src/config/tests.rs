@@ -355,7 +355,7 @@ fn config_overrides_change_the_loaded_value() {
     assert_eq!(c.pipeline.workers, 3);
     assert!(!c.voxels.enabled);
     let taps = |c: &RunConfig| match &c.pipeline.stages[1] {
-        crate::pipeline::registry::StageConfig::Deconvolve(d) => d.max_taps,
+        crate::stages::StageConfig::Deconvolve(d) => d.max_taps,
         other => panic!("stage 1 is {other:?}"),
     };
     assert_eq!((taps(&base), taps(&c)), (96, 128));
@@ -364,7 +364,7 @@ fn config_overrides_change_the_loaded_value() {
     back.output.las = false;
     back.pipeline.workers = 2;
     back.voxels.enabled = base.voxels.enabled;
-    if let crate::pipeline::registry::StageConfig::Deconvolve(d) = &mut back.pipeline.stages[1] {
+    if let crate::stages::StageConfig::Deconvolve(d) = &mut back.pipeline.stages[1] {
         d.max_taps = 96;
     }
     assert_eq!(back, base);

@@ -16,7 +16,7 @@ pub const HALF_C_M_PER_NS: f64 = C_M_PER_NS / 2.0;
 
 /// Range per ns of two-way travel time in a medium of refractive index `n` (1 = vacuum; air at
 /// sea level is about 1.000 29), m/ns: c / (2 n).
-pub fn half_c_in_m_per_ns(refractive_index: f64) -> f64 {
+pub const fn half_c_in_m_per_ns(refractive_index: f64) -> f64 {
     C_M_PER_NS / (2.0 * refractive_index)
 }
 

@@ -17,6 +17,7 @@
 pub mod config;
 pub mod disk;
 pub mod frames;
+pub mod inputs;
 pub mod recorder;
 pub mod sampler;
 

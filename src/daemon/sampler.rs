@@ -12,12 +12,12 @@ use std::time::Instant;
 
 use super::recorder::RecorderState;
 use super::{DaemonConfig, InputState, disk, now_ns};
-use crate::pipeline::registry::StageConfig;
 use crate::pipeline::stage::{DropCounts, Emitter, Stage};
 use crate::pipeline::telemetry::{LatencyHistogram, StageTelemetry};
 use crate::pipeline::{LivePublish, RunControl};
 use crate::pulse::{Pulse, PulsePool, SegmentKind};
 use crate::qc::*;
+use crate::stages::StageConfig;
 
 /// Upper bounds of the latency histogram buckets, seconds (1 µs … 1 s, then +∞).
 pub const BUCKETS_S: [f64; 20] = [
@@ -660,7 +660,11 @@ struct WaveformViewer {
 impl WaveformViewer {
     fn new(configs: &[StageConfig]) -> Self {
         WaveformViewer {
-            stages: configs.iter().map(|c| (c.kind(), c.build())).collect(),
+            // Built once already when the run was put together (`stages::Chain::prepare`).
+            stages: configs
+                .iter()
+                .filter_map(|c| Some((c.kind(), c.build().ok()?)))
+                .collect(),
             pool: PulsePool::new(4),
             last: None,
         }

@@ -22,7 +22,6 @@ use crate::eval::metrics::{
 use crate::eval::tradeoff::percentile;
 use crate::format::{CaptureHeader, CaptureWriter, FlushPolicy};
 use crate::geo::crs::OutputCrs;
-use crate::geo::georeferencing_source::{GeoreferenceConfig, GeoreferencingSource};
 use crate::pipeline::ports::SourceEvent;
 use crate::pulse::{Pulse, PulseGeometry, SegmentKind};
 use crate::signal::deconvolve::{
@@ -35,6 +34,7 @@ use crate::sim::truth::gaussian_pulse;
 use crate::sim::world::WorldItems;
 use crate::sim::world::flight::Frames;
 use crate::sim::world::scene::Origin;
+use crate::source::georeferencing::{GeoreferenceConfig, GeoreferencingSource};
 use crate::voxel::grid::{Grid, Placer, VoxelConfig};
 use crate::voxel::tiles::TileSet;
 use crate::voxel::voxelise::{DepositParams, DepositStats, deposit_pulse};

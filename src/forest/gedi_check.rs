@@ -10,11 +10,10 @@ use std::path::Path;
 
 use hdf5_reader::Hdf5File;
 
-use crate::forest::pulse_metrics::{
-    MetricsComputer, MetricsConfig, WaveformInput, WaveformMetrics,
-};
+use crate::forest::pulse_metrics::{MetricsComputer, MetricsConfig, WaveformInput};
 use crate::format::gedi::{GediError, GediL1b};
 use crate::pulse::PulseGeometry;
+use crate::pulse::waveform_metrics::WaveformMetrics;
 
 /// One shot: ours and GEDI's.
 #[derive(Clone, Debug)]

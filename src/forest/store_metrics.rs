@@ -31,7 +31,7 @@
 //!   above it);
 //! - the canopy height (`canopy_height`, CHM) is RH100, as in the run's rasters.
 //!
-//! Products (`crate::sink::metrics_rasters::write_rasters`, the same COG + VRT writer as a run):
+//! Products (`crate::forest::products::write_rasters`, the same COG + VRT writer as a run):
 //! `chm.vrt` (one band, `canopy_height`, per `cell_m` cell) and `metrics.vrt` (per
 //! `profile_cell_m` cell: `rh25`, `rh50`, `rh75`, `rh98`, `rh100`, `cover`, `pai`, `fhd`,
 //! `ground_sigma_m`, `energy_lowest_m`, `ground_z`, `pulse_density`). Raster tiles are 512 × 512
@@ -44,14 +44,12 @@
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 
-use super::pulse_metrics::{
-    HALF_C_M_PER_NS, MAX_METRIC_SAMPLES, MetricsComputer, MetricsConfig, MetricsStatus,
-    WaveformInput, WaveformMetrics,
-};
-use crate::raster::{CellGrid, CellStat, RasterError};
-use crate::sink::metrics_rasters::{
-    PROFILE_BANDS, ProfileBand, epsg_of, profile_values, write_rasters,
-};
+use super::pulse_metrics::{MAX_METRIC_SAMPLES, MetricsComputer, MetricsConfig, WaveformInput};
+use crate::core::units::HALF_C_M_PER_NS;
+use crate::forest::products::{PROFILE_BANDS, profile_bands, profile_values, write_rasters};
+use crate::geo::crs::epsg_of;
+use crate::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
+use crate::raster::{CellGrid, RasterError};
 use crate::voxel::grid::{Grid, Placer};
 use crate::voxel::tile::TileData;
 use crate::voxel::zarr::{StoreError, ZarrStore};
@@ -443,17 +441,7 @@ pub fn compute_store_metrics(
             report.tiles_read, report.columns
         )));
     }
-    let bands: Vec<ProfileBand> = PROFILE_BANDS
-        .iter()
-        .chain(&STORE_EXTRA_BANDS)
-        .enumerate()
-        .map(|(i, &(name, unit))| ProfileBand {
-            name,
-            unit,
-            grid: i,
-            stat: CellStat::Mean,
-        })
-        .collect();
+    let bands = profile_bands(&STORE_EXTRA_BANDS);
     report.raster_tiles = {
         let (a, b) = write_rasters(out_dir, epsg, &out.chm, &out.profile, &bands)?;
         [a, b]

@@ -17,12 +17,11 @@
 
 use std::path::Path;
 
-use crate::forest::pulse_metrics::{
-    MetricsComputer, MetricsConfig, MetricsStatus, WaveformInput, WaveformMetrics,
-};
+use crate::forest::products::{format_row, header};
+use crate::forest::pulse_metrics::{MetricsComputer, MetricsConfig, WaveformInput};
 use crate::pulse::PulseGeometry;
+use crate::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
 use crate::signal::denoise::robust_level_and_sigma;
-use crate::sink::pulse_metrics_csv::{format_row, header};
 
 /// Errors of the geometry table.
 #[derive(Debug, thiserror::Error)]
@@ -333,7 +332,7 @@ mod tests {
         let n = 200;
         let gauss = |i: usize, c: f64, a: f64| a * (-0.5 * ((i as f64 - c) / 2.0).powi(2)).exp();
         let ground_bin = 150.0;
-        let canopy_bin = ground_bin - 10.0 / 0.149_896_229;
+        let canopy_bin = ground_bin - 10.0 / crate::core::units::HALF_C_M_PER_NS;
         let mut y: Vec<f32> = (0..n)
             .map(|i| (200.0 + gauss(i, canopy_bin, 60.0) + gauss(i, ground_bin, 120.0)) as f32)
             .collect();
@@ -356,7 +355,7 @@ mod tests {
         assert!((m.rh[98] - 10.0).abs() < 1.0, "{}", m.rh[98]);
         assert!(m.cover > 0.0 && m.cover < 1.0);
         // 30° off nadir: vertical metres per ns = c/2 cos 30°.
-        let c2 = 0.149_896_229f64;
+        let c2 = crate::core::units::HALF_C_M_PER_NS;
         let th = 30f64.to_radians();
         let g = PulseGeometry {
             anchor: [100.0, 200.0, 500.0],

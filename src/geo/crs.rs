@@ -60,6 +60,19 @@ fn geocentric() -> &'static Proj {
     })
 }
 
+/// The EPSG code of a CRS given as `EPSG:<code>` or as WKT with an EPSG identifier (the last
+/// one: the CRS's own, after those of its parts).
+pub fn epsg_of(crs: &str) -> Option<u32> {
+    let t = crs.trim();
+    if let Some(code) = t.strip_prefix("EPSG:") {
+        return code.trim().parse().ok();
+    }
+    let at = t.rfind("\"EPSG\",")?;
+    let rest = t[at + 7..].trim_start().trim_start_matches('"');
+    let digits: String = rest.chars().take_while(|c| c.is_ascii_digit()).collect();
+    digits.parse().ok()
+}
+
 /// The EPSG code of the WGS84 UTM zone containing (`lat`, `lon`) degrees: 326zz north, 327zz
 /// south, with the Norway and Svalbard exceptions of the UTM grid.
 pub fn utm_epsg(lat: f64, lon: f64) -> u32 {
@@ -268,6 +281,24 @@ fn geodetic_of_ecef_proj(x: [f64; 3]) -> [f64; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn epsg_from_code_or_wkt() {
+        assert_eq!(epsg_of("EPSG:32618"), Some(32618));
+        assert_eq!(
+            epsg_of(
+                r#"PROJCRS["WGS 84 / UTM zone 18N",BASEGEOGCRS["WGS 84",ID["EPSG",4326]],ID["EPSG",32618]]"#
+            ),
+            Some(32618)
+        );
+        assert_eq!(
+            epsg_of(
+                r#"PROJCS["x",GEOGCS["y",AUTHORITY["EPSG","4326"]],AUTHORITY["EPSG","32736"]]"#
+            ),
+            Some(32736)
+        );
+        assert_eq!(epsg_of("LOCAL_CS[\"x\"]"), None);
+    }
 
     #[test]
     fn utm_zones_including_the_exceptions() {

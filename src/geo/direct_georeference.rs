@@ -31,11 +31,9 @@
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 
 use super::crs::{GeoError, OutputCrs, ecef_of, geodetic_of_ecef};
+use crate::core::units::C_M_PER_S;
 use crate::nav::trajectory::{Geodetic, radii};
 use crate::pulse::PulseGeometry;
-
-/// Speed of light in vacuum, metres per second.
-pub const C_MPS: f64 = 299_792_458.0;
 
 /// The sensor mounting and the air, as the georeference needs them.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -52,7 +50,7 @@ pub struct Mounting {
 impl Mounting {
     /// Metres along the beam per nanosecond of two-way travel time.
     pub fn metres_per_ns(&self) -> f64 {
-        C_MPS * 1e-9 / (2.0 * self.refractive_index)
+        C_M_PER_S * 1e-9 / (2.0 * self.refractive_index)
     }
 }
 
@@ -231,7 +229,7 @@ mod tests {
         )
         .unwrap();
         let d = g.geometry.direction;
-        let per_ns = C_MPS * 1e-9 / 2.0;
+        let per_ns = C_M_PER_S * 1e-9 / 2.0;
         assert!(d[0].abs() < 1e-9 && d[1].abs() < 1e-9, "{d:?}");
         // Down, by c/2 per ns (heights are ellipsoidal: straight down is −h).
         assert!((d[2] + per_ns).abs() < 1e-6, "{d:?}");
@@ -377,6 +375,6 @@ mod tests {
             refractive_index: 1.00027,
             ..mount()
         };
-        assert!((m.metres_per_ns() - 0.149_896_229 / 1.00027).abs() < 1e-9);
+        assert!((m.metres_per_ns() - crate::core::units::HALF_C_M_PER_NS / 1.00027).abs() < 1e-9);
     }
 }

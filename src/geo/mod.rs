@@ -10,6 +10,4 @@ pub mod dem;
 /// Direct georeferencing of one pulse (pose, scan angles, lever arm, boresight → geometry).
 pub mod direct_georeference;
 /// The source wrapper that georeferences a pulse stream from its navigation stream.
-pub mod georeferencing_source;
-
 pub use crs::{GeoError, OutputCrs, ecef_of, geodetic_of_ecef, utm_epsg};

@@ -2,13 +2,11 @@
 
 pub mod edge;
 pub mod ports;
-pub mod registry;
 pub mod runner;
 pub mod stage;
 pub mod telemetry;
 pub mod testing;
-pub mod warnings;
 
 pub use ports::{NavChunk, NavConsumer, PulseSink, SinkError, Source, SourceError, SourceEvent};
 pub use runner::{LivePublish, PipelineSpec, RunControl, RunReport, run};
-pub use stage::{DropCounts, Emitter, Passthrough, Stage, StageError};
+pub use stage::{DropCounts, Emitter, Stage, StageError};

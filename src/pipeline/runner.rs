@@ -27,7 +27,6 @@ use crate::pipeline::edge::FullPolicy;
 use crate::pipeline::edge::{EdgeRx, EdgeTx, Sent, edge};
 use crate::pipeline::ports::{NavChunk, Source, SourceEvent};
 use crate::pipeline::ports::{NavConsumer, PulseSink};
-use crate::pipeline::registry::StageConfig;
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pipeline::telemetry::{LatencyHistogram, LatencySummary, StageReport, StageTelemetry};
 use crate::pulse::{Pulse, PulsePool};
@@ -51,26 +50,6 @@ pub struct PipelineSpec {
     pub stages: StageFactory,
     /// Stage kind names, in order (for reports when no worker ran).
     pub stage_names: Vec<&'static str>,
-}
-
-impl PipelineSpec {
-    /// A spec from configured stages. `workers == 0` means one per core (at least 1).
-    pub fn from_config(
-        workers: usize,
-        queue_capacity: usize,
-        input_policy: FullPolicy,
-        stages: Vec<StageConfig>,
-    ) -> Self {
-        let names = stages.iter().map(|s| s.kind()).collect();
-        let stages = Arc::new(stages);
-        PipelineSpec {
-            workers: resolve_workers(workers),
-            queue_capacity,
-            input_policy,
-            stages: Arc::new(move || stages.iter().map(|s| s.build()).collect()),
-            stage_names: names,
-        }
-    }
 }
 
 /// `0` → one worker per core, at least 1 (replay; the daemon uses [`resolve_live_workers`]).
@@ -196,10 +175,6 @@ pub struct RunReport {
     pub wall_time_s: f64,
     /// Pulses written per second of wall time.
     pub pulses_per_s: f64,
-    /// What made the output empty or thinned it by more than a stated share, with the setting
-    /// to change (`pipeline::warnings`); filled by the command after the run, empty from
-    /// [`run`] itself.
-    pub warnings: Vec<crate::pipeline::warnings::RunWarning>,
 }
 
 /// What a worker sends to the sink: the outputs of one input pulse, the last of them marked
@@ -549,7 +524,6 @@ pub fn run(
             } else {
                 0.0
             },
-            warnings: Vec::new(),
         }
     })
 }

@@ -5,7 +5,7 @@
 //! a counted reason ([`Emitter::drop_pulse`]) or counted as an error ([`Emitter::reject`]); only a
 //! condition that makes every further pulse meaningless is a fatal [`StageError`].
 
-use crate::pulse::{Pulse, PulsePool};
+use crate::pulse::{Pulse, PulsePool, Verdict};
 
 /// A fatal stage failure: the pipeline stops and reports it.
 #[derive(Debug, thiserror::Error)]
@@ -113,6 +113,21 @@ impl<'a> Emitter<'a> {
         }
     }
 
+    /// Hands a pulse on as a method's [`Verdict`] says: passed on (its notes counted),
+    /// dropped or rejected under the reason.
+    pub fn give(&mut self, pulse: Box<Pulse>, verdict: Verdict) {
+        match verdict {
+            Verdict::Keep(notes) => {
+                for note in notes.into_iter().flatten() {
+                    self.note(note);
+                }
+                self.emit(pulse);
+            }
+            Verdict::Drop(reason) => self.drop_pulse(pulse, reason),
+            Verdict::Reject(reason) => self.reject(pulse, reason),
+        }
+    }
+
     /// Passes a pulse on to the next stage.
     pub fn emit(&mut self, pulse: Box<Pulse>) {
         self.out.push(pulse);
@@ -151,22 +166,6 @@ pub trait Stage: Send {
 
     /// Emits anything still held at the end of the stream.
     fn flush(&mut self, _out: &mut Emitter<'_>) -> Result<(), StageError> {
-        Ok(())
-    }
-}
-
-/// The identity stage: emits every pulse unchanged. Used to measure the runtime's own overhead
-/// and as the simplest example of the contract.
-#[derive(Debug, Default, Clone, Copy)]
-pub struct Passthrough;
-
-impl Stage for Passthrough {
-    fn name(&self) -> &'static str {
-        "passthrough"
-    }
-
-    fn process(&mut self, pulse: Box<Pulse>, out: &mut Emitter<'_>) -> Result<(), StageError> {
-        out.emit(pulse);
         Ok(())
     }
 }

@@ -73,6 +73,19 @@ impl SyntheticSource {
         }
     }
 
+    /// The `count` pulses such a source produces, as owned pulses (for [`run_stage`]).
+    pub fn pulses(count: u64) -> Vec<Pulse> {
+        let pool = PulsePool::new(4);
+        let mut source = SyntheticSource::new(count);
+        let mut out = Vec::new();
+        while let Ok(crate::pipeline::ports::SourceEvent::Pulse(p)) =
+            crate::pipeline::ports::Source::next(&mut source, &pool)
+        {
+            out.push(*p);
+        }
+        out
+    }
+
     /// A source of `count` pulses without segments: measures the runtime alone.
     pub fn empty(count: u64) -> Self {
         SyntheticSource {

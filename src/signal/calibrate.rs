@@ -50,12 +50,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::core::facts::SourceFacts;
-use crate::pipeline::stage::{Emitter, Stage, StageError};
-use crate::pulse::{Calibration, Pulse, SegmentKind};
+use crate::pulse::{Calibration, Pulse, SegmentKind, Verdict};
 use crate::signal::kernel::{KERNEL_BASELINE_SAMPLES, peak_index};
-
-/// Speed of light in vacuum, metres per nanosecond.
-pub const SPEED_OF_LIGHT_M_PER_NS: f64 = 0.299_792_458;
 
 /// What the stage does with a pulse one of whose factors cannot be computed.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -207,7 +203,7 @@ impl CalibrateConfig {
 
     /// Metres of range per nanosecond of two-way time, `c / (2 n)`.
     pub fn metres_per_ns(&self) -> f64 {
-        SPEED_OF_LIGHT_M_PER_NS / (2.0 * self.refractive_index)
+        crate::core::units::half_c_in_m_per_ns(self.refractive_index)
     }
 }
 
@@ -255,21 +251,18 @@ pub fn outgoing_facts(x: &[f32], start_ns: f64, sample_ns: f64) -> Option<Outgoi
     })
 }
 
-/// The calibrate stage.
+/// The radiometric calibration of whole pulses (what the `calibrate` stage runs).
 pub struct Calibrate {
     config: CalibrateConfig,
     metres_per_ns: f64,
-    /// The configuration's error, reported as fatal by the first `process` call.
-    fault: Option<CalibrateError>,
 }
 
 impl Calibrate {
-    /// Builds the stage. Never fails: an invalid configuration is reported as a fatal error by
-    /// the first `process` call (see [`Calibrate::try_new`]).
+    /// Builds the calibration for a configuration the caller has checked
+    /// ([`Calibrate::try_new`] checks it).
     pub fn new(config: CalibrateConfig) -> Self {
         Calibrate {
             metres_per_ns: config.metres_per_ns(),
-            fault: config.validate().err(),
             config,
         }
     }
@@ -286,26 +279,18 @@ impl Calibrate {
     }
 }
 
-/// Why a pulse was not calibrated in full.
-enum Outcome {
-    /// Calibrated; notes (at most three) for the factors left out.
-    Pass([Option<&'static str>; 3]),
-    /// Dropped under the reason.
-    Drop(&'static str),
-    /// Rejected (unreadable) under the reason.
-    Reject(&'static str),
-}
-
 impl Calibrate {
-    fn calibrate(&self, p: &mut Pulse) -> Outcome {
+    /// Calibrates `p` (what the `calibrate` stage does to each pulse): [`Pulse::calibration`]
+    /// set and every return's backscatter computed; notes for the factors left out.
+    pub fn calibrate(&self, p: &mut Pulse) -> Verdict {
         let c = &self.config;
         let n = p.raw.len();
         if p.segments.iter().any(|s| s.range().end > n) {
-            return Outcome::Reject("segment_out_of_bounds");
+            return Verdict::Reject("segment_out_of_bounds");
         }
         if p.signal.len() != n {
             if !p.signal.is_empty() {
-                return Outcome::Reject("signal_length_mismatch");
+                return Verdict::Reject("signal_length_mismatch");
             }
             let Pulse {
                 raw,
@@ -316,7 +301,7 @@ impl Calibrate {
             } = p;
             if c.volts {
                 if !(gain_v_per_dn.is_finite() && offset_v.is_finite()) {
-                    return Outcome::Reject("bad_digitizer_parameters");
+                    return Verdict::Reject("bad_digitizer_parameters");
                 }
                 let (g, o) = (*gain_v_per_dn, *offset_v);
                 signal.extend(raw.iter().map(|&v| o + g * v as f32));
@@ -325,7 +310,7 @@ impl Calibrate {
             }
         }
         if !(p.sample_ns.is_finite() && p.sample_ns > 0.0) {
-            return Outcome::Reject("bad_digitizer_parameters");
+            return Verdict::Reject("bad_digitizer_parameters");
         }
         let outgoing = p
             .segments
@@ -344,7 +329,7 @@ impl Calibrate {
                 Some(o) => emission_ns = o.peak_ns,
                 None if c.t0_is_emission == Some(true) => emission_ns = 0.0,
                 None => match c.range_unknown {
-                    UnknownPolicy::Drop => return Outcome::Drop("range_unknown"),
+                    UnknownPolicy::Drop => return Verdict::Drop("range_unknown"),
                     UnknownPolicy::Unscaled => {
                         range_normalised = false;
                         notes[0] = Some("range_unknown");
@@ -368,7 +353,7 @@ impl Calibrate {
             };
             if let Some(reason) = problem {
                 match c.energy_unknown {
-                    UnknownPolicy::Drop => return Outcome::Drop(reason),
+                    UnknownPolicy::Drop => return Verdict::Drop(reason),
                     UnknownPolicy::Unscaled => notes[1] = Some(reason),
                 }
             }
@@ -390,34 +375,7 @@ impl Calibrate {
         if before_emission {
             notes[2] = Some("return_before_emission");
         }
-        Outcome::Pass(notes)
-    }
-}
-
-impl Stage for Calibrate {
-    fn name(&self) -> &'static str {
-        "calibrate"
-    }
-
-    fn process(&mut self, mut pulse: Box<Pulse>, out: &mut Emitter<'_>) -> Result<(), StageError> {
-        if let Some(e) = &self.fault {
-            out.drop_pulse(pulse, "invalid_configuration");
-            return Err(StageError::Fatal {
-                stage: "calibrate",
-                message: e.to_string(),
-            });
-        }
-        match self.calibrate(&mut pulse) {
-            Outcome::Pass(notes) => {
-                for note in notes.into_iter().flatten() {
-                    out.note(note);
-                }
-                out.emit(pulse);
-            }
-            Outcome::Drop(reason) => out.drop_pulse(pulse, reason),
-            Outcome::Reject(reason) => out.reject(pulse, reason),
-        }
-        Ok(())
+        Verdict::Keep(notes)
     }
 }
 

@@ -48,8 +48,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::pipeline::stage::{Emitter, Stage, StageError};
-use crate::pulse::{FittedReturn, Pulse, SegmentKind};
+use crate::pulse::{FittedReturn, Pulse, SegmentKind, Verdict};
 use crate::signal::gauss_fit::{Bounds, GaussFitter, Gaussian, MAX_COMPONENTS};
 use crate::signal::peaks::{Peak, PeakFinder, PeakRule, PeakSettings};
 
@@ -670,7 +669,8 @@ fn half_width(y: &[f32], i: usize) -> f32 {
     if w > 0.0 { w } else { 1.0 }
 }
 
-/// The decomposition stage: fills [`Pulse::returns`] from every return segment.
+/// Decomposes whole pulses (what the `decompose` stage runs): fills [`Pulse::returns`] from
+/// every return segment.
 pub struct Decompose {
     decomposer: Decomposer,
     max_samples: usize,
@@ -689,15 +689,13 @@ impl Decompose {
     }
 }
 
-impl Stage for Decompose {
-    fn name(&self) -> &'static str {
-        "decompose"
-    }
-
-    fn process(&mut self, mut pulse: Box<Pulse>, out: &mut Emitter<'_>) -> Result<(), StageError> {
+impl Decompose {
+    /// Fills [`Pulse::returns`] from every return segment of a denoised `pulse` (what the
+    /// `decompose` stage does to each pulse): dropped `not_denoised`, `segment_too_long`;
+    /// rejected `segment_out_of_bounds`, `non_finite_input`.
+    pub fn decompose_pulse(&mut self, pulse: &mut Pulse) -> Verdict {
         if pulse.signal.len() != pulse.raw.len() {
-            out.drop_pulse(pulse, "not_denoised");
-            return Ok(());
+            return Verdict::Drop("not_denoised");
         }
         let n = pulse.signal.len();
         if pulse
@@ -705,18 +703,16 @@ impl Stage for Decompose {
             .iter()
             .any(|s| s.first as usize + s.len as usize > n)
         {
-            out.reject(pulse, "segment_out_of_bounds");
-            return Ok(());
+            return Verdict::Reject("segment_out_of_bounds");
         }
         if pulse
             .segments
             .iter()
             .any(|s| s.kind == SegmentKind::Return && s.len as usize > self.max_samples)
         {
-            out.drop_pulse(pulse, "segment_too_long");
-            return Ok(());
+            return Verdict::Drop("segment_too_long");
         }
-        let p = &mut *pulse;
+        let p = pulse;
         p.returns.clear();
         let noise_v = p.noise.noise_v;
         let counts = self.decomposer.config.baseline == DecomposeBaseline::RecordMinimumMinusOne;
@@ -751,13 +747,9 @@ impl Stage for Decompose {
             };
             match fitted {
                 Ok(_) => {}
-                Err(DecomposeError::NonFiniteInput) => {
-                    out.reject(pulse, "non_finite_input");
-                    return Ok(());
-                }
+                Err(DecomposeError::NonFiniteInput) => return Verdict::Reject("non_finite_input"),
                 Err(DecomposeError::SegmentTooLong { .. }) => {
-                    out.drop_pulse(pulse, "segment_too_long");
-                    return Ok(());
+                    return Verdict::Drop("segment_too_long");
                 }
             }
             for r in &self.scratch {
@@ -768,15 +760,14 @@ impl Stage for Decompose {
                 });
             }
         }
-        out.emit(pulse);
-        Ok(())
+        Verdict::DONE
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pipeline::testing::run_stage;
+    use crate::pulse::testing::apply;
     use crate::signal::denoise::{Denoise, DenoiseConfig};
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
@@ -880,12 +871,14 @@ mod tests {
                 p
             })
             .collect();
-        run_stage(&mut Denoise::new(DenoiseConfig::default()), pulses)
-            .unwrap()
-            .emitted
-            .into_iter()
-            .map(|p| *p)
-            .collect()
+        {
+            let mut m = Denoise::new(DenoiseConfig::default());
+            apply(pulses, |p| m.denoise_pulse(p))
+        }
+        .emitted
+        .into_iter()
+        .map(|p| *p)
+        .collect()
     }
 
     #[test]
@@ -902,24 +895,28 @@ mod tests {
         let noise_v = noise.iter().map(|p| p.noise.noise_v).sum::<f32>() / 200.0;
         assert!((noise_v - 4.0).abs() < 0.5, "noise_v {noise_v}");
         let with_returns = |cfg: DecomposeConfig, pulses: &[Pulse]| {
-            run_stage(&mut Decompose::new(cfg), pulses.iter().map(copy_pulse))
-                .unwrap()
-                .emitted
-                .iter()
-                .filter(|p| {
-                    p.returns
-                        .iter()
-                        .any(|r| (r.position_bins - 128.0).abs() <= 6.8)
-                })
-                .count()
+            {
+                let mut m = Decompose::new(cfg);
+                apply(pulses.iter().map(copy_pulse), |p| m.decompose_pulse(p))
+            }
+            .emitted
+            .iter()
+            .filter(|p| {
+                p.returns
+                    .iter()
+                    .any(|r| (r.position_bins - 128.0).abs() <= 6.8)
+            })
+            .count()
         };
         let any_return = |cfg: DecomposeConfig| {
-            run_stage(&mut Decompose::new(cfg), noise.iter().map(copy_pulse))
-                .unwrap()
-                .emitted
-                .iter()
-                .filter(|p| !p.returns.is_empty())
-                .count()
+            {
+                let mut m = Decompose::new(cfg);
+                apply(noise.iter().map(copy_pulse), |p| m.decompose_pulse(p))
+            }
+            .emitted
+            .iter()
+            .filter(|p| !p.returns.is_empty())
+            .count()
         };
         // The old default, 3, fails the first requirement: this test can tell.
         let old = any_return(DecomposeConfig {
@@ -1108,8 +1105,7 @@ mod tests {
             max_samples: 256,
             ..Default::default()
         });
-        let run = run_stage(
-            &mut stage,
+        let run = apply(
             [
                 good,
                 not_denoised,
@@ -1119,8 +1115,8 @@ mod tests {
                 too_long,
                 no_segments,
             ],
-        )
-        .unwrap();
+            |p| stage.decompose_pulse(p),
+        );
         assert_eq!(run.emitted.len(), 2);
         assert_eq!(run.dropped.get("not_denoised"), 1);
         assert_eq!(run.dropped.get("non_finite_input"), 2);
@@ -1245,7 +1241,11 @@ mod tests {
             };
             let mut q = copy_pulse(&p);
             q.gain_v_per_dn = p.gain_v_per_dn;
-            run_stage(&mut Decompose::new(config), [q]).unwrap().emitted[0]
+            {
+                let mut m = Decompose::new(config);
+                apply([q], |p| m.decompose_pulse(p))
+            }
+            .emitted[0]
                 .returns
                 .clone()
         };
@@ -1283,13 +1283,5 @@ mod tests {
             d.fit_counts(&[200; 300], 198, 0.5, 0.5, &mut b),
             Err(DecomposeError::SegmentTooLong { .. })
         ));
-    }
-
-    #[test]
-    fn stage_is_registered() {
-        let c: crate::pipeline::registry::StageConfig =
-            toml::from_str("type = \"decompose\"\nmin_snr = 4.0").unwrap();
-        assert_eq!(c.kind(), "decompose");
-        assert_eq!(c.build().name(), "decompose");
     }
 }

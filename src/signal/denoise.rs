@@ -1,4 +1,4 @@
-//! The denoise stage: digitizer counts to volts, baseline and noise level per pulse, the seed's
+//! Noise reduction (the `denoise` stage's method): digitizer counts to volts, baseline and noise level per pulse, the seed's
 //! level shift, and a low-pass (seed default cut-off 0.2 GHz at 1 ns sampling): the seed's FFT
 //! brick wall (the default) or a short FIR.
 //!
@@ -59,9 +59,10 @@
 //! configuration/sensor mismatch, not bad data), `bad_digitizer_parameters` (rejected: a
 //! non-finite gain or offset, or a non-finite or non-positive sample interval) and
 //! `segment_out_of_bounds` (rejected: a segment indexes past the raw samples).
-//! A cut-off that is not a positive finite number makes every pulse meaningless: [`Denoise::new`]
-//! does not fail (the registry builds it infallibly), but [`Stage::process`] then returns a fatal
-//! [`StageError`]. Call [`DenoiseConfig::validate`] (or [`Denoise::try_new`]) to catch it early.
+//! A cut-off that is not a positive finite number makes every pulse meaningless: the pipeline
+//! refuses such a configuration when it is loaded, and [`Denoise::try_new`] (what the stage,
+//! `stages/denoise.rs`, builds with) refuses it; [`Denoise::new`] takes a configuration the
+//! caller has checked.
 //!
 //! Work per pulse is bounded (two FFTs of twice the segment length, or one FIR of at most
 //! `2 × MAX_FIR_HALF + 1` taps, a sort of at most `max_samples` counts or a histogram of at
@@ -76,8 +77,7 @@ use realfft::num_complex::Complex;
 use rustfft::{Fft, FftPlanner};
 use serde::{Deserialize, Serialize};
 
-use crate::pipeline::stage::{Emitter, Stage, StageError};
-use crate::pulse::{Pulse, SegmentKind};
+use crate::pulse::{Pulse, SegmentKind, Verdict};
 use crate::signal::deconvolve::direct::convolve_padded;
 
 /// Maximum number of upper-clipping rounds of the robust baseline estimate.
@@ -298,9 +298,8 @@ pub struct Denoise {
 }
 
 impl Denoise {
-    /// Builds the stage and sizes its buffers once for [`DenoiseConfig::max_samples`]. Never
-    /// fails: an invalid cut-off is reported as a fatal error by the first `process` call (see
-    /// [`Denoise::try_new`] for the checked constructor).
+    /// Builds the denoiser and sizes its buffers once for [`DenoiseConfig::max_samples`], for
+    /// a configuration the caller has checked ([`Denoise::try_new`] checks it).
     pub fn new(config: DenoiseConfig) -> Self {
         let max = config.max_samples;
         Denoise {
@@ -980,22 +979,14 @@ fn median_sorted<T: Copy + Into<f32>>(s: &[T]) -> f32 {
     }
 }
 
-impl Stage for Denoise {
-    fn name(&self) -> &'static str {
-        "denoise"
-    }
-
-    fn process(&mut self, mut pulse: Box<Pulse>, out: &mut Emitter<'_>) -> Result<(), StageError> {
-        if let Err(e) = self.config.validate() {
-            out.drop_pulse(pulse, "invalid_cutoff");
-            return Err(StageError::Fatal {
-                stage: "denoise",
-                message: e.to_string(),
-            });
-        }
+impl Denoise {
+    /// Denoises every segment of `pulse` into [`Pulse::signal`] and sets [`Pulse::noise`]
+    /// (see the module documentation); what the pipeline stage (`stages/denoise.rs`) does to
+    /// each pulse. A pulse it cannot use is dropped or rejected with the reasons listed in the
+    /// module documentation.
+    pub fn denoise_pulse(&mut self, pulse: &mut Pulse) -> Verdict {
         if pulse.segments.is_empty() {
-            out.drop_pulse(pulse, "no_segments");
-            return Ok(());
+            return Verdict::Drop("no_segments");
         }
         let sample_ns = pulse.sample_ns;
         if !pulse.gain_v_per_dn.is_finite()
@@ -1003,12 +994,10 @@ impl Stage for Denoise {
             || !sample_ns.is_finite()
             || sample_ns <= 0.0
         {
-            out.reject(pulse, "bad_digitizer_parameters");
-            return Ok(());
+            return Verdict::Reject("bad_digitizer_parameters");
         }
         if self.config.cutoff_ghz * sample_ns >= 0.5 {
-            out.drop_pulse(pulse, "cutoff_above_nyquist");
-            return Ok(());
+            return Verdict::Drop("cutoff_above_nyquist");
         }
         let n_raw = pulse.raw.len();
         if pulse
@@ -1016,21 +1005,18 @@ impl Stage for Denoise {
             .iter()
             .any(|s| s.first as usize + s.len as usize > n_raw)
         {
-            out.reject(pulse, "segment_out_of_bounds");
-            return Ok(());
+            return Verdict::Reject("segment_out_of_bounds");
         }
         if pulse
             .segments
             .iter()
             .any(|s| s.len as usize > self.config.max_samples)
         {
-            out.drop_pulse(pulse, "segment_too_long");
-            return Ok(());
+            return Verdict::Drop("segment_too_long");
         }
-
         let gain = pulse.gain_v_per_dn;
         let offset = pulse.offset_v;
-        let p = &mut *pulse;
+        let p = pulse;
         p.signal.clear();
         p.signal.resize(n_raw, 0.0);
         let mut return_samples = 0usize;
@@ -1076,8 +1062,7 @@ impl Stage for Denoise {
                 noise_v: 0.0,
             }
         };
-        out.emit(pulse);
-        Ok(())
+        Verdict::DONE
     }
 }
 
@@ -1094,7 +1079,7 @@ fn stated_noise_level(sigma: f32, cutoff_ghz: f64, sample_ns: f64) -> Option<f32
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pipeline::testing::run_stage;
+    use crate::pulse::testing::apply;
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -1332,7 +1317,7 @@ mod tests {
 
     fn denoise_one(config: DenoiseConfig, pulse: Pulse) -> Box<Pulse> {
         let mut stage = Denoise::new(config);
-        let mut run = run_stage(&mut stage, [pulse]).unwrap();
+        let mut run = apply([pulse], |p| stage.denoise_pulse(p));
         assert_eq!(run.emitted.len(), 1, "dropped: {:?}", run.dropped);
         run.emitted.pop().unwrap()
     }
@@ -1601,8 +1586,7 @@ mod tests {
             max_samples: 256,
             ..Default::default()
         });
-        let run = run_stage(
-            &mut stage,
+        let run = apply(
             [
                 good(),
                 empty,
@@ -1615,8 +1599,8 @@ mod tests {
                 out_of_bounds,
                 too_long,
             ],
-        )
-        .unwrap();
+            |p| stage.denoise_pulse(p),
+        );
         assert_eq!(run.emitted.len(), 1);
         assert_eq!(run.dropped.get("no_segments"), 1);
         assert_eq!(run.dropped.get("bad_digitizer_parameters"), 4);
@@ -1655,14 +1639,7 @@ mod tests {
                 config.validate(),
                 Err(DenoiseError::NonPositiveCutoff { .. })
             ));
-            assert!(Denoise::try_new(config.clone()).is_err());
-            let mut stage = Denoise::new(config);
-            let mut p = Pulse::default();
-            p.push_segment(SegmentKind::Return, 0, 0.0, [1u16; 16]);
-            assert!(matches!(
-                run_stage(&mut stage, [p]),
-                Err(StageError::Fatal { .. })
-            ));
+            assert!(Denoise::try_new(config).is_err());
         }
         assert!(Denoise::try_new(DenoiseConfig::default()).is_ok());
     }
@@ -1688,11 +1665,11 @@ mod tests {
     fn buffers_do_not_grow_after_the_first_pulse() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let mut stage = Denoise::new(DenoiseConfig::default());
-        run_stage(&mut stage, [realistic_pulse(&mut rng)]).unwrap();
+        apply([realistic_pulse(&mut rng)], |p| stage.denoise_pulse(p));
         let caps = stage.buffer_capacities();
         let plans = stage.plans.len();
         let pulses: Vec<Pulse> = (0..999).map(|_| realistic_pulse(&mut rng)).collect();
-        let run = run_stage(&mut stage, pulses).unwrap();
+        let run = apply(pulses, |p| stage.denoise_pulse(p));
         assert_eq!(run.emitted.len(), 999);
         assert_eq!(stage.buffer_capacities(), caps);
         assert_eq!(stage.plans.len(), plans, "no new FFT plans");
@@ -1848,10 +1825,10 @@ mod tests {
         }
         // Buffers do not grow on the FIR path either.
         let mut stage = Denoise::new(fir());
-        run_stage(&mut stage, [realistic_pulse(&mut rng)]).unwrap();
+        apply([realistic_pulse(&mut rng)], |p| stage.denoise_pulse(p));
         let caps = stage.buffer_capacities();
         let pulses: Vec<Pulse> = (0..50).map(|_| realistic_pulse(&mut rng)).collect();
-        run_stage(&mut stage, pulses).unwrap();
+        apply(pulses, |p| stage.denoise_pulse(p));
         assert_eq!(stage.buffer_capacities(), caps);
     }
 }

@@ -22,9 +22,6 @@ use crate::core::sensor::SensorProfile;
 use crate::pulse::{Pulse, SegmentKind};
 use crate::sim::scene::{NoiseConfig, Scene, SceneError};
 
-/// Speed of light in vacuum, metres per nanosecond.
-pub const SPEED_OF_LIGHT_M_PER_NS: f64 = 0.299_792_458;
-
 /// Ratio of a Gaussian's FWHM to its standard deviation, `2 sqrt(2 ln 2)`.
 pub const FWHM_PER_SIGMA: f64 = 2.354_820_045_030_949;
 
@@ -102,7 +99,7 @@ impl AnalyticSim {
         let sigma_ns = sensor.pulse_fwhm_ns / FWHM_PER_SIGMA;
         let outgoing_len = ((10.0 * sigma_ns / dt).ceil() as usize).max(1);
         let outgoing_start_ns = -((outgoing_len / 2) as f64) * dt;
-        let two_way = |range_m: f64| 2.0 * range_m / SPEED_OF_LIGHT_M_PER_NS;
+        let two_way = |range_m: f64| 2.0 * range_m / crate::core::units::C_M_PER_NS;
         let return_start_ns = two_way(scene.altitude_m - scene.window_top_m);
         let surface = |kind, height_m: f64, fraction: f64, reflectance: f64| {
             let range_m = scene.altitude_m - height_m;
@@ -276,7 +273,7 @@ impl AnalyticSim {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::test_support::test_sensor;
+    use crate::core::sensor::test_sensor;
 
     fn scene(noise: Option<f64>) -> Scene {
         Scene {
@@ -301,7 +298,7 @@ mod tests {
         let sim = AnalyticSim::new(&s, s.sensor.as_ref().unwrap()).unwrap();
         let ps = pulses(&s);
         assert_eq!(ps.len(), 20);
-        let c = SPEED_OF_LIGHT_M_PER_NS;
+        let c = crate::core::units::C_M_PER_NS;
         let sigma = 16.0 / 2.354_820_045;
         let start = 2.0 * (1000.0 - 25.0) / c;
         for (i, p) in ps.iter().enumerate() {

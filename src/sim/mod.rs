@@ -114,36 +114,9 @@ impl Iterator for SimItems {
 }
 
 #[cfg(test)]
-pub(crate) mod test_support {
-    use crate::core::sensor::SensorProfile;
-
-    /// A CAO-like inline sensor (the real profile file is maintained elsewhere): 16 ns FWHM,
-    /// 1 ns sampling, 8-bit, 50 kHz.
-    pub(crate) fn test_sensor() -> SensorProfile {
-        SensorProfile {
-            name: "test sensor (CAO-like)".into(),
-            wavelength_nm: 1064.0,
-            pulse_fwhm_ns: 16.0,
-            pulse_rate_hz: 50_000.0,
-            beam_divergence_mrad: 0.56,
-            sample_interval_ns: 1.0,
-            bits_per_sample: 8,
-            digitizer_gain_v_per_dn: 1.0,
-            digitizer_offset_v: 0.0,
-            noise_level_dn: Some(11.0),
-            nominal_altitude_m: Some(1000.0),
-            max_scan_angle_deg: None,
-            lever_arm_m: [0.1, 0.0, -0.2],
-            boresight_deg: [0.0; 3],
-            calibration_constant: 1.0,
-        }
-    }
-}
-
-#[cfg(test)]
 mod tests {
     use super::*;
-    use test_support::test_sensor;
+    use crate::core::sensor::test_sensor;
 
     #[test]
     fn items_come_in_time_order_and_navigation_brackets_the_pulses() {

@@ -535,7 +535,7 @@ impl crate::core::validate::Validate for SceneFile {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::test_support::test_sensor;
+    use crate::core::sensor::test_sensor;
 
     #[test]
     fn scene_round_trips_through_toml() {

@@ -38,57 +38,19 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
-use crate::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+use crate::forest::products::{
+    PROFILE_BANDS, PULSE_DENSITY_BAND, ProfileBand, chm_position, chm_raster, cog_options,
+    metrics_raster, profile_bands, profile_values, tile_path,
+};
+use crate::geo::crs::epsg_of;
 use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::Pulse;
-use crate::raster::cog::{CogOptions, write_cog};
-use crate::raster::grid::{CellGrid, CellStat};
+use crate::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
+use crate::raster::RasterError;
+use crate::raster::cog::write_cog;
+use crate::raster::grid::CellGrid;
 use crate::raster::vrt::{VrtTile, write_vrt};
-use crate::raster::{Raster, RasterError};
 use crate::voxel::tiles::CloseRule;
-
-/// Nodata value of the rasters.
-pub const NODATA: f32 = -9999.0;
-
-/// The bands of the profile-resolution raster: name, unit and how to read it from a pulse.
-pub const PROFILE_BANDS: [(&str, &str); 10] = [
-    ("rh25", "m"),
-    ("rh50", "m"),
-    ("rh75", "m"),
-    ("rh98", "m"),
-    ("rh100", "m"),
-    ("cover", "1"),
-    ("pai", "m2/m2"),
-    ("fhd", "1"),
-    ("ground_sigma_m", "m"),
-    ("energy_lowest_m", "1"),
-];
-
-/// The values of [`PROFILE_BANDS`] of one pulse's (or one cell's) metrics, in band order.
-pub fn profile_values(m: &WaveformMetrics) -> [f32; 10] {
-    [
-        m.rh[25],
-        m.rh[50],
-        m.rh[75],
-        m.rh[98],
-        m.rh[100],
-        m.cover,
-        m.pai,
-        m.fhd,
-        m.ground_sigma_m,
-        m.energy_lowest_m,
-    ]
-}
-
-/// Where a pulse's canopy height goes in the canopy height model: its canopy top's x, y
-/// (`top_xyz`), or the ground point's when the top has no position.
-pub fn chm_position(m: &WaveformMetrics) -> [f64; 2] {
-    if m.top_xyz[0].is_finite() && m.top_xyz[1].is_finite() {
-        [m.top_xyz[0], m.top_xyz[1]]
-    } else {
-        [m.ground_xyz[0], m.ground_xyz[1]]
-    }
-}
 
 /// Raster settings (`[output]`: `rasters`, `chm_cell_m`, `profile_cell_m`, `raster_tile_m`).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -115,19 +77,6 @@ pub enum RasterCrs {
     Known(Option<String>),
     /// Decided at the first position fix.
     Decided(Arc<OnceLock<String>>),
-}
-
-/// The EPSG code of a CRS given as `EPSG:<code>` or as WKT with an EPSG identifier (the last
-/// one: the CRS's own, after those of its parts).
-pub fn epsg_of(crs: &str) -> Option<u32> {
-    let t = crs.trim();
-    if let Some(code) = t.strip_prefix("EPSG:") {
-        return code.trim().parse().ok();
-    }
-    let at = t.rfind("\"EPSG\",")?;
-    let rest = t[at + 7..].trim_start().trim_start_matches('"');
-    let digits: String = rest.chars().take_while(|c| c.is_ascii_digit()).collect();
-    digits.parse().ok()
 }
 
 /// Counters of the raster tiles' lifecycle (`summary.json`: `sinks.metrics_rasters.tiles`).
@@ -200,22 +149,8 @@ pub struct MetricsRastersSink {
 impl MetricsRastersSink {
     /// Rasters into `out_dir/rasters` (created when the first tile closes).
     pub fn new(out_dir: &Path, settings: RasterSettings, crs: RasterCrs) -> Self {
-        let mut bands: Vec<ProfileBand> = PROFILE_BANDS
-            .iter()
-            .enumerate()
-            .map(|(i, &(name, unit))| ProfileBand {
-                name,
-                unit,
-                grid: i,
-                stat: CellStat::Mean,
-            })
-            .collect();
-        bands.push(ProfileBand {
-            name: "pulse_density",
-            unit: "1/m2",
-            grid: 0,
-            stat: CellStat::Density,
-        });
+        let mut bands = profile_bands(&[]);
+        bands.push(PULSE_DENSITY_BAND);
         let cells = |c: f64| (settings.tile_m / c).round().max(1.0) as usize;
         let tile_bytes = 20
             * (cells(settings.chm_cell_m).pow(2)
@@ -526,122 +461,6 @@ impl MetricsRastersSink {
     }
 }
 
-/// The COG options of the rasters: DEFLATE level 1 (the run's pace; the predictor does most of
-/// the work).
-fn cog_options() -> CogOptions {
-    CogOptions {
-        deflate_level: 1,
-        ..CogOptions::default()
-    }
-}
-
-/// `dir/<product>/<product>_<ix>_<iy>.tif`.
-fn tile_path(dir: &Path, product: &str, key: (i64, i64)) -> PathBuf {
-    dir.join(product)
-        .join(format!("{product}_{}_{}.tif", key.0, key.1))
-}
-
-/// The CHM tile of a grid: band `canopy_height` (m), the per-cell maximum.
-fn chm_raster(g: &CellGrid, epsg: u32) -> Raster {
-    let mut r = g.to_raster(epsg, NODATA, &[CellStat::Max]);
-    r.band_names[0] = "canopy_height".into();
-    r.band_units[0] = "m".into();
-    r
-}
-
-/// The metrics tile of a tile's grids: one band per [`ProfileBand`] (`vrt` names errors).
-fn metrics_raster(
-    grids: &[CellGrid],
-    bands: &[ProfileBand],
-    epsg: u32,
-    vrt: &Path,
-) -> Result<Raster, RasterError> {
-    let g0 = grids
-        .first()
-        .ok_or_else(|| RasterError::invalid(vrt, "a tile without grids"))?;
-    let (ox, oy) = g0.origin();
-    let mut r = Raster::new(
-        g0.width(),
-        g0.height(),
-        ox,
-        oy,
-        g0.cell_size(),
-        epsg,
-        NODATA,
-    );
-    for b in bands {
-        let g = grids.get(b.grid).ok_or_else(|| {
-            RasterError::invalid(
-                vrt,
-                format!(
-                    "band {} reads grid {}, the tile has {}",
-                    b.name,
-                    b.grid,
-                    grids.len()
-                ),
-            )
-        })?;
-        r.push_band(b.name, b.unit, g.band(b.stat, NODATA));
-    }
-    Ok(r)
-}
-
-/// One band of the profile-resolution raster: its name and unit, which of a tile's
-/// [`CellGrid`]s it is read from, and by which statistic.
-#[derive(Clone, Copy, Debug)]
-pub struct ProfileBand {
-    /// Band name (GDAL's description), e.g. `rh98`.
-    pub name: &'static str,
-    /// Unit, e.g. `m`.
-    pub unit: &'static str,
-    /// Index of the grid in each tile's `Vec<CellGrid>`.
-    pub grid: usize,
-    /// The statistic of that grid written.
-    pub stat: CellStat,
-}
-
-/// Writes the two raster products into `dir` (created if missing): `chm.vrt` over
-/// `chm/chm_<ix>_<iy>.tif` (band `canopy_height`, the per-cell maximum of each tile's grid) and
-/// `metrics.vrt` over `metrics/metrics_<ix>_<iy>.tif` (one band per [`ProfileBand`]), every
-/// tile a COG in EPSG `epsg` with nodata [`NODATA`]. Tiles are keyed by
-/// [`CellGrid::tile_of`]. Returns the tiles written (CHM, metrics). Shared by the run's sink
-/// and `fwlidar metrics` (`crate::forest::store_metrics`).
-pub fn write_rasters(
-    dir: &Path,
-    epsg: u32,
-    chm: &BTreeMap<(i64, i64), CellGrid>,
-    profile: &BTreeMap<(i64, i64), Vec<CellGrid>>,
-    bands: &[ProfileBand],
-) -> Result<(usize, usize), RasterError> {
-    let opt = cog_options();
-    for sub in ["chm", "metrics"] {
-        let d = dir.join(sub);
-        std::fs::create_dir_all(&d).map_err(|e| RasterError::io(&d, e))?;
-    }
-    let mut chm_tiles = Vec::new();
-    for (&key, g) in chm {
-        let r = chm_raster(g, epsg);
-        let path = tile_path(dir, "chm", key);
-        write_cog(&path, &r, &opt)?;
-        chm_tiles.push(VrtTile::of(&path, &r));
-    }
-    if !chm_tiles.is_empty() {
-        write_vrt(&dir.join("chm.vrt"), &chm_tiles)?;
-    }
-    let mut tiles = Vec::new();
-    let vrt = dir.join("metrics.vrt");
-    for (&key, grids) in profile {
-        let r = metrics_raster(grids, bands, epsg, &vrt)?;
-        let path = tile_path(dir, "metrics", key);
-        write_cog(&path, &r, &opt)?;
-        tiles.push(VrtTile::of(&path, &r));
-    }
-    if !tiles.is_empty() {
-        write_vrt(&vrt, &tiles)?;
-    }
-    Ok((chm_tiles.len(), tiles.len()))
-}
-
 fn sink_error(e: RasterError) -> SinkError {
     SinkError::Io {
         path: "rasters".into(),
@@ -704,24 +523,8 @@ impl PulseSink for MetricsRastersSink {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn epsg_from_code_or_wkt() {
-        assert_eq!(epsg_of("EPSG:32618"), Some(32618));
-        assert_eq!(
-            epsg_of(
-                r#"PROJCRS["WGS 84 / UTM zone 18N",BASEGEOGCRS["WGS 84",ID["EPSG",4326]],ID["EPSG",32618]]"#
-            ),
-            Some(32618)
-        );
-        assert_eq!(
-            epsg_of(
-                r#"PROJCS["x",GEOGCS["y",AUTHORITY["EPSG","4326"]],AUTHORITY["EPSG","32736"]]"#
-            ),
-            Some(32736)
-        );
-        assert_eq!(epsg_of("LOCAL_CS[\"x\"]"), None);
-    }
+    use crate::forest::products::NODATA;
+    use crate::raster::grid::CellStat;
 
     fn settings(close_after_s: f64, max_open_tiles: usize) -> RasterSettings {
         RasterSettings {

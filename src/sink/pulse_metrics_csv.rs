@@ -32,10 +32,11 @@ use std::path::Path;
 use std::sync::Arc;
 
 use crate::core::atomic_file::AtomicFile;
-use crate::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+use crate::forest::products::{format_row, header};
 use crate::geo::dem::Dem;
 use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::Pulse;
+use crate::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
 
 /// Writes `pulse_metrics.csv` into a folder.
 pub struct PulseMetricsCsvSink {
@@ -48,40 +49,6 @@ pub struct PulseMetricsCsvSink {
     rows: u64,
     by_status: [u64; 5],
     line: String,
-}
-
-/// The header line for `profile_bins` PAVD bins of `profile_bin_m` metres.
-pub fn header(shot_number: bool, profile_bins: usize, profile_bin_m: f64) -> String {
-    use std::fmt::Write as _;
-    let mut h = String::from("pulse_id,gps_time");
-    if shot_number {
-        h.push_str(",shot_number");
-    }
-    h.push_str(",x,y,z,status,canopy_height");
-    for p in 0..=100 {
-        let _ = write!(h, ",rh{p}");
-    }
-    h.push_str(
-        ",energy_10_90_ns,modes,crown_thickness_m,energy_total,energy_ground,energy_canopy,\
-         cover,pgap,pai,fhd",
-    );
-    for b in 0..profile_bins {
-        let lo = b as f64 * profile_bin_m;
-        let _ = write!(h, ",pavd_{}_{}", fmt_m(lo), fmt_m(lo + profile_bin_m));
-    }
-    h.push_str(
-        ",ground_sigma_m,ground_skew,energy_lowest_m,ground_above_dem_m,zenith_deg,noise_mean,\
-         noise_sd,smoothing_ns,top_ns,ground_ns,bottom_ns,mode_ns,ground_from,top_x,top_y,top_z",
-    );
-    h
-}
-
-fn fmt_m(v: f64) -> String {
-    if v.fract() == 0.0 {
-        format!("{}", v as i64)
-    } else {
-        format!("{v}").replace('.', "p")
-    }
 }
 
 impl PulseMetricsCsvSink {
@@ -133,102 +100,6 @@ impl PulseMetricsCsvSink {
             above,
         );
     }
-}
-
-/// Writes one row of `pulse_metrics.csv` (with its newline) into `l`, cleared first: the
-/// columns of [`header`] for `profile_bins` PAVD bins. `gps_time` `None` leaves its cell empty
-/// (inputs without time, `fwlidar process`); `shot_number` repeats `pulse_id` in the GEDI
-/// column; `above_dem` is `ground_above_dem_m` (NaN: empty).
-pub fn format_row(
-    l: &mut String,
-    pulse_id: u64,
-    gps_time: Option<f64>,
-    shot_number: bool,
-    m: &WaveformMetrics,
-    profile_bins: usize,
-    above_dem: f32,
-) {
-    use std::fmt::Write as _;
-    l.clear();
-    match gps_time {
-        Some(t) => {
-            let _ = write!(l, "{pulse_id},{t:.9}");
-        }
-        None => {
-            let _ = write!(l, "{pulse_id},");
-        }
-    }
-    if shot_number {
-        let _ = write!(l, ",{pulse_id}");
-    }
-    if m.ground_xyz.iter().all(|v| v.is_finite()) {
-        let [x, y, z] = m.ground_xyz;
-        let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
-    } else {
-        l.push_str(",,,");
-    }
-    let _ = write!(l, ",{}", m.status.as_str());
-    let ok = m.status == MetricsStatus::Ok;
-    let f = |l: &mut String, v: f32, digits: usize| {
-        if ok && v.is_finite() {
-            let _ = write!(l, ",{v:.digits$}");
-        } else {
-            l.push(',');
-        }
-    };
-    f(l, m.canopy_height, 3);
-    for v in m.rh {
-        f(l, v, 3);
-    }
-    f(l, m.energy_10_90_ns, 3);
-    if ok {
-        let _ = write!(l, ",{}", m.modes);
-    } else {
-        l.push(',');
-    }
-    f(l, m.crown_thickness_m, 3);
-    f(l, m.energy_total, 2);
-    f(l, m.energy_ground, 2);
-    f(l, m.energy_canopy, 2);
-    f(l, m.cover, 5);
-    f(l, m.pgap, 5);
-    f(l, m.pai, 5);
-    f(l, m.fhd, 5);
-    for b in 0..profile_bins {
-        let v = if b < m.pavd_bins as usize {
-            m.pavd[b]
-        } else {
-            f32::NAN
-        };
-        f(l, v, 6);
-    }
-    f(l, m.ground_sigma_m, 4);
-    f(l, m.ground_skew, 4);
-    f(l, m.energy_lowest_m, 5);
-    f(l, above_dem, 4);
-    f(l, m.zenith_deg, 3);
-    f(l, m.noise_mean, 4);
-    f(l, m.noise_sd, 4);
-    f(l, m.smoothing_ns, 3);
-    for v in [m.top_ns, m.ground_ns, m.bottom_ns, m.mode_ns] {
-        if ok && v.is_finite() {
-            let _ = write!(l, ",{v:.3}");
-        } else {
-            l.push(',');
-        }
-    }
-    if ok {
-        let _ = write!(l, ",{}", m.ground_from.as_str());
-    } else {
-        l.push(',');
-    }
-    if ok && m.top_xyz.iter().all(|v| v.is_finite()) {
-        let [x, y, z] = m.top_xyz;
-        let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
-    } else {
-        l.push_str(",,,");
-    }
-    l.push('\n');
 }
 
 impl PulseSink for PulseMetricsCsvSink {

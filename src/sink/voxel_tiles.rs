@@ -36,37 +36,6 @@ pub fn extent_centre(pulse: &Pulse) -> Option<[f64; 2]> {
     c.iter().all(|v| v.is_finite()).then_some(c)
 }
 
-/// Identifies a replay for resuming its voxel store (`StoreInfo::run_key`): each input's file
-/// name and size, a checksum of the configuration (apart from the output folder), and the shard.
-/// A campaign's mosaic carries the key of one replay of all its lines in sequence, the store it
-/// equals (`crate::campaign`).
-pub fn replay_run_key(
-    inputs: &[PathBuf],
-    shard: Option<crate::source::shard::Shard>,
-    config: &crate::config::RunConfig,
-) -> String {
-    let mut c = config.clone();
-    c.output.dir.clear();
-    let text = toml::to_string(&c).unwrap_or_default();
-    let files: Vec<String> = inputs
-        .iter()
-        .map(|p| {
-            let size = std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
-            let name = p
-                .file_name()
-                .map(|n| n.to_string_lossy().to_string())
-                .unwrap_or_default();
-            format!("{name} ({size} bytes)")
-        })
-        .collect();
-    format!(
-        "{}, configuration crc32c {:08x}{}",
-        files.join(", "),
-        crc32c::crc32c(text.as_bytes()),
-        shard.map(|s| format!(", shard {s}")).unwrap_or_default()
-    )
-}
-
 /// Where the output CRS comes from.
 #[derive(Clone, Debug)]
 pub enum CrsSource {
@@ -75,17 +44,6 @@ pub enum CrsSource {
     Known(Option<String>),
     /// Decided by the georeferencing during the run (the UTM zone of the first fix).
     Decided(Arc<OnceLock<String>>),
-}
-
-/// The EPSG code in a CRS description (`EPSG:<code>`, or the last `AUTHORITY["EPSG","<code>"]`
-/// of a WKT, which is the CRS's own).
-pub fn epsg_of(crs: &str) -> Option<u32> {
-    if let Some(code) = crs.strip_prefix("EPSG:") {
-        return code.trim().parse().ok();
-    }
-    let at = crs.rfind("AUTHORITY[\"EPSG\",\"")?;
-    let rest = &crs[at + 18..];
-    rest[..rest.find('"')?].parse().ok()
 }
 
 /// The sink.
@@ -192,7 +150,7 @@ impl VoxelTilesSink {
             CrsSource::Decided(cell) => cell.get().cloned(),
         };
         let mut info = self.info.clone();
-        info.epsg = crs.as_deref().and_then(epsg_of);
+        info.epsg = crs.as_deref().and_then(crate::geo::crs::epsg_of);
         info.crs_wkt = crs.filter(|c| !c.starts_with("EPSG:"));
         let mut grid = Grid::new(&self.cfg, first);
         if self.continue_store && self.root.join("zarr.json").exists() {
@@ -286,7 +244,7 @@ impl PulseSink for VoxelTilesSink {
             if let Some(m) = pulse
                 .metrics
                 .as_ref()
-                .filter(|m| m.status == crate::forest::pulse_metrics::MetricsStatus::Ok)
+                .filter(|m| m.status == crate::pulse::waveform_metrics::MetricsStatus::Ok)
                 && m.canopy_height.is_finite()
             {
                 // f32::max keeps the number when the other side is NaN.
@@ -529,7 +487,7 @@ mod tests {
 
     #[test]
     fn the_coverage_map_keeps_the_highest_canopy_per_tile() {
-        use crate::forest::pulse_metrics::{MetricsStatus, WaveformMetrics};
+        use crate::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
         let dir = tempfile::tempdir().unwrap();
         let mut s = VoxelTilesSink::create(
             dir.path(),

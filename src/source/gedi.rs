@@ -14,7 +14,7 @@
 //!   after the usual `offset + gain × raw` is in GEDI counts again, to 1/64 count. Values
 //!   outside `[0, 65535/32]` (and NaN) are clamped and counted (`clamped_samples`).
 //! - segments, 1 ns apart (`sample_ns` = 1: GEDI's digitizer runs at 1 GHz; the geolocation
-//!   agrees, bin 0 to the last bin is 0.14986 m per sample on the fixture, c/2 in air):
+//!   agrees, bin 0 to the last bin is [`METRES_PER_NS`] per sample on the fixture, c/2 in air):
 //!   the return `rxwaveform` starts at t0 = bin 0 (`start_ns` = 0); the outgoing `txwaveform`
 //!   (128 samples) is placed so that its highest sample lies at the emission,
 //!   `−2 × bounce_time_offset_bin0` (the two-way light time to bin 0, ≈ −2.75 ms), so that
@@ -27,7 +27,7 @@
 //!   ellipsoidal; the direction is (last bin − bin 0) / (samples − 1) in those coordinates, so
 //!   the first and last samples land exactly where GEDI geolocated them. A shot with fewer than
 //!   two samples points along its `local_beam_azimuth` / `local_beam_elevation` (the vector
-//!   towards the instrument, reversed) at 0.14986 m/ns.
+//!   towards the instrument, reversed) at [`METRES_PER_NS`].
 //! - `stated_noise` = `noise_mean_corrected`, `noise_stddev_corrected` (GEDI counts, which are
 //!   the signal units here).
 //! - `scan_angle_deg[0]` = the off-nadir angle, 90° − `local_beam_elevation` (0.8-1.3° on the fixture).
@@ -74,9 +74,10 @@ pub const MAX_BLOCK_SAMPLES: u64 = 1 << 22;
 /// received and 128 transmitted); longer shots are skipped as `too_long`.
 pub const MAX_SEGMENT_SAMPLES: u32 = 1 << 16;
 
-/// Metres along the beam per nanosecond of the time axis: measured on the fixture's bin 0 to
-/// last bin geolocation (c / 2 / 1.00024).
-pub const METRES_PER_NS: f64 = 0.14986;
+/// Metres along the beam per nanosecond of the time axis, for shots whose own geolocation
+/// cannot give it (fewer than two samples): c / (2 n) with the refractive index n = 1.000 24
+/// that the fixture's bin 0 to last bin geolocation measures (0.149 86 m/ns).
+pub const METRES_PER_NS: f64 = crate::core::units::half_c_in_m_per_ns(1.000_24);
 
 /// GEDI's outgoing pulse width used in the sensor profile, ns: the median full width at half
 /// maximum of the fixture's 32 transmitted waveforms, 14.9 ns (coverage beam 0001: 15.8-18.8,

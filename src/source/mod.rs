@@ -4,6 +4,7 @@
 pub mod capture;
 pub mod chain;
 pub mod gedi;
+pub mod georeferencing;
 pub mod las;
 pub mod live_frames;
 pub mod pulsewaves;

@@ -11,7 +11,6 @@ pub mod gold;
 pub mod nnls;
 pub mod response;
 pub mod richardson_lucy;
-pub mod stage;
 pub mod target;
 #[cfg(test)]
 mod tests;
@@ -25,9 +24,6 @@ pub use gate::{Gate, GateError, GateStats, Gated};
 pub use gold::{Gold, GoldConfig};
 pub use nnls::{Nnls, NnlsConfig};
 pub use richardson_lucy::{RichardsonLucy, RlConfig};
-pub use stage::{
-    Deconvolve, DeconvolveConfig, KERNEL_OVER_MAX_TAPS, KernelSource, LongKernel, WorstCase,
-};
 pub use target::{KernelReducer, Targeted};
 pub use wiener::{Wiener, WienerConfig};
 

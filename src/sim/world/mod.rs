@@ -40,9 +40,6 @@ use geometry::{ObjectKind, TraceScratch, V3};
 use render::{EchoShape, add_gaussian, add_ringing};
 use scene::{Effect, Noise, PulseShape, WorldScene};
 
-/// Speed of light in vacuum, metres per nanosecond.
-const C_M_PER_NS: f64 = 0.299_792_458;
-
 /// Quarter-sample bins for media.
 const FINE: usize = 4;
 
@@ -321,7 +318,7 @@ impl WorldSim {
             65_535.0
         };
         Ok(WorldSim {
-            metres_per_ns: C_M_PER_NS / (2.0 * scene.sensor.refractive_index),
+            metres_per_ns: crate::core::units::half_c_in_m_per_ns(scene.sensor.refractive_index),
             dt,
             sigma_out,
             sigma_rx,

@@ -4,6 +4,10 @@
 //! Units: times in nanoseconds unless a name says otherwise, GPS time in seconds, voltages in
 //! volts, raw samples in digitizer counts (DN).
 
+pub mod waveform_metrics;
+
+pub use waveform_metrics::WaveformMetrics;
+
 use std::time::Instant;
 
 use crossbeam_channel::{Receiver, Sender, TrySendError, bounded};
@@ -18,6 +22,30 @@ pub enum SegmentKind {
     Outgoing,
     /// Energy that came back from the scene.
     Return,
+}
+
+/// What a per-pulse method made of one pulse; the stage that runs it turns this into the
+/// runtime's emit, drop or reject (`pipeline::stage::Emitter`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    /// Processed: pass it on. Each note (at most three) names something left undone on
+    /// purpose (e.g. a factor of the calibration the pulse could not have), counted under it.
+    Keep([Option<&'static str>; 3]),
+    /// Not usable by this method (e.g. no segment): drop it, counted under the reason.
+    Drop(&'static str),
+    /// Its content is inconsistent (e.g. a segment past its samples): drop it, counted as an
+    /// error under the reason.
+    Reject(&'static str),
+}
+
+impl Verdict {
+    /// Processed, nothing left undone.
+    pub const DONE: Verdict = Verdict::Keep([None; 3]);
+
+    /// Processed, with one note.
+    pub fn noted(note: &'static str) -> Verdict {
+        Verdict::Keep([Some(note), None, None])
+    }
 }
 
 /// One contiguous run of digitizer samples of a pulse.
@@ -229,7 +257,7 @@ pub struct Pulse {
     /// Returns found by the decomposition stage (empty before it).
     pub returns: Vec<FittedReturn>,
     /// Forest structure metrics from the `metrics` stage (`None` before it).
-    pub metrics: Option<crate::forest::pulse_metrics::WaveformMetrics>,
+    pub metrics: Option<WaveformMetrics>,
     /// How to turn the signal's volts into calibrated backscatter, from the `calibrate` stage
     /// (`None` before it, or when it did not run).
     pub calibration: Option<Calibration>,
@@ -427,5 +455,71 @@ mod tests {
         let p = pool.take();
         assert!(p.raw.is_empty() && p.segments.is_empty());
         assert!(p.raw.capacity() >= 3, "buffer capacity is kept");
+    }
+}
+
+/// Applying a per-pulse method to owned pulses in unit tests, as a stage would (the methods'
+/// own tests, below the runtime: `pipeline::testing::run_stage` runs a whole stage).
+#[cfg(test)]
+pub(crate) mod testing {
+    use super::{Pulse, Verdict};
+
+    /// Counts by reason.
+    #[derive(Debug, Default)]
+    pub struct Counts(Vec<(&'static str, u64)>);
+
+    impl Counts {
+        fn add(&mut self, reason: &'static str) {
+            match self.0.iter_mut().find(|(r, _)| *r == reason) {
+                Some((_, n)) => *n += 1,
+                None => self.0.push((reason, 1)),
+            }
+        }
+
+        /// The count of one reason.
+        pub fn get(&self, reason: &str) -> u64 {
+            self.0
+                .iter()
+                .find(|(r, _)| *r == reason)
+                .map_or(0, |(_, n)| *n)
+        }
+    }
+
+    /// What a method made of the pulses it was given.
+    #[derive(Debug, Default)]
+    pub struct Applied {
+        /// Pulses kept, in order.
+        pub emitted: Vec<Box<Pulse>>,
+        /// Pulses dropped or rejected, by reason.
+        pub dropped: Counts,
+        /// Pulses rejected.
+        pub errors: u64,
+        /// Notes of the pulses kept, by note.
+        pub notes: Counts,
+    }
+
+    /// Applies `method` to each pulse and sorts them by its [`Verdict`].
+    pub fn apply(
+        pulses: impl IntoIterator<Item = Pulse>,
+        mut method: impl FnMut(&mut Pulse) -> Verdict,
+    ) -> Applied {
+        let mut out = Applied::default();
+        for (seq, mut p) in pulses.into_iter().enumerate() {
+            p.seq = seq as u64;
+            match method(&mut p) {
+                Verdict::Keep(notes) => {
+                    for n in notes.into_iter().flatten() {
+                        out.notes.add(n);
+                    }
+                    out.emitted.push(Box::new(p));
+                }
+                Verdict::Drop(r) => out.dropped.add(r),
+                Verdict::Reject(r) => {
+                    out.errors += 1;
+                    out.dropped.add(r);
+                }
+            }
+        }
+        out
     }
 }

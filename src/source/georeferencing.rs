@@ -4,7 +4,7 @@
 //! in the order they were recorded, so it needs no locks: navigation bytes of every port go
 //! through the navigation decoder into a [`Trajectory`] (and are passed on unchanged, for the
 //! navigation thread's report), and each pulse without geometry waits in a bounded queue until
-//! the trajectory brackets its time, is georeferenced ([`super::direct_georeference::georeference`]) and
+//! the trajectory brackets its time, is georeferenced ([`crate::geo::direct_georeference::georeference`]) and
 //! handed on, in its original order. Pulses that already carry their geometry (LAS, PulseWaves)
 //! skip the navigation path.
 //!
@@ -19,11 +19,11 @@ use std::collections::{BTreeMap, VecDeque};
 
 use serde::{Deserialize, Serialize};
 
-use super::crs::OutputCrs;
-use super::dem::Dem;
-use super::direct_georeference::{Mounting, georeference};
 use crate::core::facts::SourceFacts;
 use crate::core::validate::{Validate, Validator, field};
+use crate::geo::crs::OutputCrs;
+use crate::geo::dem::Dem;
+use crate::geo::direct_georeference::{Mounting, georeference};
 use crate::nav::dating::{GpsTime, WEEK_S};
 use crate::nav::decoder::{LEAP_SECONDS_NOW, NavDecoder};
 use crate::nav::trajectory::{Interpolation, Miss, Trajectory, TrajectoryConfig};
@@ -247,7 +247,7 @@ impl GeoreferencingSource {
             let code = c.epsg();
             let _ = self
                 .decided
-                .set(super::crs::utm_wkt(code).unwrap_or_else(|| format!("EPSG:{code}")));
+                .set(crate::geo::crs::utm_wkt(code).unwrap_or_else(|| format!("EPSG:{code}")));
         }
         self
     }
@@ -306,7 +306,8 @@ impl GeoreferencingSource {
                         let code = c.epsg();
                         self.crs = Some(c);
                         let _ = self.decided.set(
-                            super::crs::utm_wkt(code).unwrap_or_else(|| format!("EPSG:{code}")),
+                            crate::geo::crs::utm_wkt(code)
+                                .unwrap_or_else(|| format!("EPSG:{code}")),
                         );
                         self.check_dem();
                     }
@@ -534,8 +535,9 @@ impl Source for GeoreferencingSource {
     fn facts(&self) -> SourceFacts {
         let mut f = self.inner.facts();
         if let Some(c) = &self.crs {
-            f.crs =
-                Some(super::crs::utm_wkt(c.epsg()).unwrap_or_else(|| format!("EPSG:{}", c.epsg())));
+            f.crs = Some(
+                crate::geo::crs::utm_wkt(c.epsg()).unwrap_or_else(|| format!("EPSG:{}", c.epsg())),
+            );
         }
         f
     }

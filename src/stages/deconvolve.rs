@@ -1,5 +1,7 @@
-//! The deconvolve stage (`type = "deconvolve"`): every return segment of a denoised pulse is
-//! deconvolved in place by the configured method and kernel.
+//! The `deconvolve` stage: every return segment of a denoised pulse is deconvolved in place by
+//! the configured method ([`crate::signal::deconvolve`]) and kernel. The stage's configuration,
+//! [`DeconvolveConfig`], is its own: the kernel source, the gate, the target pulse, the buffers
+//! and the policies; the method's settings ([`MethodConfig`]) belong to the method.
 //!
 //! Configuration layout (TOML): the method is a nested table selected by its own `method` key,
 //! the kernel an externally tagged value:
@@ -54,8 +56,13 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::{Advice, BuildError, MAX_SEGMENT_SAMPLES, MIN_SEGMENT_SAMPLES, StageKind};
+use crate::core::validate::{Validate, Validator, field};
 use crate::pipeline::stage::{Emitter, Stage, StageError};
-use crate::pulse::{Pulse, SegmentKind};
+use crate::pulse::{Pulse, SegmentKind, Verdict};
+use crate::signal::deconvolve::GateError;
+use crate::signal::deconvolve::response::ResponseError;
+use crate::signal::deconvolve::richardson_lucy::MAX_COARSE_ITERATIONS;
 use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::deconvolve::{Deconvolver, Gate, Gated, MethodConfig, Targeted};
 use crate::signal::kernel::{Kernel, RecordLevels};
@@ -215,6 +222,13 @@ pub struct WorstCase {
     pub flops: u64,
 }
 
+impl Default for DeconvolveConfig {
+    /// Richardson-Lucy with its defaults (in a file the method is required).
+    fn default() -> Self {
+        DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(Default::default()))
+    }
+}
+
 impl DeconvolveConfig {
     /// The stage's worst case per return segment (a pulse costs the sum over its return
     /// segments). The kernel of `flat_target` is measured to know its length (`max_taps` when
@@ -258,8 +272,6 @@ pub struct Deconvolve {
     /// The method behind the configured echo-window gate, to the target pulse if one is set.
     method: Targeted,
     kernel: Kernel,
-    /// Set when a configured calibrated kernel is unusable (reported as a fatal error).
-    kernel_error: Option<String>,
     /// Output of one segment, `max_samples`.
     out: Vec<f32>,
     /// Set once the first kernel was cut to `max_taps` (logged once per stage).
@@ -267,10 +279,10 @@ pub struct Deconvolve {
 }
 
 impl Deconvolve {
-    /// Builds the stage and sizes its buffers. Never fails: an unusable calibrated kernel makes
-    /// the first `process` call return a fatal error (configuration validation reports it
-    /// before that).
-    pub fn new(config: DeconvolveConfig) -> Self {
+    /// Builds the stage and sizes its buffers. Fails when a calibrated kernel (`taps`,
+    /// `flat_target`) is unusable (configuration validation reports it before that, naming the
+    /// field).
+    pub fn new(config: DeconvolveConfig) -> Result<Self, BuildError> {
         let method = Targeted::new(
             Box::new(Gated::build(
                 &config.method,
@@ -282,21 +294,23 @@ impl Deconvolve {
             config.max_samples,
             config.max_taps,
         );
-        let mut kernel = Kernel::with_capacity(config.max_taps);
-        let mut kernel_error = None;
-        match config.kernel.fixed_kernel(&config.method, config.max_taps) {
-            None => {}
-            Some(Ok(k)) => kernel = k,
-            Some(Err(e)) => kernel_error = Some(format!("calibrated kernel: {e}")),
-        }
-        Deconvolve {
+        let kernel = match config.kernel.fixed_kernel(&config.method, config.max_taps) {
+            None => Kernel::with_capacity(config.max_taps),
+            Some(Ok(k)) => k,
+            Some(Err(e)) => {
+                return Err(BuildError {
+                    kind: "deconvolve",
+                    message: format!("calibrated kernel: {e}"),
+                });
+            }
+        };
+        Ok(Deconvolve {
             out: vec![0.0; config.max_samples],
             method,
             kernel,
-            kernel_error,
             config,
             warned_cut: false,
-        }
+        })
     }
 
     /// The configuration in force.
@@ -317,36 +331,34 @@ impl Stage for Deconvolve {
     }
 
     fn process(&mut self, mut pulse: Box<Pulse>, out: &mut Emitter<'_>) -> Result<(), StageError> {
-        if let Some(message) = &self.kernel_error {
-            let message = message.clone();
-            out.drop_pulse(pulse, "bad_kernel");
-            return Err(StageError::Fatal {
-                stage: "deconvolve",
-                message,
-            });
-        }
+        let verdict = self.deconvolve_pulse(&mut pulse);
+        out.give(pulse, verdict);
+        Ok(())
+    }
+}
+
+impl Deconvolve {
+    /// Deconvolves every return segment of `pulse` in place (see the module documentation for
+    /// what is dropped, rejected or noted).
+    pub fn deconvolve_pulse(&mut self, pulse: &mut Pulse) -> Verdict {
         if pulse.signal.len() != pulse.raw.len() {
-            out.drop_pulse(pulse, "not_denoised");
-            return Ok(());
+            return Verdict::Drop("not_denoised");
         }
         let len = pulse.signal.len();
         if pulse.segments.iter().any(|s| s.range().end > len) {
-            out.reject(pulse, "segment_out_of_bounds");
-            return Ok(());
+            return Verdict::Reject("segment_out_of_bounds");
         }
         let sample_ns = pulse.sample_ns;
         if !(sample_ns.is_finite() && sample_ns > 0.0) {
-            out.reject(pulse, "bad_digitizer_parameters");
-            return Ok(());
+            return Verdict::Reject("bad_digitizer_parameters");
         }
         let mut cut = false;
         if self.config.kernel == KernelSource::Outgoing {
             let Some(o) = pulse.outgoing() else {
-                match self.config.missing_outgoing {
-                    MissingOutgoing::Drop => out.drop_pulse(pulse, "no_outgoing"),
-                    MissingOutgoing::Pass => out.emit_noted(pulse, "no_outgoing"),
-                }
-                return Ok(());
+                return match self.config.missing_outgoing {
+                    MissingOutgoing::Drop => Verdict::Drop("no_outgoing"),
+                    MissingOutgoing::Pass => Verdict::noted("no_outgoing"),
+                };
             };
             let range = pulse.segments[o].range();
             // The denoise stage removed the baseline and measured the noise level.
@@ -360,14 +372,10 @@ impl Stage for Deconvolve {
                 known,
                 self.config.max_taps,
             ) {
-                Err(_) => {
-                    out.drop_pulse(pulse, "bad_kernel");
-                    return Ok(());
-                }
+                Err(_) => return Verdict::Drop("bad_kernel"),
                 Ok(fit) if fit.was_cut() => {
                     if self.config.long_kernel == LongKernel::Drop {
-                        out.drop_pulse(pulse, KERNEL_OVER_MAX_TAPS);
-                        return Ok(());
+                        return Verdict::Drop(KERNEL_OVER_MAX_TAPS);
                     }
                     self.warn_cut_once(fit.span);
                     cut = true;
@@ -404,15 +412,13 @@ impl Stage for Deconvolve {
             }
         }
         if let Some(reason) = failure {
-            out.drop_pulse(pulse, reason);
-            return Ok(());
+            return Verdict::Drop(reason);
         }
         if cut {
-            out.emit_noted(pulse, KERNEL_OVER_MAX_TAPS);
+            Verdict::noted(KERNEL_OVER_MAX_TAPS)
         } else {
-            out.emit(pulse);
+            Verdict::DONE
         }
-        Ok(())
     }
 }
 
@@ -431,6 +437,288 @@ impl Deconvolve {
             );
         }
     }
+}
+
+/// Largest iteration budget a deconvolution method may be configured for (per repetition).
+pub(crate) const MAX_DECONV_ITERATIONS: u32 = 10_000;
+/// Largest kernel a deconvolve stage may be configured for, taps.
+pub(crate) const MAX_KERNEL_TAPS: usize = 65_536;
+
+/// Checks a cut-off frequency (GHz) at `path`: positive and below the sensor's Nyquist frequency
+/// when the sample interval is known.
+fn check_cutoff(cutoff_ghz: f64, path: String, v: &mut Validator) {
+    v.positive(cutoff_ghz, path.clone());
+    let positive = cutoff_ghz.is_finite() && cutoff_ghz > 0.0;
+    let dt_ns = v
+        .sample_interval_ns()
+        .filter(|dt| dt.is_finite() && *dt > 0.0);
+    if let Some(dt_ns) = dt_ns.filter(|_| positive) {
+        let nyquist_ghz = 1.0 / (2.0 * dt_ns);
+        v.require(
+            cutoff_ghz < nyquist_ghz,
+            path,
+            format!(
+                "must be below the Nyquist frequency {nyquist_ghz} GHz of the sensor's \
+                 {dt_ns} ns sample interval, got {cutoff_ghz}"
+            ),
+        );
+    }
+}
+
+fn check_iterations(n: u32, path: String, v: &mut Validator) {
+    v.require(
+        (1..=MAX_DECONV_ITERATIONS).contains(&n),
+        path,
+        format!("must be in 1..={MAX_DECONV_ITERATIONS}, got {n}"),
+    );
+}
+
+impl Validate for DeconvolveConfig {
+    fn validate(&self, path: &str, v: &mut Validator) {
+        v.require(
+            (MIN_SEGMENT_SAMPLES..=MAX_SEGMENT_SAMPLES).contains(&self.max_samples),
+            field(path, "max_samples"),
+            format!(
+                "must be in {MIN_SEGMENT_SAMPLES}..={MAX_SEGMENT_SAMPLES} samples, got {}",
+                self.max_samples
+            ),
+        );
+        v.require(
+            (1..=MAX_KERNEL_TAPS).contains(&self.max_taps),
+            field(path, "max_taps"),
+            format!(
+                "must be in 1..={MAX_KERNEL_TAPS} taps, got {}",
+                self.max_taps
+            ),
+        );
+        let method = field(path, "method");
+        match &self.method {
+            MethodConfig::RichardsonLucy(c) => {
+                check_iterations(c.iterations, field(&method, "iterations"), v);
+                if let Some(tol) = c.early_stop {
+                    v.positive(tol as f64, field(&method, "early_stop"));
+                }
+                if let Some(tau) = c.stop_at_noise {
+                    v.positive(tau as f64, field(&method, "stop_at_noise"));
+                }
+                v.require(
+                    c.coarse_iterations <= MAX_COARSE_ITERATIONS,
+                    field(&method, "coarse_iterations"),
+                    format!(
+                        "must be in 0..={MAX_COARSE_ITERATIONS}, got {}",
+                        c.coarse_iterations
+                    ),
+                );
+                v.require(
+                    c.coarse_fwhm_samples.is_finite() && c.coarse_fwhm_samples >= 1.0,
+                    field(&method, "coarse_fwhm_samples"),
+                    format!(
+                        "must be a finite number of coarse samples ≥ 1, got {}",
+                        c.coarse_fwhm_samples
+                    ),
+                );
+            }
+            MethodConfig::Gold(c) => {
+                check_iterations(c.iterations, field(&method, "iterations"), v);
+                check_iterations(c.repetitions, field(&method, "repetitions"), v);
+                v.positive(c.boost as f64, field(&method, "boost"));
+                if let Some(tau) = c.stop_at_noise {
+                    v.positive(tau as f64, field(&method, "stop_at_noise"));
+                }
+            }
+            MethodConfig::Wiener(c) => {
+                check_cutoff(c.cutoff_ghz, field(&method, "cutoff_ghz"), v);
+                v.require(
+                    c.noise_scale.is_finite() && c.noise_scale >= 0.0,
+                    field(&method, "noise_scale"),
+                    format!("must be a finite number ≥ 0, got {}", c.noise_scale),
+                );
+                v.positive(c.regularisation as f64, field(&method, "regularisation"));
+            }
+            MethodConfig::Nnls(c) => {
+                check_iterations(c.max_iterations, field(&method, "max_iterations"), v);
+                v.require(
+                    c.tolerance.is_finite() && c.tolerance >= 0.0 && c.tolerance < 1.0,
+                    field(&method, "tolerance"),
+                    format!("must be a relative tolerance in 0..1, got {}", c.tolerance),
+                );
+            }
+        }
+        if let Some(f) = self.target_fwhm_ns {
+            v.positive(f, field(path, "target_fwhm_ns"));
+        }
+        if let Some(gate) = &self.gate {
+            match gate.validate(&self.method) {
+                Ok(()) => {}
+                Err(e @ GateError::BadThreshold(_)) => v.report(
+                    field(&field(path, "gate"), "threshold_noise"),
+                    e.to_string(),
+                ),
+                Err(e) => v.report(field(path, "gate"), e.to_string()),
+            }
+        }
+        if let KernelSource::Taps { taps, center } = &self.kernel {
+            let kernel = field(path, "kernel");
+            let finite = taps.iter().all(|t| t.is_finite());
+            let sum: f64 = taps.iter().map(|&t| t as f64).sum();
+            v.require(
+                !taps.is_empty() && taps.len() <= self.max_taps,
+                field(&kernel, "taps"),
+                format!(
+                    "must hold 1..={} taps (max_taps), got {}",
+                    self.max_taps,
+                    taps.len()
+                ),
+            );
+            v.require(
+                finite && sum > 0.0,
+                field(&kernel, "taps"),
+                "must be finite numbers with a positive sum",
+            );
+            v.require(
+                *center < taps.len(),
+                field(&kernel, "center"),
+                format!("must index one of the {} taps, got {center}", taps.len()),
+            );
+        }
+        if let KernelSource::FlatTarget {
+            ground_return,
+            outgoing,
+        } = &self.kernel
+        {
+            let at = field(&field(path, "kernel"), "flat_target");
+            // Measured here as the stage will measure it, so an unusable record is reported
+            // before the run.
+            if let Err(e) =
+                response_from_flat_target(ground_return, outgoing, &self.method, self.max_taps)
+            {
+                let (name, reason) = match &e {
+                    ResponseError::Outgoing(k) => ("outgoing", k.to_string()),
+                    ResponseError::GroundReturn(d) => ("ground_return", d.to_string()),
+                    ResponseError::Response(k) => (
+                        "ground_return",
+                        format!("the response measured from it is unusable: {k}"),
+                    ),
+                };
+                v.report(field(&at, name), reason);
+            }
+        }
+    }
+}
+
+impl StageKind for DeconvolveConfig {
+    fn kind(&self) -> &'static str {
+        "deconvolve"
+    }
+
+    fn build(&self) -> Result<Box<dyn Stage>, BuildError> {
+        Ok(Box::new(Deconvolve::new(self.clone())?))
+    }
+
+    fn note_meaning(&self, note: &str) -> &'static str {
+        match note {
+            KERNEL_OVER_MAX_TAPS => "deconvolved with the kernel cut to max_taps",
+            _ => "passed on un-deconvolved",
+        }
+    }
+
+    fn always_warns(&self, reason: &str) -> bool {
+        reason == KERNEL_OVER_MAX_TAPS
+    }
+
+    fn drop_advice(&self, reason: &str, at: &str) -> Option<Advice> {
+        let text = match reason {
+            "no_outgoing" => {
+                return Some(Advice::key(
+                    at,
+                    "missing_outgoing",
+                    "the pulses recorded no outgoing segment to take the kernel from; set \
+                     missing_outgoing = \"pass\" to pass them on un-deconvolved, or give a \
+                     calibrated kernel = { taps = { ... } }",
+                ));
+            }
+            "bad_kernel" if self.kernel == KernelSource::Outgoing => {
+                "the outgoing segment holds no pulse above its noise (or a non-finite sample), so \
+                 no kernel could be taken from it; give a calibrated kernel = { taps = { ... } } \
+                 for this instrument"
+            }
+            "bad_kernel" => "the calibrated kernel is unusable; check its taps",
+            KERNEL_OVER_MAX_TAPS => {
+                return Some(Advice::key(
+                    at,
+                    "max_taps",
+                    "the outgoing pulse stands out of its noise over more samples than max_taps \
+                     and long_kernel = \"drop\"; raise max_taps (the cost grows with it) or set \
+                     long_kernel = \"cut\"",
+                ));
+            }
+            "kernel_too_long" => {
+                return Some(Advice::key(
+                    at,
+                    "max_taps",
+                    "the kernel is longer than the method was sized for; raise max_taps",
+                ));
+            }
+            _ => return None,
+        };
+        Some(Advice::key(at, "kernel", text))
+    }
+
+    fn note_advice(&self, note: &str, at: &str) -> Option<Advice> {
+        match note {
+            KERNEL_OVER_MAX_TAPS => Some(Advice::key(
+                at,
+                "max_taps",
+                "the outgoing pulse stands out of its noise over more samples than max_taps: \
+                 the kernel was cut to max_taps around its peak (returns stay in place, the far \
+                 tail is not deconvolved); raise max_taps to keep the whole pulse (the cost \
+                 grows with it)",
+            )),
+            "no_outgoing" => Some(Advice::key(
+                at,
+                "kernel",
+                "these pulses recorded no outgoing segment and were passed on un-deconvolved; \
+                 give a calibrated kernel = { taps = { ... } } to deconvolve them",
+            )),
+            _ => None,
+        }
+    }
+
+    fn cost_lines(&self) -> Vec<String> {
+        let w = self.worst_case();
+        let kernel = match self.kernel {
+            KernelSource::Outgoing => format!("outgoing pulse of <= {} taps", w.taps),
+            KernelSource::Taps { .. } => format!("calibrated, {} taps", w.taps),
+            KernelSource::FlatTarget { .. } => {
+                format!("response measured on a flat target, {} taps", w.taps)
+            }
+        };
+        let iterations = if w.iterations == 0 {
+            "direct".to_string()
+        } else {
+            format!("{} iterations", w.iterations)
+        };
+        vec![format!(
+            "deconvolve ({}, {iterations}, kernel: {kernel}): worst case {} flop per return \
+             segment of <= {} samples",
+            self.method.name(),
+            grouped(w.flops),
+            w.samples
+        )]
+    }
+}
+
+/// Groups the digits of `n` by thousands with spaces (`1 860 770`).
+fn grouped(n: u64) -> String {
+    let digits = n.to_string();
+    let mut out = String::new();
+    for (i, c) in digits.chars().enumerate() {
+        if i > 0 && (digits.len() - i).is_multiple_of(3) {
+            out.push(' ');
+        }
+        out.push(c);
+    }
+    out
 }
 
 #[cfg(test)]
@@ -472,7 +760,7 @@ mod tests {
     #[test]
     fn deconvolve_stage_sharpens_returns_and_keeps_the_outgoing() {
         for m in methods() {
-            let mut stage = Deconvolve::new(DeconvolveConfig::with_method(m.clone()));
+            let mut stage = Deconvolve::new(DeconvolveConfig::with_method(m.clone())).unwrap();
             let before = denoised_pulse();
             let run = run_stage(&mut stage, [denoised_pulse()]).unwrap();
             assert_eq!(run.emitted.len(), 1, "{m:?}");
@@ -497,7 +785,7 @@ mod tests {
         let mut stage = Deconvolve::new(DeconvolveConfig {
             missing_outgoing: MissingOutgoing::Pass,
             ..DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig::default()))
-        });
+        }).unwrap();
         let mut p = Pulse::default();
         p.push_segment(SegmentKind::Return, 0, 0.0, [0u16; 10]);
         p.signal = (0..10).map(|i| i as f32).collect();
@@ -523,7 +811,7 @@ mod tests {
         let mut stage = Deconvolve::new(DeconvolveConfig {
             max_samples: 150,
             ..DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig::default()))
-        });
+        }).unwrap();
         let mut not_denoised = denoised_pulse();
         not_denoised.signal.clear();
         let mut no_outgoing = Pulse::default();
@@ -568,7 +856,7 @@ mod tests {
     }
 
     #[test]
-    fn deconvolve_stage_calibrated_kernel_and_fatal_bad_taps() {
+    fn deconvolve_stage_calibrated_kernel_and_bad_taps_refused_when_built() {
         let cfg = DeconvolveConfig {
             kernel: KernelSource::Taps {
                 taps: gauss(41, 20.0, 3.4, 1.0),
@@ -576,7 +864,7 @@ mod tests {
             },
             ..DeconvolveConfig::with_method(MethodConfig::Gold(GoldConfig::default()))
         };
-        let mut stage = Deconvolve::new(cfg);
+        let mut stage = Deconvolve::new(cfg).unwrap();
         let mut p = denoised_pulse();
         p.segments.remove(0); // no outgoing needed with calibrated taps
         let run = run_stage(&mut stage, [p]).unwrap();
@@ -588,11 +876,10 @@ mod tests {
             },
             ..DeconvolveConfig::with_method(MethodConfig::Gold(GoldConfig::default()))
         };
-        let mut stage = Deconvolve::new(bad);
-        assert!(matches!(
-            run_stage(&mut stage, [denoised_pulse()]),
-            Err(StageError::Fatal { .. })
-        ));
+        // An unusable calibrated kernel stops the run before it starts (the configuration's
+        // validation names the field; building refuses it).
+        let e = Deconvolve::new(bad).err().expect("refused");
+        assert!(e.to_string().contains("calibrated kernel: kernel.taps"), "{e}");
     }
 
     /// A NEON-like asymmetric outgoing pulse (volts above baseline): 2.5-bin Gaussian rise,
@@ -648,7 +935,7 @@ mod tests {
             p.signal = out.clone();
             p.signal.extend(&ret);
             p.noise.noise_v = 0.001;
-            let mut stage = Deconvolve::new(DeconvolveConfig::with_method(m.clone()));
+            let mut stage = Deconvolve::new(DeconvolveConfig::with_method(m.clone())).unwrap();
             let run = run_stage(&mut stage, [p]).unwrap();
             assert_eq!(run.emitted.len(), 1, "{m:?}");
             let y = run.emitted[0].signal_of(1);
@@ -728,7 +1015,7 @@ mod tests {
             let mut stage = Deconvolve::new(DeconvolveConfig {
                 max_taps: 96,
                 ..DeconvolveConfig::with_method(m.clone())
-            });
+            }).unwrap();
             let run = run_stage(&mut stage, [long_outgoing_pulse()]).unwrap();
             assert_eq!(run.emitted.len(), 1, "{m:?}: {:?}", run.dropped);
             assert_eq!(run.notes.total(), 0, "{m:?}: the support fits, nothing cut");
@@ -752,7 +1039,7 @@ mod tests {
         let mut cut = Deconvolve::new(DeconvolveConfig {
             max_taps: 16,
             ..DeconvolveConfig::with_method(rl.clone())
-        });
+        }).unwrap();
         let run = run_stage(&mut cut, (0..3).map(|_| long_outgoing_pulse())).unwrap();
         assert_eq!(run.emitted.len(), 3);
         assert_eq!(run.notes.get(KERNEL_OVER_MAX_TAPS), 3);
@@ -764,7 +1051,7 @@ mod tests {
             max_taps: 16,
             long_kernel: LongKernel::Drop,
             ..DeconvolveConfig::with_method(rl)
-        });
+        }).unwrap();
         let run = run_stage(&mut drop, (0..3).map(|_| long_outgoing_pulse())).unwrap();
         assert_eq!(run.emitted.len(), 0);
         assert_eq!(run.dropped.get(KERNEL_OVER_MAX_TAPS), 3);
@@ -822,8 +1109,8 @@ mod tests {
                 outgoing: target_out,
             },
             ..DeconvolveConfig::with_method(gold.clone())
-        });
-        let mut second = Deconvolve::new(DeconvolveConfig::with_method(gold));
+        }).unwrap();
+        let mut second = Deconvolve::new(DeconvolveConfig::with_method(gold)).unwrap();
         let run = run_stage(&mut first, [p]).unwrap();
         assert_eq!(run.emitted.len(), 1);
         let run = run_stage(&mut second, run.emitted.into_iter().map(|p| *p)).unwrap();
@@ -851,7 +1138,7 @@ mod tests {
                 boost: 1.0,
                 stop_at_noise: None,
             },
-        )));
+        ))).unwrap();
         let mut q = Pulse::default();
         q.push_segment(SegmentKind::Outgoing, 0, -12.0, [0u16; 48]);
         q.push_segment(SegmentKind::Return, 0, 900.0, [0u16; 200]);
@@ -875,7 +1162,7 @@ mod tests {
                 let mut stage = Deconvolve::new(DeconvolveConfig {
                     max_taps,
                     ..DeconvolveConfig::with_method(m.clone())
-                });
+                }).unwrap();
                 run_stage(&mut stage, [denoised_pulse()]).unwrap();
                 let caps = stage.buffer_capacities();
                 let pulses = (0..200).map(|i| {
@@ -955,6 +1242,192 @@ mod tests {
             "kernel = \"outgoing\"",
         ] {
             assert!(parse(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn grouped_digits() {
+        assert_eq!(grouped(0), "0");
+        assert_eq!(grouped(999), "999");
+        assert_eq!(grouped(1_860_770), "1 860 770");
+    }
+
+    fn stage(text: &str) -> Result<crate::stages::StageConfig, toml::de::Error> {
+        toml::from_str(text)
+    }
+
+    #[test]
+    fn stage_config_deconvolve_round_trips_and_checks() {
+        use crate::signal::deconvolve::{GoldConfig, RlConfig, WienerConfig};
+        let s = stage("type = \"deconvolve\"\nmethod = { method = \"gold\" }").unwrap();
+        assert_eq!(
+            s,
+            crate::stages::StageConfig::Deconvolve(DeconvolveConfig::with_method(MethodConfig::Gold(
+                GoldConfig::default()
+            )))
+        );
+        assert_eq!(s.kind(), "deconvolve");
+        let text = toml::to_string(&s).unwrap();
+        assert_eq!(stage(&text).unwrap(), s, "{text}");
+        assert!(stage("type = \"deconvolve\"\nmethod = { method = \"gold\" }\nbogus = 1").is_err());
+        let mut v = Validator::new(None);
+        v.set_sample_interval_ns(Some(4.0));
+        let bad = DeconvolveConfig {
+            kernel: KernelSource::Taps {
+                taps: vec![0.0, f32::NAN],
+                center: 5,
+            },
+            max_samples: 8,
+            max_taps: 0,
+            ..DeconvolveConfig::with_method(MethodConfig::Wiener(WienerConfig {
+                cutoff_ghz: 0.2,
+                noise_scale: -1.0,
+                regularisation: 0.0,
+            }))
+        };
+        Validate::validate(&bad, "s", &mut v);
+        let paths: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+        assert_eq!(
+            paths,
+            [
+                "s.max_samples",
+                "s.max_taps",
+                "s.method.cutoff_ghz",
+                "s.method.noise_scale",
+                "s.method.regularisation",
+                "s.kernel.taps",
+                "s.kernel.taps",
+                "s.kernel.center"
+            ]
+        );
+        let mut v = Validator::new(None);
+        let bad = DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
+            iterations: 0,
+            early_stop: Some(-1.0),
+            accelerate: false,
+            stop_at_noise: Some(f32::NAN),
+            ..RlConfig::default()
+        }));
+        Validate::validate(&bad, "s", &mut v);
+        assert_eq!(v.issues().len(), 3);
+        let mut v = Validator::new(None);
+        let bad = DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
+            coarse_iterations: MAX_COARSE_ITERATIONS + 1,
+            coarse_fwhm_samples: 0.5,
+            ..RlConfig::default()
+        }));
+        Validate::validate(&bad, "s", &mut v);
+        let paths: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+        assert_eq!(
+            paths,
+            ["s.method.coarse_iterations", "s.method.coarse_fwhm_samples"]
+        );
+        for fwhm in [f32::NAN, f32::INFINITY] {
+            let mut v = Validator::new(None);
+            let bad = DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
+                coarse_iterations: 10,
+                coarse_fwhm_samples: fwhm,
+                ..RlConfig::default()
+            }));
+            Validate::validate(&bad, "s", &mut v);
+            assert_eq!(v.issues().len(), 1, "{fwhm}");
+        }
+        let mut v = Validator::new(None);
+        let bad = DeconvolveConfig::with_method(MethodConfig::Gold(GoldConfig {
+            iterations: 1,
+            repetitions: 0,
+            boost: f32::INFINITY,
+            stop_at_noise: Some(0.0),
+        }));
+        Validate::validate(&bad, "s", &mut v);
+        assert_eq!(v.issues().len(), 3);
+        let mut v = Validator::new(None);
+        Validate::validate(
+            &DeconvolveConfig::with_method(MethodConfig::Wiener(WienerConfig::default())),
+            "s",
+            &mut v,
+        );
+        assert!(v.issues().is_empty());
+    }
+
+    #[test]
+    fn stage_config_deconvolve_gate_is_parsed_and_checked() {
+        use crate::signal::deconvolve::Gate;
+        let crate::stages::StageConfig::Deconvolve(c) = stage(
+            "type = \"deconvolve\"\nmethod = { method = \"richardson_lucy\" }\ngate = \"off\"",
+        )
+        .unwrap() else {
+            panic!("not a deconvolve stage")
+        };
+        assert_eq!(c.gate, Some(Gate::Off));
+        assert_eq!(c.effective_gate(), Gate::Off);
+        let e = stage("type = \"deconvolve\"\nmethod = { method = \"gold\" }\ngate = { k = 1 }")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("threshold_noise"), "{e}");
+        let issues = |text: &str| {
+            let crate::stages::StageConfig::Deconvolve(c) = stage(text).unwrap() else {
+                panic!("not a deconvolve stage")
+            };
+            let mut v = Validator::new(None);
+            Validate::validate(&c, "s", &mut v);
+            v.issues()
+                .iter()
+                .map(|(p, _)| p.clone())
+                .collect::<Vec<_>>()
+        };
+        assert!(issues("type = \"deconvolve\"\nmethod = { method = \"gold\" }\ngate = { threshold_noise = 2.0 }").is_empty());
+        assert!(issues("type = \"deconvolve\"\nmethod = { method = \"wiener\" }").is_empty());
+        assert_eq!(
+            issues(
+                "type = \"deconvolve\"\nmethod = { method = \"richardson_lucy\" }\ngate = { threshold_noise = 0.0 }"
+            ),
+            ["s.gate.threshold_noise"]
+        );
+        assert_eq!(
+            issues("type = \"deconvolve\"\nmethod = { method = \"nnls\" }\ngate = \"on\""),
+            ["s.gate"]
+        );
+    }
+
+    #[test]
+    fn stage_config_flat_target_kernel_is_parsed_and_checked() {
+        let text = "type = \"deconvolve\"\nmethod = { method = \"gold\" }\n\
+                    kernel = { flat_target = { ground_return = [200.0, 200.0, 900.0, 400.0, 200.0], \
+                    outgoing = [200.0, 200.0, 700.0, 300.0, 200.0] } }";
+        let s = stage(text).unwrap();
+        let crate::stages::StageConfig::Deconvolve(c) = &s else {
+            panic!("{s:?}")
+        };
+        assert!(matches!(c.kernel, KernelSource::FlatTarget { .. }));
+        assert_eq!(stage(&toml::to_string(&s).unwrap()).unwrap(), s);
+        let mut v = Validator::new(None);
+        Validate::validate(c, "s", &mut v);
+        assert!(v.issues().is_empty(), "{:?}", v.issues());
+        // A flat outgoing pulse (no energy above its baseline) and a NaN in the return.
+        for (ground, out, path) in [
+            (
+                vec![200.0, 900.0, 200.0],
+                vec![5.0; 4],
+                "s.kernel.flat_target.outgoing",
+            ),
+            (
+                vec![200.0, f32::NAN],
+                vec![0.0, 3.0, 0.0],
+                "s.kernel.flat_target.ground_return",
+            ),
+        ] {
+            let bad = DeconvolveConfig {
+                kernel: KernelSource::FlatTarget {
+                    ground_return: ground,
+                    outgoing: out,
+                },
+                ..c.clone()
+            };
+            let mut v = Validator::new(None);
+            Validate::validate(&bad, "s", &mut v);
+            let paths: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+            assert_eq!(paths, [path], "{:?}", v.issues());
         }
     }
 }

@@ -25,9 +25,10 @@
 use serde::Serialize;
 
 use crate::config::RunConfig;
-use crate::geo::georeferencing_source::OnMissing;
 use crate::pipeline::RunReport;
 use crate::pipeline::runner::INPUT_QUEUE_FULL;
+use crate::source::georeferencing::OnMissing;
+use crate::stages::{Chain, StageKind};
 
 /// Share of the pulses (or bins) above which one reason is a warning: 10 %.
 pub const WARN_SHARE: f64 = 0.10;
@@ -86,10 +87,11 @@ fn rule(setting: Option<String>, advice: impl Into<String>) -> Rule {
     }
 }
 
-/// Every warning of a run: empty outputs first, then by share (largest first).
-pub fn run_warnings(report: &RunReport, config: &RunConfig) -> Vec<RunWarning> {
+/// Every warning of a run: empty outputs first, then by share (largest first). `chain` is the
+/// run's stage chain (its stages say what their drop reasons and notes mean).
+pub fn run_warnings(report: &RunReport, chain: &Chain, config: &RunConfig) -> Vec<RunWarning> {
     let mut shares = Vec::new();
-    stage_warnings(report, config, &mut shares);
+    stage_warnings(report, chain, &mut shares);
     input_edge_warning(report, &mut shares);
     georeference_warnings(report, config, &mut shares);
     sink_warnings(report, &mut shares);
@@ -104,13 +106,20 @@ fn stage_key(i: usize, key: &str) -> Option<String> {
     Some(format!("pipeline.stages[{i}].{key}"))
 }
 
-/// Drops and notes of each stage above the share (any kernel cut to `max_taps`).
-fn stage_warnings(report: &RunReport, config: &RunConfig, out: &mut Vec<RunWarning>) {
+/// The chain's stage behind `stages[i]` of the report, when it is the same kind.
+fn stage_of<'c>(chain: &'c Chain, i: usize, name: &str) -> Option<&'c dyn StageKind> {
+    chain.stage(i).filter(|s| s.kind() == name)
+}
+
+/// Drops and notes of each stage above the share, and any the stage warns about from the
+/// first (a limit that bit, e.g. a kernel cut to `max_taps`).
+fn stage_warnings(report: &RunReport, chain: &Chain, out: &mut Vec<RunWarning>) {
     for (i, st) in report.stages.iter().enumerate() {
+        let kind = stage_of(chain, i, &st.name);
+        let always = |reason: &str| kind.is_some_and(|k| k.always_warns(reason));
         for (reason, &n) in &st.dropped {
-            if (n > 0 && always_warns(&st.name, reason)) || share(n, report.pulses_in) > WARN_SHARE
-            {
-                let rule = drop_rule(&st.name, reason, i, config);
+            if (n > 0 && always(reason)) || share(n, report.pulses_in) > WARN_SHARE {
+                let rule = drop_rule(kind, &st.name, reason, i);
                 out.push(RunWarning::new(
                     format!("{}.{reason}", st.name),
                     n,
@@ -120,89 +129,39 @@ fn stage_warnings(report: &RunReport, config: &RunConfig, out: &mut Vec<RunWarni
             }
         }
         for (note, &n) in &st.notes {
-            if (n > 0 && always_warns(&st.name, note)) || share(n, report.pulses_in) > WARN_SHARE {
+            if (n > 0 && always(note)) || share(n, report.pulses_in) > WARN_SHARE {
                 out.push(RunWarning::new(
                     format!("{}.{note}", st.name),
                     n,
                     report.pulses_in,
-                    note_rule(&st.name, note, i),
+                    note_rule(kind, &st.name, note, i),
                 ));
             }
         }
     }
 }
 
-/// A limit that bit: warned from its first pulse, whatever its share.
-fn always_warns(stage: &str, reason: &str) -> bool {
-    stage == "deconvolve" && reason == crate::signal::deconvolve::KERNEL_OVER_MAX_TAPS
-}
-
-/// The setting and advice for a stage's drop reason.
-fn drop_rule(stage: &str, reason: &str, i: usize, config: &RunConfig) -> Rule {
-    let outgoing_taps = matches!(
-        config.pipeline.stages.get(i),
-        Some(crate::pipeline::registry::StageConfig::Deconvolve(c))
-            if c.kernel == crate::signal::deconvolve::KernelSource::Outgoing
-    );
-    match (stage, reason) {
-        (_, "segment_too_long") => rule(
+/// The setting and advice for a stage's drop reason: the stage's own, else the rules every
+/// stage shares.
+fn drop_rule(kind: Option<&dyn StageKind>, stage: &str, reason: &str, i: usize) -> Rule {
+    let at = format!("pipeline.stages[{i}]");
+    if let Some(a) = kind.and_then(|k| k.drop_advice(reason, &at)) {
+        return rule(a.setting, a.text);
+    }
+    match reason {
+        "segment_too_long" => rule(
             stage_key(i, "max_samples"),
             format!(
                 "{stage} dropped pulses with a segment longer than its max_samples; raise max_samples \
                  (buffers and the worst-case cost grow with it)"
             ),
         ),
-        ("denoise", "invalid_cutoff" | "cutoff_above_nyquist") => rule(
-            stage_key(i, "cutoff_ghz"),
-            "the low-pass cut-off is not below the Nyquist frequency of these pulses' sampling \
-             (1 / (2 x sample interval)); lower cutoff_ghz",
-        ),
-        ("denoise", "no_segments") => rule(None, "the pulses carry no waveform segment"),
-        (_, "not_denoised") => rule(
+        "not_denoised" => rule(
             Some("pipeline.stages".into()),
             format!("{stage} needs a denoise stage before it; add one in front"),
         ),
-        ("deconvolve", "no_outgoing") => rule(
-            stage_key(i, "missing_outgoing"),
-            "the pulses recorded no outgoing segment to take the kernel from; set \
-             missing_outgoing = \"pass\" to pass them on un-deconvolved, or give a calibrated \
-             kernel = { taps = { ... } }",
-        ),
-        ("deconvolve", "bad_kernel") if outgoing_taps => rule(
-            stage_key(i, "kernel"),
-            "the outgoing segment holds no pulse above its noise (or a non-finite sample), so \
-             no kernel could be taken from it; give a calibrated kernel = { taps = { ... } } for \
-             this instrument",
-        ),
-        ("deconvolve", "bad_kernel") => rule(
-            stage_key(i, "kernel"),
-            "the calibrated kernel is unusable; check its taps",
-        ),
-        ("deconvolve", "kernel_over_max_taps") => rule(
-            stage_key(i, "max_taps"),
-            "the outgoing pulse stands out of its noise over more samples than max_taps and \
-             long_kernel = \"drop\"; raise max_taps (the cost grows with it) or set long_kernel = \
-             \"cut\"",
-        ),
-        ("deconvolve", "kernel_too_long") => rule(
-            stage_key(i, "max_taps"),
-            "the kernel is longer than the method was sized for; raise max_taps",
-        ),
-        ("calibrate", "range_unknown") => rule(
-            stage_key(i, "range_unknown"),
-            "the pulses' emission time is unknown (no outgoing segment, t0 not the emission); \
-             set range_unknown = \"unscaled\", or t0_is_emission = true if it is",
-        ),
-        ("calibrate", "no_outgoing" | "bad_outgoing_energy") => rule(
-            stage_key(i, "energy_unknown"),
-            "the pulses' outgoing energy is unknown; set energy_unknown = \"unscaled\"",
-        ),
-        ("calibrate", "invalid_configuration") => rule(
-            stage_key(i, "system_constant_value"),
-            "the calibrate stage's constants are not usable (system constant, references)",
-        ),
-        (_, "non_finite_input") => rule(None, "the input holds NaN or infinite samples"),
-        (_, "segment_out_of_bounds" | "bad_digitizer_parameters" | "length_mismatch") => rule(
+        "non_finite_input" => rule(None, "the input holds NaN or infinite samples"),
+        "segment_out_of_bounds" | "bad_digitizer_parameters" | "length_mismatch" => rule(
             None,
             "the input's pulses are inconsistent (segments past their samples, or a bad sample \
              interval); the file is damaged",
@@ -215,35 +174,11 @@ fn drop_rule(stage: &str, reason: &str, i: usize, config: &RunConfig) -> Rule {
 }
 
 /// The setting and advice for a stage's note (pulses passed on partly unprocessed).
-fn note_rule(stage: &str, note: &str, i: usize) -> Rule {
-    match (stage, note) {
-        ("deconvolve", "kernel_over_max_taps") => rule(
-            stage_key(i, "max_taps"),
-            "the outgoing pulse stands out of its noise over more samples than max_taps: the \
-             kernel was cut to max_taps around its peak (returns stay in place, the far tail is \
-             not deconvolved); raise max_taps to keep the whole pulse (the cost grows with it)",
-        ),
-        ("deconvolve", "no_outgoing") => rule(
-            stage_key(i, "kernel"),
-            "these pulses recorded no outgoing segment and were passed on un-deconvolved; give \
-             a calibrated kernel = { taps = { ... } } to deconvolve them",
-        ),
-        ("calibrate", "range_unknown") => rule(
-            stage_key(i, "t0_is_emission"),
-            "the range factor was left out: the emission time is unknown (no outgoing segment); \
-             set t0_is_emission = true if the input's t0 is the emission",
-        ),
-        ("calibrate", "no_outgoing" | "bad_outgoing_energy") => rule(
-            stage_key(i, "energy"),
-            "the energy factor was left out: the outgoing energy is unknown; set energy = false \
-             to say so",
-        ),
-        ("calibrate", "return_before_emission") => rule(
-            stage_key(i, "t0_is_emission"),
-            "returns lie at or before the emission and got no backscatter; check \
-             t0_is_emission for this input",
-        ),
-        _ => rule(
+fn note_rule(kind: Option<&dyn StageKind>, stage: &str, note: &str, i: usize) -> Rule {
+    let at = format!("pipeline.stages[{i}]");
+    match kind.and_then(|k| k.note_advice(note, &at)) {
+        Some(a) => rule(a.setting, a.text),
+        None => rule(
             stage_key(i, "type"),
             format!("passed on partly unprocessed by the {stage} stage"),
         ),
@@ -580,12 +515,41 @@ mod tests {
             fatal: None,
             wall_time_s: 0.0,
             pulses_per_s: 0.0,
-            warnings: Vec::new(),
         }
     }
 
     fn replay_config() -> RunConfig {
         crate::config::load_run_config(None).unwrap()
+    }
+
+    /// A chain of the stages a test report names, each with its defaults (a deconvolve stage
+    /// takes its kernel from the outgoing pulse).
+    fn chain_of(r: &RunReport) -> Chain {
+        let defaults = crate::stages::StageConfig::defaults();
+        let stages: Vec<crate::stages::StageConfig> = r
+            .stages
+            .iter()
+            .map(|s| {
+                defaults
+                    .iter()
+                    .find(|d| d.kind() == s.name)
+                    .cloned()
+                    .unwrap()
+            })
+            .collect();
+        let facts = crate::core::facts::SourceFacts::default();
+        Chain::prepare(
+            &stages,
+            &crate::stages::RunContext {
+                facts: &facts,
+                dem: None,
+            },
+        )
+        .unwrap()
+    }
+
+    fn warnings_of(r: &RunReport, cfg: &RunConfig) -> Vec<RunWarning> {
+        run_warnings(r, &chain_of(r), cfg)
     }
 
     #[test]
@@ -599,7 +563,7 @@ mod tests {
                 stage("decompose", &[], &[]),
             ],
         );
-        let w = run_warnings(&r, &replay_config());
+        let w = warnings_of(&r, &replay_config());
         let reasons: Vec<&str> = w.iter().map(|w| w.reason.as_str()).collect();
         assert_eq!(
             reasons,
@@ -630,7 +594,7 @@ mod tests {
                 &[("no_outgoing", 50)],
             )],
         );
-        assert!(run_warnings(&quiet, &replay_config()).is_empty());
+        assert!(warnings_of(&quiet, &replay_config()).is_empty());
         let loud = report(
             1000,
             899,
@@ -640,7 +604,7 @@ mod tests {
                 &[("no_outgoing", 50)],
             )],
         );
-        let w = run_warnings(&loud, &replay_config());
+        let w = warnings_of(&loud, &replay_config());
         assert_eq!(w.len(), 1, "{w:#?}");
         assert_eq!(w[0].reason, "deconvolve.bad_kernel");
         assert_eq!(w[0].setting.as_deref(), Some("pipeline.stages[0].kernel"));
@@ -649,7 +613,7 @@ mod tests {
             1000,
             vec![stage("deconvolve", &[], &[("kernel_over_max_taps", 1)])],
         );
-        let w = run_warnings(&cut, &replay_config());
+        let w = warnings_of(&cut, &replay_config());
         assert_eq!(w.len(), 1, "{w:#?}");
         assert_eq!(w[0].reason, "deconvolve.kernel_over_max_taps");
         assert_eq!(w[0].count, 1);
@@ -658,7 +622,7 @@ mod tests {
     #[test]
     fn empty_inputs_outputs_and_voxel_stores_say_why() {
         let cfg = replay_config();
-        let w = run_warnings(&report(0, 0, vec![]), &cfg);
+        let w = warnings_of(&report(0, 0, vec![]), &cfg);
         assert_eq!(w.len(), 1);
         assert_eq!(w[0].reason, "output.no_pulses");
         assert!(w[0].message.contains("held no pulses"), "{}", w[0].message);
@@ -668,15 +632,15 @@ mod tests {
             "returns_csv": { "rows": 0 },
             "voxels": { "deposits": { "bins_deposited": 0, "pulses_no_geometry": 10 } },
         });
-        let w = run_warnings(&r, &cfg);
+        let w = warnings_of(&r, &cfg);
         let by = |reason: &str| w.iter().find(|w| w.reason == reason).cloned();
         let no_returns = by("output.no_returns").expect("no returns");
         let mut las_only = r.clone();
         las_only.sinks = serde_json::json!({ "las": { "pulses_without_returns": 10 } });
-        let w2 = run_warnings(&las_only, &cfg);
+        let w2 = warnings_of(&las_only, &cfg);
         assert_eq!(w2[0].reason, "output.no_returns", "{w2:#?}");
         las_only.sinks = serde_json::json!({ "las": { "pulses_without_returns": 9 } });
-        assert!(run_warnings(&las_only, &cfg).is_empty());
+        assert!(warnings_of(&las_only, &cfg).is_empty());
         assert_eq!(
             no_returns.setting.as_deref(),
             Some("pipeline.stages[0].min_snr")
@@ -691,7 +655,7 @@ mod tests {
             "returns_csv": { "rows": 30 },
             "voxels": { "deposits": { "bins_deposited": 0, "bins_outside_heights": 400 } },
         });
-        let w = run_warnings(&r, &cfg);
+        let w = warnings_of(&r, &cfg);
         assert_eq!(w[0].reason, "voxels.nothing_deposited");
         assert_eq!(w[0].setting.as_deref(), Some("voxels.z_range_m"));
         assert_eq!(w.len(), 1, "{w:#?}");
@@ -700,12 +664,12 @@ mod tests {
             "returns_csv": { "rows": 30 },
             "voxels": { "deposits": { "bins_deposited": 10, "bins_outside_heights": 400 } },
         });
-        assert!(run_warnings(&r, &cfg).is_empty());
+        assert!(warnings_of(&r, &cfg).is_empty());
         r.sinks = serde_json::json!({
             "returns_csv": { "rows": 30 },
             "voxels": { "deposits": { "bins_deposited": 0, "bins_resumed": 400 } },
         });
-        assert!(run_warnings(&r, &cfg).is_empty());
+        assert!(warnings_of(&r, &cfg).is_empty());
     }
 
     #[test]
@@ -714,7 +678,7 @@ mod tests {
         r.source = serde_json::json!({
             "georeference": { "missed": { "navigation_gap": 400, "before_navigation": 10 } }
         });
-        let w = run_warnings(&r, &replay_config());
+        let w = warnings_of(&r, &replay_config());
         assert_eq!(w.len(), 1, "{w:#?}");
         assert_eq!(w[0].reason, "georeference.navigation_gap");
         // 600 pulses in and 410 dropped by the georeferencing (on_missing = "drop") were read.

@@ -1,5 +1,5 @@
-//! The `metrics` stage: forest structure metrics of every pulse ([`WaveformMetrics`], written
-//! by the `pulse_metrics.csv` sink), after decompose.
+//! Forest structure metrics of one pulse (what the `metrics` stage, `stages/metrics.rs`,
+//! measures on every pulse): [`WaveformMetrics`] from its return waveform.
 //!
 //! Per pulse it measures the return segment with the most samples (GEDI and most digitizers
 //! record one), from the raw waveform (`source = "raw"`, counts converted to signal units with
@@ -11,19 +11,17 @@
 //! the segment or more (grass under a 64-sample window). Smoothing:
 //! `smoothing_sigma_ns`, or the σ of the pulse's outgoing pulse (its FWHM / 2.355).
 //!
-//! Never drops a pulse: a pulse without metrics carries a status saying why.
+//! A pulse without metrics gets them with a status saying why.
 
-use crate::forest::pulse_metrics::{
-    MetricsComputer, MetricsConfig, MetricsSource, MetricsStatus, WaveformInput, WaveformMetrics,
-};
-use crate::pipeline::stage::{Emitter, Stage, StageError};
+use crate::forest::pulse_metrics::{MetricsComputer, MetricsConfig, MetricsSource, WaveformInput};
+use crate::pulse::waveform_metrics::WaveformMetrics;
 use crate::pulse::{Pulse, SegmentKind, StatedNoise};
 use crate::signal::denoise::robust_level_and_sigma;
 
 /// `2 √(2 ln 2)`: FWHM of a Gaussian in units of σ.
 const FWHM_PER_SIGMA: f64 = 2.354_820_045;
 
-/// The metrics stage.
+/// Measures the metrics of whole pulses, buffers sized once.
 pub struct Metrics {
     config: MetricsConfig,
     computer: MetricsComputer,
@@ -34,7 +32,7 @@ pub struct Metrics {
 }
 
 impl Metrics {
-    /// A stage with `config`.
+    /// A measurer with `config`.
     pub fn new(config: MetricsConfig) -> Self {
         Metrics {
             config,
@@ -45,7 +43,7 @@ impl Metrics {
         }
     }
 
-    /// The metrics of one pulse (what [`Stage::process`] stores in [`Pulse::metrics`]).
+    /// The metrics of one pulse (what the `metrics` stage stores in [`Pulse::metrics`]).
     pub fn measure(&mut self, p: &Pulse) -> WaveformMetrics {
         let Some(seg_i) = p
             .segments
@@ -173,20 +171,4 @@ pub fn pulse_sigma_ns<T: Copy + Into<f64>>(samples: &[T], sample_ns: f64) -> Opt
     };
     let fwhm = (right - left) * sample_ns;
     (fwhm > 0.0 && fwhm.is_finite()).then_some(fwhm / FWHM_PER_SIGMA)
-}
-
-impl Stage for Metrics {
-    fn name(&self) -> &'static str {
-        "metrics"
-    }
-
-    fn process(&mut self, mut pulse: Box<Pulse>, out: &mut Emitter<'_>) -> Result<(), StageError> {
-        let m = self.measure(&pulse);
-        pulse.metrics = Some(m);
-        if m.status != MetricsStatus::Ok {
-            // Counted by the sink's report by status; the pulse goes on.
-        }
-        out.emit(pulse);
-        Ok(())
-    }
 }
