@@ -20,7 +20,7 @@ use std::process::Command;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use fwlidar::cli::replay::replay_quiet;
 use fwlidar::config::{RunConfig, load_run_config_with};
-use fwlidar::pipeline::runner::RunReport;
+use fwlidar::run::RunReport;
 
 fn bench_dir() -> PathBuf {
     let target = std::env::var_os("CARGO_TARGET_DIR")

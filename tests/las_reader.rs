@@ -275,12 +275,14 @@ fn real_file_as_a_source_states_its_crs_and_time_base() {
     assert!(pool.allocated() <= 2, "pooled pulses are reused");
     let (done, total) = s.progress().unwrap();
     assert_eq!((done, total), (10071 + 2535 * 63, 10071 + 2535 * 63));
-    let rep = s.report();
-    assert_eq!(rep["points"], 2535);
-    assert_eq!(rep["pulses"], 2376);
-    assert_eq!(rep["descriptors"], 100);
-    assert_eq!(rep["points_without_waveform"], 0);
-    assert_eq!(rep["waveform_data"], "external");
+    let fwlidar::source::report::InputReport::Las(rep) = s.report().input else {
+        panic!("a LAS source reports as one")
+    };
+    assert_eq!(rep.stats.points, 2535);
+    assert_eq!(rep.stats.pulses, 2376);
+    assert_eq!(rep.descriptors, 100);
+    assert_eq!(rep.stats.points_without_waveform, 0);
+    assert_eq!(rep.waveform_data, "external");
 }
 
 /// A change made to a file's bytes.

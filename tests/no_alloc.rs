@@ -61,7 +61,13 @@ fn allocations_with(
     allocations_and_report(spec, pulses).0
 }
 
-fn allocations_and_report(spec: PipelineSpec, pulses: u64) -> (u64, fwlidar::pipeline::RunReport) {
+fn allocations_and_report(
+    spec: PipelineSpec,
+    pulses: u64,
+) -> (
+    u64,
+    fwlidar::pipeline::RunReport<(), (), fwlidar::nav::consumer::TallyReport>,
+) {
     let before = ALLOCS.load(Ordering::SeqCst);
     let report = run(
         &spec,

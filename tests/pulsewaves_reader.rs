@@ -443,9 +443,11 @@ fn source_streams_every_pulse_and_reports() {
     assert_eq!(n, 1000);
     assert_eq!(pool.allocated(), 1, "the pooled pulse is reused");
     assert_eq!(src.progress(), Some((1000, 1000)));
-    let rep = src.report();
-    assert_eq!(rep["pulses"], 1000);
-    assert_eq!(rep["descriptors"].as_array().unwrap().len(), 1);
+    let fwlidar::source::report::InputReport::PulseWaves(rep) = src.report().input else {
+        panic!("a PulseWaves source reports as one")
+    };
+    assert_eq!(rep.pulses, 1000);
+    assert_eq!(rep.descriptors.len(), 1);
     // LVIS's scanner record has no pulse frequency: no complete sensor.
     assert!(src.facts().sensor.is_none());
     assert_eq!(src.facts().crs.as_deref(), Some("EPSG:4326"));

@@ -161,28 +161,64 @@ fn start(task: &Task, run_toml: &Path, exe: &Path) -> Result<Running, CampaignEr
     })
 }
 
+/// What a line's `summary.json` says that the campaign's report keeps: the pulses, the
+/// input's report as it is, and the voxel store's size and misses.
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct LineSummary {
+    pulses_in: u64,
+    pulses_out: u64,
+    dropped_total: u64,
+    /// The input's report, kept as written.
+    source: serde_json::Value,
+    sinks: LineSinks,
+}
+
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct LineSinks {
+    voxels: LineVoxels,
+}
+
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct LineVoxels {
+    tiles: LineTiles,
+    deposits: LineDeposits,
+}
+
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct LineTiles {
+    in_store: u64,
+    bytes_stored: u64,
+}
+
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct LineDeposits {
+    bins_outside_extent: u64,
+}
+
 fn line_report(task: &Task, ran: bool, wall_s: f64, cpu_s: f64) -> LineReport {
-    let summary: serde_json::Value = std::fs::read_to_string(task.out.join("summary.json"))
+    let summary: LineSummary = std::fs::read_to_string(task.out.join("summary.json"))
         .ok()
         .and_then(|t| serde_json::from_str(&t).ok())
         .unwrap_or_default();
-    let n = |k: &str| summary[k].as_u64().unwrap_or(0);
-    let voxels = &summary["sinks"]["voxels"];
+    let voxels = &summary.sinks.voxels;
     LineReport {
         name: task.name.clone(),
         capture: task.capture.display().to_string(),
         ran,
         wall_s,
         cpu_s,
-        pulses_in: n("pulses_in"),
-        pulses_out: n("pulses_out"),
-        dropped: n("dropped_total"),
-        source: summary["source"].clone(),
-        tiles: voxels["tiles"]["in_store"].as_u64().unwrap_or(0),
-        store_bytes: voxels["tiles"]["bytes_stored"].as_u64().unwrap_or(0),
-        bins_outside_grid: voxels["deposits"]["bins_outside_extent"]
-            .as_u64()
-            .unwrap_or(0),
+        pulses_in: summary.pulses_in,
+        pulses_out: summary.pulses_out,
+        dropped: summary.dropped_total,
+        tiles: voxels.tiles.in_store,
+        store_bytes: voxels.tiles.bytes_stored,
+        bins_outside_grid: voxels.deposits.bins_outside_extent,
+        source: summary.source,
     }
 }
 
@@ -579,9 +615,11 @@ fn mosaic_rasters(plan: &Plan, mosaic: &Path) -> Result<serde_json::Value, Campa
     };
     let report = compute_store_metrics(mosaic, &partial, &opts, &mut |_, _| {})
         .map_err(|e| CampaignError::Run(format!("metrics rasters of the mosaic: {e}")))?;
-    let mut json = serde_json::to_value(&report).unwrap_or_default();
-    json["store"] = serde_json::Value::String(mosaic.display().to_string());
-    json["seconds"] = serde_json::json!(started.elapsed().as_secs_f64());
+    let json = crate::forest::store_metrics::metrics_json(
+        &report,
+        mosaic,
+        started.elapsed().as_secs_f64(),
+    );
     let jpath = partial.join("metrics.json");
     std::fs::write(
         &jpath,

@@ -343,9 +343,9 @@ pub fn plan(path: &Path) -> Result<Plan, CampaignError> {
 /// (x, y in m): the middle of its first return segment, as the voxel store places its automatic
 /// extent.
 fn first_position(capture: &Path, config: &RunConfig) -> Result<[f64; 2], String> {
-    use crate::pipeline::ports::{Source, SourceEvent};
+    use crate::pipeline::ports::SourceEvent;
     let raw = crate::source::open_file(capture)?;
-    let mut src: Box<dyn Source> = if config.georeference.enabled {
+    let mut src: Box<crate::source::DynSource> = if config.georeference.enabled {
         Box::new(
             crate::source::georeferencing::GeoreferencingSource::new(
                 raw,

@@ -329,13 +329,47 @@ fn print_model(m: &BiomassModel, out: &Path) {
 fn epsg_from_summary(metrics: &Path) -> Option<u32> {
     let dir = metrics.parent()?;
     let text = std::fs::read_to_string(dir.join("summary.json")).ok()?;
-    let v: serde_json::Value = serde_json::from_str(&text).ok()?;
-    if let Some(c) = v["sinks"]["metrics_rasters"]["epsg"].as_u64() {
-        return u32::try_from(c).ok();
-    }
-    v["source"]["georeference"]["output_crs"]
-        .as_str()
-        .and_then(crate::geo::crs::epsg_of)
+    let v: SummaryCrs = serde_json::from_str(&text).ok()?;
+    v.sinks.metrics_rasters.epsg.or_else(|| {
+        v.source
+            .georeference
+            .output_crs
+            .as_deref()
+            .and_then(crate::geo::crs::epsg_of)
+    })
+}
+
+/// What a replay's `summary.json` says of the output CRS: the metrics rasters' EPSG code, or
+/// the georeferencing's output CRS.
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct SummaryCrs {
+    sinks: SummarySinks,
+    source: SummarySource,
+}
+
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct SummarySinks {
+    metrics_rasters: SummaryRasters,
+}
+
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct SummaryRasters {
+    epsg: Option<u32>,
+}
+
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct SummarySource {
+    georeference: SummaryGeoreference,
+}
+
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct SummaryGeoreference {
+    output_crs: Option<String>,
 }
 
 fn predict(a: PredictArgs) -> Result<(), Failure> {

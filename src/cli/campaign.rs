@@ -147,12 +147,14 @@ fn print_report(r: &crate::campaign::local::CampaignReport) {
         r.merge.tiles,
         r.merge.wall_s
     );
-    if let Some(m) = &r.metrics {
+    if let Some(m) = r
+        .metrics
+        .as_ref()
+        .and_then(|m| serde_json::from_value::<MetricsLine>(m.clone()).ok())
+    {
         println!(
             "  metrics rasters: {} of {} cells with a canopy height, {:.1} s",
-            m["cells_ok"][0],
-            m["cells"][0],
-            m["seconds"].as_f64().unwrap_or(0.0)
+            m.cells_ok[0], m.cells[0], m.seconds
         );
     }
     let outside: Vec<String> = r
@@ -303,4 +305,14 @@ pub fn run(args: CampaignArgs) -> Result<(), Failure> {
             Ok(())
         }
     }
+}
+
+/// What the summary of a campaign shows of its mosaic's `rasters/metrics.json`: the cells with
+/// a canopy height and all cells (canopy height model first), and the time taken.
+#[derive(Default, serde::Deserialize)]
+#[serde(default)]
+struct MetricsLine {
+    cells_ok: [u64; 2],
+    cells: [u64; 2],
+    seconds: f64,
 }

@@ -25,12 +25,13 @@ use crate::format::capture::{FlushPolicy, FsyncPolicy};
 use crate::format::capture_writer::CaptureWriter;
 use crate::format::header::CaptureHeader;
 use crate::pipeline::edge::FullPolicy;
-use crate::pipeline::{LivePublish, RunControl, run as run_pipeline};
+use crate::pipeline::run as run_pipeline;
 use crate::qc::QcHub;
 use crate::run::assemble::{Workers, assemble};
 use crate::run::input::Input;
 use crate::run::outputs::daemon_sinks;
 use crate::run::summary::{Summary, print_summary};
+use crate::run::{LivePublish, RunControl};
 use crate::source::georeferencing::OnMissing;
 
 /// Arguments of `fwlidar run`.
@@ -85,6 +86,29 @@ pub fn next_segment(dir: &Path, survey: &str) -> Result<(u32, PathBuf), Failure>
 fn create_dir(dir: &Path, what: &str) -> Result<(), Failure> {
     std::fs::create_dir_all(dir)
         .map_err(|e| Failure::job(format!("cannot create {what} {}: {e}", dir.display())))
+}
+
+/// A segment's `<survey>_NNNN.summary.json`: the run's summary and the daemon's part.
+#[derive(serde::Serialize)]
+struct DaemonSummary<'a> {
+    #[serde(flatten)]
+    run: Summary<'a>,
+    daemon: SegmentSummary,
+}
+
+/// The daemon's part of a segment's summary: the survey, the segment and what the recording
+/// received, kept and lost.
+#[derive(serde::Serialize)]
+struct SegmentSummary {
+    survey: String,
+    segment: String,
+    seq_base: u64,
+    frames_received: u64,
+    frames_recorded: u64,
+    frames_lost: u64,
+    frames_bad: u64,
+    drops: std::collections::BTreeMap<String, u64>,
+    dropped_total: u64,
 }
 
 /// Runs the daemon until SIGINT/SIGTERM.
@@ -195,22 +219,25 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     drop(server);
 
     let summary_path = out_dir.join(format!("{segment_stem}.summary.json"));
-    let mut summary = serde_json::to_value(Summary {
-        report: &report,
-        warnings: &[],
-    })
-    .unwrap_or_default();
-    summary["daemon"] = serde_json::json!({
-        "survey": d.survey,
-        "segment": segment.display().to_string(),
-        "seq_base": control.seq_base,
-        "frames_received": last.pulses.frames_received,
-        "frames_recorded": last.pulses.frames_recorded,
-        "frames_lost": last.pulses.frames_lost,
-        "frames_bad": last.pulses.frames_bad,
-        "drops": last.drops,
-        "dropped_total": last.pulses.dropped_total,
-    });
+    let summary = DaemonSummary {
+        run: Summary {
+            report: &report,
+            warnings: &[],
+        },
+        daemon: SegmentSummary {
+            survey: d.survey.clone(),
+            segment: segment.display().to_string(),
+            seq_base: control.seq_base,
+            frames_received: last.pulses.frames_received,
+            frames_recorded: last.pulses.frames_recorded,
+            frames_lost: last.pulses.frames_lost,
+            frames_bad: last.pulses.frames_bad,
+            drops: last.drops.clone(),
+            dropped_total: last.pulses.dropped_total,
+        },
+    };
+    // Through a JSON value: every key in sorted order, as the segment summaries have them.
+    let summary = serde_json::to_value(&summary).unwrap_or_default();
     let json = serde_json::to_vec_pretty(&summary)
         .map_err(|e| Failure::job(format!("cannot encode summary: {e}")))?;
     let written = write_atomic(&summary_path, &json);

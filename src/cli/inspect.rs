@@ -11,6 +11,10 @@ use crate::format::{CaptureHeader, CaptureReader, Record};
 use crate::pipeline::ports::SourceEvent;
 use crate::pulse::{Pulse, PulsePool, SegmentKind};
 use crate::source::InputKind;
+use crate::source::gedi::GediReport;
+use crate::source::las::WavePacketDescriptorReport;
+use crate::source::pulsewaves::{PulseDescriptorReport, PulseWavesReport, SamplingCount};
+use crate::source::report::{InputReport, SourceReport};
 
 /// Arguments of `fwlidar inspect`.
 #[derive(Debug, clap::Args)]
@@ -183,13 +187,14 @@ fn inspect_source(args: InspectArgs) -> Result<(), Failure> {
     out.flush().map_err(write_err)
 }
 
-/// Writes a source's report for people: its plain values one per line, the descriptors (LAS
-/// wave packet descriptors, PulseWaves pulse descriptors) and scanners as aligned tables, the
-/// warnings one per line, anything else as compact JSON. `--json` prints the report as is.
-fn write_report(out: &mut impl Write, report: &serde_json::Value) -> std::io::Result<()> {
-    use serde_json::Value;
-    let Some(map) = report.as_object() else {
-        return writeln!(out, "  report: {report}");
+/// Writes a source's report for people: its plain values one per line, the format's lists
+/// (LAS wave packet descriptors, PulseWaves pulse descriptors and scanners, GEDI beams) as
+/// aligned tables, GEDI's extent as ranges, the warnings one per line, what wrappers add as
+/// compact JSON. `--json` prints the report as is.
+fn write_report(out: &mut impl Write, report: &SourceReport) -> std::io::Result<()> {
+    let json = report.to_json();
+    let Some(map) = json.as_object() else {
+        return writeln!(out, "  report: {json}");
     };
     writeln!(out, "  report:")?;
     let plain: Vec<_> = map
@@ -200,52 +205,138 @@ fn write_report(out: &mut impl Write, report: &serde_json::Value) -> std::io::Re
     for (k, v) in plain {
         writeln!(out, "    {k:<width$}  {}", cell(v))?;
     }
-    for (k, v) in map.iter().filter(|(_, v)| v.is_array() || v.is_object()) {
-        match (k.as_str(), v) {
-            (_, Value::Array(a)) if a.is_empty() => writeln!(out, "  {k}: none")?,
-            ("wave_packet_descriptors", Value::Array(a)) => {
-                writeln!(out, "  wave packet descriptors:")?;
-                write_table(out, "    ", &las_descriptor_rows(a))?;
-            }
-            ("descriptors", Value::Array(a)) => {
-                writeln!(out, "  pulse descriptors:")?;
-                write_table(out, "    ", &pulse_descriptor_rows(a))?;
-            }
-            ("scanners", Value::Array(a)) => {
-                writeln!(out, "  scanners:")?;
-                write_table(out, "    ", &transposed_rows("scanner", a))?;
-            }
-            ("beams", Value::Array(a)) => {
-                writeln!(out, "  beams:")?;
-                write_table(out, "    ", &object_rows(a))?;
-            }
-            ("extent", Value::Object(o)) => {
-                writeln!(out, "  extent (min .. max):")?;
-                let width = o.keys().map(String::len).max().unwrap_or(0);
-                for (k, v) in o {
-                    let text = match v.as_array().map(Vec::as_slice) {
-                        // Times to the microsecond: 7 digits would hide the span.
-                        Some([lo, hi]) if k == "gps_time" => format!(
-                            "{:.6} .. {:.6} s",
-                            lo.as_f64().unwrap_or(f64::NAN),
-                            hi.as_f64().unwrap_or(f64::NAN)
-                        ),
-                        Some([lo, hi]) => format!("{} .. {}", cell(lo), cell(hi)),
-                        _ => cell(v),
-                    };
-                    writeln!(out, "    {k:<width$}  {text}")?;
-                }
-            }
-            ("warnings", Value::Array(a)) => {
-                writeln!(out, "  warnings:")?;
-                for w in a {
-                    writeln!(out, "    - {}", cell(w))?;
-                }
-            }
-            _ => writeln!(out, "  {k}: {v}")?,
-        }
+    match &report.input {
+        InputReport::Las(r) => write_table_section(
+            out,
+            "wave_packet_descriptors",
+            "wave packet descriptors",
+            &las_descriptor_rows(&r.wave_packet_descriptors),
+        )?,
+        InputReport::PulseWaves(r) => write_pulsewaves_lists(out, r)?,
+        InputReport::Gedi(r) => write_gedi_lists(out, r)?,
+        _ => {}
+    }
+    if let Some(g) = &report.georeference {
+        writeln!(out, "  georeference: {}", to_json(g))?;
+    }
+    if let Some(s) = &report.shard {
+        writeln!(out, "  shard: {}", to_json(s))?;
     }
     Ok(())
+}
+
+fn to_json(v: &impl serde::Serialize) -> serde_json::Value {
+    serde_json::to_value(v).unwrap_or_default()
+}
+
+/// A list as a table under its title, or `name: none` when it is empty (`rows` holds the
+/// header alone).
+fn write_table_section(
+    out: &mut impl Write,
+    name: &str,
+    title: &str,
+    rows: &[Vec<String>],
+) -> std::io::Result<()> {
+    if rows.len() <= 1 {
+        return writeln!(out, "  {name}: none");
+    }
+    writeln!(out, "  {title}:")?;
+    write_table(out, "    ", rows)
+}
+
+/// A PulseWaves file's pulse descriptors and scanners as tables, its warnings one per line.
+fn write_pulsewaves_lists(out: &mut impl Write, r: &PulseWavesReport) -> std::io::Result<()> {
+    write_table_section(
+        out,
+        "descriptors",
+        "pulse descriptors",
+        &pulse_descriptor_rows(&r.descriptors),
+    )?;
+    let scanners: Vec<(u64, serde_json::Value)> = r
+        .scanners
+        .iter()
+        .map(|s| (u64::from(s.index), to_json(s)))
+        .collect();
+    write_table_section(
+        out,
+        "scanners",
+        "scanners",
+        &transposed_rows("scanner", &scanners),
+    )?;
+    if r.warnings.is_empty() {
+        writeln!(out, "  warnings: none")
+    } else {
+        writeln!(out, "  warnings:")?;
+        r.warnings
+            .iter()
+            .try_for_each(|w| writeln!(out, "    - {w}"))
+    }
+}
+
+/// A GEDI granule's beams as a table and its extent as ranges (min .. max).
+fn write_gedi_lists(out: &mut impl Write, r: &GediReport) -> std::io::Result<()> {
+    let mut rows = vec![
+        [
+            "name",
+            "shots",
+            "pulses",
+            "stale",
+            "no samples",
+            "too long",
+            "bad geolocation",
+            "degraded",
+        ]
+        .map(String::from)
+        .to_vec(),
+    ];
+    for b in &r.beams {
+        rows.push(vec![
+            b.name.clone(),
+            b.shots.to_string(),
+            b.pulses.to_string(),
+            b.stale.to_string(),
+            b.no_samples.to_string(),
+            b.too_long.to_string(),
+            b.bad_geolocation.to_string(),
+            b.degraded.to_string(),
+        ]);
+    }
+    write_table_section(out, "beams", "beams", &rows)?;
+    let e = &r.extent;
+    let range = |v: Option<[f64; 2]>| match v {
+        Some([lo, hi]) => format!("{} .. {}", number_cell(lo), number_cell(hi)),
+        None => "-".into(),
+    };
+    let lines: [(&str, String); 9] = [
+        ("elevation_m", range(e.elevation_m)),
+        (
+            "gps_time",
+            // Times to the microsecond: 7 digits would hide the span.
+            e.gps_time
+                .map_or("-".into(), |[lo, hi]| format!("{lo:.6} .. {hi:.6} s")),
+        ),
+        ("latitude_deg", range(e.latitude_deg)),
+        ("longitude_deg", range(e.longitude_deg)),
+        ("noise_stddev_counts", range(e.noise_stddev_counts)),
+        (
+            "rx_samples",
+            e.rx_samples
+                .map_or("-".into(), |[lo, hi]| format!("{lo} .. {hi}")),
+        ),
+        ("tx_fwhm_ns", range(e.tx_fwhm_ns)),
+        ("x_m", range(e.x_m)),
+        ("y_m", range(e.y_m)),
+    ];
+    writeln!(out, "  extent (min .. max):")?;
+    let width = lines.iter().map(|(k, _)| k.len()).max().unwrap_or(0);
+    lines
+        .iter()
+        .try_for_each(|(k, text)| writeln!(out, "    {k:<width$}  {text}"))
+}
+
+/// A number as a table cell (see [`cell`]).
+fn number_cell(x: f64) -> String {
+    cell(&serde_json::Value::from(x))
 }
 
 /// A JSON value as a table cell: strings unquoted, numbers to 7 significant digits (the
@@ -274,15 +365,7 @@ fn cell(v: &serde_json::Value) -> String {
 
 /// The LAS wave packet descriptors as table rows (header first); consecutive indices with the
 /// same fields share a row (`3-100`).
-fn las_descriptor_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
-    const FIELDS: [&str; 6] = [
-        "bits_per_sample",
-        "compression",
-        "samples",
-        "temporal_spacing_ps",
-        "digitizer_gain",
-        "digitizer_offset",
-    ];
+fn las_descriptor_rows(list: &[WavePacketDescriptorReport]) -> Vec<Vec<String>> {
     let mut rows = vec![
         [
             "index",
@@ -308,8 +391,15 @@ fn las_descriptor_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
         }
     };
     for d in list {
-        let index = d["index"].as_u64().unwrap_or(0);
-        let cells: Vec<String> = FIELDS.iter().map(|f| cell(&d[*f])).collect();
+        let index = d.index as u64;
+        let cells = vec![
+            d.bits_per_sample.to_string(),
+            d.compression.to_string(),
+            d.samples.to_string(),
+            d.temporal_spacing_ps.to_string(),
+            number_cell(d.digitizer_gain),
+            number_cell(d.digitizer_offset),
+        ];
         match &mut run {
             Some((_, last, c)) if *last + 1 == index && *c == cells => *last = index,
             _ => {
@@ -324,7 +414,7 @@ fn las_descriptor_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
 
 /// The PulseWaves pulse descriptors as table rows (header first): one row per sampling, the
 /// descriptor's index, scanner and description on its first.
-fn pulse_descriptor_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
+fn pulse_descriptor_rows(list: &[PulseDescriptorReport]) -> Vec<Vec<String>> {
     let mut rows = vec![
         [
             "index",
@@ -342,97 +432,61 @@ fn pulse_descriptor_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
         .map(String::from)
         .to_vec(),
     ];
+    let count = |c: SamplingCount| match c {
+        SamplingCount::Fixed(n) => n.to_string(),
+        SamplingCount::Variable(v) => v.to_string(),
+    };
     for d in list {
-        let samplings = d["samplings"].as_array().map_or(&[][..], Vec::as_slice);
-        if samplings.is_empty() {
-            let mut row = vec![cell(&d["index"]), cell(&d["scanner_index"])];
+        if d.samplings.is_empty() {
+            let mut row = vec![d.index.to_string(), d.scanner_index.to_string()];
             row.extend(std::iter::repeat_n(String::new(), 8));
-            row.push(cell(&d["description"]));
+            row.push(d.description.clone());
             rows.push(row);
         }
-        for (i, s) in samplings.iter().enumerate() {
+        for (i, s) in d.samplings.iter().enumerate() {
             let first = i == 0;
-            let lookup = match s["lookup_table_index"].as_u64() {
-                Some(0) | None => "-".to_string(),
-                Some(n) => n.to_string(),
-            };
+            let on_first = |text: String| if first { text } else { String::new() };
             rows.push(vec![
-                if first {
-                    cell(&d["index"])
-                } else {
-                    String::new()
-                },
-                if first {
-                    cell(&d["scanner_index"])
-                } else {
-                    String::new()
-                },
+                on_first(d.index.to_string()),
+                on_first(d.scanner_index.to_string()),
                 (i + 1).to_string(),
-                cell(&s["type"]),
-                cell(&s["channel"]),
-                cell(&s["bits_per_sample"]),
-                cell(&s["segments"]),
-                cell(&s["samples"]),
-                cell(if s["sample_units_ns"].is_null() {
-                    &d["sample_units_ns"]
-                } else {
-                    &s["sample_units_ns"]
-                }),
-                lookup,
-                if first {
-                    cell(&d["description"])
-                } else {
-                    String::new()
+                cell(&to_json(&s.kind)),
+                s.channel.to_string(),
+                s.bits_per_sample.to_string(),
+                count(s.segments),
+                count(s.samples),
+                number_cell(f64::from(s.sample_units_ns)),
+                match s.lookup_table_index {
+                    0 => "-".to_string(),
+                    n => n.to_string(),
                 },
+                on_first(d.description.clone()),
             ]);
         }
     }
     rows
 }
 
-/// A list of objects as a table with a row per object and a column per key (keys in the order
-/// of the first object; `name` first when there is one): GEDI's beams.
-fn object_rows(list: &[serde_json::Value]) -> Vec<Vec<String>> {
+/// Records (each with its number and its fields as a JSON object) as a table with a row per
+/// field and a column per record (`scanner 1`, ...).
+fn transposed_rows(what: &str, list: &[(u64, serde_json::Value)]) -> Vec<Vec<String>> {
     let mut keys: Vec<&str> = Vec::new();
-    for o in list.iter().filter_map(|o| o.as_object()) {
-        for k in o.keys() {
-            if !keys.contains(&k.as_str()) {
-                keys.push(k);
-            }
-        }
-    }
-    if let Some(i) = keys.iter().position(|k| *k == "name") {
-        let k = keys.remove(i);
-        keys.insert(0, k);
-    }
-    let mut rows = vec![keys.iter().map(|k| k.replace('_', " ")).collect::<Vec<_>>()];
-    rows.extend(
-        list.iter()
-            .map(|o| keys.iter().map(|k| cell(&o[*k])).collect::<Vec<_>>()),
-    );
-    rows
-}
-
-/// A list of objects as a table with a row per key and a column per object (`scanner 1`, ...,
-/// numbered by their `index` when they have one).
-fn transposed_rows(what: &str, list: &[serde_json::Value]) -> Vec<Vec<String>> {
-    let mut keys: Vec<&str> = Vec::new();
-    for o in list.iter().filter_map(|o| o.as_object()) {
-        for k in o.keys().filter(|k| *k != "index") {
-            if !keys.contains(&k.as_str()) {
+    for (_, o) in list {
+        for k in o.as_object().into_iter().flat_map(|o| o.keys()) {
+            if k != "index" && !keys.contains(&k.as_str()) {
                 keys.push(k);
             }
         }
     }
     let mut header = vec![String::new()];
-    header.extend(list.iter().enumerate().map(|(i, o)| {
-        let n = o["index"].as_u64().unwrap_or(i as u64 + 1);
-        format!("{what} {n}")
-    }));
+    header.extend(list.iter().map(|(n, _)| format!("{what} {n}")));
     let mut rows = vec![header];
     for k in keys {
         let mut row = vec![k.to_string()];
-        row.extend(list.iter().map(|o| cell(&o[k])));
+        row.extend(
+            list.iter()
+                .map(|(_, o)| cell(o.get(k).unwrap_or(&serde_json::Value::Null))),
+        );
         rows.push(row);
     }
     rows
@@ -492,7 +546,7 @@ struct SourceOverview {
     samples_min: Option<u64>,
     samples_max: Option<u64>,
     bits: Vec<u8>,
-    report: serde_json::Value,
+    report: SourceReport,
 }
 
 fn inspect_capture(args: InspectArgs) -> Result<(), Failure> {
@@ -644,9 +698,15 @@ mod tests {
 
     #[test]
     fn inspect_identical_consecutive_descriptors_share_a_row() {
-        let d = |index: u64, samples: u64| {
-            json!({"index": index, "bits_per_sample": 16, "compression": 0, "samples": samples,
-                   "temporal_spacing_ps": 1000, "digitizer_gain": 1.0, "digitizer_offset": 0.0})
+        let d = |index: usize, samples: u32| WavePacketDescriptorReport {
+            index,
+            bits_per_sample: 16,
+            compression: 0,
+            samples,
+            temporal_spacing_ps: 1000,
+            digitizer_gain: 1.0,
+            digitizer_offset: 0.0,
+            payload_bytes: 26,
         };
         let rows = las_descriptor_rows(&[d(1, 60), d(2, 0), d(3, 0), d(4, 0), d(6, 0), d(7, 5)]);
         let index: Vec<&str> = rows.iter().map(|r| r[0].as_str()).collect();

@@ -130,9 +130,7 @@ pub fn run(args: MetricsArgs) -> Result<(), Failure> {
         _ => Failure::job(e),
     })?;
     let secs = start.elapsed().as_secs_f64();
-    let mut json = serde_json::to_value(&report).unwrap_or_default();
-    json["store"] = serde_json::Value::String(args.store.display().to_string());
-    json["seconds"] = serde_json::json!(secs);
+    let json = crate::forest::store_metrics::metrics_json(&report, &args.store, secs);
     let jpath = out.join("metrics.json");
     let text = serde_json::to_string_pretty(&json).unwrap_or_default();
     std::fs::write(&jpath, text + "\n")

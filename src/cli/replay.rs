@@ -10,13 +10,14 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
 use crate::config::RunConfig;
+use crate::pipeline::run as run_pipeline;
 use crate::pipeline::runner::LiveCounters;
-use crate::pipeline::{RunControl, RunReport, run as run_pipeline};
 use crate::run::assemble::{Assembled, Workers, assemble};
 use crate::run::input::Input;
 use crate::run::outputs::{prepare_out_dir, replay_run_key, replay_sinks};
 use crate::run::summary::{Summary, print_summary, write_summary};
 use crate::run::warnings::{log_warnings, run_warnings};
+use crate::run::{RunControl, RunReport};
 use crate::source::shard::Shard;
 
 /// The sample replayed when no input is named.

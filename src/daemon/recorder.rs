@@ -10,6 +10,7 @@
 //! reader skips a partial last record. A write error (disk full) stops the recording with an
 //! alarm; processing goes on.
 
+use crate::source::report::{InputReport, LiveReport, SourceReport};
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::path::PathBuf;
@@ -18,7 +19,6 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use crossbeam_channel::{Receiver, Sender, never, select};
-use serde::Serialize;
 
 use super::InputState;
 use super::frames::{FrameMsg, FrameReceiver};
@@ -57,18 +57,6 @@ impl RecorderState {
     pub fn error(&self) -> Option<String> {
         self.error.lock().unwrap_or_else(|e| e.into_inner()).clone()
     }
-}
-
-#[derive(Serialize)]
-struct Report {
-    segment: String,
-    frames_recorded: u64,
-    nav_records: u64,
-    bytes: u64,
-    bad_frames: u64,
-    recorded_unprocessed: u64,
-    saturated_pulses: u64,
-    error: Option<String>,
 }
 
 /// The live source (see the module documentation).
@@ -235,6 +223,8 @@ impl LiveSource {
 }
 
 impl Source for LiveSource {
+    type Report = SourceReport;
+
     fn name(&self) -> &'static str {
         "live"
     }
@@ -303,9 +293,9 @@ impl Source for LiveSource {
         self.facts.clone()
     }
 
-    fn report(&self) -> serde_json::Value {
+    fn report(&self) -> SourceReport {
         let s = &self.state;
-        serde_json::to_value(Report {
+        SourceReport::of(InputReport::Live(LiveReport {
             segment: self.segment.display().to_string(),
             frames_recorded: s.frames_recorded.load(Ordering::Relaxed),
             nav_records: s.nav_records.load(Ordering::Relaxed),
@@ -314,8 +304,7 @@ impl Source for LiveSource {
             recorded_unprocessed: s.recorded_unprocessed.load(Ordering::Relaxed),
             saturated_pulses: s.saturated.load(Ordering::Relaxed),
             error: s.error(),
-        })
-        .unwrap_or_default()
+        }))
     }
 }
 

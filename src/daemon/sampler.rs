@@ -12,9 +12,16 @@ use std::time::Instant;
 
 use super::recorder::RecorderState;
 use super::{DaemonConfig, InputState, disk, now_ns};
+use crate::nav::consumer::NavReport;
 use crate::pipeline::stage::{DropCounts, Emitter, Stage};
 use crate::pipeline::telemetry::{LatencyHistogram, StageTelemetry};
-use crate::pipeline::{LivePublish, RunControl};
+use crate::sink::SinkReports;
+use crate::source::report::SourceReport;
+
+/// The controls of the daemon's run.
+type RunControl = crate::pipeline::RunControl<SourceReport, SinkReports, NavReport>;
+/// What the daemon's run publishes.
+type LivePublish = crate::pipeline::LivePublish<SourceReport, SinkReports, NavReport>;
 use crate::pulse::{Pulse, PulsePool, SegmentKind};
 use crate::qc::*;
 use crate::stages::StageConfig;
@@ -139,106 +146,187 @@ impl Sampler {
     /// Builds one snapshot and publishes it; returns it.
     pub fn tick(&mut self) -> Arc<QcSnapshot> {
         let now = Instant::now();
-        let live = &self.control.live;
-        let pb = &self.publish;
-        let source = pb.source.lock().unwrap_or_else(|e| e.into_inner()).clone();
-        let sink = pb.sink.lock().unwrap_or_else(|e| e.into_inner()).clone();
-        let nav = pb.nav.lock().unwrap_or_else(|e| e.into_inner()).clone();
-        let workers = pb.workers.lock().unwrap_or_else(|e| e.into_inner()).clone();
-        let e2e = pb
-            .end_to_end
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .clone();
-        let in_q = pb
-            .input_queues
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .clone();
-        let out_q = pb
-            .output_queues
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .clone();
+        let p = self.read_published();
+        let stages = merged_stages(&p.workers);
+        let missed = p
+            .source
+            .georeference()
+            .map(|g| g.missed)
+            .unwrap_or_default();
+        let drops = self.drops(&stages, &missed);
+        let dropped_total: u64 = drops.values().sum();
+        let (counts, rates) = self.rates(now, dropped_total);
+        let (stage_lat, e2e_lat, e2e_recent, stage_p99) = self.latencies(&stages, p.e2e);
+        let queues = self.queues(&p.in_q, &p.out_q);
+        let queue_fill = queues
+            .iter()
+            .filter(|q| q.capacity > 0)
+            .map(|q| q.len as f64 / q.capacity as f64)
+            .fold(0.0, f64::max);
+        let now_ns = now_ns();
+        let inputs = self.input_status(now_ns);
+        let nav = self.nav_status(&p.nav, now_ns);
+        let disk = self.disk_status(rates.bytes_per_s);
+        let alerts = self.alerts(&inputs, &nav, &rates, &disk);
+        let rec = &self.recorder;
+        let frames_state = self.inputs.iter().find(|i| i.name == "frames");
+        let georeference = p.source.georeference().unwrap_or_default();
+        let snapshot = QcSnapshot {
+            time_unix_s: now_ns as f64 / 1e9,
+            uptime_s: self.started.elapsed().as_secs_f64(),
+            version: env!("CARGO_PKG_VERSION").into(),
+            survey: self.cfg.survey.clone(),
+            sequence: self.sequence,
+            inputs,
+            pulses: PulseCounts {
+                frames_received: counts.frames,
+                frames_recorded: rec.frames_recorded.load(Ordering::Relaxed),
+                frames_lost: frames_state.map_or(0, |i| i.state.lost.load(Ordering::Relaxed)),
+                frames_bad: rec.bad_frames.load(Ordering::Relaxed),
+                pulses_in: self.control.live.pulses_in.load(Ordering::Relaxed),
+                pulses_processed: counts.processed,
+                dropped_total,
+                rate_in_hz: rates.rate_in,
+                rate_processed_hz: rates.rate_out,
+                rate_dropped_hz: rates.rate_drop,
+            },
+            drops,
+            queues,
+            stages: stage_lat,
+            end_to_end: e2e_lat,
+            nav,
+            georeference: GeorefStatus {
+                enabled: self.georeference,
+                placed: georeference.georeferenced,
+                missed,
+                crs: georeference.output_crs,
+            },
+            tiles: tiles_status(&p.sink),
+            recording: RecordingStatus {
+                segment: self.segment.clone(),
+                bytes: counts.bytes,
+                records: rec.records.load(Ordering::Relaxed),
+                nav_records: rec.nav_records.load(Ordering::Relaxed),
+                error: rec.error(),
+            },
+            disk,
+            saturation: SaturationStatus {
+                pulses: counts.saturated,
+                recent_fraction: rates.saturated_fraction,
+            },
+            alerts,
+        };
+        self.sequence += 1;
+        let point = HistoryPoint {
+            t: snapshot.time_unix_s,
+            rate_in_hz: rates.rate_in,
+            rate_processed_hz: rates.rate_out,
+            rate_dropped_hz: rates.rate_drop,
+            queue_fill,
+            e2e_p50_us: e2e_recent.p50_ns as f64 / 1e3,
+            e2e_p99_us: e2e_recent.p99_ns as f64 / 1e3,
+            stage_p99_us: stage_p99,
+        };
+        self.show_sampled_pulse();
+        self.hub.publish(snapshot, point);
+        self.hub.snapshot()
+    }
 
-        // Stage telemetry merged over workers.
-        let mut stages: Vec<StageTelemetry> = Vec::new();
-        for w in &workers {
-            if stages.is_empty() {
-                stages = w.iter().map(|t| StageTelemetry::new(t.name)).collect();
-            }
-            for (acc, t) in stages.iter_mut().zip(w) {
-                acc.merge(t);
-            }
+    /// A copy of what the pipeline's threads published last.
+    fn read_published(&self) -> Published {
+        fn get<T: Clone>(m: &std::sync::Mutex<T>) -> T {
+            m.lock().unwrap_or_else(|e| e.into_inner()).clone()
         }
+        let pb = &self.publish;
+        Published {
+            source: get(&pb.source),
+            sink: get(&pb.sink),
+            nav: get(&pb.nav),
+            workers: get(&pb.workers),
+            e2e: get(&pb.end_to_end),
+            in_q: get(&pb.input_queues),
+            out_q: get(&pb.output_queues),
+        }
+    }
 
-        // Drops by reason.
+    /// Pulses dropped by reason: the input edge's, the stages', and the georeferencing's
+    /// misses when it drops them.
+    fn drops(
+        &self,
+        stages: &[StageTelemetry],
+        missed: &BTreeMap<String, u64>,
+    ) -> BTreeMap<String, u64> {
         let mut drops: BTreeMap<String, u64> = BTreeMap::new();
-        let input_dropped = live.input_dropped.load(Ordering::Relaxed);
+        let input_dropped = self.control.live.input_dropped.load(Ordering::Relaxed);
         if input_dropped > 0 {
             drops.insert(
                 crate::pipeline::runner::INPUT_QUEUE_FULL.into(),
                 input_dropped,
             );
         }
-        for s in &stages {
+        for s in stages {
             for (r, c) in s.dropped.iter() {
                 *drops.entry(format!("{}.{r}", s.name)).or_insert(0) += c;
             }
         }
-        let g = &source["georeference"];
-        let missed: BTreeMap<String, u64> = g["missed"]
-            .as_object()
-            .map(|m| {
-                m.iter()
-                    .map(|(k, v)| (k.clone(), v.as_u64().unwrap_or(0)))
-                    .collect()
-            })
-            .unwrap_or_default();
         if self.drop_missed {
-            for (k, v) in &missed {
+            for (k, v) in missed {
                 if *v > 0 {
                     drops.insert(format!("georeference.{k}"), *v);
                 }
             }
         }
-        let dropped_total: u64 = drops.values().sum();
+        drops
+    }
 
-        // Counts and rates.
+    /// The counts now, and the rates since the last tick (per second; zero at the first).
+    fn rates(&mut self, now: Instant, dropped_total: u64) -> (Counts, Rates) {
         let frames_state = self.inputs.iter().find(|i| i.name == "frames");
-        let frames = frames_state.map_or(0, |i| i.state.frames.load(Ordering::Relaxed));
         let rec = &self.recorder;
         let counts = Counts {
             at: now,
-            frames,
-            processed: live.pulses_out.load(Ordering::Relaxed),
+            frames: frames_state.map_or(0, |i| i.state.frames.load(Ordering::Relaxed)),
+            processed: self.control.live.pulses_out.load(Ordering::Relaxed),
             dropped: dropped_total,
             decoded: rec.decoded.load(Ordering::Relaxed),
             saturated: rec.saturated.load(Ordering::Relaxed),
             bytes: rec.bytes.load(Ordering::Relaxed),
         };
-        let (rate_in, rate_out, rate_drop, sat_frac, byte_rate) = match self.last {
+        let rates = match self.last {
             Some(l) => {
                 let dt = (now - l.at).as_secs_f64().max(1e-3);
                 let d = |a: u64, b: u64| a.saturating_sub(b) as f64;
                 let decoded = d(counts.decoded, l.decoded);
-                (
-                    d(counts.frames, l.frames) / dt,
-                    d(counts.processed, l.processed) / dt,
-                    d(counts.dropped, l.dropped) / dt,
-                    if decoded > 0.0 {
+                Rates {
+                    rate_in: d(counts.frames, l.frames) / dt,
+                    rate_out: d(counts.processed, l.processed) / dt,
+                    rate_drop: d(counts.dropped, l.dropped) / dt,
+                    saturated_fraction: if decoded > 0.0 {
                         d(counts.saturated, l.saturated) / decoded
                     } else {
                         0.0
                     },
-                    d(counts.bytes, l.bytes) / dt,
-                )
+                    bytes_per_s: d(counts.bytes, l.bytes) / dt,
+                }
             }
-            None => (0.0, 0.0, 0.0, 0.0, 0.0),
+            None => Rates::default(),
         };
         self.last = Some(counts);
+        (counts, rates)
+    }
 
-        // Latencies: cumulative for the snapshot, the last interval for the chart.
+    /// Latencies: cumulative for the snapshot (per stage, end to end), the last interval's for
+    /// the chart (end to end, and each stage's p99 in µs).
+    fn latencies(
+        &mut self,
+        stages: &[StageTelemetry],
+        e2e: LatencyHistogram,
+    ) -> (
+        Vec<StageLatency>,
+        StageLatency,
+        crate::pipeline::telemetry::LatencySummary,
+        Vec<f64>,
+    ) {
         let stage_lat: Vec<StageLatency> =
             stages.iter().map(|s| latency(s.name, &s.service)).collect();
         let e2e_lat = latency("end_to_end", &e2e);
@@ -253,8 +341,12 @@ impl Sampler {
             .collect();
         self.prev_e2e = e2e;
         self.prev_stages = stages.iter().map(|s| s.service.clone()).collect();
+        (stage_lat, e2e_lat, e2e_recent, stage_p99)
+    }
 
-        // Queues.
+    /// The queues' fill: the recorder's, each worker's input edge, each worker's edge to the
+    /// sink.
+    fn queues(&self, in_q: &[(u64, u64)], out_q: &[u64]) -> Vec<QueueFill> {
         let mut queues = Vec::new();
         if let Some((rx, cap)) = &self.recorder_queue {
             queues.push(QueueFill {
@@ -278,120 +370,84 @@ impl Sampler {
                 capacity: out_cap,
             });
         }
-        let queue_fill = queues
-            .iter()
-            .filter(|q| q.capacity > 0)
-            .map(|q| q.len as f64 / q.capacity as f64)
-            .fold(0.0, f64::max);
+        queues
+    }
 
-        // Inputs.
-        let now_ns = now_ns();
-        let age = |ns: u64| (ns > 0).then(|| now_ns.saturating_sub(ns) as f64 / 1e9);
-        let inputs: Vec<InputStatus> = self
-            .inputs
+    /// Each input's state (`now_ns`: host clock, ns since the epoch).
+    fn input_status(&self, now_ns: u64) -> Vec<InputStatus> {
+        self.inputs
             .iter()
             .map(|i| InputStatus {
                 name: i.name.clone(),
                 detail: i.detail.clone(),
                 up: i.state.up.load(Ordering::Relaxed),
-                last_data_age_s: age(i.state.last_data_ns.load(Ordering::Relaxed)),
+                last_data_age_s: age_s(now_ns, i.state.last_data_ns.load(Ordering::Relaxed)),
                 bytes: i.state.bytes.load(Ordering::Relaxed),
                 connects: i.state.connects.load(Ordering::Relaxed),
                 failed_attempts: i.state.failed.load(Ordering::Relaxed),
                 last_error: i.state.last_error(),
             })
-            .collect();
+            .collect()
+    }
 
-        // Navigation per port (configured ports first, then any other seen).
+    /// Navigation per port: the configured ports first, then any other seen.
+    fn nav_status(&self, nav: &NavReport, now_ns: u64) -> Vec<NavStatus> {
         let mut ports: Vec<u8> = self.serial_ports.clone();
-        if let Some(m) = nav["ports"].as_object() {
-            for k in m.keys() {
-                if let Ok(p) = k.parse::<u8>()
-                    && !ports.contains(&p)
-                {
-                    ports.push(p);
-                }
+        for p in nav.ports.keys() {
+            if !ports.contains(p) {
+                ports.push(*p);
             }
         }
-        let nav_status: Vec<NavStatus> = ports
+        ports
             .iter()
             .map(|p| {
-                let v = &nav["ports"][p.to_string()];
-                let l = &v["latest"];
-                let fix = l["fix"].as_u64().map(|x| x as u32);
-                let ins = l["ins_status"].as_u64().map(|x| x as u32);
-                let kind = l["fix_kind"].as_str().unwrap_or("");
-                let ins_kind = l["ins_kind"].as_str().unwrap_or("");
+                let v = nav.ports.get(p).cloned().unwrap_or_default();
+                let l = &v.latest;
+                let kind = l.fix_kind.as_deref().unwrap_or("");
+                let ins_kind = l.ins_kind.as_deref().unwrap_or("");
                 NavStatus {
                     port: *p,
-                    fix,
-                    fix_name: fix.map_or("no record yet".into(), |f| fix_name(kind, f)),
-                    satellites: l["satellites"].as_u64().map(|x| x as u32),
-                    ins_status: ins,
-                    ins_name: ins.map_or("—".into(), |s| ins_name(ins_kind, s)),
-                    last_packet_age_s: l["last_record_receive_ns"].as_u64().and_then(age),
-                    last_gps_sow: v["last_gps_time"]["sow"].as_f64(),
-                    position: l["position"].as_array().and_then(|a| {
-                        Some([
-                            a.first()?.as_f64()?,
-                            a.get(1)?.as_f64()?,
-                            a.get(2)?.as_f64()?,
-                        ])
-                    }),
-                    samples: v["records"].as_u64().unwrap_or(0),
-                    rejected: v["rejected"].as_u64().unwrap_or(0),
+                    fix: l.fix,
+                    fix_name: l.fix.map_or("no record yet".into(), |f| fix_name(kind, f)),
+                    satellites: l.satellites,
+                    ins_status: l.ins_status,
+                    ins_name: l.ins_status.map_or("—".into(), |s| ins_name(ins_kind, s)),
+                    last_packet_age_s: l.last_record_receive_ns.and_then(|ns| age_s(now_ns, ns)),
+                    last_gps_sow: v.last_gps_time.map(|t| t.sow),
+                    position: l.position,
+                    samples: v.records,
+                    rejected: v.rejected,
                 }
             })
-            .collect();
+            .collect()
+    }
 
-        // Tiles and the coverage map.
-        let vox = &sink["voxels"];
-        let mut tiles = TilesStatus {
-            open: 0,
-            closed: vox["tiles"]["closed"].as_u64().unwrap_or(0),
-            tile_m: [0.0, 0.0],
-            cells: Vec::new(),
-        };
-        if let Some(cov) = vox.get("coverage") {
-            let tm = [
-                cov["tile_m"][0].as_f64().unwrap_or(0.0),
-                cov["tile_m"][1].as_f64().unwrap_or(0.0),
-            ];
-            tiles.tile_m = tm;
-            let area = (tm[0] * tm[1]).max(1e-9);
-            let canopy = cov["canopy_max_m"].as_array();
-            for (i, c) in cov["cells"].as_array().into_iter().flatten().enumerate() {
-                let f = |i: usize| c[i].as_i64().unwrap_or(0);
-                let open = f(3) == 1;
-                tiles.open += open as u64;
-                tiles.cells.push(TileCell {
-                    tx: f(0),
-                    ty: f(1),
-                    state: if open { "open" } else { "closed" }.into(),
-                    pulses: f(2) as u64,
-                    density_per_m2: f(2) as f64 / area,
-                    canopy_height_m: canopy.and_then(|a| a.get(i)).and_then(|h| h.as_f64()),
-                });
-            }
-        }
-
-        // Disk.
+    /// The recording disk's space, and its alarm at `byte_rate` (bytes/s recorded).
+    fn disk_status(&self, byte_rate: f64) -> DiskStatus {
         let space = disk::space(&self.capture_dir).unwrap_or_default();
-        let disk_alarm = disk::alarm(
-            space,
-            byte_rate,
-            self.cfg.disk_alarm_free_gb,
-            self.cfg.disk_alarm_minutes,
-        );
-        let disk = DiskStatus {
+        DiskStatus {
             path: self.capture_dir.display().to_string(),
             free_bytes: space.free_bytes,
             total_bytes: space.total_bytes,
             seconds_left: disk::seconds_left(space, byte_rate),
-            alarm: disk_alarm,
-        };
+            alarm: disk::alarm(
+                space,
+                byte_rate,
+                self.cfg.disk_alarm_free_gb,
+                self.cfg.disk_alarm_minutes,
+            ),
+        }
+    }
 
-        // Alerts.
+    /// What the operator must look at: inputs down, navigation gaps, overrun, saturation, disk,
+    /// the recording's error.
+    fn alerts(
+        &self,
+        inputs: &[InputStatus],
+        nav: &[NavStatus],
+        rates: &Rates,
+        disk: &DiskStatus,
+    ) -> Vec<Alert> {
         let mut alerts = Vec::new();
         let mut alert = |kind: &str, critical: bool, message: String| {
             alerts.push(Alert {
@@ -400,23 +456,21 @@ impl Sampler {
                 message,
             })
         };
-        for i in &inputs {
-            if !i.up {
-                alert(
-                    "input_down",
-                    false,
-                    format!(
-                        "{} ({}) is down, retrying{}",
-                        i.name,
-                        i.detail,
-                        i.last_error
-                            .as_ref()
-                            .map_or(String::new(), |e| format!(": {e}"))
-                    ),
-                );
-            }
+        for i in inputs.iter().filter(|i| !i.up) {
+            alert(
+                "input_down",
+                false,
+                format!(
+                    "{} ({}) is down, retrying{}",
+                    i.name,
+                    i.detail,
+                    i.last_error
+                        .as_ref()
+                        .map_or(String::new(), |e| format!(": {e}"))
+                ),
+            );
         }
-        for n in &nav_status {
+        for n in nav {
             match n.last_packet_age_s {
                 Some(a) if a > self.cfg.nav_alarm_s => alert(
                     "navigation_gap",
@@ -439,33 +493,34 @@ impl Sampler {
                 _ => {}
             }
         }
-        if rate_drop > 0.0 {
+        if rates.rate_drop > 0.0 {
             alert(
                 "overrun",
-                rate_drop > 0.1 * rate_in.max(1.0),
+                rates.rate_drop > 0.1 * rates.rate_in.max(1.0),
                 format!(
-                    "processing falls behind: {rate_drop:.0} pulses/s dropped from processing \
-                     (every frame is recorded)"
+                    "processing falls behind: {:.0} pulses/s dropped from processing (every \
+                     frame is recorded)",
+                    rates.rate_drop
                 ),
             );
         }
-        if sat_frac > self.cfg.saturation_alarm {
+        if rates.saturated_fraction > self.cfg.saturation_alarm {
             alert(
                 "saturation",
                 false,
                 format!(
                     "{:.1} % of the last second's pulses saturated the digitizer",
-                    100.0 * sat_frac
+                    100.0 * rates.saturated_fraction
                 ),
             );
         }
-        if disk_alarm {
+        if disk.alarm {
             alert(
                 "disk",
-                space.free_bytes < 1_000_000_000,
+                disk.free_bytes < 1_000_000_000,
                 format!(
                     "{:.1} GB free on {}{}",
-                    space.free_bytes as f64 / 1e9,
+                    disk.free_bytes as f64 / 1e9,
                     self.capture_dir.display(),
                     disk.seconds_left.map_or(String::new(), |s| format!(
                         ", {:.0} min of recording left",
@@ -474,67 +529,16 @@ impl Sampler {
                 ),
             );
         }
-        if let Some(e) = rec.error() {
+        if let Some(e) = self.recorder.error() {
             alert("recording", true, e);
         }
+        alerts
+    }
 
-        let snapshot = QcSnapshot {
-            time_unix_s: now_ns as f64 / 1e9,
-            uptime_s: self.started.elapsed().as_secs_f64(),
-            version: env!("CARGO_PKG_VERSION").into(),
-            survey: self.cfg.survey.clone(),
-            sequence: self.sequence,
-            inputs,
-            pulses: PulseCounts {
-                frames_received: frames,
-                frames_recorded: rec.frames_recorded.load(Ordering::Relaxed),
-                frames_lost: frames_state.map_or(0, |i| i.state.lost.load(Ordering::Relaxed)),
-                frames_bad: rec.bad_frames.load(Ordering::Relaxed),
-                pulses_in: live.pulses_in.load(Ordering::Relaxed),
-                pulses_processed: counts.processed,
-                dropped_total,
-                rate_in_hz: rate_in,
-                rate_processed_hz: rate_out,
-                rate_dropped_hz: rate_drop,
-            },
-            drops,
-            queues,
-            stages: stage_lat,
-            end_to_end: e2e_lat,
-            nav: nav_status,
-            georeference: GeorefStatus {
-                enabled: self.georeference,
-                placed: g["georeferenced"].as_u64().unwrap_or(0),
-                missed,
-                crs: g["output_crs"].as_str().map(str::to_string),
-            },
-            tiles,
-            recording: RecordingStatus {
-                segment: self.segment.clone(),
-                bytes: counts.bytes,
-                records: rec.records.load(Ordering::Relaxed),
-                nav_records: rec.nav_records.load(Ordering::Relaxed),
-                error: rec.error(),
-            },
-            disk,
-            saturation: SaturationStatus {
-                pulses: counts.saturated,
-                recent_fraction: sat_frac,
-            },
-            alerts,
-        };
-        self.sequence += 1;
-        let point = HistoryPoint {
-            t: snapshot.time_unix_s,
-            rate_in_hz: rate_in,
-            rate_processed_hz: rate_out,
-            rate_dropped_hz: rate_drop,
-            queue_fill,
-            e2e_p50_us: e2e_recent.p50_ns as f64 / 1e3,
-            e2e_p99_us: e2e_recent.p99_ns as f64 / 1e3,
-            stage_p99_us: stage_p99,
-        };
-        let sampled = pb
+    /// Runs the last sampled pulse through the stages for the waveform viewer, once per pulse.
+    fn show_sampled_pulse(&mut self) {
+        let sampled = self
+            .publish
             .sampled_pulse
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -545,9 +549,82 @@ impl Sampler {
         {
             self.hub.set_waveform(view);
         }
-        self.hub.publish(snapshot, point);
-        self.hub.snapshot()
     }
+}
+
+/// What the pipeline's threads published, copied.
+struct Published {
+    source: SourceReport,
+    sink: SinkReports,
+    nav: NavReport,
+    workers: Vec<Vec<StageTelemetry>>,
+    e2e: LatencyHistogram,
+    in_q: Vec<(u64, u64)>,
+    out_q: Vec<u64>,
+}
+
+/// Rates since the last tick.
+#[derive(Clone, Copy, Default)]
+struct Rates {
+    /// Frames received per second.
+    rate_in: f64,
+    /// Pulses processed per second.
+    rate_out: f64,
+    /// Pulses dropped per second.
+    rate_drop: f64,
+    /// Share of the pulses decoded that saturated the digitizer, 0..1.
+    saturated_fraction: f64,
+    /// Bytes recorded per second.
+    bytes_per_s: f64,
+}
+
+/// How long ago a host time was, s (`None` for 0: never).
+fn age_s(now_ns: u64, ns: u64) -> Option<f64> {
+    (ns > 0).then(|| now_ns.saturating_sub(ns) as f64 / 1e9)
+}
+
+/// Stage telemetry merged over the workers.
+fn merged_stages(workers: &[Vec<StageTelemetry>]) -> Vec<StageTelemetry> {
+    let mut stages: Vec<StageTelemetry> = Vec::new();
+    for w in workers {
+        if stages.is_empty() {
+            stages = w.iter().map(|t| StageTelemetry::new(t.name)).collect();
+        }
+        for (acc, t) in stages.iter_mut().zip(w) {
+            acc.merge(t);
+        }
+    }
+    stages
+}
+
+/// The tiles and the coverage map, from the voxel store's report.
+fn tiles_status(sink: &SinkReports) -> TilesStatus {
+    let vox = sink.voxels();
+    let mut tiles = TilesStatus {
+        open: 0,
+        closed: vox
+            .and_then(|v| v.tiles.as_ref())
+            .map_or(0, |t| t.lifecycle.closed),
+        tile_m: [0.0, 0.0],
+        cells: Vec::new(),
+    };
+    if let Some(cov) = vox.and_then(|v| v.coverage.as_ref()) {
+        tiles.tile_m = cov.tile_m;
+        let area = (cov.tile_m[0] * cov.tile_m[1]).max(1e-9);
+        for (i, c) in cov.cells.iter().enumerate() {
+            let open = c[3] == 1;
+            tiles.open += open as u64;
+            tiles.cells.push(TileCell {
+                tx: c[0],
+                ty: c[1],
+                state: if open { "open" } else { "closed" }.into(),
+                pulses: c[2] as u64,
+                density_per_m2: c[2] as f64 / area,
+                canopy_height_m: cov.canopy_max_m.get(i).copied().flatten().map(f64::from),
+            });
+        }
+    }
+    tiles
 }
 
 /// A latency histogram as the QC shows it.

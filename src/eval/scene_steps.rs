@@ -349,7 +349,7 @@ fn georeference_step(
     // Decoding alone, then decoding and georeferencing: the difference is the step's cost.
     let pass = |georef: bool| -> Result<(Vec<Option<PulseGeometry>>, f64), StepsError> {
         let inner = crate::source::open_file(capture).map_err(|e| err(name, e))?;
-        let mut source: Box<dyn crate::pipeline::ports::Source> = if georef {
+        let mut source: Box<crate::source::DynSource> = if georef {
             Box::new(GeoreferencingSource::new(inner, cfg.clone()).map_err(|e| err(name, e))?)
         } else {
             inner

@@ -131,6 +131,24 @@ impl Default for StoreMetricsOptions {
     }
 }
 
+/// `metrics.json` of a store's rasters: the report, the store it came from and the seconds it
+/// took, its keys in sorted order (`fwlidar metrics` and a campaign's mosaic write it).
+pub fn metrics_json(report: &StoreMetricsReport, store: &Path, seconds: f64) -> serde_json::Value {
+    #[derive(serde::Serialize)]
+    struct File<'a> {
+        #[serde(flatten)]
+        report: &'a StoreMetricsReport,
+        store: String,
+        seconds: f64,
+    }
+    serde_json::to_value(File {
+        report,
+        store: store.display().to_string(),
+        seconds,
+    })
+    .unwrap_or_default()
+}
+
 /// What a computation did (printed by the command, `metrics.json`).
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct StoreMetricsReport {

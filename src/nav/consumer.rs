@@ -24,16 +24,57 @@ struct Port {
 /// The latest navigation state a port reported (for live QC): each field as last stated by any
 /// record that carries it.
 #[derive(Clone, Debug, Default, serde::Serialize)]
-struct LatestState {
+pub struct LatestState {
     /// Host receive time of the chunk holding the last decoded record, ns since the epoch.
-    last_record_receive_ns: Option<u64>,
-    fix: Option<u32>,
-    fix_kind: Option<String>,
-    satellites: Option<u32>,
-    ins_status: Option<u32>,
-    ins_kind: Option<String>,
+    pub last_record_receive_ns: Option<u64>,
+    /// The receiver's fix quality (GGA quality, NovAtel solution status), as stated.
+    pub fix: Option<u32>,
+    /// The record kind that stated the fix.
+    pub fix_kind: Option<String>,
+    /// Satellites used.
+    pub satellites: Option<u32>,
+    /// The INS status, as stated.
+    pub ins_status: Option<u32>,
+    /// The record kind that stated the INS status.
+    pub ins_kind: Option<String>,
     /// Latitude, longitude (degrees), ellipsoidal height (m).
-    position: Option<[f64; 3]>,
+    pub position: Option<[f64; 3]>,
+}
+
+/// The navigation consumer's report (`summary.json` → `nav`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct NavReport {
+    /// Per port (by port number).
+    pub ports: BTreeMap<u8, PortReport>,
+    /// GPS − UTC leap seconds applied to NMEA times, s.
+    pub leap_seconds: f64,
+}
+
+/// What one port's bytes held.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct PortReport {
+    /// Chunks received.
+    pub chunks: u64,
+    /// Bytes read.
+    pub bytes: u64,
+    /// Samples decoded.
+    pub records: u64,
+    /// Samples by record type.
+    pub by_kind: BTreeMap<String, u64>,
+    /// Candidate records that gave no sample.
+    pub rejected: u64,
+    /// Rejections by reason.
+    pub rejected_by_reason: BTreeMap<String, u64>,
+    /// Well-formed records of types not used, by type.
+    pub ignored: BTreeMap<String, u64>,
+    /// Bytes outside any record.
+    pub unframed_bytes: u64,
+    /// GPS time of the first dated sample.
+    pub first_gps_time: Option<GpsTime>,
+    /// GPS time of the last dated sample.
+    pub last_gps_time: Option<GpsTime>,
+    /// The latest state stated.
+    pub latest: LatestState,
 }
 
 /// Decodes every port's navigation bytes and reports per port.
@@ -69,6 +110,8 @@ fn note(port: &mut Port, t: Option<GpsTime>) {
 }
 
 impl NavConsumer for NavDecode {
+    type Report = NavReport;
+
     fn consume(&mut self, chunk: NavChunk) {
         let (leap, earliest) = (self.leap_seconds, self.earliest_days);
         let port = self.ports.entry(chunk.port).or_insert_with(|| Port {
@@ -115,31 +158,31 @@ impl NavConsumer for NavDecode {
         }
     }
 
-    fn report(&self) -> serde_json::Value {
-        let ports: serde_json::Map<String, serde_json::Value> = self
-            .ports
-            .iter()
-            .map(|(k, p)| {
-                let s = p.decoder.summary();
-                (
-                    k.to_string(),
-                    serde_json::json!({
-                        "chunks": p.chunks,
-                        "bytes": s.bytes,
-                        "records": s.records,
-                        "by_kind": s.by_kind,
-                        "rejected": s.rejected,
-                        "rejected_by_reason": s.rejected_by_reason,
-                        "ignored": s.ignored,
-                        "unframed_bytes": s.unframed_bytes,
-                        "first_gps_time": p.first,
-                        "last_gps_time": p.last,
-                        "latest": p.state,
-                    }),
-                )
-            })
-            .collect();
-        serde_json::json!({ "ports": ports, "leap_seconds": self.leap_seconds })
+    fn report(&self) -> NavReport {
+        NavReport {
+            ports: self
+                .ports
+                .iter()
+                .map(|(k, p)| {
+                    let s = p.decoder.summary();
+                    let report = PortReport {
+                        chunks: p.chunks,
+                        bytes: s.bytes,
+                        records: s.records,
+                        by_kind: s.by_kind,
+                        rejected: s.rejected,
+                        rejected_by_reason: s.rejected_by_reason,
+                        ignored: s.ignored,
+                        unframed_bytes: s.unframed_bytes,
+                        first_gps_time: p.first,
+                        last_gps_time: p.last,
+                        latest: p.state.clone(),
+                    };
+                    (*k, report)
+                })
+                .collect(),
+            leap_seconds: self.leap_seconds,
+        }
     }
 }
 
@@ -150,24 +193,38 @@ pub struct NavTally {
     ports: BTreeMap<u8, (u64, u64)>,
 }
 
+/// What [`NavTally`] counted.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct TallyReport {
+    /// Per port.
+    pub ports: BTreeMap<u8, PortTally>,
+}
+
+/// Chunks and bytes of one port.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct PortTally {
+    /// Chunks.
+    pub chunks: u64,
+    /// Bytes.
+    pub bytes: u64,
+}
+
 impl NavConsumer for NavTally {
+    type Report = TallyReport;
+
     fn consume(&mut self, chunk: NavChunk) {
         let e = self.ports.entry(chunk.port).or_insert((0, 0));
         e.0 += 1;
         e.1 += chunk.bytes.len() as u64;
     }
 
-    fn report(&self) -> serde_json::Value {
-        let ports: serde_json::Map<String, serde_json::Value> = self
-            .ports
-            .iter()
-            .map(|(p, (c, b))| {
-                (
-                    p.to_string(),
-                    serde_json::json!({ "chunks": c, "bytes": b }),
-                )
-            })
-            .collect();
-        serde_json::json!({ "ports": ports })
+    fn report(&self) -> TallyReport {
+        TallyReport {
+            ports: self
+                .ports
+                .iter()
+                .map(|(p, &(chunks, bytes))| (*p, PortTally { chunks, bytes }))
+                .collect(),
+        }
     }
 }

@@ -122,6 +122,18 @@ pub struct TrajectoryStats {
     pub untimed: u64,
 }
 
+impl TrajectoryStats {
+    /// Adds `other`'s counts.
+    pub fn add(&mut self, other: &TrajectoryStats) {
+        self.positions += other.positions;
+        self.attitudes += other.attitudes;
+        self.time_backwards += other.time_backwards;
+        self.duplicate_epoch += other.duplicate_epoch;
+        self.msl_heights += other.msl_heights;
+        self.untimed += other.untimed;
+    }
+}
+
 /// The trajectory buffer (see the module documentation).
 #[derive(Debug)]
 pub struct Trajectory {

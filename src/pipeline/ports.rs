@@ -7,6 +7,13 @@
 use crate::core::facts::SourceFacts;
 use crate::pulse::{Pulse, PulsePool};
 
+/// What a port says about itself in `summary.json` (and, copied about four times a second, on
+/// the daemon's QC page): a typed value, serialised when the summary is written. `()` says
+/// nothing (`null`).
+pub trait Report: serde::Serialize + Clone + Default + Send + 'static {}
+
+impl<T: serde::Serialize + Clone + Default + Send + 'static> Report for T {}
+
 /// Raw navigation bytes as they came off a port, kept intact so that replay runs the very same
 /// parsers as live flight.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -43,6 +50,9 @@ pub enum SourceError {
 
 /// A producer of pulses and navigation bytes, run on its own thread.
 pub trait Source: Send {
+    /// What the source reports (`summary.json` → `source`).
+    type Report: Report;
+
     /// Short name for logs and reports (e.g. `"capture"`).
     fn name(&self) -> &'static str;
 
@@ -55,8 +65,9 @@ pub trait Source: Send {
     }
 
     /// The source's own report for `summary.json` (e.g. bytes skipped in a damaged capture).
-    fn report(&self) -> serde_json::Value {
-        serde_json::Value::Null
+    /// Default: the report type's default.
+    fn report(&self) -> Self::Report {
+        Self::Report::default()
     }
 
     /// What the input states about its sensor, time base and coordinates, as far as known so far
@@ -77,12 +88,14 @@ pub trait Source: Send {
 
 /// A consumer of navigation bytes, run on its own thread.
 pub trait NavConsumer: Send {
+    /// What it reports (`summary.json` → `nav`).
+    type Report: Report;
     /// Takes one chunk of navigation bytes.
     fn consume(&mut self, chunk: NavChunk);
     /// Called once when no more chunks will come (the end of the input), before `report`.
     fn finish(&mut self) {}
     /// Its report for `summary.json`.
-    fn report(&self) -> serde_json::Value;
+    fn report(&self) -> Self::Report;
 }
 
 /// Errors a sink reports; all are fatal to the run (an output we cannot write is not an output).
@@ -128,6 +141,9 @@ impl From<crate::core::atomic_file::WriteError> for SinkError {
 
 /// A consumer of processed pulses, run on the sink thread after order is restored.
 pub trait PulseSink: Send {
+    /// What the sink reports (`summary.json` → `sinks`).
+    type Report: Report;
+
     /// Short name for logs and reports.
     fn name(&self) -> &'static str;
 
@@ -144,10 +160,10 @@ pub trait PulseSink: Send {
         self.flush()
     }
 
-    /// What the sink wrote and skipped, for `summary.json` (`sinks.NAME`); `null` when it has
-    /// nothing to say. Default `null`.
-    fn report(&self) -> serde_json::Value {
-        serde_json::Value::Null
+    /// What the sink wrote and skipped, for `summary.json`. Default: the report type's
+    /// default.
+    fn report(&self) -> Self::Report {
+        Self::Report::default()
     }
 }
 
@@ -156,6 +172,8 @@ pub trait PulseSink: Send {
 pub struct NullSink;
 
 impl PulseSink for NullSink {
+    type Report = ();
+
     fn name(&self) -> &'static str {
         "null"
     }
@@ -164,34 +182,5 @@ impl PulseSink for NullSink {
     }
     fn flush(&mut self) -> Result<(), SinkError> {
         Ok(())
-    }
-}
-
-/// Several sinks fed the same pulses in turn.
-pub struct FanOut(pub Vec<Box<dyn PulseSink>>);
-
-impl PulseSink for FanOut {
-    fn name(&self) -> &'static str {
-        "fan_out"
-    }
-    fn write(&mut self, pulse: &Pulse) -> Result<(), SinkError> {
-        self.0.iter_mut().try_for_each(|s| s.write(pulse))
-    }
-    fn flush(&mut self) -> Result<(), SinkError> {
-        self.0.iter_mut().try_for_each(|s| s.flush())
-    }
-    fn finish(&mut self) -> Result<(), SinkError> {
-        self.0.iter_mut().try_for_each(|s| s.finish())
-    }
-    /// The reports of the sinks that have one, by name.
-    fn report(&self) -> serde_json::Value {
-        let mut m = serde_json::Map::new();
-        for s in &self.0 {
-            let r = s.report();
-            if !r.is_null() {
-                m.insert(s.name().to_string(), r);
-            }
-        }
-        serde_json::Value::Object(m)
     }
 }

@@ -26,7 +26,7 @@ use serde::Serialize;
 use crate::pipeline::edge::FullPolicy;
 use crate::pipeline::edge::{EdgeRx, EdgeTx, Sent, edge};
 use crate::pipeline::ports::{NavChunk, Source, SourceEvent};
-use crate::pipeline::ports::{NavConsumer, PulseSink};
+use crate::pipeline::ports::{NavConsumer, PulseSink, Report};
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pipeline::telemetry::{LatencyHistogram, LatencySummary, StageReport, StageTelemetry};
 use crate::pulse::{Pulse, PulsePool};
@@ -92,9 +92,10 @@ pub struct LiveCounters {
     pub progress_total: CachePadded<AtomicU64>,
 }
 
-/// Controls of a run: the stop flag (set by SIGINT/SIGTERM) and live counters.
-#[derive(Clone, Default)]
-pub struct RunControl {
+/// Controls of a run: the stop flag (set by SIGINT/SIGTERM) and live counters. `S`, `K`, `N`:
+/// the report types of the run's source, sink and navigation consumer (what
+/// [`RunControl::publish`] carries).
+pub struct RunControl<S = (), K = (), N = ()> {
     /// When set, the source stops reading; everything in flight is processed and flushed.
     pub stop: Arc<AtomicBool>,
     /// Live counters.
@@ -104,7 +105,29 @@ pub struct RunControl {
     pub seq_base: u64,
     /// When set, every thread publishes its telemetry and report here about four times a
     /// second (the daemon's QC); `None` costs nothing.
-    pub publish: Option<Arc<LivePublish>>,
+    pub publish: Option<Arc<LivePublish<S, K, N>>>,
+}
+
+impl<S, K, N> Clone for RunControl<S, K, N> {
+    fn clone(&self) -> Self {
+        RunControl {
+            stop: self.stop.clone(),
+            live: self.live.clone(),
+            seq_base: self.seq_base,
+            publish: self.publish.clone(),
+        }
+    }
+}
+
+impl<S, K, N> Default for RunControl<S, K, N> {
+    fn default() -> Self {
+        RunControl {
+            stop: Arc::default(),
+            live: Arc::default(),
+            seq_base: 0,
+            publish: None,
+        }
+    }
 }
 
 /// How often each thread publishes into [`LivePublish`].
@@ -113,18 +136,17 @@ pub const PUBLISH_EVERY: Duration = Duration::from_millis(250);
 /// What the threads of a running pipeline publish for live monitoring (QC), each part under its
 /// own lock, written about four times a second by its one thread (a copy: no allocation per
 /// pulse, one per publication).
-#[derive(Default)]
-pub struct LivePublish {
+pub struct LivePublish<S = (), K = (), N = ()> {
     /// Each worker's stage telemetry, by worker index.
     pub workers: Mutex<Vec<Vec<StageTelemetry>>>,
     /// Arrival-to-sink latency of every pulse so far, ns.
     pub end_to_end: Mutex<LatencyHistogram>,
     /// The source's report (e.g. the recorder's counts, the georeference's misses).
-    pub source: Mutex<serde_json::Value>,
+    pub source: Mutex<S>,
     /// The sinks' report (e.g. voxel tiles).
-    pub sink: Mutex<serde_json::Value>,
+    pub sink: Mutex<K>,
     /// The navigation consumer's report.
-    pub nav: Mutex<serde_json::Value>,
+    pub nav: Mutex<N>,
     /// Pulses waiting in each worker's input edge, and the edges' capacity.
     pub input_queues: Mutex<Vec<(u64, u64)>>,
     /// Pulses waiting in each worker's output edge (to the sink).
@@ -134,13 +156,34 @@ pub struct LivePublish {
     pub sampled_pulse: Mutex<Option<(Instant, Box<Pulse>)>>,
 }
 
+impl<S: Default, K: Default, N: Default> Default for LivePublish<S, K, N> {
+    fn default() -> Self {
+        LivePublish {
+            workers: Mutex::default(),
+            end_to_end: Mutex::default(),
+            source: Mutex::default(),
+            sink: Mutex::default(),
+            nav: Mutex::default(),
+            input_queues: Mutex::default(),
+            output_queues: Mutex::default(),
+            sampled_pulse: Mutex::default(),
+        }
+    }
+}
+
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// Everything a run did, as written to `summary.json`.
+/// Everything a run did, as written to `summary.json`. `S`, `K`, `N`: the reports of the
+/// source, the sink and the navigation consumer, written with their keys in sorted order.
 #[derive(Clone, Debug, Serialize)]
-pub struct RunReport {
+pub struct RunReport<S = (), K = (), N = ()>
+where
+    S: Serialize,
+    K: Serialize,
+    N: Serialize,
+{
     /// fwlidar version that produced the report.
     pub fwlidar_version: String,
     /// Worker threads used.
@@ -160,11 +203,14 @@ pub struct RunReport {
     /// Time from arrival to the sink, per pulse.
     pub end_to_end: LatencySummary,
     /// The source's own report (e.g. bytes skipped in a damaged capture).
-    pub source: serde_json::Value,
+    #[serde(serialize_with = "keys_sorted")]
+    pub source: S,
     /// The navigation consumer's report.
-    pub nav: serde_json::Value,
+    #[serde(serialize_with = "keys_sorted")]
+    pub nav: N,
     /// The sinks' reports (e.g. `las`: points written, pulses without geometry), by sink name.
-    pub sinks: serde_json::Value,
+    #[serde(serialize_with = "keys_sorted")]
+    pub sinks: K,
     /// Pulses the pool ever allocated: the bound on pulse memory.
     pub pool_allocations: u64,
     /// True when the run was stopped before the source's end (signal).
@@ -175,6 +221,14 @@ pub struct RunReport {
     pub wall_time_s: f64,
     /// Pulses written per second of wall time.
     pub pulses_per_s: f64,
+}
+
+/// Serialises `report` with the keys of every object in sorted order (through a JSON value),
+/// whatever the order of its fields: the order `summary.json` has always had.
+fn keys_sorted<T: Serialize, Z: serde::Serializer>(report: &T, s: Z) -> Result<Z::Ok, Z::Error> {
+    serde_json::to_value(report)
+        .map_err(serde::ser::Error::custom)?
+        .serialize(s)
 }
 
 /// What a worker sends to the sink: the outputs of one input pulse, the last of them marked
@@ -191,14 +245,14 @@ fn nanos(d: Duration) -> u64 {
 
 /// Runs `source` through the stages into `sink` until the source ends or `control.stop` is set.
 /// `on_tick` is called about ten times a second on the calling thread (progress bars).
-pub fn run(
+pub fn run<S: Report, K: Report, N: Report>(
     spec: &PipelineSpec,
-    mut source: Box<dyn Source>,
-    mut sink: Box<dyn PulseSink>,
-    mut nav: Box<dyn NavConsumer>,
-    control: &RunControl,
+    mut source: Box<dyn Source<Report = S>>,
+    mut sink: Box<dyn PulseSink<Report = K>>,
+    mut nav: Box<dyn NavConsumer<Report = N>>,
+    control: &RunControl<S, K, N>,
     mut on_tick: impl FnMut(&LiveCounters),
-) -> RunReport {
+) -> RunReport<S, K, N> {
     let started = Instant::now();
     let workers = spec.workers.max(1);
     let cap = spec.queue_capacity.max(2);
@@ -528,14 +582,17 @@ pub fn run(
     })
 }
 
+/// Where worker `i` publishes its telemetry (with live publishing on).
+type WorkerPublish<S, K, N> = (usize, Arc<LivePublish<S, K, N>>);
+
 /// One worker thread: runs every pulse it receives through the whole chain.
-fn worker(
+fn worker<S, K, N>(
     mut rx: EdgeRx<Box<Pulse>>,
     mut tx: EdgeTx<WorkerOut>,
     mut stages: Vec<Box<dyn Stage>>,
     pool: &PulsePool,
     set_fatal: &dyn Fn(String),
-    publish: Option<&(usize, Arc<LivePublish>)>,
+    publish: Option<&WorkerPublish<S, K, N>>,
 ) -> Vec<StageTelemetry> {
     let mut tel: Vec<StageTelemetry> = stages
         .iter()

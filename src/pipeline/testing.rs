@@ -96,6 +96,8 @@ impl SyntheticSource {
 }
 
 impl crate::pipeline::ports::Source for SyntheticSource {
+    type Report = ();
+
     fn name(&self) -> &'static str {
         "synthetic"
     }
@@ -139,6 +141,8 @@ pub struct IdSink {
 }
 
 impl crate::pipeline::ports::PulseSink for IdSink {
+    type Report = ();
+
     fn name(&self) -> &'static str {
         "ids"
     }

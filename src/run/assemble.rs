@@ -4,9 +4,11 @@
 use super::RunError;
 use super::input::Input;
 use crate::config::RunConfig;
-use crate::nav::consumer::NavDecode;
-use crate::pipeline::ports::{FanOut, NavConsumer, PulseSink, Source};
+use crate::nav::consumer::{NavDecode, NavReport};
+use crate::pipeline::ports::{NavConsumer, PulseSink};
 use crate::pipeline::runner::PipelineSpec;
+use crate::sink::{DynSink, FanOut, SinkReports};
+use crate::source::DynSource;
 use crate::stages::{Chain, RunContext};
 
 /// A run ready to start: hand its parts to [`crate::pipeline::run`].
@@ -16,11 +18,11 @@ pub struct Assembled {
     /// Workers, edges and each worker's stages.
     pub spec: PipelineSpec,
     /// The input.
-    pub source: Box<dyn Source>,
+    pub source: Box<DynSource>,
     /// Every output, fed the same pulses in turn.
-    pub sinks: Box<dyn PulseSink>,
+    pub sinks: Box<dyn PulseSink<Report = SinkReports>>,
     /// The navigation consumer (the navigation bytes decoded for the summary).
-    pub nav: Box<dyn NavConsumer>,
+    pub nav: Box<dyn NavConsumer<Report = NavReport>>,
 }
 
 /// How many worker threads: an explicit count, or 0 for the run's automatic choice.
@@ -40,7 +42,7 @@ pub fn assemble(
     input: Input,
     config: &RunConfig,
     workers: Workers,
-    outputs: impl FnOnce(&Chain, &Input) -> Result<Vec<Box<dyn PulseSink>>, RunError>,
+    outputs: impl FnOnce(&Chain, &Input) -> Result<Vec<Box<DynSink>>, RunError>,
 ) -> Result<Assembled, RunError> {
     let facts = input.source.facts();
     let ctx = RunContext {

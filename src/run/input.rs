@@ -7,7 +7,7 @@ use std::sync::{Arc, OnceLock};
 use super::RunError;
 use crate::config::RunConfig;
 use crate::geo::dem::Dem;
-use crate::pipeline::ports::Source;
+use crate::source::DynSource;
 use crate::source::georeferencing::GeoreferencingSource;
 use crate::source::shard::Shard;
 
@@ -16,7 +16,7 @@ use crate::source::shard::Shard;
 /// it wraps the source.
 pub struct Input {
     /// The source the runner reads.
-    pub source: Box<dyn Source>,
+    pub source: Box<DynSource>,
     /// The run's DEM (`[georeference] dem`), opened.
     pub dem: Option<Arc<Dem>>,
     /// Where the georeferencing puts the CRS it decides, when it runs.
@@ -27,7 +27,7 @@ impl Input {
     /// Wraps an opened `source` (e.g. the daemon's live source) in the georeferencing per
     /// `[georeference]`, with the DEM it names. The output CRS is the DEM's own unless the
     /// configuration names one.
-    pub fn georeferenced(source: Box<dyn Source>, config: &RunConfig) -> Result<Input, RunError> {
+    pub fn georeferenced(source: Box<DynSource>, config: &RunConfig) -> Result<Input, RunError> {
         let dem = open_dem(config)?;
         let (source, decided_crs) = georeference_with(source, config, dem.clone())?;
         Ok(Input {
@@ -76,7 +76,7 @@ impl Input {
             decided = decided.or(cell);
             sources.push((path.display().to_string(), source));
         }
-        let source: Box<dyn Source> = if sources.len() == 1 {
+        let source: Box<DynSource> = if sources.len() == 1 {
             sources.pop().map(|(_, s)| s).expect("one source")
         } else {
             Box::new(crate::source::chain::ChainSource::new(sources).map_err(RunError::usage)?)
@@ -130,11 +130,11 @@ pub fn open_dem(config: &RunConfig) -> Result<Option<Arc<Dem>>, RunError> {
 
 /// The georeferenced source and its decided-CRS cell (the source itself when `[georeference]`
 /// is off).
-type Georeferenced = (Box<dyn Source>, Option<Arc<OnceLock<String>>>);
+type Georeferenced = (Box<DynSource>, Option<Arc<OnceLock<String>>>);
 
 /// Wraps `source` in the georeferencing with the DEM already open.
 fn georeference_with(
-    source: Box<dyn Source>,
+    source: Box<DynSource>,
     config: &RunConfig,
     dem: Option<Arc<Dem>>,
 ) -> Result<Georeferenced, RunError> {

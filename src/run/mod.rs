@@ -20,6 +20,19 @@ pub mod outputs;
 pub mod summary;
 pub mod warnings;
 
+use crate::nav::consumer::NavReport;
+use crate::sink::SinkReports;
+use crate::source::report::SourceReport;
+
+/// The report of a run this module puts together (`summary.json`, less the warnings).
+pub type RunReport = crate::pipeline::RunReport<SourceReport, SinkReports, NavReport>;
+
+/// The controls of such a run.
+pub type RunControl = crate::pipeline::RunControl<SourceReport, SinkReports, NavReport>;
+
+/// What such a run publishes live (the daemon's QC).
+pub type LivePublish = crate::pipeline::LivePublish<SourceReport, SinkReports, NavReport>;
+
 /// A run that cannot be put together or finished.
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {

@@ -7,7 +7,7 @@ use super::RunError;
 use super::input::Input;
 use crate::config::{RunConfig, WaveformFormat};
 use crate::core::facts::SourceFacts;
-use crate::pipeline::ports::PulseSink;
+use crate::sink::DynSink;
 use crate::sink::hyper_points::HyperPointSink;
 use crate::sink::las_wave::{LasWaveOptions, LasWaveSink};
 use crate::sink::metrics_rasters::{MetricsRastersSink, RasterCrs, RasterSettings};
@@ -61,11 +61,11 @@ pub fn replay_sinks(
     input_path: &Path,
     run_key: &str,
     out_dir: &Path,
-) -> Result<Vec<Box<dyn PulseSink>>, RunError> {
+) -> Result<Vec<Box<DynSink>>, RunError> {
     let out = &config.output;
     let facts = input.source.facts();
     let products = chain.products();
-    let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
+    let mut sinks: Vec<Box<DynSink>> = Vec::new();
     if out.waveforms {
         sinks.push(match out.waveform_format {
             WaveformFormat::Npy => {
@@ -137,9 +137,9 @@ pub fn daemon_sinks(
     input: &Input,
     out_dir: &Path,
     segment_stem: &str,
-) -> Result<Vec<Box<dyn PulseSink>>, RunError> {
+) -> Result<Vec<Box<DynSink>>, RunError> {
     let facts = input.source.facts();
-    let mut sinks: Vec<Box<dyn PulseSink>> = Vec::new();
+    let mut sinks: Vec<Box<DynSink>> = Vec::new();
     if config.voxels.enabled {
         let mut keyed = config.clone();
         keyed.output.dir.clear();
@@ -222,7 +222,7 @@ fn voxel_sink(
     info: StoreInfo,
     out_dir: &Path,
     user: VoxelUse,
-) -> Result<Box<dyn PulseSink>, RunError> {
+) -> Result<Box<DynSink>, RunError> {
     let crs = match (facts.crs.clone(), input.decided_crs.clone()) {
         (Some(c), _) => CrsSource::Known(Some(c)),
         (None, Some(cell)) => CrsSource::Decided(cell),
@@ -285,7 +285,7 @@ fn replay_las_sink(
     facts: &SourceFacts,
     input: &Input,
     out_dir: &Path,
-) -> Result<Box<dyn PulseSink>, RunError> {
+) -> Result<Box<DynSink>, RunError> {
     if facts.crs.is_none() && input.decided_crs.is_none() {
         tracing::warn!(
             "returns.las will have no CRS record: the input states none before it is read \

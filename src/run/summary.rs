@@ -5,10 +5,14 @@ use std::path::Path;
 
 use serde::Serialize;
 
+use super::RunReport;
 use super::warnings::{RunWarning, warnings_block};
 use crate::core::atomic_file::write_atomic;
-use crate::pipeline::RunReport;
+use crate::nav::consumer::NavReport;
+use crate::sink::SinkReports;
+use crate::source::report::SourceReport;
 use crate::stages::Chain;
+use crate::voxel::voxelise::DepositStats;
 
 /// What `summary.json` holds: the runner's report, then the run's warnings.
 #[derive(Serialize)]
@@ -89,177 +93,149 @@ fn print_pulses(r: &RunReport, chain: &Chain) {
     }
 }
 
-fn u64_at(v: &serde_json::Value, key: &str) -> u64 {
-    v.get(key).and_then(|x| x.as_u64()).unwrap_or(0)
+/// `"3 a, 1 b"` of counts by name (`None` when there are none).
+fn counts_list<'a>(m: impl IntoIterator<Item = (&'a String, &'a u64)>) -> Option<String> {
+    let list: Vec<String> = m.into_iter().map(|(k, n)| format!("{n} {k}")).collect();
+    (!list.is_empty()).then(|| list.join(", "))
 }
 
-/// `"3 a, 1 b"` of a JSON object of counts (`None` when empty or absent).
-fn counts_list(v: &serde_json::Value) -> Option<String> {
-    let m = v.as_object().filter(|m| !m.is_empty())?;
-    Some(
-        m.iter()
-            .map(|(k, n)| format!("{n} {k}"))
-            .collect::<Vec<_>>()
-            .join(", "),
-    )
+/// A number as the summary's JSON writes it (`5.0`, `0.30000001192092896` for an `f32`).
+fn json_number(x: f64) -> serde_json::Value {
+    serde_json::Value::from(x)
 }
 
 /// What the capture reader skipped.
-fn print_capture_damage(source: &serde_json::Value) {
-    if let Some(skipped) = source.get("skipped") {
+fn print_capture_damage(source: &SourceReport) {
+    if let Some(s) = source.capture_damage() {
         println!(
             "  capture damage: {} bytes skipped ({} bad checksums), {} bytes of truncated tail",
-            u64_at(skipped, "bytes_skipped"),
-            u64_at(skipped, "bad_checksums"),
-            u64_at(skipped, "truncated_tail_bytes")
+            s.bytes_skipped, s.bad_checksums, s.truncated_tail_bytes
         );
     }
 }
 
 /// One line per navigation port: bytes, samples by kind, GPS time span, rejections.
-fn print_navigation_ports(nav: &serde_json::Value) {
-    let Some(ports) = nav.get("ports").and_then(|p| p.as_object()) else {
-        return;
-    };
-    for (port, v) in ports {
-        let kinds = counts_list(&v["by_kind"]).unwrap_or_default();
-        let span = match (
-            v["first_gps_time"].get("sow"),
-            v["last_gps_time"].get("sow"),
-        ) {
-            (Some(a), Some(b)) => format!(
-                ", GPS week {} {:.1}..{:.1} s",
-                v["first_gps_time"]["week"],
-                a.as_f64().unwrap_or(f64::NAN),
-                b.as_f64().unwrap_or(f64::NAN)
-            ),
+fn print_navigation_ports(nav: &NavReport) {
+    for (port, v) in &nav.ports {
+        let kinds = counts_list(&v.by_kind).unwrap_or_default();
+        let span = match (&v.first_gps_time, &v.last_gps_time) {
+            (Some(a), Some(b)) => format!(", GPS week {} {:.1}..{:.1} s", a.week, a.sow, b.sow),
             _ => String::new(),
         };
-        let reasons = counts_list(&v["rejected_by_reason"])
+        let reasons = counts_list(&v.rejected_by_reason)
             .map(|l| format!(" ({l})"))
             .unwrap_or_default();
         println!(
             "  navigation port {port}: {} bytes, {} samples ({kinds}){span}, {} rejected{reasons}",
-            v["bytes"], v["records"], v["rejected"],
+            v.bytes, v.records, v.rejected,
         );
     }
 }
 
 /// Pulses placed by the georeferencing, and those it missed by reason.
-fn print_georeference(source: &serde_json::Value) {
-    if let Some(g) = source.get("georeference") {
+fn print_georeference(source: &SourceReport) {
+    if let Some(g) = source.georeference() {
         println!(
             "  georeference: {} pulses placed in {}, {} carried their own geometry, missed: {}",
-            g["georeferenced"],
-            g["output_crs"].as_str().unwrap_or("(no fix, no CRS)"),
-            g["with_own_geometry"],
-            counts_list(&g["missed"]).unwrap_or_else(|| "none".into()),
+            g.georeferenced,
+            g.output_crs.as_deref().unwrap_or("(no fix, no CRS)"),
+            g.with_own_geometry,
+            counts_list(&g.missed).unwrap_or_else(|| "none".into()),
         );
     }
 }
 
 /// `returns.las`: points, pulses, skips and the waveform packets.
-fn print_las(sinks: &serde_json::Value) {
-    let Some(las) = sinks.get("las") else {
+fn print_las(sinks: &SinkReports) {
+    let Some(las) = sinks.las() else {
         return;
     };
-    let files = las["files"].as_array().map_or(0, |f| f.len());
-    let name = if files == 1 {
-        las["files"][0]
-            .as_str()
-            .unwrap_or("returns.las")
-            .to_string()
+    let name = if las.files.len() == 1 {
+        las.files[0].clone()
     } else {
-        format!("returns_NNNN.las ({files} files)")
+        format!("returns_NNNN.las ({} files)", las.files.len())
     };
-    let wdp = if las["point_format"] == 9 {
-        format!(
-            "; .wdp: {} packets, {} bytes",
-            las["packets"], las["wdp_bytes"]
-        )
+    let wdp = if las.point_format == 9 {
+        format!("; .wdp: {} packets, {} bytes", las.packets, las.wdp_bytes)
     } else {
         String::new()
     };
     println!(
         "  {name}: {} points (format {}) from {} pulses; {} pulses without geometry \
          skipped, {} returns unrepresentable{wdp}",
-        las["points"],
-        las["point_format"],
-        las["pulses_written"],
-        las["pulses_without_geometry"],
-        las["returns_unrepresentable"],
+        las.points,
+        las.point_format,
+        las.pulses_written,
+        las.pulses_without_geometry,
+        las.returns_unrepresentable,
     );
 }
 
 /// `hyper_points.las`: points above the threshold.
-fn print_hyper_points(sinks: &serde_json::Value) {
-    if let Some(h) = sinks.get("hyper_points") {
+fn print_hyper_points(sinks: &SinkReports) {
+    if let Some(h) = sinks.hyper_points() {
         println!(
             "  hyper_points.las: {} points above {} V from {} pulses; {} pulses without geometry \
              skipped",
-            h["points"], h["threshold_v"], h["pulses_written"], h["pulses_without_geometry"]
+            h.points,
+            json_number(f64::from(h.threshold_v)),
+            h.pulses_written,
+            h.pulses_without_geometry
         );
     }
 }
 
 /// `voxels.zarr`: bins and tiles, or why nothing was deposited.
 fn print_voxels(r: &RunReport) {
-    let Some(v) = r.sinks.get("voxels") else {
+    let Some(v) = r.sinks.voxels() else {
         return;
     };
-    let d = &v["deposits"];
-    let t = &v["tiles"];
-    let outside = [
-        "bins_outside_extent",
-        "bins_outside_heights",
-        "bins_outside_dem",
-    ]
-    .iter()
-    .map(|k| u64_at(d, k))
-    .sum::<u64>();
-    if u64_at(d, "bins_deposited") + u64_at(d, "bins_resumed") == 0 {
+    let d = &v.deposits;
+    let outside = d.bins_outside_extent + d.bins_outside_heights + d.bins_outside_dem;
+    if d.bins_deposited + d.bins_resumed == 0 {
         println!(
             "  voxels.zarr: nothing deposited ({})",
             nothing_deposited_reason(r.pulses_out, d, outside)
         );
     } else {
+        let t = v.tiles.clone().unwrap_or_default();
         println!(
             "  voxels.zarr: {} bins of {} pulses deposited ({} outside the grid); tiles {} opened, \
              {} closed ({} early), {} merged with the store, at most {} open ({} height chunks \
              of {:.1} MB in memory at most); {:.1} MB compressed into {:.1} MB ({} chunk files, \
              {} inner chunks){}",
-            d["bins_deposited"],
-            d["pulses_deposited"],
+            d.bins_deposited,
+            d.pulses_deposited,
             outside,
-            u64_at(t, "opened"),
-            u64_at(t, "closed"),
-            u64_at(t, "closed_early"),
-            u64_at(t, "merged"),
-            u64_at(t, "peak_open"),
-            u64_at(t, "peak_chunks"),
-            t["chunk_bytes"].as_f64().unwrap_or(0.0) / 1e6,
-            t["bytes_written"].as_f64().unwrap_or(0.0) / 1e6,
-            t["bytes_stored"].as_f64().unwrap_or(0.0) / 1e6,
-            u64_at(t, "chunks_written"),
-            u64_at(t, "inner_chunks_written"),
-            match u64_at(d, "bins_resumed") {
+            t.lifecycle.opened,
+            t.lifecycle.closed,
+            t.lifecycle.closed_early,
+            t.lifecycle.merged,
+            t.lifecycle.peak_open,
+            t.lifecycle.peak_chunks,
+            t.lifecycle.chunk_bytes as f64 / 1e6,
+            t.bytes_written as f64 / 1e6,
+            t.bytes_stored as f64 / 1e6,
+            t.chunks_written,
+            t.inner_chunks_written,
+            match d.bins_resumed {
                 n if n > 0 => format!("; resumed: {n} bins already in the store"),
                 _ => String::new(),
             }
         );
     }
-    let skipped = u64_at(d, "pulses_no_geometry") + u64_at(d, "pulses_non_finite");
+    let skipped = d.pulses_no_geometry + d.pulses_non_finite;
     if skipped > 0 {
         println!(
             "    voxels skipped {skipped} pulses ({} without geometry, {} non-finite)",
-            d["pulses_no_geometry"], d["pulses_non_finite"]
+            d.pulses_no_geometry, d.pulses_non_finite
         );
     }
 }
 
 /// Why the voxel sink deposited nothing, in words.
-fn nothing_deposited_reason(pulses_out: u64, d: &serde_json::Value, outside: u64) -> String {
-    let no_geometry = u64_at(d, "pulses_no_geometry") + u64_at(d, "pulses_non_finite");
+fn nothing_deposited_reason(pulses_out: u64, d: &DepositStats, outside: u64) -> String {
+    let no_geometry = d.pulses_no_geometry + d.pulses_non_finite;
     if pulses_out == 0 {
         "no pulse reached it".into()
     } else if no_geometry >= pulses_out {

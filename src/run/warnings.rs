@@ -24,11 +24,12 @@
 
 use serde::Serialize;
 
+use super::RunReport;
 use crate::config::RunConfig;
-use crate::pipeline::RunReport;
 use crate::pipeline::runner::INPUT_QUEUE_FULL;
 use crate::source::georeferencing::OnMissing;
 use crate::stages::{Chain, StageKind};
+use crate::voxel::voxelise::DepositStats;
 
 /// Share of the pulses (or bins) above which one reason is a warning: 10 %.
 pub const WARN_SHARE: f64 = 0.10;
@@ -96,7 +97,7 @@ pub fn run_warnings(report: &RunReport, chain: &Chain, config: &RunConfig) -> Ve
     georeference_warnings(report, config, &mut shares);
     sink_warnings(report, &mut shares);
     shares.sort_by(|a, b| b.share.total_cmp(&a.share));
-    let mut out = empty_output_warnings(report, config, &shares);
+    let mut out = empty_output_warnings(report, chain, config, &shares);
     out.extend(shares);
     out
 }
@@ -207,14 +208,8 @@ fn input_edge_warning(report: &RunReport, out: &mut Vec<RunWarning>) {
 fn georeference_misses(report: &RunReport, config: &RunConfig) -> (Vec<(String, u64)>, u64) {
     let missed: Vec<(String, u64)> = report
         .source
-        .get("georeference")
-        .and_then(|g| g.get("missed"))
-        .and_then(|m| m.as_object())
-        .map(|m| {
-            m.iter()
-                .map(|(k, v)| (k.clone(), v.as_u64().unwrap_or(0)))
-                .collect()
-        })
+        .georeference()
+        .map(|g| g.missed.into_iter().collect())
         .unwrap_or_default();
     let dropped: u64 = if config.georeference.on_missing == OnMissing::Drop {
         missed.iter().map(|(_, n)| n).sum()
@@ -265,26 +260,24 @@ fn georeference_warnings(report: &RunReport, config: &RunConfig, out: &mut Vec<R
     }
 }
 
-fn counter(v: &serde_json::Value, key: &str) -> u64 {
-    v.get(key).and_then(|x| x.as_u64()).unwrap_or(0)
-}
-
 /// The voxel sink's bins counters: `(counter, setting, advice)`.
-const VOXEL_BINS: [(&str, &str, &str); 3] = [
+type BinsCounter = fn(&DepositStats) -> u64;
+
+const VOXEL_BINS: [(BinsCounter, &str, &str); 3] = [
     (
-        "bins_outside_heights",
+        |d| d.bins_outside_heights,
         "voxels.z_range_m",
         "return bins fell outside the voxel grid's height range; widen voxels.z_range_m (or \
          height = \"above_dem\" with a DEM)",
     ),
     (
-        "bins_outside_extent",
+        |d| d.bins_outside_extent,
         "voxels.extent_m",
         "return bins fell outside the voxel store's horizontal extent; set voxels.extent_m to \
          the survey area (or raise auto_extent_m)",
     ),
     (
-        "bins_outside_dem",
+        |d| d.bins_outside_dem,
         "georeference.dem",
         "return bins fell where the DEM has no height; use a DEM covering the survey",
     ),
@@ -299,9 +292,8 @@ fn sink_warnings(report: &RunReport, out: &mut Vec<RunWarning>) {
              carries its geometry",
         )
     };
-    if let Some(v) = report.sinks.get("voxels") {
-        let d = &v["deposits"];
-        let n = counter(d, "pulses_no_geometry");
+    if let Some(v) = report.sinks.voxels() {
+        let n = v.deposits.pulses_no_geometry;
         if share(n, report.pulses_out) > WARN_SHARE {
             out.push(RunWarning::new(
                 "voxels.pulses_no_geometry",
@@ -311,8 +303,8 @@ fn sink_warnings(report: &RunReport, out: &mut Vec<RunWarning>) {
             ));
         }
     }
-    if let Some(las) = report.sinks.get("las") {
-        let n = counter(las, "pulses_without_geometry");
+    if let Some(las) = report.sinks.las() {
+        let n = las.pulses_without_geometry;
         if share(n, report.pulses_out) > WARN_SHARE {
             out.push(RunWarning::new(
                 "las.pulses_without_geometry",
@@ -328,6 +320,7 @@ fn sink_warnings(report: &RunReport, out: &mut Vec<RunWarning>) {
 /// `causes` (the share warnings) when there is one.
 fn empty_output_warnings(
     report: &RunReport,
+    chain: &Chain,
     config: &RunConfig,
     causes: &[RunWarning],
 ) -> Vec<RunWarning> {
@@ -361,40 +354,42 @@ fn empty_output_warnings(
             message,
         });
     }
-    let decompose = report.stages.iter().position(|s| s.name == "decompose");
-    // Whether any return was found, as the returns' outputs saw it (`None` without one).
-    let any_return = match (report.sinks.get("returns_csv"), report.sinks.get("las")) {
-        (Some(csv), _) => Some(counter(csv, "rows") > 0),
-        (None, Some(las)) => Some(counter(las, "pulses_without_returns") < report.pulses_out),
+    // The stage that finds the returns, and whether it found any, as the returns' outputs saw
+    // it (`None` without one).
+    let finder = (0..report.stages.len())
+        .filter_map(|i| Some((i, chain.stage(i)?)))
+        .find(|(_, s)| s.products().returns);
+    let any_return = match (report.sinks.returns_csv(), report.sinks.las()) {
+        (Some(csv), _) => Some(csv.rows > 0),
+        (None, Some(las)) => Some(las.pulses_without_returns < report.pulses_out),
         (None, None) => None,
     };
-    if let (Some(i), Some(false)) = (decompose, any_return)
+    if let (Some((i, stage)), Some(false)) = (finder, any_return)
         && report.pulses_out > 0
+        && let Some(advice) = stage.no_returns_advice(&format!("pipeline.stages[{i}]"))
     {
         out.push(RunWarning {
             reason: "output.no_returns".into(),
             count: report.pulses_out,
             share: 1.0,
-            setting: stage_key(i, "min_snr"),
+            setting: advice.setting,
             message: format!(
-                "the decompose stage found no return in any of the {} pulses out (no peak \
-                 min_snr noise levels above the baseline); lower min_snr, or check the stages \
-                 before it",
-                report.pulses_out
+                "the {} stage found no return in any of the {} pulses out{}",
+                stage.kind(),
+                report.pulses_out,
+                advice.text
             ),
         });
     }
-    if let Some(v) = report.sinks.get("voxels")
+    if let Some(v) = report.sinks.voxels()
         && config.voxels.enabled
-        && counter(&v["deposits"], "bins_deposited") + counter(&v["deposits"], "bins_resumed") == 0
+        && v.deposits.bins_deposited + v.deposits.bins_resumed == 0
     {
-        let d = &v["deposits"];
+        let d = &v.deposits;
         let (setting, message) = if report.pulses_out == 0 {
             let (setting, cause) = because(main);
             (setting, format!("no pulse reached the voxel store{cause}"))
-        } else if counter(d, "pulses_no_geometry") + counter(d, "pulses_non_finite")
-            >= report.pulses_out
-        {
+        } else if d.pulses_no_geometry + d.pulses_non_finite >= report.pulses_out {
             (
                 Some("georeference.enabled".to_string()),
                 "no pulse had geometry to place its bins (not georeferenced); enable \
@@ -404,8 +399,8 @@ fn empty_output_warnings(
         } else {
             match VOXEL_BINS
                 .iter()
-                .max_by_key(|(k, _, _)| counter(d, k))
-                .filter(|(k, _, _)| counter(d, k) > 0)
+                .max_by_key(|(k, _, _)| k(d))
+                .filter(|(k, _, _)| k(d) > 0)
             {
                 Some((_, setting, advice)) => (Some(setting.to_string()), advice.to_string()),
                 None => (
@@ -507,15 +502,52 @@ mod tests {
             errors: 0,
             stages,
             end_to_end: Default::default(),
-            source: serde_json::Value::Null,
-            nav: serde_json::Value::Null,
-            sinks: serde_json::json!({}),
+            source: Default::default(),
+            nav: Default::default(),
+            sinks: Default::default(),
             pool_allocations: 0,
             stopped_early: false,
             fatal: None,
             wall_time_s: 0.0,
             pulses_per_s: 0.0,
         }
+    }
+
+    use crate::sink::returns_csv::ReturnsCsvReport;
+    use crate::sink::voxel_tiles::VoxelReport;
+    use crate::sink::{SinkReport, SinkReports};
+
+    /// Sinks' reports: `returns.csv` with `rows` (when given) and the voxel store's deposits.
+    fn sinks(rows: Option<u64>, deposits: DepositStats) -> SinkReports {
+        let mut v = Vec::new();
+        if let Some(rows) = rows {
+            v.push((
+                "returns_csv",
+                SinkReport::ReturnsCsv(ReturnsCsvReport {
+                    rows,
+                    returns_outside_dem: None,
+                }),
+            ));
+        }
+        v.push((
+            "voxels",
+            SinkReport::Voxels(Box::new(VoxelReport {
+                deposits,
+                ..Default::default()
+            })),
+        ));
+        SinkReports(v)
+    }
+
+    /// `returns.las` alone, with `pulses_without_returns`.
+    fn las_only(pulses_without_returns: u64) -> SinkReports {
+        SinkReports(vec![(
+            "las",
+            SinkReport::Las(crate::sink::las_wave::LasWaveReport {
+                pulses_without_returns,
+                ..Default::default()
+            }),
+        )])
     }
 
     fn replay_config() -> RunConfig {
@@ -628,18 +660,21 @@ mod tests {
         assert!(w[0].message.contains("held no pulses"), "{}", w[0].message);
 
         let mut r = report(10, 10, vec![stage("decompose", &[], &[])]);
-        r.sinks = serde_json::json!({
-            "returns_csv": { "rows": 0 },
-            "voxels": { "deposits": { "bins_deposited": 0, "pulses_no_geometry": 10 } },
-        });
+        r.sinks = sinks(
+            Some(0),
+            DepositStats {
+                pulses_no_geometry: 10,
+                ..Default::default()
+            },
+        );
         let w = warnings_of(&r, &cfg);
         let by = |reason: &str| w.iter().find(|w| w.reason == reason).cloned();
         let no_returns = by("output.no_returns").expect("no returns");
         let mut las_only = r.clone();
-        las_only.sinks = serde_json::json!({ "las": { "pulses_without_returns": 10 } });
+        las_only.sinks = self::las_only(10);
         let w2 = warnings_of(&las_only, &cfg);
         assert_eq!(w2[0].reason, "output.no_returns", "{w2:#?}");
-        las_only.sinks = serde_json::json!({ "las": { "pulses_without_returns": 9 } });
+        las_only.sinks = self::las_only(9);
         assert!(warnings_of(&las_only, &cfg).is_empty());
         assert_eq!(
             no_returns.setting.as_deref(),
@@ -651,32 +686,47 @@ mod tests {
         assert_eq!(no_geo.share, 1.0);
 
         // Bins above the grid: the height range is the setting; a resumed store is not empty.
-        r.sinks = serde_json::json!({
-            "returns_csv": { "rows": 30 },
-            "voxels": { "deposits": { "bins_deposited": 0, "bins_outside_heights": 400 } },
-        });
+        r.sinks = sinks(
+            Some(30),
+            DepositStats {
+                bins_outside_heights: 400,
+                ..Default::default()
+            },
+        );
         let w = warnings_of(&r, &cfg);
         assert_eq!(w[0].reason, "voxels.nothing_deposited");
         assert_eq!(w[0].setting.as_deref(), Some("voxels.z_range_m"));
         assert_eq!(w.len(), 1, "{w:#?}");
         // Bins outside the grid beside deposits are no warning (a window below the ground).
-        r.sinks = serde_json::json!({
-            "returns_csv": { "rows": 30 },
-            "voxels": { "deposits": { "bins_deposited": 10, "bins_outside_heights": 400 } },
-        });
+        r.sinks = sinks(
+            Some(30),
+            DepositStats {
+                bins_deposited: 10,
+                bins_outside_heights: 400,
+                ..Default::default()
+            },
+        );
         assert!(warnings_of(&r, &cfg).is_empty());
-        r.sinks = serde_json::json!({
-            "returns_csv": { "rows": 30 },
-            "voxels": { "deposits": { "bins_deposited": 0, "bins_resumed": 400 } },
-        });
+        r.sinks = sinks(
+            Some(30),
+            DepositStats {
+                bins_resumed: 400,
+                ..Default::default()
+            },
+        );
         assert!(warnings_of(&r, &cfg).is_empty());
     }
 
     #[test]
     fn georeference_misses_are_a_share_of_the_pulses_read() {
         let mut r = report(600, 600, vec![]);
-        r.source = serde_json::json!({
-            "georeference": { "missed": { "navigation_gap": 400, "before_navigation": 10 } }
+        r.source.georeference = Some(crate::source::report::GeoreferenceReport {
+            missed: [
+                ("navigation_gap".into(), 400),
+                ("before_navigation".into(), 10),
+            ]
+            .into(),
+            ..Default::default()
         });
         let w = warnings_of(&r, &replay_config());
         assert_eq!(w.len(), 1, "{w:#?}");

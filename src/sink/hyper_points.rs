@@ -17,6 +17,7 @@ use crate::format::las_points::{PointCloudWriter, PointSix};
 use crate::format::las_write::ExtraDim;
 use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, SegmentKind};
+use crate::sink::SinkReport;
 
 /// Name of the file in the output folder.
 pub const FILE_NAME: &str = "hyper_points.las";
@@ -82,6 +83,8 @@ impl HyperPointSink {
 }
 
 impl PulseSink for HyperPointSink {
+    type Report = SinkReport;
+
     fn name(&self) -> &'static str {
         "hyper_points"
     }
@@ -163,8 +166,8 @@ impl PulseSink for HyperPointSink {
         Ok(())
     }
 
-    fn report(&self) -> serde_json::Value {
-        serde_json::to_value(&self.report).unwrap_or(serde_json::Value::Null)
+    fn report(&self) -> SinkReport {
+        SinkReport::HyperPoints(self.report.clone())
     }
 }
 

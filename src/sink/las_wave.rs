@@ -43,6 +43,7 @@ use crate::format::las_write::{
 };
 use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, PulseGeometry};
+use crate::sink::SinkReport;
 
 /// Scale of the stored X, Y, Z: 1 mm in a projected CRS in metres.
 pub const SCALE: f64 = 0.001;
@@ -808,6 +809,8 @@ impl LasWaveSink {
 }
 
 impl PulseSink for LasWaveSink {
+    type Report = SinkReport;
+
     fn name(&self) -> &'static str {
         "las"
     }
@@ -869,8 +872,8 @@ impl PulseSink for LasWaveSink {
         Ok(())
     }
 
-    fn report(&self) -> serde_json::Value {
-        serde_json::to_value(&self.report).unwrap_or(serde_json::Value::Null)
+    fn report(&self) -> SinkReport {
+        SinkReport::Las(self.report.clone())
     }
 }
 

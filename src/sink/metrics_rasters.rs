@@ -50,6 +50,7 @@ use crate::raster::RasterError;
 use crate::raster::cog::write_cog;
 use crate::raster::grid::CellGrid;
 use crate::raster::vrt::{VrtTile, write_vrt};
+use crate::sink::SinkReport;
 use crate::voxel::tiles::CloseRule;
 
 /// Raster settings (`[output]`: `rasters`, `chm_cell_m`, `profile_cell_m`, `raster_tile_m`).
@@ -77,6 +78,31 @@ pub enum RasterCrs {
     Known(Option<String>),
     /// Decided at the first position fix.
     Decided(Arc<OnceLock<String>>),
+}
+
+/// The metrics rasters' report (`summary.json` → `sinks.metrics_rasters`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct MetricsRastersReport {
+    /// Pulses placed in the rasters.
+    pub pulses_placed: u64,
+    /// Pulses without metrics.
+    pub without_metrics: u64,
+    /// Pulses without a position or CRS.
+    pub without_position_or_crs: u64,
+    /// The rasters' EPSG code, once known.
+    pub epsg: Option<u32>,
+    /// Canopy height model cell, m.
+    pub chm_cell_m: f64,
+    /// Metrics raster cell, m.
+    pub profile_cell_m: f64,
+    /// What was written (`rasters/chm.vrt (N tiles)`).
+    pub written: Vec<String>,
+    /// Tiles close this long after the flight leaves them, s.
+    pub close_after_s: f64,
+    /// Most tiles open at once.
+    pub max_open_tiles: usize,
+    /// The tiles' lifecycle.
+    pub tiles: RasterTileStats,
 }
 
 /// Counters of the raster tiles' lifecycle (`summary.json`: `sinks.metrics_rasters.tiles`).
@@ -469,6 +495,8 @@ fn sink_error(e: RasterError) -> SinkError {
 }
 
 impl PulseSink for MetricsRastersSink {
+    type Report = SinkReport;
+
     fn name(&self) -> &'static str {
         "metrics_rasters"
     }
@@ -504,18 +532,18 @@ impl PulseSink for MetricsRastersSink {
         self.close_all().map_err(sink_error)
     }
 
-    fn report(&self) -> serde_json::Value {
-        serde_json::json!({
-            "pulses_placed": self.placed,
-            "without_metrics": self.without_metrics,
-            "without_position_or_crs": self.without_position,
-            "epsg": self.epsg,
-            "chm_cell_m": self.settings.chm_cell_m,
-            "profile_cell_m": self.settings.profile_cell_m,
-            "written": self.written,
-            "close_after_s": self.settings.close_after_s,
-            "max_open_tiles": self.settings.max_open_tiles,
-            "tiles": self.stats,
+    fn report(&self) -> SinkReport {
+        SinkReport::MetricsRasters(MetricsRastersReport {
+            pulses_placed: self.placed,
+            without_metrics: self.without_metrics,
+            without_position_or_crs: self.without_position,
+            epsg: self.epsg,
+            chm_cell_m: self.settings.chm_cell_m,
+            profile_cell_m: self.settings.profile_cell_m,
+            written: self.written.clone(),
+            close_after_s: self.settings.close_after_s,
+            max_open_tiles: self.settings.max_open_tiles,
+            tiles: self.stats.clone(),
         })
     }
 }
@@ -579,7 +607,7 @@ mod tests {
         let (col, row) = g.cell_of(8.5, 5.5).unwrap();
         assert_eq!(band[row * g.width() + col], 20.0);
         sink.finish().unwrap();
-        let r = sink.report();
+        let r = serde_json::to_value(sink.report()).unwrap();
         assert_eq!(r["pulses_placed"], 4);
         assert_eq!(r["without_metrics"], 1);
         assert_eq!(r["tiles"]["closed_at_end"], 2, "{r}");
@@ -728,7 +756,7 @@ mod tests {
                     k.display()
                 );
             }
-            let r = flown.report();
+            let r = serde_json::to_value(flown.report()).unwrap();
             assert_eq!(
                 r["tiles"]["closed_during_run"].as_u64().unwrap()
                     + r["tiles"]["closed_at_end"].as_u64().unwrap(),

@@ -37,6 +37,26 @@ use crate::geo::dem::Dem;
 use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::Pulse;
 use crate::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
+use crate::sink::SinkReport;
+
+/// The report of `pulse_metrics.csv` (`summary.json` → `sinks.pulse_metrics_csv`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct PulseMetricsCsvReport {
+    /// Rows written.
+    pub rows: u64,
+    /// Rows by metrics status.
+    pub ok: u64,
+    /// Rows with status `no_signal`.
+    pub no_signal: u64,
+    /// Rows with status `no_ground`.
+    pub no_ground: u64,
+    /// Rows with status `no_waveform`.
+    pub no_waveform: u64,
+    /// Rows with status `non_finite`.
+    pub non_finite: u64,
+    /// Height of the PAVD bins, m.
+    pub profile_bin_m: f64,
+}
 
 /// Writes `pulse_metrics.csv` into a folder.
 pub struct PulseMetricsCsvSink {
@@ -103,6 +123,8 @@ impl PulseMetricsCsvSink {
 }
 
 impl PulseSink for PulseMetricsCsvSink {
+    type Report = SinkReport;
+
     fn name(&self) -> &'static str {
         "pulse_metrics_csv"
     }
@@ -133,12 +155,16 @@ impl PulseSink for PulseMetricsCsvSink {
         Ok(self.file.flush()?)
     }
 
-    fn report(&self) -> serde_json::Value {
+    fn report(&self) -> SinkReport {
         let s = &self.by_status;
-        serde_json::json!({
-            "rows": self.rows,
-            "ok": s[0], "no_signal": s[1], "no_ground": s[2], "no_waveform": s[3], "non_finite": s[4],
-            "profile_bin_m": self.profile_bin_m,
+        SinkReport::PulseMetricsCsv(PulseMetricsCsvReport {
+            rows: self.rows,
+            ok: s[0],
+            no_signal: s[1],
+            no_ground: s[2],
+            no_waveform: s[3],
+            non_finite: s[4],
+            profile_bin_m: self.profile_bin_m,
         })
     }
 
@@ -187,7 +213,9 @@ mod tests {
         }
         assert!(lines[1].contains(",no_waveform,"));
         assert!(lines[2].starts_with("42,0.000000000,42,1.000,2.000,3.000,ok,1.500,1.500,"));
-        assert_eq!(sink.report()["ok"], 1);
-        assert_eq!(sink.report()["no_waveform"], 1);
+        let SinkReport::PulseMetricsCsv(r) = sink.report() else {
+            panic!("the CSV's report")
+        };
+        assert_eq!((r.ok, r.no_waveform), (1, 1));
     }
 }

@@ -26,11 +26,22 @@ use std::path::Path;
 use crate::core::atomic_file::AtomicFile;
 use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::Pulse;
+use crate::sink::SinkReport;
 
 /// Header line of `returns.csv` up to `z`; then `height_above_ground` when a DEM is
 /// configured, and `backscatter` last.
 pub const RETURNS_HEADER: &str =
     "pulse_id,gps_time,segment,position_bins,time_ns,amplitude_v,sigma_bins,residual_v,x,y,z";
+
+/// The returns CSV's report (`summary.json` → `sinks.returns_csv`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct ReturnsCsvReport {
+    /// Rows (returns) written.
+    pub rows: u64,
+    /// Returns where the DEM has no height (with a DEM only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub returns_outside_dem: Option<u64>,
+}
 
 /// Writes `returns.csv` into a folder.
 pub struct ReturnsCsvSink {
@@ -78,6 +89,8 @@ impl ReturnsCsvSink {
 }
 
 impl PulseSink for ReturnsCsvSink {
+    type Report = SinkReport;
+
     fn name(&self) -> &'static str {
         "returns_csv"
     }
@@ -143,12 +156,11 @@ impl PulseSink for ReturnsCsvSink {
         Ok(self.file.flush()?)
     }
 
-    fn report(&self) -> serde_json::Value {
-        let mut r = serde_json::json!({ "rows": self.rows });
-        if self.dem.is_some() {
-            r["returns_outside_dem"] = self.outside_dem.into();
-        }
-        r
+    fn report(&self) -> SinkReport {
+        SinkReport::ReturnsCsv(ReturnsCsvReport {
+            rows: self.rows,
+            returns_outside_dem: self.dem.is_some().then_some(self.outside_dem),
+        })
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {

@@ -14,8 +14,10 @@ use std::sync::{Arc, OnceLock};
 use crate::geo::dem::Dem;
 use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, SegmentKind};
+use crate::sink::SinkReport;
 use crate::voxel::grid::{Grid, Placer, VoxelConfig};
 use crate::voxel::tiles::TileSet;
+use crate::voxel::tiles::TileStats;
 use crate::voxel::voxelise::{DepositParams, DepositStats, deposit_pulse};
 use crate::voxel::zarr::{StoreError, StoreInfo, ZarrStore};
 
@@ -44,6 +46,100 @@ pub enum CrsSource {
     Known(Option<String>),
     /// Decided by the georeferencing during the run (the UTM zone of the first fix).
     Decided(Arc<OnceLock<String>>),
+}
+
+/// The voxel sink's report (`summary.json` → `sinks.voxels`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct VoxelReport {
+    /// The store.
+    pub store: String,
+    /// What was deposited and skipped.
+    pub deposits: DepositStats,
+    /// The tiles' lifecycle and the store's writes (after the first pulse with geometry).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tiles: Option<VoxelTilesReport>,
+    /// The grid.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub grid: Option<VoxelGridReport>,
+    /// What the store's arrays span.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub arrays: Option<VoxelArraysReport>,
+    /// Pulses per tile, for the QC map (the daemon only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub coverage: Option<CoverageReport>,
+}
+
+/// The tiles' lifecycle and what the store wrote.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct VoxelTilesReport {
+    /// Tiles opened, closed, merged, peaks.
+    #[serde(flatten)]
+    pub lifecycle: TileStats,
+    /// Tiles written.
+    pub written: u64,
+    /// Bytes through the compressor.
+    pub bytes_written: u64,
+    /// Bytes stored.
+    pub bytes_stored: u64,
+    /// Chunk files written.
+    pub chunks_written: u64,
+    /// Inner chunks encoded.
+    pub inner_chunks_written: u64,
+    /// Tiles in the store.
+    pub in_store: u64,
+    /// Commits of an earlier run completed when the store was opened.
+    pub recovered_commits: u64,
+}
+
+/// The voxel grid.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct VoxelGridReport {
+    /// Its CRS's EPSG code.
+    pub epsg: Option<u32>,
+    /// Voxel size x, y, z, m.
+    pub voxel_size_m: [f64; 3],
+    /// Height levels.
+    pub levels: u32,
+    /// Levels per height chunk.
+    pub chunk_levels: u32,
+    /// Columns per tile side.
+    pub tile_columns: u32,
+    /// South-west corner of the extent, m.
+    pub extent_origin_m: [f64; 2],
+    /// Tiles across the extent.
+    pub tiles: [u32; 2],
+    /// Heights: `absolute` or `above_dem`.
+    pub height: &'static str,
+    /// Units of the deposited intensity.
+    pub intensity_units: String,
+}
+
+/// What the store's arrays span.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct VoxelArraysReport {
+    /// First tile.
+    pub tile_min: [i64; 2],
+    /// Tiles spanned.
+    pub tiles: [u32; 2],
+    /// Fitted to the tiles written (the run ended).
+    pub fitted: bool,
+    /// The arrays' shape (levels, rows, columns).
+    pub shape: [u64; 3],
+    /// Origin of the arrays, m.
+    pub origin_m: [f64; 2],
+}
+
+/// Pulses per tile (the daemon's QC map).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct CoverageReport {
+    /// Tile size, m.
+    pub tile_m: [f64; 2],
+    /// Grid origin, m.
+    pub origin_m: [f64; 2],
+    /// Each tile: column, row, pulses, open (1) or closed (0).
+    pub cells: Vec<[i64; 4]>,
+    /// Highest canopy height per tile, m (none without metrics).
+    pub canopy_max_m: Vec<Option<f32>>,
 }
 
 /// The sink.
@@ -213,6 +309,8 @@ impl VoxelTilesSink {
 }
 
 impl PulseSink for VoxelTilesSink {
+    type Report = SinkReport;
+
     fn name(&self) -> &'static str {
         "voxels"
     }
@@ -269,44 +367,47 @@ impl PulseSink for VoxelTilesSink {
         Ok(())
     }
 
-    fn report(&self) -> serde_json::Value {
-        let mut v = serde_json::json!({
-            "store": self.root.display().to_string(),
-            "deposits": self.stats,
-        });
+    fn report(&self) -> SinkReport {
+        let mut r = VoxelReport {
+            store: self.root.display().to_string(),
+            deposits: self.stats.clone(),
+            ..VoxelReport::default()
+        };
         if let Some(t) = &self.tiles {
             let s = t.store();
             let g = t.grid();
-            v["tiles"] = serde_json::to_value(t.stats()).unwrap_or_default();
-            v["tiles"]["written"] = s.tiles_written.into();
-            v["tiles"]["bytes_written"] = s.bytes_written.into();
-            v["tiles"]["bytes_stored"] = s.bytes_stored.into();
-            v["tiles"]["chunks_written"] = s.chunks_written.into();
-            v["tiles"]["inner_chunks_written"] = s.inner_chunks_written.into();
-            v["tiles"]["in_store"] = s.tiles().len().into();
-            v["tiles"]["recovered_commits"] = s.recovered_commits.into();
-            v["grid"] = serde_json::json!({
-                "epsg": s.info().epsg,
-                "voxel_size_m": g.voxel_size_m,
-                "levels": g.levels,
-                "chunk_levels": g.chunk_levels(),
-                "tile_columns": g.tile_columns,
-                "extent_origin_m": g.extent_origin(),
-                "tiles": g.tiles,
-                "height": g.height.name(),
-                "intensity_units": s.info().intensity_units,
+            r.tiles = Some(VoxelTilesReport {
+                lifecycle: t.stats().clone(),
+                written: s.tiles_written,
+                bytes_written: s.bytes_written,
+                bytes_stored: s.bytes_stored,
+                chunks_written: s.chunks_written,
+                inner_chunks_written: s.inner_chunks_written,
+                in_store: s.tiles().len() as u64,
+                recovered_commits: s.recovered_commits,
+            });
+            r.grid = Some(VoxelGridReport {
+                epsg: s.info().epsg,
+                voxel_size_m: g.voxel_size_m,
+                levels: g.levels,
+                chunk_levels: g.chunk_levels(),
+                tile_columns: g.tile_columns,
+                extent_origin_m: g.extent_origin(),
+                tiles: g.tiles,
+                height: g.height.name(),
+                intensity_units: s.info().intensity_units.clone(),
             });
             // What the store's arrays span: the bounding box of the tiles written once the run
             // ended (`fitted`), the whole extent while it writes.
             let span = s.span();
-            v["arrays"] = serde_json::json!({
-                "tile_min": span.tile_min,
-                "tiles": span.tiles,
-                "fitted": span.fitted,
-                "shape": span.shape(g),
-                "origin_m": span.origin_m(g),
+            r.arrays = Some(VoxelArraysReport {
+                tile_min: span.tile_min,
+                tiles: span.tiles,
+                fitted: span.fitted,
+                shape: span.shape(g),
+                origin_m: span.origin_m(g),
             });
-            if let Some(cov) = &self.coverage {
+            r.coverage = self.coverage.as_ref().map(|cov| {
                 let open: std::collections::HashSet<[i64; 2]> =
                     t.open_tiles().into_iter().collect();
                 let mut cells: Vec<([i64; 4], f32)> = cov
@@ -314,21 +415,19 @@ impl PulseSink for VoxelTilesSink {
                     .map(|(k, (n, h))| ([k[0], k[1], *n as i64, open.contains(k) as i64], *h))
                     .collect();
                 cells.sort_unstable_by_key(|c| c.0);
-                // Canopy height per cell, in the cells' order (null: no pulse with metrics).
-                let canopy: Vec<Option<f32>> = cells
-                    .iter()
-                    .map(|c| c.1.is_finite().then_some(c.1))
-                    .collect();
-                let cells: Vec<[i64; 4]> = cells.into_iter().map(|c| c.0).collect();
-                v["coverage"] = serde_json::json!({
-                    "tile_m": g.tile_m(),
-                    "origin_m": g.origin_m,
-                    "cells": cells,
-                    "canopy_max_m": canopy,
-                });
-            }
+                CoverageReport {
+                    tile_m: g.tile_m(),
+                    origin_m: g.origin_m,
+                    // Canopy height per cell, in the cells' order (none: no pulse with metrics).
+                    canopy_max_m: cells
+                        .iter()
+                        .map(|c| c.1.is_finite().then_some(c.1))
+                        .collect(),
+                    cells: cells.into_iter().map(|c| c.0).collect(),
+                }
+            });
         }
-        v
+        SinkReport::Voxels(Box::new(r))
     }
 }
 
@@ -521,7 +620,7 @@ mod tests {
             });
             s.write(&p).unwrap();
         }
-        let r = s.report();
+        let r = serde_json::to_value(s.report()).unwrap();
         let cov = &r["coverage"];
         let head = |i: usize| -> Vec<i64> {
             (0..3)
@@ -777,7 +876,7 @@ mod tests {
             ([3, 4], [2, 1], true)
         );
         assert_eq!(
-            s.report()["arrays"]["shape"],
+            serde_json::to_value(s.report()).unwrap()["arrays"]["shape"],
             serde_json::json!([20, 8, 16])
         );
         let s = continuing(&mut second());

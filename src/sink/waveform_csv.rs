@@ -14,6 +14,7 @@ use std::path::Path;
 use crate::core::atomic_file::AtomicFile;
 use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, SegmentKind};
+use crate::sink::SinkReport;
 
 /// Writes `pulses.csv` and `waveforms.csv` into a folder.
 pub struct WaveformCsvSink {
@@ -50,6 +51,8 @@ impl WaveformCsvSink {
 }
 
 impl PulseSink for WaveformCsvSink {
+    type Report = SinkReport;
+
     fn name(&self) -> &'static str {
         "waveform_csv"
     }

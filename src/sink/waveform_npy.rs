@@ -28,6 +28,7 @@ use crate::core::atomic_file::AtomicFile;
 use crate::format::table::npy_preamble;
 use crate::pipeline::ports::{PulseSink, SinkError};
 use crate::pulse::{Pulse, SegmentKind};
+use crate::sink::{SinkReport, WaveformsReport};
 
 /// The fields of `waveform_index.npy`: name and NumPy type (little-endian).
 pub const INDEX_FIELDS: [(&str, &str); 11] = [
@@ -114,6 +115,8 @@ impl WaveformNpySink {
 }
 
 impl PulseSink for WaveformNpySink {
+    type Report = SinkReport;
+
     fn name(&self) -> &'static str {
         "waveform_npy"
     }
@@ -175,8 +178,11 @@ impl PulseSink for WaveformNpySink {
         Ok(self.index.commit()?)
     }
 
-    fn report(&self) -> serde_json::Value {
-        serde_json::json!({ "segments": self.n_segments, "samples": self.n_samples })
+    fn report(&self) -> SinkReport {
+        SinkReport::Waveforms(WaveformsReport {
+            segments: self.n_segments,
+            samples: self.n_samples,
+        })
     }
 }
 

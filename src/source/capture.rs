@@ -9,6 +9,7 @@ use serde::Serialize;
 use crate::format::{CaptureError, CaptureHeader, CaptureReader, Record, SkipReport};
 use crate::pipeline::ports::{NavChunk, Source, SourceError, SourceEvent};
 use crate::pulse::PulsePool;
+use crate::source::report::{InputReport, SourceReport};
 
 /// Reads a capture file as a [`Source`].
 pub struct CaptureSource {
@@ -17,6 +18,21 @@ pub struct CaptureSource {
     total_bytes: u64,
     header: Option<CaptureHeader>,
     stats: CaptureStats,
+}
+
+/// A capture source's report (`summary.json` → `source`).
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct CaptureReport {
+    /// The capture file.
+    pub file: String,
+    /// Its format version, `major.minor`.
+    pub version: String,
+    /// The sensor its first header names.
+    pub sensor: Option<String>,
+    /// What it held.
+    pub records: CaptureStats,
+    /// What the reader skipped (damage).
+    pub skipped: SkipReport,
 }
 
 /// What the capture held, for `summary.json`.
@@ -71,6 +87,8 @@ fn first_header(path: &Path) -> Option<CaptureHeader> {
 }
 
 impl Source for CaptureSource {
+    type Report = SourceReport;
+
     fn name(&self) -> &'static str {
         "capture"
     }
@@ -147,13 +165,13 @@ impl Source for CaptureSource {
         }
     }
 
-    fn report(&self) -> serde_json::Value {
-        serde_json::json!({
-            "file": self.path.display().to_string(),
-            "version": format!("{}.{}", self.reader.version().0, self.reader.version().1),
-            "sensor": self.header.as_ref().map(|h| h.sensor.name.clone()),
-            "records": self.stats,
-            "skipped": self.reader.skipped(),
-        })
+    fn report(&self) -> SourceReport {
+        SourceReport::of(InputReport::Capture(CaptureReport {
+            file: self.path.display().to_string(),
+            version: format!("{}.{}", self.reader.version().0, self.reader.version().1),
+            sensor: self.header.as_ref().map(|h| h.sensor.name.clone()),
+            records: self.stats.clone(),
+            skipped: *self.reader.skipped(),
+        }))
     }
 }

@@ -7,13 +7,15 @@
 use crate::core::facts::SourceFacts;
 use crate::pipeline::ports::{Source, SourceError, SourceEvent};
 use crate::pulse::PulsePool;
+use crate::source::DynSource;
+use crate::source::report::{InputReport, SourceReport};
 
 /// The inputs in order, each already opened (and georeferenced).
 pub struct ChainSource {
     /// Input file names (for the report), in order.
     names: Vec<String>,
     /// The sources, in order.
-    inputs: Vec<Box<dyn Source>>,
+    inputs: Vec<Box<DynSource>>,
     /// The one being read.
     current: usize,
 }
@@ -22,7 +24,7 @@ impl ChainSource {
     /// Chains `inputs` (with their file names). They must state the same sensor, time base and
     /// CRS, so that one set of outputs describes them all; the error names the two files that
     /// differ and the fact.
-    pub fn new(inputs: Vec<(String, Box<dyn Source>)>) -> Result<Self, String> {
+    pub fn new(inputs: Vec<(String, Box<DynSource>)>) -> Result<Self, String> {
         if inputs.is_empty() {
             return Err("no input to replay".into());
         }
@@ -58,6 +60,8 @@ impl ChainSource {
 }
 
 impl Source for ChainSource {
+    type Report = SourceReport;
+
     fn name(&self) -> &'static str {
         "inputs in sequence"
     }
@@ -81,28 +85,16 @@ impl Source for ChainSource {
         Some(sum)
     }
 
-    /// Every input's report under `inputs`, and their counts summed at the top (largest values,
-    /// `largest_*` and `max_*`, are the largest; a text is kept where the inputs agree).
-    fn report(&self) -> serde_json::Value {
-        let reports: Vec<serde_json::Value> = self.inputs.iter().map(|s| s.report()).collect();
-        let mut top = reports
-            .iter()
-            .skip(1)
-            .fold(reports[0].clone(), |acc, r| combine("", &acc, r))
-            .as_object()
-            .cloned()
-            .unwrap_or_default();
-        top.insert(
-            "inputs".into(),
-            serde_json::Value::Array(
-                self.names
-                    .iter()
-                    .zip(reports)
-                    .map(|(n, r)| serde_json::json!({"input": n, "report": r}))
-                    .collect(),
-            ),
-        );
-        serde_json::Value::Object(top)
+    /// Every input's whole report, in order (`summary.json` shows them under `inputs`, and
+    /// their counts added up at the top: [`sequence_json`]).
+    fn report(&self) -> SourceReport {
+        SourceReport::of(InputReport::Sequence(
+            self.names
+                .iter()
+                .cloned()
+                .zip(self.inputs.iter().map(|s| s.report()))
+                .collect(),
+        ))
     }
 
     fn facts(&self) -> SourceFacts {
@@ -116,6 +108,34 @@ impl Source for ChainSource {
             .max()
             .unwrap_or(0)
     }
+}
+
+/// A sequence's report as `summary.json` holds it: every input's report under `inputs`
+/// (`{"input": file, "report": …}`), and their counts summed at the top (largest values,
+/// `largest_*` and `max_*`, are the largest; a text is kept where the inputs agree).
+pub fn sequence_json(inputs: &[(String, SourceReport)]) -> serde_json::Value {
+    let reports: Vec<serde_json::Value> = inputs.iter().map(|(_, r)| r.to_json()).collect();
+    let mut top = match reports.first() {
+        Some(first) => reports
+            .iter()
+            .skip(1)
+            .fold(first.clone(), |acc, r| combine("", &acc, r))
+            .as_object()
+            .cloned()
+            .unwrap_or_default(),
+        None => serde_json::Map::new(),
+    };
+    top.insert(
+        "inputs".into(),
+        serde_json::Value::Array(
+            inputs
+                .iter()
+                .zip(reports)
+                .map(|((n, _), r)| serde_json::json!({"input": n, "report": r}))
+                .collect(),
+        ),
+    );
+    serde_json::Value::Object(top)
 }
 
 /// Two inputs' reports as one: numbers added (the larger for `largest_*`/`max_*` keys), objects
@@ -172,6 +192,8 @@ mod tests {
     }
 
     impl Source for Fake {
+        type Report = SourceReport;
+
         fn name(&self) -> &'static str {
             "fake"
         }
@@ -196,16 +218,31 @@ mod tests {
         fn progress(&self) -> Option<(u64, u64)> {
             Some((self.k as u64, self.n as u64))
         }
-        fn report(&self) -> serde_json::Value {
-            serde_json::json!({"file": format!("f{}", self.first), "records": {"pulses": self.k},
-                "largest_wait": self.n, "version": "1.0"})
+        fn report(&self) -> SourceReport {
+            SourceReport {
+                georeference: Some(crate::source::report::GeoreferenceReport {
+                    largest_wait_pulses: self.n as u64,
+                    ..Default::default()
+                }),
+                ..SourceReport::of(InputReport::Capture(
+                    crate::source::capture::CaptureReport {
+                        file: format!("f{}", self.first),
+                        version: "1.0".into(),
+                        records: crate::source::capture::CaptureStats {
+                            frames: self.k as u64,
+                            ..Default::default()
+                        },
+                        ..Default::default()
+                    },
+                ))
+            }
         }
         fn facts(&self) -> SourceFacts {
             self.facts.clone()
         }
     }
 
-    fn fake(first: f64, n: usize) -> Box<dyn Source> {
+    fn fake(first: f64, n: usize) -> Box<DynSource> {
         Box::new(Fake {
             first,
             n,
@@ -235,9 +272,11 @@ mod tests {
         assert_eq!(times, vec![100.0, 101.0, 102.0, 0.0, 1.0]);
         assert_eq!(navs, 5);
         assert_eq!(c.progress(), Some((5, 5)));
-        let r = c.report();
-        assert_eq!(r["records"]["pulses"], 5);
-        assert_eq!(r["largest_wait"], 3);
+        let report = c.report();
+        assert_eq!(report.georeference().unwrap().largest_wait_pulses, 3);
+        let r = report.to_json();
+        assert_eq!(r["records"]["frames"], 5);
+        assert_eq!(r["georeference"]["largest_wait_pulses"], 3);
         assert_eq!(r["version"], "1.0");
         assert!(r.get("file").is_none(), "differing texts are dropped: {r}");
         assert_eq!(r["inputs"][1]["input"], "b");

@@ -42,6 +42,7 @@
 //! [`MAX_BLOCK_SAMPLES`] samples), into buffers reused from block to block; nothing is
 //! allocated per pulse once the pool is warm.
 
+use crate::source::report::{InputReport, SourceReport};
 use std::path::{Path, PathBuf};
 
 use crate::core::facts::SourceFacts;
@@ -117,17 +118,93 @@ pub fn gedi_sensor() -> SensorProfile {
     }
 }
 
+/// A GEDI source's report (`summary.json` → `source`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct GediReport {
+    /// The granule.
+    pub file: String,
+    /// What it is.
+    pub product: &'static str,
+    /// The output CRS (`EPSG:<code>`).
+    pub crs: String,
+    /// The granule's time epoch, GPS seconds.
+    pub time_epoch_gps_s: f64,
+    /// Shots in the granule.
+    pub shots: u64,
+    /// Shots read (handed out or skipped).
+    pub shots_read: u64,
+    /// Pulses handed out.
+    pub pulses: u64,
+    /// Shots skipped: stale return.
+    pub skipped_stale: u64,
+    /// Shots skipped: no received samples.
+    pub skipped_no_samples: u64,
+    /// Shots skipped: too many samples.
+    pub skipped_too_long: u64,
+    /// Shots skipped: geolocation that does not project.
+    pub skipped_bad_geolocation: u64,
+    /// Degraded shots passed.
+    pub degraded: u64,
+    /// Samples clamped to the counts' range.
+    pub clamped_samples: u64,
+    /// Shots without a usable bounce time.
+    pub tx_time_unknown: u64,
+    /// Mean noise level, counts.
+    pub noise_mean_counts: Option<f64>,
+    /// Mean noise σ, counts.
+    pub noise_stddev_counts: Option<f64>,
+    /// Mean outgoing FWHM, ns.
+    pub tx_fwhm_ns: Option<f64>,
+    /// Per beam.
+    pub beams: Vec<BeamStats>,
+    /// Ranges of what was read.
+    pub extent: GediExtent,
+    /// The error that ended reading, if any.
+    pub error: Option<String>,
+}
+
+/// The ranges (smallest, largest) of the shots handed out; `None` before the first.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct GediExtent {
+    /// GPS time, s.
+    pub gps_time: Option<[f64; 2]>,
+    /// Longitude, degrees.
+    pub longitude_deg: Option<[f64; 2]>,
+    /// Latitude, degrees.
+    pub latitude_deg: Option<[f64; 2]>,
+    /// Easting in the output CRS, m.
+    pub x_m: Option<[f64; 2]>,
+    /// Northing in the output CRS, m.
+    pub y_m: Option<[f64; 2]>,
+    /// Elevation of bin 0, m.
+    pub elevation_m: Option<[f64; 2]>,
+    /// Received samples per shot.
+    pub rx_samples: Option<[u64; 2]>,
+    /// Noise σ, counts.
+    pub noise_stddev_counts: Option<[f64; 2]>,
+    /// Outgoing FWHM, ns.
+    pub tx_fwhm_ns: Option<[f64; 2]>,
+}
+
 /// Counts of one beam.
 #[derive(Clone, Debug, Default, serde::Serialize)]
-struct BeamStats {
-    name: String,
-    shots: u64,
-    pulses: u64,
-    stale: u64,
-    no_samples: u64,
-    too_long: u64,
-    bad_geolocation: u64,
-    degraded: u64,
+pub struct BeamStats {
+    /// The beam's name (`BEAM0101`).
+    pub name: String,
+    /// Shots in the beam.
+    pub shots: u64,
+    /// Pulses handed out.
+    pub pulses: u64,
+    /// Skipped: stale return.
+    pub stale: u64,
+    /// Skipped: no received samples.
+    pub no_samples: u64,
+    /// Skipped: too many samples.
+    pub too_long: u64,
+    /// Skipped: geolocation that does not project.
+    pub bad_geolocation: u64,
+    /// Degraded, passed.
+    pub degraded: u64,
 }
 
 /// Running figures over the pulses handed out (no allocation).
@@ -178,12 +255,8 @@ fn widen(r: &mut [f64; 2], v: f64) {
     }
 }
 
-fn range_json(r: [f64; 2]) -> serde_json::Value {
-    if r[0] <= r[1] {
-        serde_json::json!([r[0], r[1]])
-    } else {
-        serde_json::Value::Null
-    }
+fn range(r: [f64; 2]) -> Option<[f64; 2]> {
+    (r[0] <= r[1]).then_some(r)
 }
 
 /// Reads a GEDI L1B granule as a [`Source`].
@@ -599,6 +672,8 @@ pub fn fwhm_ns(x: &[f32]) -> Option<f64> {
 }
 
 impl Source for GediSource {
+    type Report = SourceReport;
+
     fn name(&self) -> &'static str {
         "gedi"
     }
@@ -616,46 +691,42 @@ impl Source for GediSource {
         Some((self.shots_read, self.total_shots))
     }
 
-    fn report(&self) -> serde_json::Value {
+    fn report(&self) -> SourceReport {
         let sum = |f: fn(&BeamStats) -> u64| self.stats.iter().map(f).sum::<u64>();
         let r = &self.running;
         let mean = |s: f64, n: u64| (n > 0).then(|| s / n as f64);
-        serde_json::json!({
-            "file": self.path.display().to_string(),
-            "product": "GEDI Level 1B (geolocated waveforms)",
-            "crs": format!("EPSG:{}", self.crs.epsg()),
-            "time_epoch_gps_s": self.epoch_gps_s,
-            "shots": self.total_shots,
-            "shots_read": self.shots_read,
-            "pulses": sum(|b| b.pulses),
-            "skipped_stale": sum(|b| b.stale),
-            "skipped_no_samples": sum(|b| b.no_samples),
-            "skipped_too_long": sum(|b| b.too_long),
-            "skipped_bad_geolocation": sum(|b| b.bad_geolocation),
-            "degraded": sum(|b| b.degraded),
-            "clamped_samples": self.clamped_samples,
-            "tx_time_unknown": self.tx_time_unknown,
-            "noise_mean_counts": mean(r.noise_mean_sum, r.noise_n),
-            "noise_stddev_counts": mean(r.noise_stddev_sum, r.noise_n),
-            "tx_fwhm_ns": mean(r.tx_fwhm_sum, r.tx_fwhm_n),
-            "beams": self.stats,
-            "extent": {
-                "gps_time": range_json(r.gps_time),
-                "longitude_deg": range_json(r.lon),
-                "latitude_deg": range_json(r.lat),
-                "x_m": range_json(r.x),
-                "y_m": range_json(r.y),
-                "elevation_m": range_json(r.elevation),
-                "rx_samples": if r.rx_samples[0] <= r.rx_samples[1] {
-                    serde_json::json!(r.rx_samples)
-                } else {
-                    serde_json::Value::Null
-                },
-                "noise_stddev_counts": range_json(r.noise_stddev),
-                "tx_fwhm_ns": range_json(r.tx_fwhm),
+        SourceReport::of(InputReport::Gedi(Box::new(GediReport {
+            file: self.path.display().to_string(),
+            product: "GEDI Level 1B (geolocated waveforms)",
+            crs: format!("EPSG:{}", self.crs.epsg()),
+            time_epoch_gps_s: self.epoch_gps_s,
+            shots: self.total_shots,
+            shots_read: self.shots_read,
+            pulses: sum(|b| b.pulses),
+            skipped_stale: sum(|b| b.stale),
+            skipped_no_samples: sum(|b| b.no_samples),
+            skipped_too_long: sum(|b| b.too_long),
+            skipped_bad_geolocation: sum(|b| b.bad_geolocation),
+            degraded: sum(|b| b.degraded),
+            clamped_samples: self.clamped_samples,
+            tx_time_unknown: self.tx_time_unknown,
+            noise_mean_counts: mean(r.noise_mean_sum, r.noise_n),
+            noise_stddev_counts: mean(r.noise_stddev_sum, r.noise_n),
+            tx_fwhm_ns: mean(r.tx_fwhm_sum, r.tx_fwhm_n),
+            beams: self.stats.clone(),
+            extent: GediExtent {
+                gps_time: range(r.gps_time),
+                longitude_deg: range(r.lon),
+                latitude_deg: range(r.lat),
+                x_m: range(r.x),
+                y_m: range(r.y),
+                elevation_m: range(r.elevation),
+                rx_samples: (r.rx_samples[0] <= r.rx_samples[1]).then_some(r.rx_samples),
+                noise_stddev_counts: range(r.noise_stddev),
+                tx_fwhm_ns: range(r.tx_fwhm),
             },
-            "error": self.failed,
-        })
+            error: self.failed.clone(),
+        })))
     }
 
     fn facts(&self) -> SourceFacts {
@@ -772,7 +843,7 @@ mod tests {
                 p.scan_angle_deg[0]
             );
         }
-        let r = src.report();
+        let r = src.report().to_json();
         assert_eq!(r["pulses"], 32);
         assert_eq!(r["clamped_samples"], 0);
         assert_eq!(r["beams"][1]["name"], "BEAM1011");

@@ -15,6 +15,8 @@
 //! `no_navigation_after` (the input ended first) — and dropped, or passed on without geometry
 //! (`on_missing = "pass"`).
 
+use crate::source::DynSource;
+use crate::source::report::{GeoreferenceReport, SourceReport};
 use std::collections::{BTreeMap, VecDeque};
 
 use serde::{Deserialize, Serialize};
@@ -183,7 +185,7 @@ struct Stats {
 
 /// The wrapper (see the module documentation).
 pub struct GeoreferencingSource {
-    inner: Box<dyn Source>,
+    inner: Box<DynSource>,
     cfg: GeoreferenceConfig,
     decoders: BTreeMap<u8, NavDecoder>,
     trajectory: Trajectory,
@@ -210,7 +212,7 @@ pub struct GeoreferencingSource {
 
 impl GeoreferencingSource {
     /// Wraps `inner`; the output CRS is built now when the configuration names one.
-    pub fn new(inner: Box<dyn Source>, cfg: GeoreferenceConfig) -> Result<Self, String> {
+    pub fn new(inner: Box<DynSource>, cfg: GeoreferenceConfig) -> Result<Self, String> {
         let crs = match cfg.output_epsg {
             Some(code) => Some(OutputCrs::from_epsg(code).map_err(|e| e.to_string())?),
             None => None,
@@ -444,6 +446,8 @@ impl GeoreferencingSource {
 }
 
 impl Source for GeoreferencingSource {
+    type Report = SourceReport;
+
     fn name(&self) -> &'static str {
         self.inner.name()
     }
@@ -508,28 +512,22 @@ impl Source for GeoreferencingSource {
         self.inner.progress()
     }
 
-    fn report(&self) -> serde_json::Value {
-        let mut r = match self.inner.report() {
-            serde_json::Value::Object(m) => m,
-            serde_json::Value::Null => serde_json::Map::new(),
-            other => {
-                let mut m = serde_json::Map::new();
-                m.insert("input".into(), other);
-                m
-            }
-        };
-        r.insert(
-            "georeference".into(),
-            serde_json::json!({
-                "georeferenced": self.stats.georeferenced,
-                "with_own_geometry": self.stats.with_own_geometry,
-                "missed": self.stats.missed,
-                "largest_wait_pulses": self.stats.largest_wait,
-                "output_crs": self.crs.as_ref().map(|c| format!("EPSG:{}", c.epsg())),
-                "trajectory": self.trajectory.stats(),
-            }),
-        );
-        serde_json::Value::Object(r)
+    fn report(&self) -> SourceReport {
+        let mut r = self.inner.report();
+        r.georeference = Some(GeoreferenceReport {
+            georeferenced: self.stats.georeferenced,
+            with_own_geometry: self.stats.with_own_geometry,
+            missed: self
+                .stats
+                .missed
+                .iter()
+                .map(|(k, n)| (k.to_string(), *n))
+                .collect(),
+            largest_wait_pulses: self.stats.largest_wait as u64,
+            output_crs: self.crs.as_ref().map(|c| format!("EPSG:{}", c.epsg())),
+            trajectory: self.trajectory.stats().clone(),
+        });
+        r
     }
 
     fn facts(&self) -> SourceFacts {
@@ -580,6 +578,8 @@ mod tests {
     }
 
     impl Source for Script {
+        type Report = SourceReport;
+
         fn name(&self) -> &'static str {
             "script"
         }
@@ -613,7 +613,7 @@ mod tests {
                 SourceEvent::End => break,
             }
         }
-        (out, src.report()["georeference"].clone())
+        (out, src.report().to_json()["georeference"].clone())
     }
 
     fn cfg() -> GeoreferenceConfig {

@@ -7,9 +7,10 @@ use std::fs::File;
 use std::path::Path;
 
 use crate::core::facts::SourceFacts;
-use crate::format::las_read::{LasReadError, LasReader, WaveformLocation};
+use crate::format::las_read::{LasReadError, LasReadStats, LasReader, WaveformLocation};
 use crate::pipeline::ports::{Source, SourceError, SourceEvent};
 use crate::pulse::PulsePool;
+use crate::source::report::{InputReport, SourceReport};
 
 /// Reads a LAS or LAZ file (and its `.wdp`) as a [`Source`].
 pub struct LasSource {
@@ -41,7 +42,52 @@ impl LasSource {
     }
 }
 
+/// A LAS source's report (`summary.json` → `source`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct LasReport {
+    /// What was read.
+    #[serde(flatten)]
+    pub stats: LasReadStats,
+    /// LAS version, `major.minor`.
+    pub version: String,
+    /// Point data record format.
+    pub point_format: u8,
+    /// `laz` or `none`.
+    pub compression: &'static str,
+    /// Points the header states.
+    pub points_in_header: u64,
+    /// Wave packet descriptors defined.
+    pub descriptors: u64,
+    /// The defined descriptors.
+    pub wave_packet_descriptors: Vec<WavePacketDescriptorReport>,
+    /// Where the waveforms are: `external` (`.wdp`), `internal` or `absent`.
+    pub waveform_data: &'static str,
+}
+
+/// One wave packet descriptor as the report shows it.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct WavePacketDescriptorReport {
+    /// Its index (1..=255).
+    pub index: usize,
+    /// Bits per sample.
+    pub bits_per_sample: u8,
+    /// Compression type (0: none).
+    pub compression: u8,
+    /// Samples per waveform.
+    pub samples: u32,
+    /// Sample spacing, ps.
+    pub temporal_spacing_ps: u32,
+    /// Volts per count.
+    pub digitizer_gain: f64,
+    /// Volts at count 0.
+    pub digitizer_offset: f64,
+    /// Bytes of the descriptor's record payload.
+    pub payload_bytes: u64,
+}
+
 impl Source for LasSource {
+    type Report = SourceReport;
+
     fn name(&self) -> &'static str {
         "las"
     }
@@ -55,55 +101,41 @@ impl Source for LasSource {
         Some(self.reader.progress())
     }
 
-    fn report(&self) -> serde_json::Value {
+    fn report(&self) -> SourceReport {
         let info = self.reader.info();
-        let mut v = serde_json::to_value(self.reader.stats()).unwrap_or_default();
-        if let Some(o) = v.as_object_mut() {
-            o.insert(
-                "version".into(),
-                format!("{}.{}", info.version.0, info.version.1).into(),
-            );
-            o.insert("point_format".into(), info.header.point_format.into());
-            let compression = if self.reader.is_laz() { "laz" } else { "none" };
-            o.insert("compression".into(), compression.into());
-            o.insert(
-                "points_in_header".into(),
-                info.header.number_of_points.into(),
-            );
-            o.insert(
-                "descriptors".into(),
-                (info.descriptors_defined() as u64).into(),
-            );
-            let defined = info
-                .descriptors
-                .iter()
-                .enumerate()
-                .filter_map(|(index, d)| {
-                    let d = d.as_ref()?;
-                    let w = &d.descriptor;
-                    Some(serde_json::json!({
-                        "index": index,
-                        "bits_per_sample": w.bits_per_sample,
-                        "compression": w.compression,
-                        "samples": w.number_of_samples,
-                        "temporal_spacing_ps": w.temporal_spacing_ps,
-                        "digitizer_gain": w.digitizer_gain,
-                        "digitizer_offset": w.digitizer_offset,
-                        "payload_bytes": d.payload_len,
-                    }))
-                });
-            o.insert(
-                "wave_packet_descriptors".into(),
-                defined.collect::<Vec<_>>().into(),
-            );
-            let location = match info.waveform {
+        let wave_packet_descriptors = info
+            .descriptors
+            .iter()
+            .enumerate()
+            .filter_map(|(index, d)| {
+                let d = d.as_ref()?;
+                let w = &d.descriptor;
+                Some(WavePacketDescriptorReport {
+                    index,
+                    bits_per_sample: w.bits_per_sample,
+                    compression: w.compression,
+                    samples: w.number_of_samples,
+                    temporal_spacing_ps: w.temporal_spacing_ps,
+                    digitizer_gain: w.digitizer_gain,
+                    digitizer_offset: w.digitizer_offset,
+                    payload_bytes: d.payload_len,
+                })
+            })
+            .collect();
+        SourceReport::of(InputReport::Las(Box::new(LasReport {
+            stats: self.reader.stats().clone(),
+            version: format!("{}.{}", info.version.0, info.version.1),
+            point_format: info.header.point_format,
+            compression: if self.reader.is_laz() { "laz" } else { "none" },
+            points_in_header: info.header.number_of_points,
+            descriptors: info.descriptors_defined() as u64,
+            wave_packet_descriptors,
+            waveform_data: match info.waveform {
                 WaveformLocation::External => "external",
                 WaveformLocation::Internal { .. } => "internal",
                 WaveformLocation::Absent => "absent",
-            };
-            o.insert("waveform_data".into(), location.into());
-        }
-        v
+            },
+        })))
     }
 
     fn facts(&self) -> SourceFacts {

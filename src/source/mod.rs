@@ -8,6 +8,7 @@ pub mod georeferencing;
 pub mod las;
 pub mod live_frames;
 pub mod pulsewaves;
+pub mod report;
 pub mod serial;
 pub mod shard;
 
@@ -16,6 +17,10 @@ use std::path::Path;
 
 use crate::pipeline::ports::{Source, SourceEvent};
 use crate::pulse::{Pulse, PulsePool};
+use report::SourceReport;
+
+/// A source of the runs this crate puts together: its report is a [`SourceReport`].
+pub type DynSource = dyn Source<Report = SourceReport>;
 
 /// One pulse from a file reader into a pooled pulse: `Ok(true)` from `read` is a pulse, `Ok(false)`
 /// the end; the pool gets its pulse back unless one is handed out. The error is the reader's
@@ -98,7 +103,7 @@ impl InputKind {
 
 /// Opens any supported input file as a [`Source`], by its format ([`InputKind::of_file`]).
 /// Errors name the file.
-pub fn open_file(path: &Path) -> Result<Box<dyn Source>, String> {
+pub fn open_file(path: &Path) -> Result<Box<DynSource>, String> {
     match InputKind::of_file(path)? {
         InputKind::Capture => Ok(Box::new(
             capture::CaptureSource::open(path).map_err(|e| e.to_string())?,

@@ -1,6 +1,8 @@
 //! A PulseWaves `.pls` + `.wvs` pair as a [`Source`]: every pulse record becomes a pooled pulse
 //! with its geometry (anchor, direction) and its outgoing and returning segments as raw counts.
 
+use crate::format::pulsewaves::{SamplingType, Scanner};
+use crate::source::report::{InputReport, SourceReport};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
@@ -87,7 +89,93 @@ where
     })
 }
 
+/// A PulseWaves source's report (`summary.json` → `source`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct PulseWavesReport {
+    /// The `.pls` file.
+    pub file: String,
+    /// The `.wvs` file.
+    pub waves_file: String,
+    /// Format version, `major.minor`.
+    pub version: String,
+    /// The header's system identifier.
+    pub system_identifier: String,
+    /// The header's generating software.
+    pub generating_software: String,
+    /// Pulses in the file.
+    pub pulses: u64,
+    /// Pulses read.
+    pub pulses_read: u64,
+    /// Bytes of waves read.
+    pub wave_bytes_read: u64,
+    /// The pulse descriptors (compositions and their samplings).
+    pub descriptors: Vec<PulseDescriptorReport>,
+    /// The scanner records.
+    pub scanners: Vec<Scanner>,
+    /// The CRS the file states (WKT or `EPSG:<code>`).
+    pub crs: Option<String>,
+    /// Time base of the GPS times, when stated.
+    pub time_base: Option<&'static str>,
+    /// Lookup tables present and not applied.
+    pub lookup_tables_not_applied: u64,
+    /// Pulse records skipped (damaged).
+    pub records_skipped: u64,
+    /// What was doubtful but not fatal.
+    pub warnings: Vec<String>,
+    /// The error that ended reading, if any.
+    pub error: Option<String>,
+}
+
+/// One pulse descriptor as the report shows it.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct PulseDescriptorReport {
+    /// Its index.
+    pub index: u8,
+    /// Its description.
+    pub description: String,
+    /// Sample unit, ns.
+    pub sample_units_ns: f32,
+    /// The scanner it belongs to.
+    pub scanner_index: u32,
+    /// Its samplings.
+    pub samplings: Vec<SamplingReport>,
+}
+
+/// One sampling of a pulse descriptor.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct SamplingReport {
+    /// What it records (`outgoing`, `returning`).
+    #[serde(rename = "type")]
+    pub kind: SamplingType,
+    /// Receiver channel.
+    pub channel: u8,
+    /// Bits per sample.
+    pub bits_per_sample: u16,
+    /// Segments per wave, or `variable`.
+    pub segments: SamplingCount,
+    /// Samples per segment, or `variable`.
+    pub samples: SamplingCount,
+    /// Sample unit, ns.
+    pub sample_units_ns: f32,
+    /// Lookup table (0: none).
+    pub lookup_table_index: u16,
+    /// Its description.
+    pub description: String,
+}
+
+/// A count a sampling fixes, or `"variable"` when each wave states its own.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+#[serde(untagged)]
+pub enum SamplingCount {
+    /// The same for every wave.
+    Fixed(u64),
+    /// Stated by each wave (`"variable"`).
+    Variable(&'static str),
+}
+
 impl Source for PulseWavesSource {
+    type Report = SourceReport;
+
     fn name(&self) -> &'static str {
         "pulsewaves"
     }
@@ -104,56 +192,57 @@ impl Source for PulseWavesSource {
         Some((self.reader.pulses_read(), self.reader.number_of_pulses()))
     }
 
-    fn report(&self) -> serde_json::Value {
+    fn report(&self) -> SourceReport {
         let h = self.reader.header();
-        let descriptors: Vec<serde_json::Value> = self
+        let count = |bits: u8, n: u64| {
+            if bits > 0 {
+                SamplingCount::Variable("variable")
+            } else {
+                SamplingCount::Fixed(n)
+            }
+        };
+        let descriptors = self
             .reader
             .descriptors()
-            .map(|d| {
-                serde_json::json!({
-                    "index": d.index,
-                    "description": d.composition.description,
-                    "sample_units_ns": d.composition.sample_units_ns,
-                    "scanner_index": d.composition.scanner_index,
-                    "samplings": d.samplings.iter().map(|s| serde_json::json!({
-                        "type": s.kind,
-                        "channel": s.channel,
-                        "bits_per_sample": s.bits_per_sample,
-                        "segments": if s.bits_for_number_of_segments > 0 {
-                            serde_json::Value::from("variable")
-                        } else {
-                            serde_json::Value::from(s.number_of_segments)
-                        },
-                        "samples": if s.bits_for_number_of_samples > 0 {
-                            serde_json::Value::from("variable")
-                        } else {
-                            serde_json::Value::from(s.number_of_samples)
-                        },
-                        "sample_units_ns": s.sample_units_ns,
-                        "lookup_table_index": s.lookup_table_index,
-                        "description": s.description,
-                    })).collect::<Vec<_>>(),
-                })
+            .map(|d| PulseDescriptorReport {
+                index: d.index,
+                description: d.composition.description.clone(),
+                sample_units_ns: d.composition.sample_units_ns,
+                scanner_index: d.composition.scanner_index,
+                samplings: d
+                    .samplings
+                    .iter()
+                    .map(|s| SamplingReport {
+                        kind: s.kind,
+                        channel: s.channel,
+                        bits_per_sample: s.bits_per_sample,
+                        segments: count(s.bits_for_number_of_segments, s.number_of_segments.into()),
+                        samples: count(s.bits_for_number_of_samples, s.number_of_samples.into()),
+                        sample_units_ns: s.sample_units_ns,
+                        lookup_table_index: s.lookup_table_index,
+                        description: s.description.clone(),
+                    })
+                    .collect(),
             })
             .collect();
-        serde_json::json!({
-            "file": self.path.display().to_string(),
-            "waves_file": self.wvs_path.display().to_string(),
-            "version": format!("{}.{}", h.version_major, h.version_minor),
-            "system_identifier": h.system_identifier,
-            "generating_software": h.generating_software,
-            "pulses": self.reader.number_of_pulses(),
-            "pulses_read": self.reader.pulses_read(),
-            "wave_bytes_read": self.reader.wave_bytes_read(),
-            "descriptors": descriptors,
-            "scanners": self.reader.scanners(),
-            "crs": self.reader.crs(),
-            "time_base": self.reader.time_base().as_str(),
-            "lookup_tables_not_applied": self.reader.lookup_tables(),
-            "records_skipped": self.reader.skipped_records(),
-            "warnings": self.reader.warnings(),
-            "error": self.failed,
-        })
+        SourceReport::of(InputReport::PulseWaves(Box::new(PulseWavesReport {
+            file: self.path.display().to_string(),
+            waves_file: self.wvs_path.display().to_string(),
+            version: format!("{}.{}", h.version_major, h.version_minor),
+            system_identifier: h.system_identifier.clone(),
+            generating_software: h.generating_software.clone(),
+            pulses: self.reader.number_of_pulses(),
+            pulses_read: self.reader.pulses_read(),
+            wave_bytes_read: self.reader.wave_bytes_read(),
+            descriptors,
+            scanners: self.reader.scanners().to_vec(),
+            crs: self.reader.crs().map(str::to_string),
+            time_base: self.reader.time_base().as_str(),
+            lookup_tables_not_applied: self.reader.lookup_tables(),
+            records_skipped: self.reader.skipped_records(),
+            warnings: self.reader.warnings().to_vec(),
+            error: self.failed.clone(),
+        })))
     }
 
     fn facts(&self) -> SourceFacts {

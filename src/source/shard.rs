@@ -5,6 +5,8 @@
 //! pulse only and voxel accumulators are integers, so the stores of a line's `n` shards merge
 //! into the very bytes of the whole line's store (`tests/campaign.rs`).
 
+use crate::source::DynSource;
+use crate::source::report::{ShardReport, SourceReport};
 use std::path::Path;
 
 use crate::core::facts::SourceFacts;
@@ -52,7 +54,7 @@ impl Shard {
 
 /// An input with only the pulses numbered `lo..hi` passed on.
 pub struct ShardSource {
-    inner: Box<dyn Source>,
+    inner: Box<DynSource>,
     lo: u64,
     hi: u64,
     /// Pulses read from the input so far.
@@ -61,7 +63,7 @@ pub struct ShardSource {
 
 impl ShardSource {
     /// Passes the pulses numbered `lo..hi` of `inner` (and all its navigation).
-    pub fn new(inner: Box<dyn Source>, lo: u64, hi: u64) -> Self {
+    pub fn new(inner: Box<DynSource>, lo: u64, hi: u64) -> Self {
         ShardSource {
             inner,
             lo,
@@ -72,6 +74,8 @@ impl ShardSource {
 }
 
 impl Source for ShardSource {
+    type Report = SourceReport;
+
     fn name(&self) -> &'static str {
         self.inner.name()
     }
@@ -96,15 +100,13 @@ impl Source for ShardSource {
         self.inner.progress()
     }
 
-    fn report(&self) -> serde_json::Value {
+    fn report(&self) -> SourceReport {
         let mut r = self.inner.report();
-        if let serde_json::Value::Object(m) = &mut r {
-            m.insert(
-                "shard".into(),
-                serde_json::json!({"first_pulse": self.lo, "end_pulse": self.hi,
-                    "pulses_read": self.seen}),
-            );
-        }
+        r.shard = Some(ShardReport {
+            first_pulse: self.lo,
+            end_pulse: self.hi,
+            pulses_read: self.seen,
+        });
         r
     }
 

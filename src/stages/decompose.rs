@@ -3,7 +3,7 @@
 //! [`DecomposeConfig`], is the method's parameter set (also used by `fwlidar process`), defined
 //! beside the method.
 
-use super::{BuildError, MAX_SEGMENT_SAMPLES, MIN_SEGMENT_SAMPLES, Products, StageKind};
+use super::{Advice, BuildError, MAX_SEGMENT_SAMPLES, MIN_SEGMENT_SAMPLES, Products, StageKind};
 use crate::core::validate::{Validate, Validator, field};
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::Pulse;
@@ -124,6 +124,15 @@ impl StageKind for DecomposeConfig {
             returns: true,
             ..Products::default()
         }
+    }
+
+    fn no_returns_advice(&self, at: &str) -> Option<Advice> {
+        Some(Advice::key(
+            at,
+            "min_snr",
+            " (no peak min_snr noise levels above the baseline); lower min_snr, or check the \
+             stages before it",
+        ))
     }
 
     fn cost_lines(&self) -> Vec<String> {

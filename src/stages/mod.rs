@@ -148,6 +148,13 @@ pub trait StageKind: Validate + Send + Sync {
         false
     }
 
+    /// For a stage that finds the returns ([`Products::returns`]) and found none in any pulse:
+    /// the rest of the sentence "the <kind> stage found no return in any of the N pulses out"
+    /// and the setting to change. Default: none.
+    fn no_returns_advice(&self, _at: &str) -> Option<Advice> {
+        None
+    }
+
     /// The key of this stage that asks for the run's DEM (`[georeference] dem`), when it does:
     /// a configuration without a DEM is then refused at that key. Default: none.
     fn needs_dem(&self) -> Option<&'static str> {
