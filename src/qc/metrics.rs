@@ -1133,4 +1133,60 @@ pub(crate) mod tests {
         let s = check_exposition(&render(&snap));
         assert_eq!(value(&s, "fwlidar_alerts", &[]), 2.0);
     }
+
+    /// [`filled_snapshot`] with the rarer shapes: absent values, a recording error, a disk
+    /// alarm, georeferencing off, two stages of one name, histograms with a NaN bound, a bound
+    /// out of order and no +Inf bound, a NaN ratio, an alert twice, a navigation port without a
+    /// fix, no drops.
+    fn odd_snapshot() -> QcSnapshot {
+        let mut s = filled_snapshot(3);
+        s.inputs[0].last_data_age_s = None;
+        s.drops.clear();
+        s.recording.error = Some("No space left on device".into());
+        s.disk.seconds_left = None;
+        s.disk.alarm = true;
+        s.georeference.enabled = false;
+        let mut again = s.stages[0].clone();
+        again.buckets = vec![(1e-4, 5), (f64::NAN, 6)];
+        s.stages.push(again);
+        s.stages[1].buckets[3].0 = f64::NAN;
+        s.end_to_end.buckets = vec![(0.001, 2), (0.0005, 3), (0.01, 4)];
+        s.end_to_end.count = 5;
+        s.saturation.recent_fraction = f64::NAN;
+        s.uptime_s = f64::INFINITY;
+        s.alerts.push(s.alerts[0].clone());
+        s.nav.push(NavStatus {
+            port: 3,
+            fix: None,
+            fix_name: String::new(),
+            satellites: None,
+            ins_status: None,
+            ins_name: String::new(),
+            last_packet_age_s: None,
+            samples: 0,
+            rejected: 9,
+            ..Default::default()
+        });
+        s
+    }
+
+    /// The fixture `src/qc/testdata/<name>`, the text the hand-written renderer made before
+    /// the metrics became a table.
+    fn fixture(name: &str) -> String {
+        let path = format!("{}/src/qc/testdata/{name}", env!("CARGO_MANIFEST_DIR"));
+        std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
+    }
+
+    #[test]
+    fn rendered_text_is_byte_for_byte_the_fixtures() {
+        for (snap, name) in [
+            (filled_snapshot(17), "metrics_filled.prom"),
+            (odd_snapshot(), "metrics_odd.prom"),
+            (QcSnapshot::default(), "metrics_empty.prom"),
+        ] {
+            let text = render(&snap);
+            check_exposition(&text);
+            assert_eq!(text, fixture(name), "{name}");
+        }
+    }
 }
