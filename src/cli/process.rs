@@ -20,7 +20,7 @@ use crate::forest::measure::pulse_sigma_ns;
 use crate::forest::pulse_metrics::MetricsConfig;
 use crate::forest::table_metrics::{TableMetrics, TableWaveform, read_geometry};
 use crate::format::table::{Table, TableFormat, read_table, write_table};
-use crate::pulse::FittedReturn;
+use crate::pulse::{FittedReturn, PulseGeometry};
 use crate::signal::decompose::{DecomposeConfig, Decomposer};
 use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::deconvolve::{Deconvolver, MethodConfig, Targeted};
@@ -538,79 +538,11 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
     check_args(args)?;
     let method = method_config(args)?;
     let input_name = args.input.display().to_string();
-    let mut table = read(&args.input, "input")?;
-    table
-        .skip_columns(args.skip_columns, &input_name)
-        .map_err(Failure::job)?;
-    if table.rows.is_empty() {
-        return Err(Failure::job(format!(
-            "input {input_name} holds no waveforms"
-        )));
-    }
+    let table = read_input(args, &input_name)?;
     let kernels = load_kernels(args, table.rows.len())?;
     let response = load_response(args, method.as_ref())?;
-    let max_samples = table.rows.iter().map(Vec::len).max().unwrap_or(0);
-    let max_taps = kernels
-        .iter()
-        .chain(response.iter())
-        .map(Kernel::len)
-        .max()
-        .unwrap_or(0);
-    let mut denoise = (!args.no_denoise).then(|| {
-        Denoise::new(DenoiseConfig {
-            cutoff_ghz: args.cutoff_ghz,
-            max_samples,
-            ..Default::default()
-        })
-    });
-    let mut deconvolver = method.map(|m| {
-        Targeted::new(
-            m.build(max_samples, max_taps),
-            args.target_fwhm_ns,
-            max_samples,
-            max_taps,
-        )
-    });
-    let geometry = match &args.geometry {
-        Some(path) => {
-            let g = read_geometry(path).map_err(Failure::job)?;
-            if g.len() != table.rows.len() {
-                return Err(Failure::job(format!(
-                    "geometry {} has {} rows but the input {input_name} has {} waveforms; give one \
-                     geometry row per waveform, in the same order",
-                    path.display(),
-                    g.len(),
-                    table.rows.len()
-                )));
-            }
-            g
-        }
-        None => Vec::new(),
-    };
-    let mut metrics = args
-        .metrics
-        .as_ref()
-        .map(|_| TableMetrics::new(MetricsConfig::default(), max_samples));
-    // Smoothing of the raw waveform: the σ of its outgoing pulse (as the replay's metrics
-    // stage), from the kernel rows, else the system response, else GEDI's 6.5 ns.
-    let smoothing_of = |i: usize| -> f64 {
-        if args.metrics_source == MetricsWaveform::Signal {
-            return 0.0;
-        }
-        let pulse = match kernels.len() {
-            0 => response.as_ref(),
-            1 => kernels.first(),
-            _ => kernels.get(i),
-        };
-        pulse
-            .and_then(|k| pulse_sigma_ns(&k.taps, args.sample_ns))
-            .unwrap_or(MetricsConfig::FALLBACK_SMOOTHING_NS)
-    };
-    let mut metrics_s = 0.0f64;
-    let mut decomposer = args
-        .returns
-        .as_ref()
-        .map(|_| Decomposer::new(DecomposeConfig::default(), max_samples));
+    let mut steps = RowSteps::new(args, method, kernels, response, &table, &input_name)?;
+    let max_samples = steps.max_samples;
     tracing::info!(
         input = %input_name,
         rows = table.rows.len(),
@@ -620,7 +552,76 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
     );
 
     let n = table.rows.len();
-    let bar = if !args.no_progress && n >= PROGRESS_MIN_ROWS && std::io::stderr().is_terminal() {
+    let bar = progress_bar(args, n);
+    let mut outputs: Vec<Vec<f32>> = Vec::with_capacity(n);
+    for (i, row) in table.rows.iter().enumerate() {
+        let at = || format!("{input_name}: {}", table.row_origin(i));
+        outputs.push(steps.row(i, row, &at)?);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+
+    // Every row succeeded: now write, each file complete or not at all.
+    if let Some(path) = &args.returns {
+        write_returns(path, &steps.returns)?;
+    }
+    if let (Some(path), Some(tm)) = (&args.metrics, &steps.metrics) {
+        write_atomic(path, tm.csv().as_bytes())
+            .map_err(|e| Failure::job(format!("{}: {e}", path.display())))?;
+    }
+    write_table(&args.out, &outputs).map_err(Failure::job)?;
+    Ok(ProcessReport {
+        waveforms: n,
+        samples: steps.samples,
+        returns: steps.returns.len(),
+        metrics_ok: steps.metrics.as_ref().map_or(0, TableMetrics::ok),
+        metrics_s: steps.metrics_s,
+        wall_s: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// The input table (`input_name` names it in errors), its `--skip-columns` removed; an error
+/// when it holds no rows.
+fn read_input(args: &ProcessArgs, input_name: &str) -> Result<Table, Failure> {
+    let mut table = read(&args.input, "input")?;
+    table
+        .skip_columns(args.skip_columns, input_name)
+        .map_err(Failure::job)?;
+    if table.rows.is_empty() {
+        return Err(Failure::job(format!(
+            "input {input_name} holds no waveforms"
+        )));
+    }
+    Ok(table)
+}
+
+/// The `--geometry` table, one row per waveform of the input (`rows` of them, the input named
+/// `input_name`); empty without `--geometry`.
+fn read_row_geometry(
+    args: &ProcessArgs,
+    rows: usize,
+    input_name: &str,
+) -> Result<Vec<PulseGeometry>, Failure> {
+    let Some(path) = &args.geometry else {
+        return Ok(Vec::new());
+    };
+    let g = read_geometry(path).map_err(Failure::job)?;
+    if g.len() != rows {
+        return Err(Failure::job(format!(
+            "geometry {} has {} rows but the input {input_name} has {} waveforms; give one \
+             geometry row per waveform, in the same order",
+            path.display(),
+            g.len(),
+            rows
+        )));
+    }
+    Ok(g)
+}
+
+/// A progress bar over `n` rows on a terminal (hidden with `--no-progress`, under
+/// [`PROGRESS_MIN_ROWS`] rows, or when stderr is no terminal).
+fn progress_bar(args: &ProcessArgs, n: usize) -> ProgressBar {
+    if !args.no_progress && n >= PROGRESS_MIN_ROWS && std::io::stderr().is_terminal() {
         let bar = ProgressBar::new(n as u64);
         bar.set_style(
             ProgressStyle::with_template(
@@ -631,16 +632,127 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         bar
     } else {
         ProgressBar::hidden()
-    };
+    }
+}
 
-    let mut outputs: Vec<Vec<f32>> = Vec::with_capacity(n);
-    let mut returns: Vec<(usize, FittedReturn)> = Vec::new();
-    let mut fits = Vec::new();
-    let mut work = vec![0.0f32; max_samples];
-    let mut first = vec![0.0f32; max_samples];
-    let mut samples = 0usize;
-    for (i, row) in table.rows.iter().enumerate() {
-        let at = || format!("{input_name}: {}", table.row_origin(i));
+/// Smoothing σ of row `i`'s raw waveform for `--metrics`, ns: the σ of its outgoing pulse (as
+/// the replay's metrics stage), from the kernel rows, else the system response, else GEDI's
+/// 6.5 ns; 0 (none) when the metrics measure the processed row.
+fn metrics_smoothing_ns(
+    args: &ProcessArgs,
+    kernels: &[Kernel],
+    response: Option<&Kernel>,
+    i: usize,
+) -> f64 {
+    if args.metrics_source == MetricsWaveform::Signal {
+        return 0.0;
+    }
+    let pulse = match kernels.len() {
+        0 => response,
+        1 => kernels.first(),
+        _ => kernels.get(i),
+    };
+    pulse
+        .and_then(|k| pulse_sigma_ns(&k.taps, args.sample_ns))
+        .unwrap_or(MetricsConfig::FALLBACK_SMOOTHING_NS)
+}
+
+/// The steps every row goes through (denoise, deconvolution, metrics, decomposition, each
+/// where asked for), their buffers, and what they produced so far.
+struct RowSteps<'a> {
+    args: &'a ProcessArgs,
+    /// Longest input row, samples.
+    max_samples: usize,
+    /// The outgoing pulses of `--kernel`: none, one for every row, or one per row.
+    kernels: Vec<Kernel>,
+    /// The system response of `--response`.
+    response: Option<Kernel>,
+    denoise: Option<Denoise>,
+    deconvolver: Option<Targeted>,
+    /// The `--geometry` of every row; empty without.
+    geometry: Vec<PulseGeometry>,
+    metrics: Option<TableMetrics>,
+    /// Time spent measuring the metrics, seconds.
+    metrics_s: f64,
+    decomposer: Option<Decomposer>,
+    /// The returns of every row so far, with the row's index.
+    returns: Vec<(usize, FittedReturn)>,
+    /// The returns of the current row.
+    fits: Vec<FittedReturn>,
+    /// The current row denoised (or copied), `max_samples` values.
+    work: Vec<f32>,
+    /// The current row deconvolved by the response, before the kernel, `max_samples` values.
+    first: Vec<f32>,
+    /// Samples processed (padding excluded).
+    samples: usize,
+}
+
+impl<'a> RowSteps<'a> {
+    /// The steps for the rows of `table` (named `input_name` in errors), with the
+    /// deconvolution `method`, the `kernels` and the `response` where given; an error when the
+    /// `--geometry` table does not match the input.
+    fn new(
+        args: &'a ProcessArgs,
+        method: Option<MethodConfig>,
+        kernels: Vec<Kernel>,
+        response: Option<Kernel>,
+        table: &Table,
+        input_name: &str,
+    ) -> Result<Self, Failure> {
+        let max_samples = table.rows.iter().map(Vec::len).max().unwrap_or(0);
+        let max_taps = kernels
+            .iter()
+            .chain(response.iter())
+            .map(Kernel::len)
+            .max()
+            .unwrap_or(0);
+        let denoise = (!args.no_denoise).then(|| {
+            Denoise::new(DenoiseConfig {
+                cutoff_ghz: args.cutoff_ghz,
+                max_samples,
+                ..Default::default()
+            })
+        });
+        let deconvolver = method.map(|m| {
+            Targeted::new(
+                m.build(max_samples, max_taps),
+                args.target_fwhm_ns,
+                max_samples,
+                max_taps,
+            )
+        });
+        let geometry = read_row_geometry(args, table.rows.len(), input_name)?;
+        let metrics = args
+            .metrics
+            .as_ref()
+            .map(|_| TableMetrics::new(MetricsConfig::default(), max_samples));
+        let decomposer = args
+            .returns
+            .as_ref()
+            .map(|_| Decomposer::new(DecomposeConfig::default(), max_samples));
+        Ok(RowSteps {
+            args,
+            max_samples,
+            kernels,
+            response,
+            denoise,
+            deconvolver,
+            geometry,
+            metrics,
+            metrics_s: 0.0,
+            decomposer,
+            returns: Vec::new(),
+            fits: Vec::new(),
+            work: vec![0.0f32; max_samples],
+            first: vec![0.0f32; max_samples],
+            samples: 0,
+        })
+    }
+
+    /// Row `i` of the input (`at` names it in errors) through every step: checked, denoised,
+    /// deconvolved, measured and decomposed. Returns the processed row, as long as the input
+    /// row (its zero padding, with `--zero-padding`, kept as zeros).
+    fn row(&mut self, i: usize, row: &[f32], at: &dyn Fn() -> String) -> Result<Vec<f32>, Failure> {
         if let Some(j) = row.iter().position(|v| !v.is_finite()) {
             return Err(Failure::job(format!(
                 "{}: sample {} is {} (not a finite number); nothing written",
@@ -650,7 +762,7 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
             )));
         }
         let full = row.len();
-        let len = if args.zero_padding {
+        let len = if self.args.zero_padding {
             unpadded_len(row)
         } else {
             full
@@ -662,52 +774,10 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
             )));
         }
         let row = &row[..len];
-        samples += len;
-        let w = &mut work[..len];
-        let noise_v = match denoise.as_mut() {
-            Some(d) => {
-                d.denoise_segment(row, args.sample_ns, w)
-                    .map_err(|e| Failure::job(format!("{}: {e}", at())))?
-                    .noise_v
-            }
-            None => {
-                w.copy_from_slice(row);
-                noise_from_differences(row)
-            }
-        };
+        self.samples += len;
+        let noise_v = self.denoise_row(row, at)?;
         let mut out = vec![0.0f32; full];
-        let (out_valid, _) = out.split_at_mut(len);
-        match deconvolver.as_mut() {
-            Some(dec) => {
-                let fail = |e| Failure::job(format!("{}: deconvolution failed: {e}", at()));
-                // Stage 1: the system response; stage 2: the outgoing pulse (or kernel).
-                let input: &[f32] = match &response {
-                    Some(h) if kernels.is_empty() => {
-                        dec.run(w, h, noise_v, args.sample_ns, out_valid)
-                            .map_err(fail)?;
-                        &[]
-                    }
-                    Some(h) => {
-                        let f = &mut first[..len];
-                        dec.plain()
-                            .run(w, h, noise_v, args.sample_ns, f)
-                            .map_err(fail)?;
-                        f
-                    }
-                    None => w,
-                };
-                if !kernels.is_empty() {
-                    let k = if kernels.len() == 1 {
-                        &kernels[0]
-                    } else {
-                        &kernels[i]
-                    };
-                    dec.run(input, k, noise_v, args.sample_ns, out_valid)
-                        .map_err(fail)?;
-                }
-            }
-            None => out_valid.copy_from_slice(w),
-        }
+        self.deconvolve_row(i, &mut out[..len], noise_v, at)?;
         if let Some(j) = out.iter().position(|v| !v.is_finite()) {
             return Err(Failure::job(format!(
                 "{}: processing produced a non-finite value at sample {}; nothing written",
@@ -715,56 +785,117 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
                 j + 1
             )));
         }
-        if let Some(tm) = metrics.as_mut() {
-            let t0 = Instant::now();
-            let (samples, noise) = match args.metrics_source {
-                MetricsWaveform::Raw => (row, raw_noise(row)),
-                // After denoise the baseline is 0 and the noise level a mean absolute
-                // deviation (σ √(2/π)), as the replay's metrics stage reads it.
-                MetricsWaveform::Signal => (
-                    &out[..len],
-                    (!args.no_denoise && noise_v > 0.0)
-                        .then(|| (0.0, f64::from(noise_v) * std::f64::consts::FRAC_PI_2.sqrt())),
-                ),
-            };
-            tm.measure(&TableWaveform {
-                row: i,
-                samples,
-                sample_ns: args.sample_ns,
-                noise,
-                smoothing_ns: smoothing_of(i),
-                geometry: geometry.get(i).copied(),
-            });
-            metrics_s += t0.elapsed().as_secs_f64();
-        }
-        if let Some(dec) = decomposer.as_mut() {
-            fits.clear();
-            dec.fit(&out[..len], noise_v, &mut fits)
-                .map_err(|e| Failure::job(format!("{}: decomposition failed: {e}", at())))?;
-            returns.extend(fits.iter().map(|f| (i, *f)));
-        }
-        outputs.push(out);
-        bar.inc(1);
+        self.measure_row(i, row, &out[..len], noise_v);
+        self.decompose_row(i, &out[..len], noise_v, at)?;
+        Ok(out)
     }
-    bar.finish_and_clear();
 
-    // Every row succeeded: now write, each file complete or not at all.
-    if let Some(path) = &args.returns {
-        write_returns(path, &returns)?;
+    /// Denoises `row` into `work` (a copy with `--no-denoise`); returns its noise level in the
+    /// table's unit (the denoise step's, else from the sample differences).
+    fn denoise_row(&mut self, row: &[f32], at: &dyn Fn() -> String) -> Result<f32, Failure> {
+        let w = &mut self.work[..row.len()];
+        Ok(match self.denoise.as_mut() {
+            Some(d) => {
+                d.denoise_segment(row, self.args.sample_ns, w)
+                    .map_err(|e| Failure::job(format!("{}: {e}", at())))?
+                    .noise_v
+            }
+            None => {
+                w.copy_from_slice(row);
+                noise_from_differences(row)
+            }
+        })
     }
-    if let (Some(path), Some(tm)) = (&args.metrics, &metrics) {
-        write_atomic(path, tm.csv().as_bytes())
-            .map_err(|e| Failure::job(format!("{}: {e}", path.display())))?;
+
+    /// Deconvolves the denoised row `i` (in `work`, noise level `noise_v`) into `out`: by the
+    /// system response, then by the row's outgoing pulse (or kernel), each where given; a copy
+    /// without a method.
+    fn deconvolve_row(
+        &mut self,
+        i: usize,
+        out: &mut [f32],
+        noise_v: f32,
+        at: &dyn Fn() -> String,
+    ) -> Result<(), Failure> {
+        let len = out.len();
+        let w = &self.work[..len];
+        let sample_ns = self.args.sample_ns;
+        let Some(dec) = self.deconvolver.as_mut() else {
+            out.copy_from_slice(w);
+            return Ok(());
+        };
+        let fail = |e| Failure::job(format!("{}: deconvolution failed: {e}", at()));
+        // Stage 1: the system response; stage 2: the outgoing pulse (or kernel).
+        let input: &[f32] = match &self.response {
+            Some(h) if self.kernels.is_empty() => {
+                dec.run(w, h, noise_v, sample_ns, out).map_err(fail)?;
+                &[]
+            }
+            Some(h) => {
+                let f = &mut self.first[..len];
+                dec.plain().run(w, h, noise_v, sample_ns, f).map_err(fail)?;
+                f
+            }
+            None => w,
+        };
+        if !self.kernels.is_empty() {
+            let k = if self.kernels.len() == 1 {
+                &self.kernels[0]
+            } else {
+                &self.kernels[i]
+            };
+            dec.run(input, k, noise_v, sample_ns, out).map_err(fail)?;
+        }
+        Ok(())
     }
-    write_table(&args.out, &outputs).map_err(Failure::job)?;
-    Ok(ProcessReport {
-        waveforms: n,
-        samples,
-        returns: returns.len(),
-        metrics_ok: metrics.as_ref().map_or(0, TableMetrics::ok),
-        metrics_s,
-        wall_s: started.elapsed().as_secs_f64(),
-    })
+
+    /// With `--metrics`, measures row `i`: the input `row` (the raw waveform) or the processed
+    /// `out` (noise level `noise_v`), as `--metrics-source` says; adds the time taken to
+    /// `metrics_s`.
+    fn measure_row(&mut self, i: usize, row: &[f32], out: &[f32], noise_v: f32) {
+        let args = self.args;
+        let Some(tm) = self.metrics.as_mut() else {
+            return;
+        };
+        let t0 = Instant::now();
+        let (samples, noise) = match args.metrics_source {
+            MetricsWaveform::Raw => (row, raw_noise(row)),
+            // After denoise the baseline is 0 and the noise level a mean absolute
+            // deviation (σ √(2/π)), as the replay's metrics stage reads it.
+            MetricsWaveform::Signal => (
+                out,
+                (!args.no_denoise && noise_v > 0.0)
+                    .then(|| (0.0, f64::from(noise_v) * std::f64::consts::FRAC_PI_2.sqrt())),
+            ),
+        };
+        tm.measure(&TableWaveform {
+            row: i,
+            samples,
+            sample_ns: args.sample_ns,
+            noise,
+            smoothing_ns: metrics_smoothing_ns(args, &self.kernels, self.response.as_ref(), i),
+            geometry: self.geometry.get(i).copied(),
+        });
+        self.metrics_s += t0.elapsed().as_secs_f64();
+    }
+
+    /// With `--returns`, decomposes the processed row `i` (`out`, noise level `noise_v`) and
+    /// keeps its returns.
+    fn decompose_row(
+        &mut self,
+        i: usize,
+        out: &[f32],
+        noise_v: f32,
+        at: &dyn Fn() -> String,
+    ) -> Result<(), Failure> {
+        if let Some(dec) = self.decomposer.as_mut() {
+            self.fits.clear();
+            dec.fit(out, noise_v, &mut self.fits)
+                .map_err(|e| Failure::job(format!("{}: decomposition failed: {e}", at())))?;
+            self.returns.extend(self.fits.iter().map(|f| (i, *f)));
+        }
+        Ok(())
+    }
 }
 
 /// Writes the returns CSV atomically.

@@ -234,38 +234,95 @@ pub(crate) fn median(mut v: Vec<f64>) -> f64 {
 
 /// The SVG document for `rows` (at least one `ok`), titled `title`.
 pub fn svg(rows: &[MetricsRow], order: PlotOrder, title: &str) -> String {
-    // Waveforms with metrics and their x slot.
     let ok: Vec<&MetricsRow> = rows.iter().filter(|r| r.ok).collect();
-    let (placed, slots): (Vec<(usize, &MetricsRow)>, usize) = match order {
-        PlotOrder::Rh98 => {
-            let mut v = ok.clone();
-            v.sort_by(|a, b| a.rh[3].total_cmp(&b.rh[3]));
-            (v.into_iter().enumerate().collect(), ok.len())
+    let layout = Layout::new(rows, &ok, order);
+    let mut s = String::with_capacity(256 * ok.len() + 8192);
+    heading(&mut s, rows, &ok, title);
+    height_axis(&mut s, &layout);
+    height_marks(&mut s, &layout);
+    cover_panel(&mut s, &layout);
+    waveform_axis(&mut s, &layout, rows, order);
+    histograms(&mut s, &layout, &ok);
+    s.push_str("</svg>\n");
+    s
+}
+
+/// Where the waveforms and heights go in the figure.
+struct Layout<'a> {
+    /// Waveforms with metrics and their x slot.
+    placed: Vec<(usize, &'a MetricsRow)>,
+    /// Number of x slots: waveforms with metrics (sorted by RH98) or rows (file order).
+    slots: usize,
+    /// Width of one slot, px.
+    slot_w: f64,
+    /// Lowest tick of the height axis, m above the ground.
+    y_lo: f64,
+    /// Highest tick of the height axis, m above the ground.
+    y_hi: f64,
+    /// Step between the height axis' ticks, m.
+    step: f64,
+}
+
+impl<'a> Layout<'a> {
+    /// The layout of `rows` (`ok` those with metrics) in `order`: the x slot of each
+    /// waveform, and a height axis from below the lowest RH25 (and 0) to above the highest
+    /// RH98.
+    fn new(rows: &'a [MetricsRow], ok: &[&'a MetricsRow], order: PlotOrder) -> Self {
+        let (placed, slots): (Vec<(usize, &MetricsRow)>, usize) = match order {
+            PlotOrder::Rh98 => {
+                let mut v = ok.to_vec();
+                v.sort_by(|a, b| a.rh[3].total_cmp(&b.rh[3]));
+                (v.into_iter().enumerate().collect(), ok.len())
+            }
+            PlotOrder::Track => (
+                rows.iter()
+                    .enumerate()
+                    .filter(|(_, r)| r.ok)
+                    .collect::<Vec<_>>(),
+                rows.len(),
+            ),
+        };
+        let slot_w = PW / slots.max(1) as f64;
+        let lo = ok.iter().map(|r| r.rh[0]).fold(0.0f64, f64::min).min(-0.5);
+        let hi = ok.iter().map(|r| r.rh[3]).fold(1.0f64, f64::max);
+        let step = nice_step(hi - lo, 6.0);
+        Layout {
+            placed,
+            slots,
+            slot_w,
+            y_lo: (lo / step).floor() * step,
+            y_hi: (hi / step).ceil() * step,
+            step,
         }
-        PlotOrder::Track => (
-            rows.iter()
-                .enumerate()
-                .filter(|(_, r)| r.ok)
-                .collect::<Vec<_>>(),
-            rows.len(),
-        ),
-    };
-    let slot_w = PW / slots.max(1) as f64;
-    let xs = |i: usize| LEFT + (i as f64 + 0.5) * slot_w;
+    }
 
-    // Height axis: from below the lowest RH25 (and 0) to above the highest RH98.
-    let lo = ok.iter().map(|r| r.rh[0]).fold(0.0f64, f64::min).min(-0.5);
-    let hi = ok.iter().map(|r| r.rh[3]).fold(1.0f64, f64::max);
-    let step = nice_step(hi - lo, 6.0);
-    let y_lo = (lo / step).floor() * step;
-    let y_hi = (hi / step).ceil() * step;
-    let ya = |h: f64| TOP_A + PH_A - (h - y_lo) / (y_hi - y_lo) * PH_A;
-    let yb = |c: f64| TOP_B + PH_B - c.clamp(0.0, 1.0) * PH_B;
+    /// x of the centre of slot `i`, px.
+    fn x(&self, i: usize) -> f64 {
+        LEFT + (i as f64 + 0.5) * self.slot_w
+    }
 
+    /// y of height `h` (m above the ground) in the height panel, px.
+    fn y_height(&self, h: f64) -> f64 {
+        TOP_A + PH_A - (h - self.y_lo) / (self.y_hi - self.y_lo) * PH_A
+    }
+
+    /// Diameter of a waveform's dots, px.
+    fn dot(&self) -> f64 {
+        (1.2 * self.slot_w).clamp(1.6, 5.0)
+    }
+}
+
+/// y of cover `c` (0..1, clamped) in the cover panel, px.
+fn y_cover(c: f64) -> f64 {
+    TOP_B + PH_B - c.clamp(0.0, 1.0) * PH_B
+}
+
+/// The document's opening, the title, and a line with the counts of waveforms with and without
+/// metrics and the medians of RH98, RH50 (m) and cover; then what the heights are.
+fn heading(s: &mut String, rows: &[MetricsRow], ok: &[&MetricsRow], title: &str) {
     let med98 = median(ok.iter().map(|r| r.rh[3]).collect());
     let med50 = median(ok.iter().map(|r| r.rh[1]).collect());
     let medc = median(ok.iter().map(|r| r.cover).collect());
-    let mut s = String::with_capacity(256 * ok.len() + 8192);
     let _ = write!(
         s,
         r#"<svg xmlns="http://www.w3.org/2000/svg" width="{WIDTH}" height="{HEIGHT}" viewBox="0 0 {WIDTH} {HEIGHT}" font-family="sans-serif" font-size="12">"#
@@ -294,40 +351,46 @@ pub fn svg(rows: &[MetricsRow], order: PlotOrder, title: &str) -> String {
         s,
         r##"<text x="{LEFT}" y="62" fill="#555">Heights above the ground (the lowest mode of each waveform) at 0 m; grey bar RH25–RH98.</text>"##
     );
+}
 
-    // Panel A frame, grid and axis.
+/// The height panel's frame, grid lines with their labels (m) and axis title.
+fn height_axis(s: &mut String, l: &Layout<'_>) {
     let _ = write!(
         s,
         r##"<rect x="{LEFT}" y="{TOP_A}" width="{PW}" height="{PH_A}" fill="none" stroke="#999"/>"##
     );
-    let mut h = y_lo;
-    while h <= y_hi + step * 1e-6 {
-        let y = ya(h);
+    let mut h = l.y_lo;
+    while h <= l.y_hi + l.step * 1e-6 {
+        let y = l.y_height(h);
         let _ = write!(
             s,
             r##"<line x1="{LEFT}" y1="{y:.1}" x2="{:.1}" y2="{y:.1}" stroke="#eee"/><text x="{:.1}" y="{:.1}" text-anchor="end">{}</text>"##,
             LEFT + PW,
             LEFT - 6.0,
             y + 4.0,
-            fmt_tick(h, step)
+            fmt_tick(h, l.step)
         );
-        h += step;
+        h += l.step;
     }
     let _ = write!(
         s,
         r#"<text transform="translate(22 {:.1}) rotate(-90)" text-anchor="middle">height above ground, m</text>"#,
         TOP_A + PH_A / 2.0
     );
-    // Per waveform: the RH25–RH98 bar (one element each).
-    let bar_w = (0.8 * slot_w).clamp(0.4, 6.0);
+}
+
+/// The height panel's content: per waveform the RH25–RH98 bar (one element each), the ground
+/// line, the dots of each RH level (one path per level) and their legend.
+fn height_marks(s: &mut String, l: &Layout<'_>) {
+    let bar_w = (0.8 * l.slot_w).clamp(0.4, 6.0);
     let _ = write!(s, r##"<g stroke="#c8c8c8" stroke-width="{bar_w:.2}">"##);
-    for (i, r) in &placed {
-        let x = xs(*i);
+    for (i, r) in &l.placed {
+        let x = l.x(*i);
         let _ = write!(
             s,
             r#"<path class="wf" d="M{x:.1} {:.1}V{:.1}"/>"#,
-            ya(r.rh[0]),
-            ya(r.rh[3])
+            l.y_height(r.rh[0]),
+            l.y_height(r.rh[3])
         );
     }
     s.push_str("</g>");
@@ -335,20 +398,20 @@ pub fn svg(rows: &[MetricsRow], order: PlotOrder, title: &str) -> String {
     let _ = write!(
         s,
         r##"<line x1="{LEFT}" y1="{0:.1}" x2="{1:.1}" y2="{0:.1}" stroke="#8c510a" stroke-width="1.5"/><text x="{2:.1}" y="{3:.1}" fill="#8c510a">ground</text>"##,
-        ya(0.0),
+        l.y_height(0.0),
         LEFT + PW,
         LEFT + 4.0,
-        ya(0.0) + 14.0
+        l.y_height(0.0) + 14.0
     );
     // Dots: one path per RH level (round caps of zero-length segments).
-    let dot = (1.2 * slot_w).clamp(1.6, 5.0);
+    let dot = l.dot();
     for (k, colour) in RH_COLOURS.iter().enumerate() {
         let _ = write!(
             s,
             r#"<path fill="none" stroke="{colour}" stroke-width="{dot:.2}" stroke-linecap="round" d=""#
         );
-        for (i, r) in &placed {
-            let _ = write!(s, "M{:.1} {:.1}h0", xs(*i), ya(r.rh[k]));
+        for (i, r) in &l.placed {
+            let _ = write!(s, "M{:.1} {:.1}h0", l.x(*i), l.y_height(r.rh[k]));
         }
         s.push_str(r#""/>"#);
     }
@@ -363,14 +426,17 @@ pub fn svg(rows: &[MetricsRow], order: PlotOrder, title: &str) -> String {
             y + 4.0
         );
     }
+}
 
-    // Panel B: cover per waveform.
+/// The cover panel: frame, grid lines at quarters with labels, axis title and the cover of
+/// each waveform as a dot.
+fn cover_panel(s: &mut String, l: &Layout<'_>) {
     let _ = write!(
         s,
         r##"<rect x="{LEFT}" y="{TOP_B}" width="{PW}" height="{PH_B}" fill="none" stroke="#999"/>"##
     );
     for c in [0.0, 0.25, 0.5, 0.75, 1.0] {
-        let y = yb(c);
+        let y = y_cover(c);
         let _ = write!(
             s,
             r##"<line x1="{LEFT}" y1="{y:.1}" x2="{:.1}" y2="{y:.1}" stroke="#eee"/><text x="{:.1}" y="{:.1}" text-anchor="end">{c}</text>"##,
@@ -384,20 +450,25 @@ pub fn svg(rows: &[MetricsRow], order: PlotOrder, title: &str) -> String {
         r#"<text transform="translate(22 {:.1}) rotate(-90)" text-anchor="middle">cover</text>"#,
         TOP_B + PH_B / 2.0
     );
+    let dot = l.dot();
     let _ = write!(
         s,
         r#"<path fill="none" stroke="{COVER_COLOUR}" stroke-width="{dot:.2}" stroke-linecap="round" d=""#
     );
-    for (i, r) in &placed {
-        let _ = write!(s, "M{:.1} {:.1}h0", xs(*i), yb(r.cover));
+    for (i, r) in &l.placed {
+        let _ = write!(s, "M{:.1} {:.1}h0", l.x(*i), y_cover(r.cover));
     }
     s.push_str(r#""/>"#);
-    // X axis: slot numbers (pulse ids in file order).
-    let xstep = nice_step(slots as f64, 8.0).max(1.0);
+}
+
+/// The x axis under the cover panel: ticks labelled with the rank (sorted by RH98) or the
+/// pulse id (file order), and the axis title.
+fn waveform_axis(s: &mut String, l: &Layout<'_>, rows: &[MetricsRow], order: PlotOrder) {
+    let xstep = nice_step(l.slots as f64, 8.0).max(1.0);
     let mut t = 0.0;
-    while t < slots as f64 {
+    while t < l.slots as f64 {
         let i = t as usize;
-        let x = xs(i);
+        let x = l.x(i);
         let label = match order {
             PlotOrder::Rh98 => format!("{}", i + 1),
             PlotOrder::Track => format!("{}", rows[i].pulse_id),
@@ -421,23 +492,24 @@ pub fn svg(rows: &[MetricsRow], order: PlotOrder, title: &str) -> String {
             PlotOrder::Track => "waveform in file order (pulse_id, along the scan)",
         }
     );
+}
 
-    // Histograms: RH98 on panel A's height axis, cover on panel B's.
-    let hbin = step / 2.0;
-    let nh = ((y_hi - y_lo) / hbin).round().max(1.0) as usize;
+/// The histograms right of the panels: RH98 of the waveforms `ok` on the height panel's axis
+/// (bins of half a tick step), cover on the cover panel's (bins of 0.1).
+fn histograms(s: &mut String, l: &Layout<'_>, ok: &[&MetricsRow]) {
+    let hbin = l.step / 2.0;
+    let nh = ((l.y_hi - l.y_lo) / hbin).round().max(1.0) as usize;
     let mut counts = vec![0usize; nh];
-    for r in &ok {
-        let b = (((r.rh[3] - y_lo) / hbin).floor().max(0.0) as usize).min(nh - 1);
+    for r in ok {
+        let b = (((r.rh[3] - l.y_lo) / hbin).floor().max(0.0) as usize).min(nh - 1);
         counts[b] += 1;
     }
-    histogram(&mut s, &counts, TOP_A, PH_A, "RH98", RH_COLOURS[3]);
+    histogram(s, &counts, TOP_A, PH_A, "RH98", RH_COLOURS[3]);
     let mut cc = [0usize; 10];
-    for r in &ok {
+    for r in ok {
         cc[((r.cover * 10.0).floor().max(0.0) as usize).min(9)] += 1;
     }
-    histogram(&mut s, &cc, TOP_B, PH_B, "cover", COVER_COLOUR);
-    s.push_str("</svg>\n");
-    s
+    histogram(s, &cc, TOP_B, PH_B, "cover", COVER_COLOUR);
 }
 
 /// Horizontal bars of `counts` (lowest bin at the bottom) in the column right of a panel.

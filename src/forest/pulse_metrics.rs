@@ -276,229 +276,76 @@ impl MetricsComputer {
     /// The metrics of one waveform.
     pub fn compute(&mut self, config: &MetricsConfig, w: &WaveformInput<'_>) -> WaveformMetrics {
         let mut m = WaveformMetrics::default();
-        let y = w.samples;
-        let n = y.len();
-        if !(4..=MAX_METRIC_SAMPLES).contains(&n) || w.sample_ns.is_nan() || w.sample_ns <= 0.0 {
-            return m;
-        }
-        if !(w.noise_mean.is_finite() && w.noise_sd.is_finite() && w.smoothing_ns.is_finite())
-            || y.iter().any(|v| !v.is_finite())
-        {
-            m.status = MetricsStatus::NonFinite;
-            return m;
-        }
+        m.status = match self.fill_metrics(config, w, &mut m) {
+            Ok(()) => MetricsStatus::Ok,
+            Err(status) => status,
+        };
+        m
+    }
+
+    /// Fills `m` step by step (the steps of the module's documentation); `Err` with the
+    /// status of the step that found no metrics, `m` then filled up to that step.
+    fn fill_metrics(
+        &mut self,
+        config: &MetricsConfig,
+        w: &WaveformInput<'_>,
+        m: &mut WaveformMetrics,
+    ) -> Result<(), MetricsStatus> {
+        check_input(w)?;
         let dt = w.sample_ns;
         let mean = w.noise_mean;
         let sd = w.noise_sd.max(0.0);
         m.noise_mean = mean as f32;
         m.noise_sd = sd as f32;
         m.smoothing_ns = w.smoothing_ns as f32;
-
-        // Geometry: vertical metres per ns and the zenith angle.
-        let (vz, zenith) = match w.geometry {
-            Some(g) => {
-                let d = g.direction;
-                let vz = -d[2];
-                let zen = if w.geographic || !(d[0].is_finite() && d[1].is_finite()) {
-                    0.0
-                } else {
-                    let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                    if norm > 0.0 {
-                        (vz.abs() / norm).clamp(-1.0, 1.0).acos()
-                    } else {
-                        0.0
-                    }
-                };
-                if vz.is_finite() && vz != 0.0 {
-                    (vz, zen)
-                } else {
-                    (HALF_C_M_PER_NS, 0.0)
-                }
-            }
-            None => (HALF_C_M_PER_NS, 0.0),
-        };
+        let (vz, zenith) = beam_geometry(w);
         m.vertical_m_per_ns = vz;
         m.zenith_deg = zenith.to_degrees() as f32;
         let vz_bin = vz * dt; // metres of height per bin
 
         // 1. Smoothing (Gaussian, edges held at the end samples).
         let sigma_bins = w.smoothing_ns / dt;
-        self.smooth_into(y, sigma_bins);
+        self.smooth_into(w.samples, sigma_bins);
         let s = &self.smooth;
 
         // 2. Signal start and end.
         let front = mean + config.front_threshold_sigmas * sd;
         let back = mean + config.back_threshold_sigmas * sd;
-        let Some(first) = s.iter().position(|&v| v > front) else {
-            m.status = MetricsStatus::NoSignal;
-            return m;
-        };
-        // The DEM's ground, when asked for and the beam crosses it.
-        let dem_ground = match (config.ground, &config.dem, w.geometry) {
-            (GroundFrom::Dem, Some(dem), Some(g)) if !w.geographic => {
-                let guess = w.start_ns + 0.5 * (n - 1) as f64 * dt;
-                dem_crossing_ns(&dem.0, &g, guess).map(|t| (t - w.start_ns) / dt)
-            }
-            _ => None,
-        };
-        // Signal end: the last crossing of the back threshold (with a DEM ground, of the front
-        // one when no return clears the back threshold: a canopy without ground echo).
-        let Some(last) = s
-            .iter()
-            .rposition(|&v| v > back)
-            .or_else(|| dem_ground.and_then(|_| s.iter().rposition(|&v| v > front)))
-        else {
-            m.status = MetricsStatus::NoGround;
-            return m;
-        };
-        let end_level = if s[last] > back { back } else { front };
-        let top = if first == 0 {
-            0.0
-        } else {
-            let (a, b) = (s[first - 1], s[first]);
-            (first - 1) as f64 + ((front - a) / (b - a)).clamp(0.0, 1.0)
-        };
-        let bottom = if last + 1 >= n {
-            (n - 1) as f64
-        } else {
-            let (a, b) = (s[last], s[last + 1]);
-            last as f64 + ((a - end_level) / (a - b)).clamp(0.0, 1.0)
-        };
-        if bottom <= top {
-            m.status = MetricsStatus::NoGround;
-            return m;
-        }
+        let extent = signal_extent(s, config, w, front, back)?;
 
         // 3. Modes and the lowest one.
-        let mut modes = 0u16;
-        let mut lowest: Option<usize> = None;
-        let mut first_mode: Option<usize> = None;
-        let lo = first.max(1);
-        let hi = (last + 1).min(n - 1);
-        for k in lo..hi {
-            if s[k] > back && s[k - 1] < s[k] && s[k] >= s[k + 1] {
-                modes = modes.saturating_add(1);
-                lowest = Some(k);
-                first_mode.get_or_insert(k);
-            }
-        }
-        let k = lowest.unwrap_or_else(|| {
-            let mut best = first;
-            for i in first..=last {
-                if s[i] > s[best] {
-                    best = i;
-                }
-            }
-            best
-        });
-        let mode = if k >= 1 && k + 1 < n {
-            let (a, b, c) = (s[k - 1], s[k], s[k + 1]);
-            let den = a - 2.0 * b + c;
-            if den < 0.0 {
-                k as f64 + (0.5 * (a - c) / den).clamp(-0.5, 0.5)
-            } else {
-                k as f64
-            }
-        } else {
-            k as f64
-        };
-        m.modes = modes;
-        m.mode_ns = w.start_ns + mode * dt;
-        let ground = match dem_ground {
+        let modes = find_modes(s, extent.first, extent.last, back);
+        m.modes = modes.count;
+        m.mode_ns = w.start_ns + modes.centre * dt;
+        let ground = match extent.dem_ground {
             Some(g) => {
                 m.ground_from = GroundFrom::Dem;
                 g
             }
-            None => mode,
+            None => modes.centre,
         };
 
-        // 4. Energy on a sub-bin grid from the top to the bottom (linear interpolation of the
-        // smoothed waveform above the noise mean, negative parts clipped).
-        let step = 1.0 / SUBBINS as f64;
-        let start_grid = (top * SUBBINS as f64).ceil() / SUBBINS as f64;
-        self.energy.clear();
-        self.heights.clear();
-        let mut x = start_grid;
-        while x <= bottom + 1e-9 {
-            let i = (x.floor() as usize).min(n - 1);
-            let f = x - i as f64;
-            let v = if i + 1 < n {
-                s[i] * (1.0 - f) + s[i + 1] * f
-            } else {
-                s[i]
-            };
-            self.energy.push((v - mean).max(0.0) * step);
-            self.heights.push((ground - x) * vz_bin);
-            x += step;
-        }
+        // 4. Energy on a sub-bin grid from the top to the bottom, relative heights.
+        let start_grid = energy_grid(
+            s,
+            mean,
+            &extent,
+            ground,
+            vz_bin,
+            &mut self.energy,
+            &mut self.heights,
+        );
         let total: f64 = self.energy.iter().sum();
         if total.is_nan() || total <= 0.0 || self.energy.len() < 2 {
-            m.status = MetricsStatus::NoSignal;
-            return m;
+            return Err(MetricsStatus::NoSignal);
         }
-        // RH: cumulative from the bottom.
-        let mut rh_idx = 0usize;
-        let mut cum = 0.0;
-        let len = self.energy.len();
-        let mut t10 = f64::NAN;
-        let mut t90 = f64::NAN;
-        for j in (0..len).rev() {
-            let prev = cum;
-            cum += self.energy[j];
-            let frac_prev = prev / total;
-            let frac = cum / total;
-            while rh_idx <= 100 && frac + 1e-12 >= rh_idx as f64 / 100.0 {
-                let target = rh_idx as f64 / 100.0;
-                // Interpolate between the heights of samples j+1 (at frac_prev) and j (at frac).
-                let h_here = self.heights[j];
-                let h_prev = if j + 1 < len {
-                    self.heights[j + 1]
-                } else {
-                    h_here
-                };
-                let h = if frac > frac_prev {
-                    h_prev + (h_here - h_prev) * ((target - frac_prev) / (frac - frac_prev))
-                } else {
-                    h_here
-                };
-                m.rh[rh_idx] = h as f32;
-                rh_idx += 1;
-            }
-            let tj = start_grid + j as f64 * step;
-            if t90.is_nan() && frac >= 0.1 {
-                t90 = tj; // 10 % from the bottom = 90 % from the top
-            }
-            if t10.is_nan() && frac >= 0.9 {
-                t10 = tj;
-            }
-        }
-        while rh_idx <= 100 {
-            m.rh[rh_idx] = self.heights[0] as f32;
-            rh_idx += 1;
-        }
+        let (t10, t90) =
+            relative_heights(&self.energy, &self.heights, total, start_grid, &mut m.rh);
         m.energy_10_90_ns = ((t90 - t10) * dt) as f32;
-        m.bottom_ns = w.start_ns + bottom * dt;
+        m.bottom_ns = w.start_ns + extent.bottom * dt;
         m.ground_ns = w.start_ns + ground * dt;
-        // The canopy top: the signal start, or its leading edge.
-        let top_edge = match config.top {
-            TopFrom::SignalStart => top,
-            TopFrom::LeadingEdge => {
-                let ps = if w.pulse_sigma_ns.is_finite() {
-                    w.pulse_sigma_ns.max(0.0)
-                } else {
-                    0.0
-                };
-                let sys_bins = (ps * ps + w.smoothing_ns * w.smoothing_ns).sqrt() / dt;
-                let peak_at = first_mode.unwrap_or(k);
-                let a = s[peak_at] - mean;
-                let t = front - mean;
-                if a > t && t > 0.0 && sys_bins.is_finite() {
-                    (top + sys_bins * (2.0 * (a / t).ln()).sqrt()).min(peak_at as f64)
-                } else {
-                    top
-                }
-            }
-        };
+        let peak_at = modes.first.unwrap_or(modes.lowest);
+        let top_edge = canopy_top(config.top, w, s, extent.top, peak_at, front);
         m.top_ns = w.start_ns + top_edge * dt;
         m.canopy_height = match config.top {
             TopFrom::SignalStart => m.rh[100],
@@ -506,155 +353,59 @@ impl MetricsComputer {
         };
         m.energy_total = total as f32;
 
-        // 5. Ground echo: extended Gaussian on the raw samples.
-        let buffer = config.ground_centre_buffer_ns / dt;
-        let fit_from = ((ground - 1.5 * sigma_bins).floor().max(0.0)) as usize;
-        let fit_to = (bottom.ceil() as usize).min(n - 1);
-        let kg = (ground.round().max(0.0) as usize).min(n - 1);
-        let peak = (s[kg] - mean).max(0.0);
-        let sigma0 = sigma_bins.max(1.0);
-        let start = ExtGauss {
-            area: peak * sigma0 * SQRT_2PI,
-            centre: ground,
-            sigma: sigma0,
-            gamma: 0.0,
-        };
-        // A DEM ground below the signal's end: the beam saw no ground echo.
-        let fit = if ground > bottom + buffer || fit_to < fit_from + 3 {
-            ExtGauss {
-                area: 0.0,
-                centre: ground,
-                sigma: sigma0,
-                gamma: 0.0,
-            }
-        } else {
-            fit_ext_gauss(
-                y,
-                mean,
-                fit_from,
-                fit_to,
-                start,
-                (ground - buffer, ground + buffer),
-                (0.5, (fit_to - fit_from).max(2) as f64),
-            )
-        };
-        let rg = fit.area.clamp(0.0, total);
-        let rv = total - rg;
-        m.energy_ground = rg as f32;
-        m.energy_canopy = rv as f32;
-        if fit.area > 0.0 {
-            m.ground_sigma_m = (fit.sigma * vz_bin).abs() as f32;
-            m.ground_skew = fit.gamma as f32;
-        }
-        let denom = rv + config.rho_ratio * rg;
-        let cover = if denom > 0.0 { rv / denom } else { 0.0 };
-        let pgap = (1.0 - cover).clamp(1e-6, 1.0);
-        let cos_t = zenith.cos();
-        let k_pai = cos_t / (config.leaf_projection_g * config.clumping_omega);
-        m.cover = cover as f32;
-        m.pgap = pgap as f32;
-        m.pai = (-pgap.ln() * k_pai) as f32;
+        // 5. Ground echo, ground and canopy energy, cover, gap probability and PAI.
+        let fit = fit_ground_echo(config, w, s, ground, extent.bottom, sigma_bins);
+        let (rv, gaps) = partition_energy(config, &fit, total, zenith, vz_bin, m);
 
-        // 6. Canopy energy profile: energy minus the fitted ground, above the ground centre,
-        // scaled so that it sums to Rv.
-        // The energy is of the smoothed waveform, so the ground removed is the fitted echo
-        // smoothed alike: a skew-normal convolved with a Gaussian is the skew-normal of
-        // σ' = √(σ² + σs²) and δ' = δ σ / σ' (δ = γ / √(1 + γ²)).
-        let smoothed_ground = fit.smoothed(sigma_bins);
-        self.canopy.clear();
-        let mut csum = 0.0;
-        for (j, &e) in self.energy.iter().enumerate() {
-            let xj = start_grid + j as f64 * step;
-            let g = smoothed_ground.value(xj) * step;
-            let c = if self.heights[j] > 0.0 {
-                (e - g).max(0.0)
-            } else {
-                0.0
-            };
-            csum += c;
-            self.canopy.push(c);
-        }
-        if csum > 0.0 {
-            let scale = rv / csum;
-            for c in &mut self.canopy {
-                *c *= scale;
-            }
-        }
-        // PAVD: cover and PAI cumulated from the top down; per bin from the ground up. The
-        // heights fall with the grid index, so the canopy energy above a height is a prefix
-        // sum up to the first grid point below it.
-        self.cum.clear();
-        let mut acc = 0.0;
-        self.cum.push(0.0);
-        for c in &self.canopy {
-            acc += c;
-            self.cum.push(acc);
-        }
-        let heights = &self.heights;
-        let cum = &self.cum;
-        let above = |h: f64| -> f64 { cum[heights.partition_point(|&hh| hh >= h)] };
-        let pai_at = |cum_canopy: f64| -> f64 {
-            let cov = if denom > 0.0 { cum_canopy / denom } else { 0.0 };
-            -((1.0 - cov).clamp(1e-6, 1.0)).ln() * k_pai
-        };
-        let bins = config.profile_bins.min(MAX_PROFILE_BINS);
-        m.pavd_bins = bins as u8;
-        let bin_m = config.profile_bin_m;
-        for b in 0..bins {
-            let lo_h = b as f64 * bin_m;
-            m.pavd[b] = ((pai_at(above(lo_h)) - pai_at(above(lo_h + bin_m))) / bin_m) as f32;
-        }
-        // FHD over fine bins: two passes (the sum, then the entropy).
-        let fbin = config.fhd_bin_m;
-        let top_h = self.heights[0].max(0.0);
-        let crown_top_h = f64::from(m.canopy_height).max(0.0);
-        let nf = ((top_h / fbin).ceil() as usize).clamp(1, 4096);
-        let layer = |b: usize| -> f64 {
-            (pai_at(above(b as f64 * fbin)) - pai_at(above((b + 1) as f64 * fbin))).max(0.0)
-        };
-        let pavd_sum: f64 = (0..nf).map(layer).sum();
-        let mut ent = 0.0;
-        if pavd_sum > 0.0 {
-            for b in 0..nf {
-                let v = layer(b);
-                if v > 0.0 {
-                    let p = v / pavd_sum;
-                    ent -= p * p.ln();
-                }
-            }
-        }
-        m.fhd = ent as f32;
-
-        // Crown thickness and the herbaceous layer.
-        if rv > 0.0 {
-            let mut acc = 0.0;
-            let mut base_h = crown_top_h;
-            for (c, h) in self.canopy.iter().zip(&self.heights) {
-                acc += c;
-                base_h = *h;
-                if acc >= config.crown_energy_fraction * rv {
-                    break;
-                }
-            }
-            m.crown_thickness_m = (crown_top_h - base_h).max(0.0) as f32;
-        } else {
-            m.crown_thickness_m = 0.0;
-        }
-        let herb: f64 = self
-            .canopy
-            .iter()
-            .zip(&self.heights)
-            .filter(|(_, h)| **h > 0.0 && **h <= config.herbaceous_height_m)
-            .map(|(c, _)| *c)
-            .sum();
+        // 6. Canopy energy profile, PAVD, FHD, crown thickness and the herbaceous layer.
+        self.canopy_structure(config, &fit.smoothed(sigma_bins), start_grid, gaps, rv, m);
+        let herb = herbaceous_energy(&self.canopy, &self.heights, config.herbaceous_height_m);
         m.energy_lowest_m = (herb / total) as f32;
 
         if let Some(g) = w.geometry {
             m.ground_xyz = g.at(m.ground_ns);
             m.top_xyz = g.at(m.top_ns);
         }
-        m.status = MetricsStatus::Ok;
-        m
+        Ok(())
+    }
+
+    /// Step 6 into `m`: the canopy energy profile (`canopy`, its prefix sums `cum`) of the
+    /// energy grid (first point `start_grid` bins) less `ground_echo` (the fitted ground echo
+    /// smoothed like the waveform), scaled to the canopy energy `rv` (signal units × bins);
+    /// then the PAVD profile, FHD and crown thickness, with the cover and PAI of `gaps`.
+    fn canopy_structure(
+        &mut self,
+        config: &MetricsConfig,
+        ground_echo: &ExtGauss,
+        start_grid: f64,
+        gaps: GapModel,
+        rv: f64,
+        m: &mut WaveformMetrics,
+    ) {
+        canopy_profile(
+            &self.energy,
+            &self.heights,
+            ground_echo,
+            start_grid,
+            rv,
+            &mut self.canopy,
+        );
+        prefix_sums(&self.canopy, &mut self.cum);
+        let above = CanopyAbove {
+            heights: &self.heights,
+            cum: &self.cum,
+            gaps,
+        };
+        pavd_profile(&above, config, m);
+        m.fhd = foliage_height_diversity(&above, self.heights[0].max(0.0), config.fhd_bin_m);
+        let crown_top_h = f64::from(m.canopy_height).max(0.0);
+        m.crown_thickness_m = crown_thickness(
+            &self.canopy,
+            &self.heights,
+            crown_top_h,
+            config.crown_energy_fraction,
+            rv,
+        );
     }
 
     fn smooth_into(&mut self, y: &[f32], sigma_bins: f64) {
@@ -703,6 +454,548 @@ impl MetricsComputer {
             self.smooth.push(acc);
         }
     }
+}
+
+/// Whether `w` can be measured: `Err(NoWaveform)` unless it has 4 to [`MAX_METRIC_SAMPLES`]
+/// samples and a positive sample interval, `Err(NonFinite)` for a sample, noise figure or
+/// smoothing σ that is not finite.
+fn check_input(w: &WaveformInput<'_>) -> Result<(), MetricsStatus> {
+    let n = w.samples.len();
+    if !(4..=MAX_METRIC_SAMPLES).contains(&n) || w.sample_ns.is_nan() || w.sample_ns <= 0.0 {
+        return Err(MetricsStatus::NoWaveform);
+    }
+    if !(w.noise_mean.is_finite() && w.noise_sd.is_finite() && w.smoothing_ns.is_finite())
+        || w.samples.iter().any(|v| !v.is_finite())
+    {
+        return Err(MetricsStatus::NonFinite);
+    }
+    Ok(())
+}
+
+/// The beam's vertical metres per ns of the time axis (positive: later is lower) and zenith
+/// angle, radians, from the pulse's geometry; c/2 and 0 (nadir) without a usable geometry.
+/// The zenith angle is 0 for geographic coordinates (degrees are no length).
+fn beam_geometry(w: &WaveformInput<'_>) -> (f64, f64) {
+    match w.geometry {
+        Some(g) => {
+            let d = g.direction;
+            let vz = -d[2];
+            let zen = if w.geographic || !(d[0].is_finite() && d[1].is_finite()) {
+                0.0
+            } else {
+                let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                if norm > 0.0 {
+                    (vz.abs() / norm).clamp(-1.0, 1.0).acos()
+                } else {
+                    0.0
+                }
+            };
+            if vz.is_finite() && vz != 0.0 {
+                (vz, zen)
+            } else {
+                (HALF_C_M_PER_NS, 0.0)
+            }
+        }
+        None => (HALF_C_M_PER_NS, 0.0),
+    }
+}
+
+/// Where the signal lies on the smoothed waveform (step 2), bins from its first sample.
+struct SignalExtent {
+    /// First sample above the front threshold.
+    first: usize,
+    /// Last sample above the back threshold (above the front one for a DEM ground without a
+    /// return above the back threshold).
+    last: usize,
+    /// Signal start, bins (to a fraction of a bin).
+    top: f64,
+    /// Signal end, bins (to a fraction of a bin).
+    bottom: f64,
+    /// The beam's crossing of the DEM, bins, when the ground is the DEM's and the beam
+    /// crosses it.
+    dem_ground: Option<f64>,
+}
+
+/// The signal start and end on the smoothed waveform `s` (step 2) for the front and back
+/// thresholds (signal units), and the DEM's ground where asked for. `Err(NoSignal)` when `s`
+/// never rises above the front threshold, `Err(NoGround)` when no end is found or it is not
+/// after the start.
+fn signal_extent(
+    s: &[f64],
+    config: &MetricsConfig,
+    w: &WaveformInput<'_>,
+    front: f64,
+    back: f64,
+) -> Result<SignalExtent, MetricsStatus> {
+    let n = s.len();
+    let dt = w.sample_ns;
+    let Some(first) = s.iter().position(|&v| v > front) else {
+        return Err(MetricsStatus::NoSignal);
+    };
+    // The DEM's ground, when asked for and the beam crosses it.
+    let dem_ground = match (config.ground, &config.dem, w.geometry) {
+        (GroundFrom::Dem, Some(dem), Some(g)) if !w.geographic => {
+            let guess = w.start_ns + 0.5 * (n - 1) as f64 * dt;
+            dem_crossing_ns(&dem.0, &g, guess).map(|t| (t - w.start_ns) / dt)
+        }
+        _ => None,
+    };
+    // Signal end: the last crossing of the back threshold (with a DEM ground, of the front
+    // one when no return clears the back threshold: a canopy without ground echo).
+    let Some(last) = s
+        .iter()
+        .rposition(|&v| v > back)
+        .or_else(|| dem_ground.and_then(|_| s.iter().rposition(|&v| v > front)))
+    else {
+        return Err(MetricsStatus::NoGround);
+    };
+    let end_level = if s[last] > back { back } else { front };
+    let top = if first == 0 {
+        0.0
+    } else {
+        let (a, b) = (s[first - 1], s[first]);
+        (first - 1) as f64 + ((front - a) / (b - a)).clamp(0.0, 1.0)
+    };
+    let bottom = if last + 1 >= n {
+        (n - 1) as f64
+    } else {
+        let (a, b) = (s[last], s[last + 1]);
+        last as f64 + ((a - end_level) / (a - b)).clamp(0.0, 1.0)
+    };
+    if bottom <= top {
+        return Err(MetricsStatus::NoGround);
+    }
+    Ok(SignalExtent {
+        first,
+        last,
+        top,
+        bottom,
+        dem_ground,
+    })
+}
+
+/// The modes of the signal (step 3): local maxima of the smoothed waveform above the back
+/// threshold.
+struct Modes {
+    /// How many.
+    count: u16,
+    /// Sample of the lowest (last) mode; without a mode, the signal's highest sample.
+    lowest: usize,
+    /// Sample of the first mode, if any.
+    first: Option<usize>,
+    /// Centre of the lowest mode, bins (parabolic peak, within half a bin of `lowest`).
+    centre: f64,
+}
+
+/// The modes of the smoothed waveform `s` between its samples `first` and `last` (the
+/// signal's), above `back` (signal units).
+fn find_modes(s: &[f64], first: usize, last: usize, back: f64) -> Modes {
+    let n = s.len();
+    let mut modes = 0u16;
+    let mut lowest: Option<usize> = None;
+    let mut first_mode: Option<usize> = None;
+    let lo = first.max(1);
+    let hi = (last + 1).min(n - 1);
+    for k in lo..hi {
+        if s[k] > back && s[k - 1] < s[k] && s[k] >= s[k + 1] {
+            modes = modes.saturating_add(1);
+            lowest = Some(k);
+            first_mode.get_or_insert(k);
+        }
+    }
+    let k = lowest.unwrap_or_else(|| {
+        let mut best = first;
+        for i in first..=last {
+            if s[i] > s[best] {
+                best = i;
+            }
+        }
+        best
+    });
+    let centre = if k >= 1 && k + 1 < n {
+        let (a, b, c) = (s[k - 1], s[k], s[k + 1]);
+        let den = a - 2.0 * b + c;
+        if den < 0.0 {
+            k as f64 + (0.5 * (a - c) / den).clamp(-0.5, 0.5)
+        } else {
+            k as f64
+        }
+    } else {
+        k as f64
+    };
+    Modes {
+        count: modes,
+        lowest: k,
+        first: first_mode,
+        centre,
+    }
+}
+
+/// Fills `energy` (signal units × bins) and `heights` (m above `ground`) on the sub-bin grid
+/// from the signal's top to its bottom (step 4): the smoothed waveform `s` interpolated
+/// linearly, above the noise `mean`, negative parts clipped; `vz_bin` is metres of height per
+/// bin. Returns the grid's first point, bins.
+fn energy_grid(
+    s: &[f64],
+    mean: f64,
+    extent: &SignalExtent,
+    ground: f64,
+    vz_bin: f64,
+    energy: &mut Vec<f64>,
+    heights: &mut Vec<f64>,
+) -> f64 {
+    let n = s.len();
+    let step = 1.0 / SUBBINS as f64;
+    let start_grid = (extent.top * SUBBINS as f64).ceil() / SUBBINS as f64;
+    energy.clear();
+    heights.clear();
+    let mut x = start_grid;
+    while x <= extent.bottom + 1e-9 {
+        let i = (x.floor() as usize).min(n - 1);
+        let f = x - i as f64;
+        let v = if i + 1 < n {
+            s[i] * (1.0 - f) + s[i + 1] * f
+        } else {
+            s[i]
+        };
+        energy.push((v - mean).max(0.0) * step);
+        heights.push((ground - x) * vz_bin);
+        x += step;
+    }
+    start_grid
+}
+
+/// RH0…RH100 into `rh` (m above the ground): the heights at which the `energy` of the grid
+/// (first point `start_grid` bins, `heights` in m), cumulated from the bottom, reaches n % of
+/// `total`. Returns the grid positions (bins) where 10 % and 90 % of the energy lie above.
+fn relative_heights(
+    energy: &[f64],
+    heights: &[f64],
+    total: f64,
+    start_grid: f64,
+    rh: &mut [f32; 101],
+) -> (f64, f64) {
+    let step = 1.0 / SUBBINS as f64;
+    let mut rh_idx = 0usize;
+    let mut cum = 0.0;
+    let len = energy.len();
+    let mut t10 = f64::NAN;
+    let mut t90 = f64::NAN;
+    for j in (0..len).rev() {
+        let prev = cum;
+        cum += energy[j];
+        let frac_prev = prev / total;
+        let frac = cum / total;
+        while rh_idx <= 100 && frac + 1e-12 >= rh_idx as f64 / 100.0 {
+            let target = rh_idx as f64 / 100.0;
+            // Interpolate between the heights of samples j+1 (at frac_prev) and j (at frac).
+            let h_here = heights[j];
+            let h_prev = if j + 1 < len { heights[j + 1] } else { h_here };
+            let h = if frac > frac_prev {
+                h_prev + (h_here - h_prev) * ((target - frac_prev) / (frac - frac_prev))
+            } else {
+                h_here
+            };
+            rh[rh_idx] = h as f32;
+            rh_idx += 1;
+        }
+        let tj = start_grid + j as f64 * step;
+        if t90.is_nan() && frac >= 0.1 {
+            t90 = tj; // 10 % from the bottom = 90 % from the top
+        }
+        if t10.is_nan() && frac >= 0.9 {
+            t10 = tj;
+        }
+    }
+    while rh_idx <= 100 {
+        rh[rh_idx] = heights[0] as f32;
+        rh_idx += 1;
+    }
+    (t10, t90)
+}
+
+/// The canopy top, bins: the signal start `top`, or with [`TopFrom::LeadingEdge`] the signal
+/// start moved later by the rise of the system pulse to the front threshold `front` (signal
+/// units), never past the first mode `peak_at` (a sample of the smoothed waveform `s`).
+fn canopy_top(
+    from: TopFrom,
+    w: &WaveformInput<'_>,
+    s: &[f64],
+    top: f64,
+    peak_at: usize,
+    front: f64,
+) -> f64 {
+    match from {
+        TopFrom::SignalStart => top,
+        TopFrom::LeadingEdge => {
+            let mean = w.noise_mean;
+            let ps = if w.pulse_sigma_ns.is_finite() {
+                w.pulse_sigma_ns.max(0.0)
+            } else {
+                0.0
+            };
+            let sys_bins = (ps * ps + w.smoothing_ns * w.smoothing_ns).sqrt() / w.sample_ns;
+            let a = s[peak_at] - mean;
+            let t = front - mean;
+            if a > t && t > 0.0 && sys_bins.is_finite() {
+                (top + sys_bins * (2.0 * (a / t).ln()).sqrt()).min(peak_at as f64)
+            } else {
+                top
+            }
+        }
+    }
+}
+
+/// The ground echo (step 5): an extended Gaussian fitted to the raw samples above the noise
+/// mean from 1.5 smoothing σ above `ground` to the signal end `bottom` (bins), its centre held
+/// within `ground_centre_buffer_ns` of `ground`; `sigma_bins` is the smoothing σ, bins. Of
+/// area 0 when the ground lies more than that buffer below the signal's end (a DEM ground the
+/// beam saw no echo of) or the window is too short to fit.
+fn fit_ground_echo(
+    config: &MetricsConfig,
+    w: &WaveformInput<'_>,
+    s: &[f64],
+    ground: f64,
+    bottom: f64,
+    sigma_bins: f64,
+) -> ExtGauss {
+    let (y, n, mean, dt) = (w.samples, w.samples.len(), w.noise_mean, w.sample_ns);
+    let buffer = config.ground_centre_buffer_ns / dt;
+    let fit_from = ((ground - 1.5 * sigma_bins).floor().max(0.0)) as usize;
+    let fit_to = (bottom.ceil() as usize).min(n - 1);
+    let kg = (ground.round().max(0.0) as usize).min(n - 1);
+    let peak = (s[kg] - mean).max(0.0);
+    let sigma0 = sigma_bins.max(1.0);
+    let start = ExtGauss {
+        area: peak * sigma0 * SQRT_2PI,
+        centre: ground,
+        sigma: sigma0,
+        gamma: 0.0,
+    };
+    // A DEM ground below the signal's end: the beam saw no ground echo.
+    if ground > bottom + buffer || fit_to < fit_from + 3 {
+        ExtGauss {
+            area: 0.0,
+            centre: ground,
+            sigma: sigma0,
+            gamma: 0.0,
+        }
+    } else {
+        fit_ext_gauss(
+            y,
+            mean,
+            fit_from,
+            fit_to,
+            start,
+            (ground - buffer, ground + buffer),
+            (0.5, (fit_to - fit_from).max(2) as f64),
+        )
+    }
+}
+
+/// Splits the `total` energy (signal units × bins) into ground energy `Rg` (the area of the
+/// fitted ground echo `fit`) and canopy energy `Rv` (the rest) into `m`, with the ground echo's
+/// width (m, `vz_bin` metres of height per bin) and skew, and the cover, gap probability and
+/// PAI at zenith angle `zenith` (radians). Returns `Rv` and the cover model.
+fn partition_energy(
+    config: &MetricsConfig,
+    fit: &ExtGauss,
+    total: f64,
+    zenith: f64,
+    vz_bin: f64,
+    m: &mut WaveformMetrics,
+) -> (f64, GapModel) {
+    let rg = fit.area.clamp(0.0, total);
+    let rv = total - rg;
+    m.energy_ground = rg as f32;
+    m.energy_canopy = rv as f32;
+    if fit.area > 0.0 {
+        m.ground_sigma_m = (fit.sigma * vz_bin).abs() as f32;
+        m.ground_skew = fit.gamma as f32;
+    }
+    let gaps = GapModel::new(config, rv, rg, zenith);
+    let cover = gaps.cover(rv);
+    let pgap = (1.0 - cover).clamp(1e-6, 1.0);
+    m.cover = cover as f32;
+    m.pgap = pgap as f32;
+    m.pai = (-pgap.ln() * gaps.k_pai) as f32;
+    (rv, gaps)
+}
+
+/// Cover and plant area index from canopy and ground energies (step 5): cover `Rv / (Rv + ρ
+/// Rg)`, `PAI = −ln(1 − cover) cos θ / (G Ω)`.
+#[derive(Clone, Copy)]
+struct GapModel {
+    /// `Rv + ρ Rg` of the whole waveform, signal units × bins.
+    denom: f64,
+    /// `cos θ / (G Ω)`: PAI per unit of `−ln Pgap`.
+    k_pai: f64,
+}
+
+impl GapModel {
+    /// The model of a waveform of canopy energy `rv` and ground energy `rg` (signal units ×
+    /// bins) seen at zenith angle `zenith` (radians).
+    fn new(config: &MetricsConfig, rv: f64, rg: f64, zenith: f64) -> Self {
+        let denom = rv + config.rho_ratio * rg;
+        let cos_t = zenith.cos();
+        let k_pai = cos_t / (config.leaf_projection_g * config.clumping_omega);
+        GapModel { denom, k_pai }
+    }
+
+    /// Cover (0..1) of canopy energy `canopy` (signal units × bins); 0 without energy.
+    fn cover(&self, canopy: f64) -> f64 {
+        if self.denom > 0.0 {
+            canopy / self.denom
+        } else {
+            0.0
+        }
+    }
+
+    /// PAI (m²/m²) of canopy energy `canopy` (signal units × bins), the gap probability held
+    /// above 10⁻⁶.
+    fn pai(&self, canopy: f64) -> f64 {
+        -((1.0 - self.cover(canopy)).clamp(1e-6, 1.0)).ln() * self.k_pai
+    }
+}
+
+/// The canopy energy profile into `canopy` (step 6), signal units × bins on the energy grid:
+/// the `energy` minus the smoothed fitted ground echo `ground` above the ground centre (0 at
+/// and below it), scaled to sum to `rv`. The grid starts at `start_grid` bins; `heights` are
+/// its heights, m.
+fn canopy_profile(
+    energy: &[f64],
+    heights: &[f64],
+    ground: &ExtGauss,
+    start_grid: f64,
+    rv: f64,
+    canopy: &mut Vec<f64>,
+) {
+    // The energy is of the smoothed waveform, so the ground removed is the fitted echo
+    // smoothed alike: a skew-normal convolved with a Gaussian is the skew-normal of
+    // σ' = √(σ² + σs²) and δ' = δ σ / σ' (δ = γ / √(1 + γ²)).
+    let step = 1.0 / SUBBINS as f64;
+    canopy.clear();
+    let mut csum = 0.0;
+    for (j, &e) in energy.iter().enumerate() {
+        let xj = start_grid + j as f64 * step;
+        let g = ground.value(xj) * step;
+        let c = if heights[j] > 0.0 {
+            (e - g).max(0.0)
+        } else {
+            0.0
+        };
+        csum += c;
+        canopy.push(c);
+    }
+    if csum > 0.0 {
+        let scale = rv / csum;
+        for c in canopy.iter_mut() {
+            *c *= scale;
+        }
+    }
+}
+
+/// `cum` = 0 and the running sums of `canopy` (one more value than `canopy`).
+fn prefix_sums(canopy: &[f64], cum: &mut Vec<f64>) {
+    cum.clear();
+    let mut acc = 0.0;
+    cum.push(0.0);
+    for c in canopy {
+        acc += c;
+        cum.push(acc);
+    }
+}
+
+/// The canopy above a height: its energy and PAI from the top down. The heights fall with
+/// the grid index, so the canopy energy above a height is a prefix sum up to the first grid
+/// point below it.
+struct CanopyAbove<'a> {
+    /// Heights of the energy grid, m above the ground, falling.
+    heights: &'a [f64],
+    /// Prefix sums of the canopy energy profile ([`prefix_sums`]).
+    cum: &'a [f64],
+    /// The waveform's cover and PAI model.
+    gaps: GapModel,
+}
+
+impl CanopyAbove<'_> {
+    /// Canopy energy above height `h` (m above the ground), signal units × bins.
+    fn energy(&self, h: f64) -> f64 {
+        self.cum[self.heights.partition_point(|&hh| hh >= h)]
+    }
+
+    /// PAI of the canopy above height `h` (m above the ground), m²/m².
+    fn pai(&self, h: f64) -> f64 {
+        self.gaps.pai(self.energy(h))
+    }
+}
+
+/// PAVD per `profile_bin_m` bin from the ground up into `m.pavd` (m²/m³, the PAI added in the
+/// bin per metre) and the number of bins into `m.pavd_bins`.
+fn pavd_profile(above: &CanopyAbove<'_>, config: &MetricsConfig, m: &mut WaveformMetrics) {
+    let bins = config.profile_bins.min(MAX_PROFILE_BINS);
+    m.pavd_bins = bins as u8;
+    let bin_m = config.profile_bin_m;
+    for b in 0..bins {
+        let lo_h = b as f64 * bin_m;
+        m.pavd[b] = ((above.pai(lo_h) - above.pai(lo_h + bin_m)) / bin_m) as f32;
+    }
+}
+
+/// Foliage height diversity: the Shannon index `−Σ p ln p` of the PAI of `fbin` m layers
+/// from the ground to `top_h` m (two passes: the sum, then the entropy).
+fn foliage_height_diversity(above: &CanopyAbove<'_>, top_h: f64, fbin: f64) -> f32 {
+    let nf = ((top_h / fbin).ceil() as usize).clamp(1, 4096);
+    let layer = |b: usize| -> f64 {
+        (above.pai(b as f64 * fbin) - above.pai((b + 1) as f64 * fbin)).max(0.0)
+    };
+    let pavd_sum: f64 = (0..nf).map(layer).sum();
+    let mut ent = 0.0;
+    if pavd_sum > 0.0 {
+        for b in 0..nf {
+            let v = layer(b);
+            if v > 0.0 {
+                let p = v / pavd_sum;
+                ent -= p * p.ln();
+            }
+        }
+    }
+    ent as f32
+}
+
+/// Crown thickness, m: the canopy top `crown_top_h` (m above the ground) down to the crown
+/// base, where `fraction` of the canopy energy `rv` lies above; 0 without canopy energy.
+fn crown_thickness(
+    canopy: &[f64],
+    heights: &[f64],
+    crown_top_h: f64,
+    fraction: f64,
+    rv: f64,
+) -> f32 {
+    if rv > 0.0 {
+        let mut acc = 0.0;
+        let mut base_h = crown_top_h;
+        for (c, h) in canopy.iter().zip(heights) {
+            acc += c;
+            base_h = *h;
+            if acc >= fraction * rv {
+                break;
+            }
+        }
+        (crown_top_h - base_h).max(0.0) as f32
+    } else {
+        0.0
+    }
+}
+
+/// Canopy energy between the ground centre and `herb_height_m` above it, signal units × bins.
+fn herbaceous_energy(canopy: &[f64], heights: &[f64], herb_height_m: f64) -> f64 {
+    canopy
+        .iter()
+        .zip(heights)
+        .filter(|(_, h)| **h > 0.0 && **h <= herb_height_m)
+        .map(|(c, _)| *c)
+        .sum()
 }
 
 const SQRT_2PI: f64 = 2.506_628_274_631_000_7;

@@ -4,11 +4,13 @@
 //! `_ratio`) and `_total` on counters. Counters are cumulative since the daemon started; gauges
 //! are the value at the snapshot. Latencies are real histograms (`_bucket{le=…}`, `_sum`,
 //! `_count`) built from [`StageLatency::buckets`]. The full list, with units, is in `docs/qc.md`.
+//!
+//! The families are the table [`METRICS`], written in its order by one loop.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 
-use super::snapshot::{QcSnapshot, StageLatency};
+use super::snapshot::{InputStatus, NavStatus, QcSnapshot, QueueFill, StageLatency};
 
 /// The content type of [`render`]'s output.
 pub const CONTENT_TYPE: &str = "text/plain; version=0.0.4; charset=utf-8";
@@ -17,425 +19,414 @@ pub const CONTENT_TYPE: &str = "text/plain; version=0.0.4; charset=utf-8";
 /// `# TYPE`, one sample a line, `\n` line ends, a final line end).
 pub fn render(s: &QcSnapshot) -> String {
     let mut w = Writer::default();
-
-    // Daemon.
-    w.family(
-        "fwlidar_build_info",
-        "gauge",
-        "Always 1; the labels name the fwlidar version and the survey.",
-    );
-    w.sample(
-        "fwlidar_build_info",
-        &[("version", &s.version), ("survey", &s.survey)],
-        1.0,
-    );
-    w.single(
-        "fwlidar_uptime_seconds",
-        "gauge",
-        "Seconds since the daemon started.",
-        s.uptime_s,
-    );
-    w.single(
-        "fwlidar_snapshot_timestamp_seconds",
-        "gauge",
-        "When the snapshot was taken, seconds since the Unix epoch.",
-        s.time_unix_s,
-    );
-    w.single(
-        "fwlidar_snapshot_sequence",
-        "gauge",
-        "Snapshot number, from 0, one more a snapshot.",
-        s.sequence as f64,
-    );
-
-    // Frames and pulses.
-    let p = &s.pulses;
-    w.single(
-        "fwlidar_frames_received_total",
-        "counter",
-        "Digitizer frames received from the network.",
-        p.frames_received as f64,
-    );
-    w.single(
-        "fwlidar_frames_recorded_total",
-        "counter",
-        "Frames written to the capture.",
-        p.frames_recorded as f64,
-    );
-    w.single(
-        "fwlidar_frames_lost_total",
-        "counter",
-        "Frames lost on the network (sequence gaps).",
-        p.frames_lost as f64,
-    );
-    w.single(
-        "fwlidar_frames_bad_total",
-        "counter",
-        "Frames that are not valid digitizer frames (recorded, not processed).",
-        p.frames_bad as f64,
-    );
-    w.single(
-        "fwlidar_pulses_in_total",
-        "counter",
-        "Pulses that entered processing.",
-        p.pulses_in as f64,
-    );
-    w.single(
-        "fwlidar_pulses_processed_total",
-        "counter",
-        "Pulses that left the sink with every output written.",
-        p.pulses_processed as f64,
-    );
-    w.family(
-        "fwlidar_pulses_dropped_total",
-        "counter",
-        "Pulses dropped from processing, by reason.",
-    );
-    for (reason, n) in &s.drops {
-        w.sample(
-            "fwlidar_pulses_dropped_total",
-            &[("reason", reason)],
-            *n as f64,
-        );
+    for m in METRICS {
+        w.metric(m, s);
     }
-    w.single(
-        "fwlidar_frames_received_rate_hertz",
-        "gauge",
-        "Frames received per second over the last snapshot interval.",
-        p.rate_in_hz,
-    );
-    w.single(
-        "fwlidar_pulses_processed_rate_hertz",
-        "gauge",
-        "Pulses processed per second over the last snapshot interval.",
-        p.rate_processed_hz,
-    );
-    w.single(
-        "fwlidar_pulses_dropped_rate_hertz",
-        "gauge",
-        "Pulses dropped per second over the last snapshot interval.",
-        p.rate_dropped_hz,
-    );
+    w.out
+}
 
+/// One metric family of the exposition: its name, type and help, and how its samples are
+/// read from the snapshot.
+struct Metric {
+    /// Family name: `fwlidar_…`, the unit in the name, `_total` on counters.
+    name: &'static str,
+    /// Prometheus type (`# TYPE`).
+    kind: Kind,
+    /// Help text (`# HELP`).
+    help: &'static str,
+    /// Where its samples come from.
+    read: Read,
+}
+
+/// Prometheus metric type.
+#[derive(Clone, Copy)]
+enum Kind {
+    Counter,
+    Gauge,
+    Histogram,
+}
+
+impl Kind {
+    /// The type's name in `# TYPE`.
+    fn as_str(self) -> &'static str {
+        match self {
+            Kind::Counter => "counter",
+            Kind::Gauge => "gauge",
+            Kind::Histogram => "histogram",
+        }
+    }
+}
+
+/// How a family's samples are read from the snapshot.
+enum Read {
+    /// One unlabelled sample of this value.
+    Value(fn(&QcSnapshot) -> f64),
+    /// One sample per reason of a count by reason, labelled `reason`, in the map's order.
+    ByReason(fn(&QcSnapshot) -> &BTreeMap<String, u64>),
+    /// One sample per queue, labelled `queue`.
+    PerQueue(fn(&QueueFill) -> f64),
+    /// One sample per input, labelled `input`; none for an input whose value is `None`.
+    PerInput(fn(&InputStatus) -> Option<f64>),
+    /// One sample per navigation port, labelled `port` and, when given, a second label that
+    /// names the value; none for a port whose value is `None`.
+    PerPort(fn(&NavStatus) -> Option<PortValue<'_>>),
+    /// One sample with the one label named here, the label's value read with the sample's
+    /// value (no sample when that is `None`).
+    Labelled(&'static str, fn(&QcSnapshot) -> (&str, Option<f64>)),
+    /// Samples written by the function (labels of their own, histograms).
+    Written(fn(&QcSnapshot, &mut Family<'_>)),
+}
+
+/// A navigation port's sample: the value and, when given, a second label (name, value) that
+/// names it.
+type PortValue<'a> = (f64, Option<(&'static str, &'a str)>);
+
+/// Every family of the exposition, in the order written.
+const METRICS: &[Metric] = &[
+    // Daemon.
+    Metric {
+        name: "fwlidar_build_info",
+        kind: Kind::Gauge,
+        help: "Always 1; the labels name the fwlidar version and the survey.",
+        read: Read::Written(build_info),
+    },
+    Metric {
+        name: "fwlidar_uptime_seconds",
+        kind: Kind::Gauge,
+        help: "Seconds since the daemon started.",
+        read: Read::Value(|s| s.uptime_s),
+    },
+    Metric {
+        name: "fwlidar_snapshot_timestamp_seconds",
+        kind: Kind::Gauge,
+        help: "When the snapshot was taken, seconds since the Unix epoch.",
+        read: Read::Value(|s| s.time_unix_s),
+    },
+    Metric {
+        name: "fwlidar_snapshot_sequence",
+        kind: Kind::Gauge,
+        help: "Snapshot number, from 0, one more a snapshot.",
+        read: Read::Value(|s| s.sequence as f64),
+    },
+    // Frames and pulses.
+    Metric {
+        name: "fwlidar_frames_received_total",
+        kind: Kind::Counter,
+        help: "Digitizer frames received from the network.",
+        read: Read::Value(|s| s.pulses.frames_received as f64),
+    },
+    Metric {
+        name: "fwlidar_frames_recorded_total",
+        kind: Kind::Counter,
+        help: "Frames written to the capture.",
+        read: Read::Value(|s| s.pulses.frames_recorded as f64),
+    },
+    Metric {
+        name: "fwlidar_frames_lost_total",
+        kind: Kind::Counter,
+        help: "Frames lost on the network (sequence gaps).",
+        read: Read::Value(|s| s.pulses.frames_lost as f64),
+    },
+    Metric {
+        name: "fwlidar_frames_bad_total",
+        kind: Kind::Counter,
+        help: "Frames that are not valid digitizer frames (recorded, not processed).",
+        read: Read::Value(|s| s.pulses.frames_bad as f64),
+    },
+    Metric {
+        name: "fwlidar_pulses_in_total",
+        kind: Kind::Counter,
+        help: "Pulses that entered processing.",
+        read: Read::Value(|s| s.pulses.pulses_in as f64),
+    },
+    Metric {
+        name: "fwlidar_pulses_processed_total",
+        kind: Kind::Counter,
+        help: "Pulses that left the sink with every output written.",
+        read: Read::Value(|s| s.pulses.pulses_processed as f64),
+    },
+    Metric {
+        name: "fwlidar_pulses_dropped_total",
+        kind: Kind::Counter,
+        help: "Pulses dropped from processing, by reason.",
+        read: Read::ByReason(|s| &s.drops),
+    },
+    Metric {
+        name: "fwlidar_frames_received_rate_hertz",
+        kind: Kind::Gauge,
+        help: "Frames received per second over the last snapshot interval.",
+        read: Read::Value(|s| s.pulses.rate_in_hz),
+    },
+    Metric {
+        name: "fwlidar_pulses_processed_rate_hertz",
+        kind: Kind::Gauge,
+        help: "Pulses processed per second over the last snapshot interval.",
+        read: Read::Value(|s| s.pulses.rate_processed_hz),
+    },
+    Metric {
+        name: "fwlidar_pulses_dropped_rate_hertz",
+        kind: Kind::Gauge,
+        help: "Pulses dropped per second over the last snapshot interval.",
+        read: Read::Value(|s| s.pulses.rate_dropped_hz),
+    },
     // Queues.
-    w.per(
-        "fwlidar_queue_length",
-        "gauge",
-        "Items in a bounded queue now.",
-        "queue",
-        &s.queues,
-        |q| (q.name.to_string(), q.len as f64),
-    );
-    w.per(
-        "fwlidar_queue_capacity",
-        "gauge",
-        "Capacity of a bounded queue, items.",
-        "queue",
-        &s.queues,
-        |q| (q.name.to_string(), q.capacity as f64),
-    );
-
+    Metric {
+        name: "fwlidar_queue_length",
+        kind: Kind::Gauge,
+        help: "Items in a bounded queue now.",
+        read: Read::PerQueue(|q| q.len as f64),
+    },
+    Metric {
+        name: "fwlidar_queue_capacity",
+        kind: Kind::Gauge,
+        help: "Capacity of a bounded queue, items.",
+        read: Read::PerQueue(|q| q.capacity as f64),
+    },
     // Latency.
-    w.family(
-        "fwlidar_stage_latency_seconds",
-        "histogram",
-        "Service time of one pulse in a processing stage, seconds, since the start.",
-    );
+    Metric {
+        name: "fwlidar_stage_latency_seconds",
+        kind: Kind::Histogram,
+        help: "Service time of one pulse in a processing stage, seconds, since the start.",
+        read: Read::Written(stage_latencies),
+    },
+    Metric {
+        name: "fwlidar_end_to_end_latency_seconds",
+        kind: Kind::Histogram,
+        help: "Frame arrival to the sink (every output done), seconds, since the start.",
+        read: Read::Written(|s, f| f.histogram(None, &s.end_to_end)),
+    },
+    // Inputs.
+    Metric {
+        name: "fwlidar_input_up",
+        kind: Kind::Gauge,
+        help: "1 when the input is connected and delivering, else 0.",
+        read: Read::PerInput(|i| Some(bool01(i.up))),
+    },
+    Metric {
+        name: "fwlidar_input_last_data_age_seconds",
+        kind: Kind::Gauge,
+        help: "Seconds since the input's last data (absent before any came).",
+        read: Read::PerInput(|i| i.last_data_age_s),
+    },
+    Metric {
+        name: "fwlidar_input_received_bytes_total",
+        kind: Kind::Counter,
+        help: "Bytes received on the input.",
+        read: Read::PerInput(|i| Some(i.bytes as f64)),
+    },
+    Metric {
+        name: "fwlidar_input_connects_total",
+        kind: Kind::Counter,
+        help: "Connections made on the input (TCP peers accepted, serial device opens).",
+        read: Read::PerInput(|i| Some(i.connects as f64)),
+    },
+    Metric {
+        name: "fwlidar_input_failed_attempts_total",
+        kind: Kind::Counter,
+        help: "Connection or open attempts on the input that failed.",
+        read: Read::PerInput(|i| Some(i.failed_attempts as f64)),
+    },
+    // Navigation.
+    Metric {
+        name: "fwlidar_nav_last_packet_age_seconds",
+        kind: Kind::Gauge,
+        help: "Seconds since the port's last decoded navigation record (host clock).",
+        read: Read::PerPort(|n| n.last_packet_age_s.map(|age| (age, None))),
+    },
+    Metric {
+        name: "fwlidar_nav_fix_quality",
+        kind: Kind::Gauge,
+        help: "Fix quality code of the last record (GGA quality or NovAtel position type); the \
+               label names it.",
+        read: Read::PerPort(|n| {
+            n.fix
+                .map(|fix| (fix as f64, Some(("fix", n.fix_name.as_str()))))
+        }),
+    },
+    Metric {
+        name: "fwlidar_nav_satellites",
+        kind: Kind::Gauge,
+        help: "Satellites used in the last fix.",
+        read: Read::PerPort(|n| n.satellites.map(|sats| (sats as f64, None))),
+    },
+    Metric {
+        name: "fwlidar_nav_ins_status",
+        kind: Kind::Gauge,
+        help: "INS status code of the last record; the label names it.",
+        read: Read::PerPort(|n| {
+            n.ins_status
+                .map(|ins| (ins as f64, Some(("status", n.ins_name.as_str()))))
+        }),
+    },
+    Metric {
+        name: "fwlidar_nav_samples_total",
+        kind: Kind::Counter,
+        help: "Navigation samples decoded on the port.",
+        read: Read::PerPort(|n| Some((n.samples as f64, None))),
+    },
+    Metric {
+        name: "fwlidar_nav_rejected_total",
+        kind: Kind::Counter,
+        help: "Navigation records rejected on the port (bad checksum, malformed).",
+        read: Read::PerPort(|n| Some((n.rejected as f64, None))),
+    },
+    // Georeferencing.
+    Metric {
+        name: "fwlidar_georeference_enabled",
+        kind: Kind::Gauge,
+        help: "1 when georeferencing is on, else 0.",
+        read: Read::Value(|s| bool01(s.georeference.enabled)),
+    },
+    Metric {
+        name: "fwlidar_georeference_placed_total",
+        kind: Kind::Counter,
+        help: "Pulses georeferenced.",
+        read: Read::Value(|s| s.georeference.placed as f64),
+    },
+    Metric {
+        name: "fwlidar_georeference_missed_total",
+        kind: Kind::Counter,
+        help: "Pulses not georeferenced, by reason.",
+        read: Read::ByReason(|s| &s.georeference.missed),
+    },
+    // Tiles.
+    Metric {
+        name: "fwlidar_tiles_open",
+        kind: Kind::Gauge,
+        help: "Voxel tiles open now.",
+        read: Read::Value(|s| s.tiles.open as f64),
+    },
+    Metric {
+        name: "fwlidar_tiles_closed_total",
+        kind: Kind::Counter,
+        help: "Voxel tiles closed (written).",
+        read: Read::Value(|s| s.tiles.closed as f64),
+    },
+    // Recording and disk.
+    Metric {
+        name: "fwlidar_recording_segment_bytes",
+        kind: Kind::Gauge,
+        help: "Bytes written to the capture segment being written.",
+        read: Read::Labelled("segment", |s| {
+            (&s.recording.segment, Some(s.recording.bytes as f64))
+        }),
+    },
+    Metric {
+        name: "fwlidar_recording_segment_records",
+        kind: Kind::Gauge,
+        help: "Records written to the capture segment being written.",
+        read: Read::Labelled("segment", |s| {
+            (&s.recording.segment, Some(s.recording.records as f64))
+        }),
+    },
+    Metric {
+        name: "fwlidar_recording_error",
+        kind: Kind::Gauge,
+        help: "1 when the recording stopped on a write error, else 0.",
+        read: Read::Value(|s| bool01(s.recording.error.is_some())),
+    },
+    Metric {
+        name: "fwlidar_disk_free_bytes",
+        kind: Kind::Gauge,
+        help: "Bytes available on the recording's file system.",
+        read: Read::Labelled("path", |s| (&s.disk.path, Some(s.disk.free_bytes as f64))),
+    },
+    Metric {
+        name: "fwlidar_disk_total_bytes",
+        kind: Kind::Gauge,
+        help: "Size of the recording's file system, bytes.",
+        read: Read::Labelled("path", |s| (&s.disk.path, Some(s.disk.total_bytes as f64))),
+    },
+    Metric {
+        name: "fwlidar_disk_time_left_seconds",
+        kind: Kind::Gauge,
+        help: "Seconds of recording left at the current rate (absent when not recording).",
+        read: Read::Labelled("path", |s| (&s.disk.path, s.disk.seconds_left)),
+    },
+    Metric {
+        name: "fwlidar_disk_alarm",
+        kind: Kind::Gauge,
+        help: "1 when the free space is below the alarm threshold, else 0.",
+        read: Read::Value(|s| bool01(s.disk.alarm)),
+    },
+    // Saturation.
+    Metric {
+        name: "fwlidar_saturated_pulses_total",
+        kind: Kind::Counter,
+        help: "Pulses with a raw sample at the digitizer's full scale.",
+        read: Read::Value(|s| s.saturation.pulses as f64),
+    },
+    Metric {
+        name: "fwlidar_saturated_pulses_ratio",
+        kind: Kind::Gauge,
+        help: "Fraction (0..1) of the last interval's pulses that were saturated.",
+        read: Read::Value(|s| s.saturation.recent_fraction),
+    },
+    // Alerts.
+    Metric {
+        name: "fwlidar_alert",
+        kind: Kind::Gauge,
+        help: "1 for every alert in force (kind and severity in the labels).",
+        read: Read::Written(alerts_in_force),
+    },
+    Metric {
+        name: "fwlidar_alerts",
+        kind: Kind::Gauge,
+        help: "Number of alerts in force.",
+        read: Read::Value(|s| s.alerts.len() as f64),
+    },
+];
+
+/// `fwlidar_build_info`: one sample of 1 labelled with the version and the survey.
+fn build_info(s: &QcSnapshot, f: &mut Family<'_>) {
+    f.sample(&[("version", &s.version), ("survey", &s.survey)], 1.0);
+}
+
+/// `fwlidar_stage_latency_seconds`: one histogram series per stage, labelled `stage`. Two
+/// stages of one name would make duplicate series: the first is kept.
+fn stage_latencies(s: &QcSnapshot, f: &mut Family<'_>) {
     let mut seen = BTreeSet::new();
     for st in &s.stages {
-        // Two stages of one name would make duplicate series: keep the first.
         if seen.insert(st.name.as_str()) {
-            w.histogram(
-                "fwlidar_stage_latency_seconds",
-                Some(("stage", &st.name)),
-                st,
-            );
+            f.histogram(Some(("stage", &st.name)), st);
         }
     }
-    w.family(
-        "fwlidar_end_to_end_latency_seconds",
-        "histogram",
-        "Frame arrival to the sink (every output done), seconds, since the start.",
-    );
-    w.histogram("fwlidar_end_to_end_latency_seconds", None, &s.end_to_end);
+}
 
-    // Inputs.
-    w.per(
-        "fwlidar_input_up",
-        "gauge",
-        "1 when the input is connected and delivering, else 0.",
-        "input",
-        &s.inputs,
-        |i| (i.name.to_string(), bool01(i.up)),
-    );
-    w.family(
-        "fwlidar_input_last_data_age_seconds",
-        "gauge",
-        "Seconds since the input's last data (absent before any came).",
-    );
-    for i in &s.inputs {
-        if let Some(age) = i.last_data_age_s {
-            w.sample(
-                "fwlidar_input_last_data_age_seconds",
-                &[("input", &i.name)],
-                age,
-            );
-        }
-    }
-    w.per(
-        "fwlidar_input_received_bytes_total",
-        "counter",
-        "Bytes received on the input.",
-        "input",
-        &s.inputs,
-        |i| (i.name.to_string(), i.bytes as f64),
-    );
-    w.per(
-        "fwlidar_input_connects_total",
-        "counter",
-        "Connections made on the input (TCP peers accepted, serial device opens).",
-        "input",
-        &s.inputs,
-        |i| (i.name.to_string(), i.connects as f64),
-    );
-    w.per(
-        "fwlidar_input_failed_attempts_total",
-        "counter",
-        "Connection or open attempts on the input that failed.",
-        "input",
-        &s.inputs,
-        |i| (i.name.to_string(), i.failed_attempts as f64),
-    );
-
-    // Navigation.
-    let port = |n: &super::snapshot::NavStatus| n.port.to_string();
-    w.family(
-        "fwlidar_nav_last_packet_age_seconds",
-        "gauge",
-        "Seconds since the port's last decoded navigation record (host clock).",
-    );
-    for n in &s.nav {
-        if let Some(age) = n.last_packet_age_s {
-            w.sample(
-                "fwlidar_nav_last_packet_age_seconds",
-                &[("port", &port(n))],
-                age,
-            );
-        }
-    }
-    w.family(
-        "fwlidar_nav_fix_quality",
-        "gauge",
-        "Fix quality code of the last record (GGA quality or NovAtel position type); the label \
-         names it.",
-    );
-    for n in &s.nav {
-        if let Some(fix) = n.fix {
-            w.sample(
-                "fwlidar_nav_fix_quality",
-                &[("port", &port(n)), ("fix", &n.fix_name)],
-                fix as f64,
-            );
-        }
-    }
-    w.family(
-        "fwlidar_nav_satellites",
-        "gauge",
-        "Satellites used in the last fix.",
-    );
-    for n in &s.nav {
-        if let Some(sats) = n.satellites {
-            w.sample("fwlidar_nav_satellites", &[("port", &port(n))], sats as f64);
-        }
-    }
-    w.family(
-        "fwlidar_nav_ins_status",
-        "gauge",
-        "INS status code of the last record; the label names it.",
-    );
-    for n in &s.nav {
-        if let Some(ins) = n.ins_status {
-            w.sample(
-                "fwlidar_nav_ins_status",
-                &[("port", &port(n)), ("status", &n.ins_name)],
-                ins as f64,
-            );
-        }
-    }
-    w.family(
-        "fwlidar_nav_samples_total",
-        "counter",
-        "Navigation samples decoded on the port.",
-    );
-    for n in &s.nav {
-        w.sample(
-            "fwlidar_nav_samples_total",
-            &[("port", &port(n))],
-            n.samples as f64,
-        );
-    }
-    w.family(
-        "fwlidar_nav_rejected_total",
-        "counter",
-        "Navigation records rejected on the port (bad checksum, malformed).",
-    );
-    for n in &s.nav {
-        w.sample(
-            "fwlidar_nav_rejected_total",
-            &[("port", &port(n))],
-            n.rejected as f64,
-        );
-    }
-
-    // Georeferencing.
-    let g = &s.georeference;
-    w.single(
-        "fwlidar_georeference_enabled",
-        "gauge",
-        "1 when georeferencing is on, else 0.",
-        bool01(g.enabled),
-    );
-    w.single(
-        "fwlidar_georeference_placed_total",
-        "counter",
-        "Pulses georeferenced.",
-        g.placed as f64,
-    );
-    w.family(
-        "fwlidar_georeference_missed_total",
-        "counter",
-        "Pulses not georeferenced, by reason.",
-    );
-    for (reason, n) in &g.missed {
-        w.sample(
-            "fwlidar_georeference_missed_total",
-            &[("reason", reason)],
-            *n as f64,
-        );
-    }
-
-    // Tiles.
-    w.single(
-        "fwlidar_tiles_open",
-        "gauge",
-        "Voxel tiles open now.",
-        s.tiles.open as f64,
-    );
-    w.single(
-        "fwlidar_tiles_closed_total",
-        "counter",
-        "Voxel tiles closed (written).",
-        s.tiles.closed as f64,
-    );
-
-    // Recording and disk.
-    let r = &s.recording;
-    w.family(
-        "fwlidar_recording_segment_bytes",
-        "gauge",
-        "Bytes written to the capture segment being written.",
-    );
-    w.sample(
-        "fwlidar_recording_segment_bytes",
-        &[("segment", &r.segment)],
-        r.bytes as f64,
-    );
-    w.family(
-        "fwlidar_recording_segment_records",
-        "gauge",
-        "Records written to the capture segment being written.",
-    );
-    w.sample(
-        "fwlidar_recording_segment_records",
-        &[("segment", &r.segment)],
-        r.records as f64,
-    );
-    w.single(
-        "fwlidar_recording_error",
-        "gauge",
-        "1 when the recording stopped on a write error, else 0.",
-        bool01(r.error.is_some()),
-    );
-    let d = &s.disk;
-    w.family(
-        "fwlidar_disk_free_bytes",
-        "gauge",
-        "Bytes available on the recording's file system.",
-    );
-    w.sample(
-        "fwlidar_disk_free_bytes",
-        &[("path", &d.path)],
-        d.free_bytes as f64,
-    );
-    w.family(
-        "fwlidar_disk_total_bytes",
-        "gauge",
-        "Size of the recording's file system, bytes.",
-    );
-    w.sample(
-        "fwlidar_disk_total_bytes",
-        &[("path", &d.path)],
-        d.total_bytes as f64,
-    );
-    w.family(
-        "fwlidar_disk_time_left_seconds",
-        "gauge",
-        "Seconds of recording left at the current rate (absent when not recording).",
-    );
-    if let Some(left) = d.seconds_left {
-        w.sample("fwlidar_disk_time_left_seconds", &[("path", &d.path)], left);
-    }
-    w.single(
-        "fwlidar_disk_alarm",
-        "gauge",
-        "1 when the free space is below the alarm threshold, else 0.",
-        bool01(d.alarm),
-    );
-
-    // Saturation.
-    w.single(
-        "fwlidar_saturated_pulses_total",
-        "counter",
-        "Pulses with a raw sample at the digitizer's full scale.",
-        s.saturation.pulses as f64,
-    );
-    w.single(
-        "fwlidar_saturated_pulses_ratio",
-        "gauge",
-        "Fraction (0..1) of the last interval's pulses that were saturated.",
-        s.saturation.recent_fraction,
-    );
-
-    // Alerts: one series per (kind, severity) in force.
-    w.family(
-        "fwlidar_alert",
-        "gauge",
-        "1 for every alert in force (kind and severity in the labels).",
-    );
+/// `fwlidar_alert`: a sample of 1 per (kind, severity) in force, in that order, however many
+/// alerts share it.
+fn alerts_in_force(s: &QcSnapshot, f: &mut Family<'_>) {
     let alerts: BTreeSet<(&str, &str)> = s
         .alerts
         .iter()
         .map(|a| (a.kind.as_str(), a.severity.as_str()))
         .collect();
     for (kind, severity) in alerts {
-        w.sample(
-            "fwlidar_alert",
-            &[("kind", kind), ("severity", severity)],
-            1.0,
-        );
+        f.sample(&[("kind", kind), ("severity", severity)], 1.0);
     }
-    w.single(
-        "fwlidar_alerts",
-        "gauge",
-        "Number of alerts in force.",
-        s.alerts.len() as f64,
-    );
-
-    w.out
 }
 
+/// 1 for true, 0 for false.
 fn bool01(b: bool) -> f64 {
     if b { 1.0 } else { 0.0 }
+}
+
+/// The samples of one family being written: the writer and the family's name.
+struct Family<'w> {
+    w: &'w mut Writer,
+    name: &'static str,
+}
+
+impl Family<'_> {
+    /// A sample of the family with these labels.
+    fn sample(&mut self, labels: &[(&str, &str)], value: f64) {
+        self.w.sample(self.name, labels, value);
+    }
+
+    /// A histogram series of the family ([`Writer::histogram`]).
+    fn histogram(&mut self, label: Option<(&str, &str)>, h: &StageLatency) {
+        self.w.histogram(self.name, label, h);
+    }
 }
 
 /// Builds the text, one family after another.
@@ -445,35 +436,56 @@ struct Writer {
 }
 
 impl Writer {
+    /// Family `m` of snapshot `s`: `# HELP`, `# TYPE`, then its samples.
+    fn metric(&mut self, m: &Metric, s: &QcSnapshot) {
+        let name = m.name;
+        self.family(name, m.kind.as_str(), m.help);
+        match m.read {
+            Read::Value(value) => self.sample(name, &[], value(s)),
+            Read::ByReason(counts) => {
+                for (reason, n) in counts(s) {
+                    self.sample(name, &[("reason", reason)], *n as f64);
+                }
+            }
+            Read::PerQueue(value) => {
+                for q in &s.queues {
+                    self.sample(name, &[("queue", &q.name)], value(q));
+                }
+            }
+            Read::PerInput(value) => {
+                for i in &s.inputs {
+                    if let Some(v) = value(i) {
+                        self.sample(name, &[("input", &i.name)], v);
+                    }
+                }
+            }
+            Read::PerPort(value) => {
+                for n in &s.nav {
+                    if let Some((v, named)) = value(n) {
+                        let port = n.port.to_string();
+                        match named {
+                            Some(label) => self.sample(name, &[("port", &port), label], v),
+                            None => self.sample(name, &[("port", &port)], v),
+                        }
+                    }
+                }
+            }
+            Read::Labelled(label, read) => {
+                if let (key, Some(v)) = read(s) {
+                    self.sample(name, &[(label, key)], v);
+                }
+            }
+            Read::Written(write) => write(s, &mut Family { w: self, name }),
+        }
+    }
+
     /// `# HELP` and `# TYPE` of a family.
     fn family(&mut self, name: &str, kind: &str, help: &str) {
         let _ = writeln!(self.out, "# HELP {name} {}", escape_help(help));
         let _ = writeln!(self.out, "# TYPE {name} {kind}");
     }
 
-    /// A family with one sample per item, labelled `label` = the item's name.
-    fn per<T>(
-        &mut self,
-        name: &str,
-        kind: &str,
-        help: &str,
-        label: &str,
-        items: &[T],
-        sample: impl Fn(&T) -> (String, f64),
-    ) {
-        self.family(name, kind, help);
-        for item in items {
-            let (key, value) = sample(item);
-            self.sample(name, &[(label, &key)], value);
-        }
-    }
-
-    /// A family with one unlabelled sample.
-    fn single(&mut self, name: &str, kind: &str, help: &str, value: f64) {
-        self.family(name, kind, help);
-        self.sample(name, &[], value);
-    }
-
+    /// One sample line: the name, the labels (values escaped) and the value.
     fn sample(&mut self, name: &str, labels: &[(&str, &str)], value: f64) {
         self.out.push_str(name);
         if !labels.is_empty() {
@@ -1132,5 +1144,61 @@ pub(crate) mod tests {
         }
         let s = check_exposition(&render(&snap));
         assert_eq!(value(&s, "fwlidar_alerts", &[]), 2.0);
+    }
+
+    /// [`filled_snapshot`] with the rarer shapes: absent values, a recording error, a disk
+    /// alarm, georeferencing off, two stages of one name, histograms with a NaN bound, a bound
+    /// out of order and no +Inf bound, a NaN ratio, an alert twice, a navigation port without a
+    /// fix, no drops.
+    fn odd_snapshot() -> QcSnapshot {
+        let mut s = filled_snapshot(3);
+        s.inputs[0].last_data_age_s = None;
+        s.drops.clear();
+        s.recording.error = Some("No space left on device".into());
+        s.disk.seconds_left = None;
+        s.disk.alarm = true;
+        s.georeference.enabled = false;
+        let mut again = s.stages[0].clone();
+        again.buckets = vec![(1e-4, 5), (f64::NAN, 6)];
+        s.stages.push(again);
+        s.stages[1].buckets[3].0 = f64::NAN;
+        s.end_to_end.buckets = vec![(0.001, 2), (0.0005, 3), (0.01, 4)];
+        s.end_to_end.count = 5;
+        s.saturation.recent_fraction = f64::NAN;
+        s.uptime_s = f64::INFINITY;
+        s.alerts.push(s.alerts[0].clone());
+        s.nav.push(NavStatus {
+            port: 3,
+            fix: None,
+            fix_name: String::new(),
+            satellites: None,
+            ins_status: None,
+            ins_name: String::new(),
+            last_packet_age_s: None,
+            samples: 0,
+            rejected: 9,
+            ..Default::default()
+        });
+        s
+    }
+
+    /// The fixture `src/qc/testdata/<name>`, the text the hand-written renderer made before
+    /// the metrics became a table.
+    fn fixture(name: &str) -> String {
+        let path = format!("{}/src/qc/testdata/{name}", env!("CARGO_MANIFEST_DIR"));
+        std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
+    }
+
+    #[test]
+    fn rendered_text_is_byte_for_byte_the_fixtures() {
+        for (snap, name) in [
+            (filled_snapshot(17), "metrics_filled.prom"),
+            (odd_snapshot(), "metrics_odd.prom"),
+            (QcSnapshot::default(), "metrics_empty.prom"),
+        ] {
+            let text = render(&snap);
+            check_exposition(&text);
+            assert_eq!(text, fixture(name), "{name}");
+        }
     }
 }

@@ -404,142 +404,147 @@ impl Decomposer {
         if n == 0 {
             return Ok(stats);
         }
-        // One scan: finiteness, the largest sample and Σ y² (the RSS of an empty model).
-        let mut finite = true;
-        let mut y_max = 0.0f32;
-        let mut sum_sq = 0.0f64;
-        for &v in y {
-            finite &= v.is_finite();
-            y_max = y_max.max(v);
-            sum_sq += (v as f64) * (v as f64);
-        }
-        if !finite {
+        let Some((y_max, sum_sq)) = scan_segment(y) else {
             return Err(DecomposeError::NonFiniteInput);
-        }
-        let cfg = &self.config;
-        // Fitted components are significant above the noise (`min_snr`); the relative threshold
-        // only selects where components start (peaks and residual peaks).
-        let significant = (cfg.min_snr * noise_v.max(0.0)).max(f32::MIN_POSITIVE);
-        let threshold = significant
-            .max(cfg.min_relative_amplitude * y_max)
-            .max(f32::MIN_POSITIVE);
+        };
+        let limits = FitLimits::new(&self.config, n, noise_v, y_max);
         // Empty pulse: no sample reaches the threshold, so neither a peak nor a residual peak
         // can (without components the residual is `y`); nothing more to do.
-        if y_max < threshold {
+        if y_max < limits.threshold {
             stats.rms_residual = (sum_sq / n as f64).sqrt() as f32;
             return Ok(stats);
         }
-        let (s_min, s_max) = (cfg.sigma_min_bins, cfg.sigma_max_bins);
-        let bounds = Bounds {
-            center_min_bins: 0.0,
-            center_max_bins: (n - 1) as f64,
-            sigma_min_bins: s_min as f64,
-            sigma_max_bins: s_max as f64,
+        let mut fit = FitState {
+            comps: [Gaussian::default(); MAX_COMPONENTS],
+            k: 0,
+            used: 0,
+            pruned: ([Gaussian::default(); MAX_COMPONENTS], 0),
         };
+        stats.peaks = self.first_fit(y, noise_v, &limits, &mut fit);
+        for _ in 0..self.config.refine_passes {
+            if !self.refine(y, &limits, &mut fit) {
+                break;
+            }
+            stats.refined += 1;
+        }
+        Ok(self.emit_returns(y, &mut fit, stats, out))
+    }
+
+    /// Steps 1 to 4 on `y` (noise level `noise_v`, signal units): detects the peaks, starts a
+    /// component at each ([`start_value`]), fits them with the first fit's share of the budget
+    /// and prunes the ones not significant, into `fit`. Returns the number of peaks detected.
+    fn first_fit(
+        &mut self,
+        y: &[f32],
+        noise_v: f32,
+        limits: &FitLimits,
+        fit: &mut FitState,
+    ) -> u32 {
+        let cfg = &self.config;
         let settings = PeakSettings {
-            threshold,
+            threshold: limits.threshold,
             min_separation_bins: cfg.min_separation_bins,
             max_peaks: cfg.max_components,
             shoulders: cfg.shoulders,
-            shoulder_curvature: threshold / 4.0,
+            shoulder_curvature: limits.threshold / 4.0,
             min_prominence: cfg.min_prominence_snr * noise_v.max(0.0),
             rule: cfg.peak_rule,
         };
         self.finder.find(y, &settings, &mut self.peaks);
-        stats.peaks = self.peaks.len() as u32;
-
-        let mut comps = [Gaussian::default(); MAX_COMPONENTS];
-        let mut k = 0;
         // Position of the previous peak (the peaks are sorted by position), bins.
         let mut previous: Option<f32> = None;
         for p in &self.peaks {
-            comps[k] = start_value(cfg.start_values, y, p, previous, (s_min, s_max));
+            fit.comps[fit.k] = start_value(cfg.start_values, y, p, previous, limits.sigma);
             previous = Some(p.position_bins);
-            k += 1;
+            fit.k += 1;
         }
-        let budget = cfg.max_iterations;
-        let mut used = 0;
-        // Components the last fit pruned, and their count.
-        let mut pruned = ([Gaussian::default(); MAX_COMPONENTS], 0usize);
         // With refinement enabled the first fit gets half the budget: a slowly creeping fit
         // (typically a component on a noise spike) must not starve the refinement.
+        let budget = cfg.max_iterations;
         let first_budget = if cfg.refine_passes > 0 {
             budget.div_ceil(2)
         } else {
             budget
         };
-        if k > 0 {
-            used += self
+        if fit.k > 0 {
+            fit.used += self
                 .fitter
-                .fit(y, &mut comps[..k], &bounds, first_budget)
+                .fit(y, &mut fit.comps[..fit.k], &limits.bounds, first_budget)
                 .iterations;
-            k = prune(&mut comps, k, significant as f64, &mut pruned);
+            fit.k = prune(
+                &mut fit.comps,
+                fit.k,
+                limits.significant as f64,
+                &mut fit.pruned,
+            );
         }
+        self.peaks.len() as u32
+    }
 
-        for _ in 0..cfg.refine_passes {
-            if k >= cfg.max_components || used >= budget {
-                break;
-            }
-            let res = &mut self.residual[..n];
-            self.fitter.residual(y, &comps[..k], res);
-            let mut best = 0;
-            let mut res_best = f32::NEG_INFINITY;
-            for (i, &r) in res.iter().enumerate() {
-                if i == 0 || r > res_best {
-                    best = i;
-                    res_best = r;
-                }
-            }
-            // Like the peak detector, the residual's first and last samples are no peaks.
-            if res[best] < threshold || best == 0 || best + 1 == n {
-                break;
-            }
-            // At a component the last fit pruned the refit would most likely prune the new one
-            // again (and the previous solution be kept): a whole fit for nothing.
-            if near_pruned(&pruned.0[..pruned.1], best) {
-                break;
-            }
-            let before = comps;
-            let k_before = k;
-            let p = best as f64;
-            let mut new = Gaussian {
-                amplitude: res[best] as f64,
-                center_bins: p,
-                sigma_bins: (half_width(res, best) / HWHM_PER_SIGMA).clamp(s_min, s_max) as f64,
-            };
-            // A residual peak within 2σ of a component usually means that component covers two
-            // merged echoes: split it (both narrower, the old one moved away from the new one),
-            // which starts the refit much closer to the two-echo optimum.
-            if let Some(j) = (0..k)
-                .filter(|&j| (comps[j].center_bins - p).abs() < 2.0 * comps[j].sigma_bins)
-                .max_by(|&a, &b| comps[a].at(p).total_cmp(&comps[b].at(p)))
-            {
-                let parent = comps[j];
-                let s = (SPLIT_SIGMA_FACTOR * parent.sigma_bins).clamp(s_min as f64, s_max as f64);
-                comps[j].sigma_bins = s;
-                comps[j].center_bins = (parent.center_bins - 0.5 * (p - parent.center_bins))
-                    .clamp(bounds.center_min_bins, bounds.center_max_bins);
-                new.sigma_bins = s;
-                new.amplitude = new.amplitude.max(0.5 * parent.amplitude);
-            }
-            comps[k] = new;
-            k += 1;
-            // Sorted by centre, the normal equations are banded (cheapest solve).
-            comps[..k].sort_unstable_by(|a, b| a.center_bins.total_cmp(&b.center_bins));
-            used += self
-                .fitter
-                .fit(y, &mut comps[..k], &bounds, budget - used)
-                .iterations;
-            k = prune(&mut comps, k, significant as f64, &mut pruned);
-            if k <= k_before {
-                comps = before;
-                k = k_before;
-                break;
-            }
-            stats.refined += 1;
+    /// One round of residual refinement (step 5): a component added where the residual of
+    /// `fit` over `y` peaks, and all refitted with what is left of the budget. `false` when
+    /// the round stops the refinement: no component room or budget left, no residual peak
+    /// above the threshold, a peak at a component the last fit pruned, or the new component
+    /// pruned (the previous components are then kept).
+    fn refine(&mut self, y: &[f32], limits: &FitLimits, fit: &mut FitState) -> bool {
+        let n = y.len();
+        let budget = self.config.max_iterations;
+        if fit.k >= self.config.max_components || fit.used >= budget {
+            return false;
         }
+        let res = &mut self.residual[..n];
+        self.fitter.residual(y, &fit.comps[..fit.k], res);
+        let best = first_maximum(res);
+        // Like the peak detector, the residual's first and last samples are no peaks.
+        if res[best] < limits.threshold || best == 0 || best + 1 == n {
+            return false;
+        }
+        // At a component the last fit pruned the refit would most likely prune the new one
+        // again (and the previous solution be kept): a whole fit for nothing.
+        if near_pruned(&fit.pruned.0[..fit.pruned.1], best) {
+            return false;
+        }
+        let before = fit.comps;
+        let k_before = fit.k;
+        let new = seed_at_residual_peak(&mut fit.comps[..fit.k], res, best, limits);
+        fit.comps[fit.k] = new;
+        fit.k += 1;
+        // Sorted by centre, the normal equations are banded (cheapest solve).
+        fit.comps[..fit.k].sort_unstable_by(|a, b| a.center_bins.total_cmp(&b.center_bins));
+        fit.used += self
+            .fitter
+            .fit(
+                y,
+                &mut fit.comps[..fit.k],
+                &limits.bounds,
+                budget - fit.used,
+            )
+            .iterations;
+        fit.k = prune(
+            &mut fit.comps,
+            fit.k,
+            limits.significant as f64,
+            &mut fit.pruned,
+        );
+        if fit.k <= k_before {
+            fit.comps = before;
+            fit.k = k_before;
+            return false;
+        }
+        true
+    }
 
-        let comps = &mut comps[..k];
+    /// Appends the components of `fit`, sorted by centre, to `out` (one [`FittedReturn`] each,
+    /// with the RMS residual of their model over `y`) and completes `stats` with them.
+    fn emit_returns(
+        &mut self,
+        y: &[f32],
+        fit: &mut FitState,
+        mut stats: FitStats,
+        out: &mut Vec<FittedReturn>,
+    ) -> FitStats {
+        let n = y.len();
+        let comps = &mut fit.comps[..fit.k];
         comps.sort_unstable_by(|a, b| a.center_bins.total_cmp(&b.center_bins));
         let rss = self.fitter.residual(y, comps, &mut self.residual[..n]);
         let rms = (rss / n as f64).sqrt() as f32;
@@ -554,11 +559,123 @@ impl Decomposer {
                 backscatter: f32::NAN,
             });
         }
-        stats.iterations = used;
-        stats.components = k as u32;
+        stats.iterations = fit.used;
+        stats.components = fit.k as u32;
         stats.rms_residual = rms;
-        Ok(stats)
+        stats
     }
+}
+
+/// The thresholds and bounds of one segment's fit.
+struct FitLimits {
+    /// Smallest fitted amplitude kept: `min_snr × noise_v`, signal units.
+    significant: f32,
+    /// Smallest peak or residual peak that starts a component: `significant` or the relative
+    /// threshold, whichever is higher, signal units.
+    threshold: f32,
+    /// Smallest and largest σ of a component, bins.
+    sigma: (f32, f32),
+    /// The fit's box: centres within the segment, σ within `sigma`.
+    bounds: Bounds,
+}
+
+impl FitLimits {
+    /// The limits for a segment of `n` samples (at least 1) whose noise level is `noise_v`
+    /// and largest sample `y_max` (signal units).
+    fn new(cfg: &DecomposeConfig, n: usize, noise_v: f32, y_max: f32) -> Self {
+        // Fitted components are significant above the noise (`min_snr`); the relative threshold
+        // only selects where components start (peaks and residual peaks).
+        let significant = (cfg.min_snr * noise_v.max(0.0)).max(f32::MIN_POSITIVE);
+        let threshold = significant
+            .max(cfg.min_relative_amplitude * y_max)
+            .max(f32::MIN_POSITIVE);
+        let (s_min, s_max) = (cfg.sigma_min_bins, cfg.sigma_max_bins);
+        FitLimits {
+            significant,
+            threshold,
+            sigma: (s_min, s_max),
+            bounds: Bounds {
+                center_min_bins: 0.0,
+                center_max_bins: (n - 1) as f64,
+                sigma_min_bins: s_min as f64,
+                sigma_max_bins: s_max as f64,
+            },
+        }
+    }
+}
+
+/// The components of one segment's fit as it goes.
+struct FitState {
+    /// The components, the first `k` in use.
+    comps: [Gaussian; MAX_COMPONENTS],
+    /// Components in use.
+    k: usize,
+    /// Levenberg-Marquardt trial steps used so far.
+    used: u32,
+    /// Components the last fit pruned, and their count.
+    pruned: ([Gaussian; MAX_COMPONENTS], usize),
+}
+
+/// One scan of a segment: `None` if a sample is not finite, else its largest sample (0 when
+/// all are negative) and `Σ y²` (the RSS of an empty model), signal units.
+fn scan_segment(y: &[f32]) -> Option<(f32, f64)> {
+    let mut finite = true;
+    let mut y_max = 0.0f32;
+    let mut sum_sq = 0.0f64;
+    for &v in y {
+        finite &= v.is_finite();
+        y_max = y_max.max(v);
+        sum_sq += (v as f64) * (v as f64);
+    }
+    finite.then_some((y_max, sum_sq))
+}
+
+/// Index of the first largest value of `v`, compared by `>` from `v[0]` on (0 when `v` is
+/// empty or `v[0]` is NaN).
+fn first_maximum(v: &[f32]) -> usize {
+    let mut best = 0;
+    let mut v_best = f32::NEG_INFINITY;
+    for (i, &r) in v.iter().enumerate() {
+        if i == 0 || r > v_best {
+            best = i;
+            v_best = r;
+        }
+    }
+    best
+}
+
+/// The component refinement adds at the peak `best` of the residual `res` (signal units):
+/// centred there, as high as the residual, σ (bins) from the residual's half width at half
+/// maximum. A residual peak within 2σ of one of `comps`
+/// usually means that component covers two merged echoes: it is split (both narrower, the
+/// old one moved away from the new one), which starts the refit much closer to the two-echo
+/// optimum.
+fn seed_at_residual_peak(
+    comps: &mut [Gaussian],
+    res: &[f32],
+    best: usize,
+    limits: &FitLimits,
+) -> Gaussian {
+    let (s_min, s_max) = limits.sigma;
+    let p = best as f64;
+    let mut new = Gaussian {
+        amplitude: res[best] as f64,
+        center_bins: p,
+        sigma_bins: (half_width(res, best) / HWHM_PER_SIGMA).clamp(s_min, s_max) as f64,
+    };
+    if let Some(j) = (0..comps.len())
+        .filter(|&j| (comps[j].center_bins - p).abs() < 2.0 * comps[j].sigma_bins)
+        .max_by(|&a, &b| comps[a].at(p).total_cmp(&comps[b].at(p)))
+    {
+        let parent = comps[j];
+        let s = (SPLIT_SIGMA_FACTOR * parent.sigma_bins).clamp(s_min as f64, s_max as f64);
+        comps[j].sigma_bins = s;
+        comps[j].center_bins = (parent.center_bins - 0.5 * (p - parent.center_bins))
+            .clamp(limits.bounds.center_min_bins, limits.bounds.center_max_bins);
+        new.sigma_bins = s;
+        new.amplitude = new.amplitude.max(0.5 * parent.amplitude);
+    }
+    new
 }
 
 /// Drops components with amplitude below `threshold`, keeping order; returns the new count.
