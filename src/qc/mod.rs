@@ -1,8 +1,8 @@
 //! Live QC monitoring: the snapshot the daemon publishes once a second ([`snapshot`]), the hub
-//! that holds it for readers ([`QcHub`]), its Prometheus rendering ([`metrics`]) and the
+//! that holds it for readers ([`QcHub`]), its Prometheus text ([`prometheus`]) and the
 //! read-only HTTP server with the operator's page ([`server`]).
 
-pub mod metrics;
+pub mod prometheus;
 pub mod server;
 pub mod snapshot;
 

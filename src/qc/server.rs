@@ -9,7 +9,7 @@
 //! |---|---|
 //! | `/` | the operator's page (`text/html`) |
 //! | `/app.js`, `/style.css` | its script and style sheet |
-//! | `/metrics` | [`metrics::render`], `text/plain; version=0.0.4` |
+//! | `/metrics` | [`prometheus::render`], `text/plain; version=0.0.4` |
 //! | `/api/status` | the latest [`QcSnapshot`](super::QcSnapshot) as JSON |
 //! | `/api/history` | the chart history (JSON array of [`HistoryPoint`](super::HistoryPoint), oldest first) |
 //! | `/api/waveform` | the last [`WaveformView`](super::WaveformView) as JSON, 204 before any |
@@ -33,7 +33,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use tokio::sync::{mpsc, watch};
 
-use super::{QcHub, metrics};
+use super::{QcHub, prometheus};
 
 /// How long [`QcServer::shutdown`] lets open requests finish before closing them, seconds.
 pub const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
@@ -249,7 +249,7 @@ async fn style_css() -> Response {
 }
 
 async fn prometheus(State(st): State<AppState>) -> Response {
-    reply(metrics::CONTENT_TYPE, metrics::render(&st.hub.snapshot()))
+    reply(prometheus::CONTENT_TYPE, prometheus::render(&st.hub.snapshot()))
 }
 
 async fn status(State(st): State<AppState>) -> Response {
@@ -339,7 +339,7 @@ mod tests {
     use std::net::TcpStream;
 
     use super::*;
-    use crate::qc::metrics::tests::filled_snapshot;
+    use crate::qc::prometheus::tests::filled_snapshot;
     use crate::qc::snapshot::*;
 
     /// A response as the test client read it.
@@ -553,7 +553,7 @@ mod tests {
             "{ct}"
         );
         assert!(m.text().contains("fwlidar_snapshot_sequence 2\n"));
-        crate::qc::metrics::tests::check_exposition(m.text());
+        crate::qc::prometheus::tests::check_exposition(m.text());
         assert!(m.text().contains("fwlidar_pulses_processed_total 12345\n"));
 
         let s = get(addr, "/api/status");
@@ -997,7 +997,7 @@ mod demo {
     fn demo_snapshots_render_valid_metrics_and_json() {
         for k in [0, 1, 31, 100] {
             let (snap, point) = demo_snapshot(k, 1.79e9);
-            crate::qc::metrics::tests::check_exposition(&crate::qc::metrics::render(&snap));
+            crate::qc::prometheus::tests::check_exposition(&crate::qc::prometheus::render(&snap));
             serde_json::to_string(&snap).unwrap();
             serde_json::to_string(&point).unwrap();
             serde_json::to_string(&demo_waveform(k)).unwrap();
