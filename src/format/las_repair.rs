@@ -216,6 +216,70 @@ pub fn analyse<R: Read + Seek>(
     file_len: u64,
     wdp: Option<(&str, u64, &[u8])>,
 ) -> Result<RepairPlan, RepairError> {
+    check_signature(r, file, file_len)?;
+    let h = read_header(r, file, file_len)?;
+    let layout = point_layout(file, &h, file_len)?;
+    check_vlrs(r, file, &h, layout.offset)?;
+    let (end, waveform_evlr) = check_evlrs(r, file, &h, layout.offset, file_len)?;
+    check_internal_waveforms(file, &h, layout.global, waveform_evlr)?;
+    let (whole, trailing) = count_records(file, &layout, end, file_len)?;
+    let (scale, off) = scale_and_offset(file, &h)?;
+
+    // The external .wdp: its size bounds the packets.
+    let external = layout.global & 0b100 != 0 && layout.wave_at.is_some();
+    let mut report = RepairReport {
+        file: file.to_string(),
+        file_bytes: file_len,
+        point_format: layout.format,
+        point_record_length: layout.record_len,
+        offset_to_point_data: layout.offset,
+        points_in_header: {
+            let n = u64_at(&h, 247);
+            if n == 0 {
+                u64::from(u32_at(&h, 107))
+            } else {
+                n
+            }
+        },
+        trailing_bytes_dropped: trailing,
+        ..Default::default()
+    };
+    let (wdp_len, wdp_record_length) = if external {
+        check_wdp(wdp, &mut report)?
+    } else {
+        (None, None)
+    };
+
+    let kept = scan_points(r, file, &layout, whole, external, wdp_len, &mut report)?;
+    let n = kept.points;
+    report.points = n;
+    let new_len = if end == file_len {
+        layout.offset + n * u64::from(layout.record_len)
+    } else {
+        file_len
+    };
+    report.file_bytes_after = new_len;
+
+    // The new header.
+    let mut nh = h.clone();
+    rewrite_bounds(&h, &mut nh, &kept, scale, off, &mut report);
+    rewrite_counts(&h, &mut nh, &kept, &mut report);
+    report.repaired =
+        !report.changed.is_empty() || new_len != file_len || wdp_record_length.is_some();
+    Ok(RepairPlan {
+        header: nh,
+        new_len,
+        wdp_record_length,
+        report,
+    })
+}
+
+/// Refuses a file shorter than 4 bytes or whose first 4 bytes are not `LASF`.
+fn check_signature<R: Read + Seek>(
+    r: &mut R,
+    file: &str,
+    file_len: u64,
+) -> Result<(), RepairError> {
     let mut sig = [0u8; 4];
     if file_len < 4 {
         return Err(RepairError::NotLas {
@@ -233,6 +297,16 @@ pub fn analyse<R: Read + Seek>(
             ),
         });
     }
+    Ok(())
+}
+
+/// Reads the public header block (its stated size, bytes), refusing a file that is not LAS 1.4,
+/// whose header size is below a LAS 1.4 header's, or that is shorter than its header.
+fn read_header<R: Read + Seek>(
+    r: &mut R,
+    file: &str,
+    file_len: u64,
+) -> Result<Vec<u8>, RepairError> {
     if file_len < 96 {
         return Err(field(
             file,
@@ -267,6 +341,28 @@ pub fn analyse<R: Read + Seek>(
     }
     let mut h = vec![0u8; usize::from(header_size)];
     read_exact_at(r, file, 0, &mut h, "reading the header")?;
+    Ok(h)
+}
+
+/// The point records' layout as the header states it.
+struct PointLayout {
+    /// Point data record format (6 to 10).
+    format: u8,
+    /// Point data record length, bytes.
+    record_len: u16,
+    /// Offset of the wave packet fields in a record (formats 9 and 10).
+    wave_at: Option<usize>,
+    /// Global encoding bits.
+    global: u16,
+    /// Offset to the first point record, bytes.
+    offset: u64,
+}
+
+/// Checks the point-record layout of header `h`: an uncompressed format 6 to 10, a record
+/// length that holds the format, and an offset to the point data between the end of the header
+/// and the end of the file (`file_len` bytes).
+fn point_layout(file: &str, h: &[u8], file_len: u64) -> Result<PointLayout, RepairError> {
+    let header_size = u16_at(h, 94);
     let raw_format = h[104];
     if raw_format & 0xc0 != 0 {
         return Err(field(
@@ -283,7 +379,7 @@ pub fn analyse<R: Read + Seek>(
             format!("{format}: repair handles formats 6 to 10"),
         ));
     };
-    let record_len = u16_at(&h, 105);
+    let record_len = u16_at(h, 105);
     if record_len < min_len {
         return Err(field(
             file,
@@ -291,8 +387,8 @@ pub fn analyse<R: Read + Seek>(
             format!("{record_len} bytes, format {format} needs at least {min_len}"),
         ));
     }
-    let global = u16_at(&h, 6);
-    let offset = u64::from(u32_at(&h, 96));
+    let global = u16_at(h, 6);
+    let offset = u64::from(u32_at(h, 96));
     if offset < u64::from(header_size) {
         return Err(field(
             file,
@@ -307,8 +403,26 @@ pub fn analyse<R: Read + Seek>(
             format!("{offset}, past the end of the file ({file_len} bytes): the VLR area is cut"),
         ));
     }
+    Ok(PointLayout {
+        format,
+        record_len,
+        wave_at,
+        global,
+        offset,
+    })
+}
+
+/// Walks the VLRs the header `h` states: each must lie between the header and the point data
+/// (which starts at byte `offset`).
+fn check_vlrs<R: Read + Seek>(
+    r: &mut R,
+    file: &str,
+    h: &[u8],
+    offset: u64,
+) -> Result<(), RepairError> {
+    let header_size = u16_at(h, 94);
     // The VLRs must lie between the header and the points.
-    let n_vlrs = u32_at(&h, 100);
+    let n_vlrs = u32_at(h, 100);
     let mut at = u64::from(header_size);
     let mut vh = [0u8; VLR_HEADER_SIZE];
     for i in 0..n_vlrs {
@@ -336,9 +450,23 @@ pub fn analyse<R: Read + Seek>(
             ));
         }
     }
+    Ok(())
+}
+
+/// Walks the EVLRs the header `h` states, when any: each must lie whole in the file
+/// (`file_len` bytes), after the point data (from byte `offset`). Returns where the point
+/// data ends (the first EVLR, or the end of the file), bytes, and where the last EVLR of record
+/// id 65535 (waveform data packets) starts, if one does.
+fn check_evlrs<R: Read + Seek>(
+    r: &mut R,
+    file: &str,
+    h: &[u8],
+    offset: u64,
+    file_len: u64,
+) -> Result<(u64, Option<u64>), RepairError> {
     // EVLRs, when the header states any, must all be in the file; the points end at the first.
-    let start_evlr = u64_at(&h, 235);
-    let n_evlrs = u32_at(&h, 243);
+    let start_evlr = u64_at(h, 235);
+    let n_evlrs = u32_at(h, 243);
     let mut end = file_len;
     let mut waveform_evlr = None;
     if n_evlrs > 0 {
@@ -380,8 +508,19 @@ pub fn analyse<R: Read + Seek>(
         }
         end = start_evlr;
     }
+    Ok((end, waveform_evlr))
+}
+
+/// With internal waveform packets (global encoding bit 1), the header's start of the waveform
+/// data packet record must be where an EVLR of record id 65535 starts (`waveform_evlr`).
+fn check_internal_waveforms(
+    file: &str,
+    h: &[u8],
+    global: u16,
+    waveform_evlr: Option<u64>,
+) -> Result<(), RepairError> {
     if global & 0b10 != 0 {
-        let start_wdp = u64_at(&h, 227);
+        let start_wdp = u64_at(h, 227);
         if waveform_evlr != Some(start_wdp) {
             return Err(field(
                 file,
@@ -393,7 +532,20 @@ pub fn analyse<R: Read + Seek>(
             ));
         }
     }
-    let avail = end - offset;
+    Ok(())
+}
+
+/// The whole point records between the point data's start and `end` (bytes), and the bytes of
+/// a partial last record; refused when that partial record is followed by EVLRs (it is not the
+/// end of the file, `file_len` bytes, that was cut).
+fn count_records(
+    file: &str,
+    layout: &PointLayout,
+    end: u64,
+    file_len: u64,
+) -> Result<(u64, u64), RepairError> {
+    let record_len = layout.record_len;
+    let avail = end - layout.offset;
     let whole = avail / u64::from(record_len);
     let trailing = avail % u64::from(record_len);
     if trailing != 0 && end != file_len {
@@ -406,8 +558,14 @@ pub fn analyse<R: Read + Seek>(
             ),
         ));
     }
-    let scale = [f64_at(&h, 131), f64_at(&h, 139), f64_at(&h, 147)];
-    let off = [f64_at(&h, 155), f64_at(&h, 163), f64_at(&h, 171)];
+    Ok((whole, trailing))
+}
+
+/// The X, Y, Z scale factors and offsets of header `h` (metres per unit, metres), refused
+/// unless finite (and the scale factors non-zero).
+fn scale_and_offset(file: &str, h: &[u8]) -> Result<([f64; 3], [f64; 3]), RepairError> {
+    let scale = [f64_at(h, 131), f64_at(h, 139), f64_at(h, 147)];
+    let off = [f64_at(h, 155), f64_at(h, 163), f64_at(h, 171)];
     for (k, axis) in ["X", "Y", "Z"].iter().enumerate() {
         if !(scale[k].is_finite() && scale[k] != 0.0) {
             return Err(field(
@@ -424,75 +582,91 @@ pub fn analyse<R: Read + Seek>(
             ));
         }
     }
+    Ok((scale, off))
+}
 
-    // The external .wdp: its size bounds the packets.
-    let external = global & 0b100 != 0 && wave_at.is_some();
-    let mut report = RepairReport {
-        file: file.to_string(),
-        file_bytes: file_len,
-        point_format: format,
-        point_record_length: record_len,
-        offset_to_point_data: offset,
-        points_in_header: {
-            let n = u64_at(&h, 247);
-            if n == 0 {
-                u64::from(u32_at(&h, 107))
-            } else {
-                n
-            }
-        },
-        trailing_bytes_dropped: trailing,
-        ..Default::default()
-    };
+/// Checks the external `.wdp` (`wdp`: its name, length in bytes and first 60 bytes) of a file
+/// whose waveform packets are external, and records it in `report` (or a note when there is
+/// none). Returns its length, bytes, and the record length to write in it when the stated one
+/// is not its size less the 60-byte header.
+fn check_wdp(
+    wdp: Option<(&str, u64, &[u8])>,
+    report: &mut RepairReport,
+) -> Result<(Option<u64>, Option<u64>), RepairError> {
     let mut wdp_len = None;
     let mut wdp_record_length = None;
-    if external {
-        match wdp {
-            Some((name, len, head)) => {
-                if len < EVLR_HEADER_SIZE as u64 || head.len() < EVLR_HEADER_SIZE {
-                    return Err(field(
-                        name,
-                        "waveform data packet record header",
-                        format!("the file has {len} bytes, the record header 60: it is cut"),
-                    ));
-                }
-                if u16_at(head, 18) != 65535 {
-                    return Err(field(
-                        name,
-                        "record id",
-                        format!(
-                            "{}: not a waveform data packet record (65535)",
-                            u16_at(head, 18)
-                        ),
-                    ));
-                }
-                let before = u64_at(head, 20);
-                let after = len - EVLR_HEADER_SIZE as u64;
-                if before != after {
-                    wdp_record_length = Some(after);
-                }
-                report.wdp = Some(WdpReport {
-                    file: name.to_string(),
-                    bytes: len,
-                    record_length_before: before,
-                    record_length_after: after,
-                    backup: None,
-                });
-                wdp_len = Some(len);
+    match wdp {
+        Some((name, len, head)) => {
+            if len < EVLR_HEADER_SIZE as u64 || head.len() < EVLR_HEADER_SIZE {
+                return Err(field(
+                    name,
+                    "waveform data packet record header",
+                    format!("the file has {len} bytes, the record header 60: it is cut"),
+                ));
             }
-            None => report.notes.push(
-                "the waveform packets are external (global encoding bit 2) but no .wdp was \
-                 found beside the file: packets not checked"
-                    .into(),
-            ),
+            if u16_at(head, 18) != 65535 {
+                return Err(field(
+                    name,
+                    "record id",
+                    format!(
+                        "{}: not a waveform data packet record (65535)",
+                        u16_at(head, 18)
+                    ),
+                ));
+            }
+            let before = u64_at(head, 20);
+            let after = len - EVLR_HEADER_SIZE as u64;
+            if before != after {
+                wdp_record_length = Some(after);
+            }
+            report.wdp = Some(WdpReport {
+                file: name.to_string(),
+                bytes: len,
+                record_length_before: before,
+                record_length_after: after,
+                backup: None,
+            });
+            wdp_len = Some(len);
         }
+        None => report.notes.push(
+            "the waveform packets are external (global encoding bit 2) but no .wdp was \
+             found beside the file: packets not checked"
+                .into(),
+        ),
     }
+    Ok((wdp_len, wdp_record_length))
+}
 
+/// What the points kept say: bounds in integer coordinates, counts by return number, and how
+/// many points are kept.
+struct KeptPoints {
+    /// Smallest X, Y, Z (integer units of the header's scale).
+    min: [i32; 3],
+    /// Largest X, Y, Z (integer units of the header's scale).
+    max: [i32; 3],
+    /// Points by return number 1 to 15.
+    by_return: [u64; 15],
+    /// Points kept.
+    points: u64,
+}
+
+/// Reads the `whole` point records: their bounds and per-return counts, kept up to the last
+/// point whose waveform packet lies inside the `.wdp` (`wdp_len` bytes, when `external`).
+/// Counts in `report` the points kept without their packet and the trailing points dropped.
+fn scan_points<R: Read + Seek>(
+    r: &mut R,
+    file: &str,
+    layout: &PointLayout,
+    whole: u64,
+    external: bool,
+    wdp_len: Option<u64>,
+    report: &mut RepairReport,
+) -> Result<KeptPoints, RepairError> {
     // Read the points: bounds, per-return counts, packets in range.
     let mut rd = BufReader::with_capacity(1 << 20, &mut *r);
-    rd.seek(SeekFrom::Start(offset))
+    rd.seek(SeekFrom::Start(layout.offset))
         .map_err(|e| io(file, "seeking to the point data", e))?;
-    let mut rec = vec![0u8; usize::from(record_len)];
+    let mut rec = vec![0u8; usize::from(layout.record_len)];
     let mut min = [i32::MAX; 3];
     let mut max = [i32::MIN; 3];
     let mut by_return = [0u64; 15];
@@ -516,7 +690,7 @@ pub fn analyse<R: Read + Seek>(
         if (1..=15).contains(&rn) {
             by_return[usize::from(rn) - 1] += 1;
         }
-        let in_range = match (wave_at, wdp_len) {
+        let in_range = match (layout.wave_at, wdp_len) {
             (Some(w), Some(len)) if external && rec[w] != 0 => {
                 let o = u64_at(&rec, w + 1);
                 let size = u64::from(u32_at(&rec, w + 9));
@@ -533,18 +707,28 @@ pub fn analyse<R: Read + Seek>(
         }
     }
     drop(rd);
-    let (min, max, by_return, n) = kept;
+    let (min, max, by_return, points) = kept;
     report.points_dropped_without_waveform = bad_since_kept;
-    report.points = n;
-    let new_len = if end == file_len {
-        offset + n * u64::from(record_len)
-    } else {
-        file_len
-    };
-    report.file_bytes_after = new_len;
+    Ok(KeptPoints {
+        min,
+        max,
+        by_return,
+        points,
+    })
+}
 
-    // The new header.
-    let mut nh = h.clone();
+/// Writes into the new header `nh` the bounding box of the points kept (metres, from the
+/// `scale` factors and offsets `off`; zeros when none is kept), recording in `report` every
+/// bound that differs from the old header `h`'s.
+fn rewrite_bounds(
+    h: &[u8],
+    nh: &mut [u8],
+    kept: &KeptPoints,
+    scale: [f64; 3],
+    off: [f64; 3],
+    report: &mut RepairReport,
+) {
+    let (min, max, n) = (kept.min, kept.max, kept.points);
     let bound = |v: i32, k: usize| {
         if n == 0 {
             0.0
@@ -561,7 +745,7 @@ pub fn analyse<R: Read + Seek>(
         ("min Z", 219, bound(min[2], 2)),
     ];
     for (name, at, v) in bounds {
-        let before = f64_at(&h, at);
+        let before = f64_at(h, at);
         if before.to_bits() != v.to_bits() {
             report.changed.push(FieldChange {
                 field: name.into(),
@@ -571,8 +755,15 @@ pub fn analyse<R: Read + Seek>(
             nh[at..at + 8].copy_from_slice(&v.to_le_bytes());
         }
     }
+}
+
+/// Writes into the new header `nh` the point counts of the points kept: the legacy counts
+/// zeroed (formats 6–10), the number of point records and the counts by return, recording in
+/// `report` every count that differs from the old header `h`'s.
+fn rewrite_counts(h: &[u8], nh: &mut [u8], kept: &KeptPoints, report: &mut RepairReport) {
+    let (n, by_return) = (kept.points, kept.by_return);
     // Legacy counts are zero for formats 6-10 (LAS 1.4).
-    let legacy_n = u32_at(&h, 107);
+    let legacy_n = u32_at(h, 107);
     if legacy_n != 0 {
         report.changed.push(FieldChange {
             field: "legacy number of point records".into(),
@@ -580,7 +771,7 @@ pub fn analyse<R: Read + Seek>(
             after: 0.into(),
         });
     }
-    let legacy_by: Vec<u32> = (0..5).map(|k| u32_at(&h, 111 + 4 * k)).collect();
+    let legacy_by: Vec<u32> = (0..5).map(|k| u32_at(h, 111 + 4 * k)).collect();
     if legacy_by.iter().any(|&v| v != 0) {
         report.changed.push(FieldChange {
             field: "legacy number of points by return".into(),
@@ -589,7 +780,7 @@ pub fn analyse<R: Read + Seek>(
         });
     }
     nh[107..131].fill(0);
-    let n_before = u64_at(&h, 247);
+    let n_before = u64_at(h, 247);
     if n_before != n {
         report.changed.push(FieldChange {
             field: "number of point records".into(),
@@ -598,7 +789,7 @@ pub fn analyse<R: Read + Seek>(
         });
         nh[247..255].copy_from_slice(&n.to_le_bytes());
     }
-    let by_before: Vec<u64> = (0..15).map(|k| u64_at(&h, 255 + 8 * k)).collect();
+    let by_before: Vec<u64> = (0..15).map(|k| u64_at(h, 255 + 8 * k)).collect();
     if by_before != by_return {
         report.changed.push(FieldChange {
             field: "number of points by return".into(),
@@ -609,14 +800,6 @@ pub fn analyse<R: Read + Seek>(
             nh[255 + 8 * k..263 + 8 * k].copy_from_slice(&v.to_le_bytes());
         }
     }
-    report.repaired =
-        !report.changed.is_empty() || new_len != file_len || wdp_record_length.is_some();
-    Ok(RepairPlan {
-        header: nh,
-        new_len,
-        wdp_record_length,
-        report,
-    })
 }
 
 fn backup_path(p: &Path) -> PathBuf {

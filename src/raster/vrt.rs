@@ -159,6 +159,15 @@ pub fn write_vrt(path: &Path, tiles: &[VrtTile]) -> Result<(), RasterError> {
     let Some(first) = tiles.first() else {
         return Err(RasterError::invalid(path, "a VRT needs at least one tile"));
     };
+    check_tiles_agree(path, first, tiles)?;
+    let mosaic = place_tiles(path, first, tiles)?;
+    let x = vrt_xml(path, first, tiles, &mosaic);
+    super::write_atomic(path, |f| f.write_all(x.as_bytes()))
+}
+
+/// Refuses (naming the tile) a tile whose CRS, cell size, nodata value or band count differs
+/// from the `first` tile's, or that has no cells.
+fn check_tiles_agree(path: &Path, first: &VrtTile, tiles: &[VrtTile]) -> Result<(), RasterError> {
     let cell = first.cell_size;
     let same_nodata = |a: f32, b: f32| a == b || (a.is_nan() && b.is_nan());
     for t in tiles {
@@ -194,6 +203,28 @@ pub fn write_vrt(path: &Path, tiles: &[VrtTile]) -> Result<(), RasterError> {
             ));
         }
     }
+    Ok(())
+}
+
+/// Where the tiles lie in the mosaic.
+struct Mosaic {
+    /// Upper-left corner x of the mosaic, CRS units.
+    x0: f64,
+    /// Upper-left corner y of the mosaic, CRS units.
+    y0: f64,
+    /// Columns.
+    w: usize,
+    /// Rows.
+    h: usize,
+    /// Each tile's offset from the mosaic's corner: (columns, rows).
+    placed: Vec<(usize, usize)>,
+}
+
+/// Places the tiles on the `first` tile's grid: each tile's offset in whole cells from the
+/// mosaic's upper-left corner, and the mosaic's size. Refuses a tile whose origin is not whole
+/// cells from the first's, and a mosaic wider or taller than `MAX_DIMENSION` cells.
+fn place_tiles(path: &Path, first: &VrtTile, tiles: &[VrtTile]) -> Result<Mosaic, RasterError> {
+    let cell = first.cell_size;
     let x0 = tiles
         .iter()
         .map(|t| t.origin_x)
@@ -241,7 +272,20 @@ pub fn write_vrt(path: &Path, tiles: &[VrtTile]) -> Result<(), RasterError> {
             ),
         ));
     }
-    let nodata = nodata_text(first.nodata);
+    Ok(Mosaic {
+        x0,
+        y0,
+        w,
+        h,
+        placed,
+    })
+}
+
+/// The VRT document (written at `path`) of `tiles` placed as `mosaic` says: size, CRS and
+/// geotransform of the `first` tile's grid, then one band element per band.
+fn vrt_xml(path: &Path, first: &VrtTile, tiles: &[VrtTile], mosaic: &Mosaic) -> String {
+    let Mosaic { x0, y0, w, h, .. } = *mosaic;
+    let cell = first.cell_size;
     let mapping = if is_geographic_epsg(first.epsg) {
         "2,1"
     } else {
@@ -259,6 +303,24 @@ pub fn write_vrt(path: &Path, tiles: &[VrtTile]) -> Result<(), RasterError> {
         "  <GeoTransform>{x0:?}, {cell:?}, 0.0, {y0:?}, 0.0, {:?}</GeoTransform>",
         -cell
     );
+    for b in 0..first.bands {
+        write_band(&mut x, path, first, tiles, &mosaic.placed, b);
+    }
+    let _ = writeln!(x, "</VRTDataset>");
+    x
+}
+
+/// Appends to `x` the element of band `b` (0-based): its name and units (from the first tile
+/// that has them), nodata value, and one source per tile at its offset in `placed`.
+fn write_band(
+    x: &mut String,
+    path: &Path,
+    first: &VrtTile,
+    tiles: &[VrtTile],
+    placed: &[(usize, usize)],
+    b: usize,
+) {
+    let nodata = nodata_text(first.nodata);
     let name_of = |b: usize, field: fn(&VrtTile) -> &Vec<String>| {
         tiles
             .iter()
@@ -266,44 +328,40 @@ pub fn write_vrt(path: &Path, tiles: &[VrtTile]) -> Result<(), RasterError> {
             .find(|s| !s.is_empty())
             .cloned()
     };
-    for b in 0..first.bands {
+    let _ = writeln!(
+        x,
+        "  <VRTRasterBand dataType=\"Float32\" band=\"{}\">",
+        b + 1
+    );
+    if let Some(d) = name_of(b, |t| &t.band_names) {
+        let _ = writeln!(x, "    <Description>{}</Description>", xml_escape(&d));
+    }
+    let _ = writeln!(x, "    <NoDataValue>{nodata}</NoDataValue>");
+    if let Some(u) = name_of(b, |t| &t.band_units) {
+        let _ = writeln!(x, "    <UnitType>{}</UnitType>", xml_escape(&u));
+    }
+    for (t, &(c, r)) in tiles.iter().zip(placed) {
+        let (rel, name) = source_name(path, &t.path);
+        let _ = writeln!(x, "    <ComplexSource>");
         let _ = writeln!(
             x,
-            "  <VRTRasterBand dataType=\"Float32\" band=\"{}\">",
-            b + 1
+            "      <SourceFilename relativeToVRT=\"{}\">{}</SourceFilename>",
+            u8::from(rel),
+            xml_escape(&name)
         );
-        if let Some(d) = name_of(b, |t| &t.band_names) {
-            let _ = writeln!(x, "    <Description>{}</Description>", xml_escape(&d));
-        }
-        let _ = writeln!(x, "    <NoDataValue>{nodata}</NoDataValue>");
-        if let Some(u) = name_of(b, |t| &t.band_units) {
-            let _ = writeln!(x, "    <UnitType>{}</UnitType>", xml_escape(&u));
-        }
-        for (t, &(c, r)) in tiles.iter().zip(&placed) {
-            let (rel, name) = source_name(path, &t.path);
-            let _ = writeln!(x, "    <ComplexSource>");
-            let _ = writeln!(
-                x,
-                "      <SourceFilename relativeToVRT=\"{}\">{}</SourceFilename>",
-                u8::from(rel),
-                xml_escape(&name)
-            );
-            let _ = writeln!(x, "      <SourceBand>{}</SourceBand>", b + 1);
-            let _ = writeln!(
-                x,
-                "      <SrcRect xOff=\"0\" yOff=\"0\" xSize=\"{}\" ySize=\"{}\" />",
-                t.width, t.height
-            );
-            let _ = writeln!(
-                x,
-                "      <DstRect xOff=\"{c}\" yOff=\"{r}\" xSize=\"{}\" ySize=\"{}\" />",
-                t.width, t.height
-            );
-            let _ = writeln!(x, "      <NODATA>{nodata}</NODATA>");
-            let _ = writeln!(x, "    </ComplexSource>");
-        }
-        let _ = writeln!(x, "  </VRTRasterBand>");
+        let _ = writeln!(x, "      <SourceBand>{}</SourceBand>", b + 1);
+        let _ = writeln!(
+            x,
+            "      <SrcRect xOff=\"0\" yOff=\"0\" xSize=\"{}\" ySize=\"{}\" />",
+            t.width, t.height
+        );
+        let _ = writeln!(
+            x,
+            "      <DstRect xOff=\"{c}\" yOff=\"{r}\" xSize=\"{}\" ySize=\"{}\" />",
+            t.width, t.height
+        );
+        let _ = writeln!(x, "      <NODATA>{nodata}</NODATA>");
+        let _ = writeln!(x, "    </ComplexSource>");
     }
-    let _ = writeln!(x, "</VRTDataset>");
-    super::write_atomic(path, |f| f.write_all(x.as_bytes()))
+    let _ = writeln!(x, "  </VRTRasterBand>");
 }

@@ -176,25 +176,8 @@ fn deposit_on_axis(
     p: &DepositParams,
     stats: &mut DepositStats,
 ) -> Result<(), StoreError> {
-    let (seq, now) = (pulse.seq, pulse.gps_time);
-    let cal = pulse.calibration;
-    let placer = &p.placer;
-    let (side, levels) = (placer.side(), placer.levels());
-    let (inv_z, z_bottom) = (placer.inv(2), placer.z_bottom());
-    let above_dem = p.height == HeightMode::AboveDem;
-    let mut deposited = 0u64;
-    let (mut outside_heights, mut non_finite, mut resumed) = (0u64, 0u64, 0u64);
-    // The tile of the previous run, its slot and resume mark (a pulse opens no tile twice: a
-    // slot closed early is never one the current pulse has touched).
-    let mut cur: ([i64; 2], usize, u64) = ([i64::MIN; 2], 0, 0);
-    let mut prev: ([i64; 2], u32) = ([i64::MIN; 2], u32::MAX);
+    let mut walk = AxisWalk::new(pulse, g, p);
     let mut scratch = Scratch::new();
-    // The beam's horizontal slope in columns per bin, and its reciprocal (0: vertical).
-    let slope = [
-        pulse.sample_ns * g.direction[0] * placer.inv(0),
-        pulse.sample_ns * g.direction[1] * placer.inv(1),
-    ];
-    let per_column = slope.map(|s| if s != 0.0 { 1.0 / s.abs() } else { 0.0 });
     for seg in pulse
         .segments
         .iter()
@@ -203,153 +186,377 @@ fn deposit_on_axis(
         let values = &pulse.signal[seg.range()];
         let mut i = 0usize;
         while i < values.len() {
-            // The first bin of a run: its column, tile, slot and ground.
-            let t = seg.start_ns + i as f64 * pulse.sample_ns;
-            let x = g.anchor[0] + t * g.direction[0];
-            let y = g.anchor[1] + t * g.direction[1];
-            let Some(col) = placer.column(x, y) else {
-                stats.bins_outside_extent += 1;
-                i += 1;
-                continue;
-            };
-            let ground = if above_dem {
-                match p.dem.as_ref().and_then(|d| d.height_at(x, y)) {
-                    Some(h) => h,
-                    None => {
-                        stats.bins_outside_dem += 1;
-                        i += 1;
-                        continue;
-                    }
-                }
-            } else {
-                0.0
-            };
-            let tile = placer.tile_of(col);
-            if tile != cur.0 {
-                let (slot, skip) = tiles.slot_for(tile, seq, now)?;
-                tiles.touched(slot, now);
-                cur = (tile, slot, skip);
-            }
-            let (slot, skip) = (cur.1, cur.2);
-            let base = placer.offset(col[0] - tile[0] * side, col[1] - tile[1] * side, 0) as usize;
-            let (cx, cy) = (col[0] as f64, col[1] as f64);
-            // Bins certainly inside the column, from the beam's slope in grid units (a margin
-            // of 1e-6 column keeps rounding from deciding): no horizontal test needed.
-            let [gx, gy] = placer.grid_xy(x, y);
-            // Bins until the beam leaves the column along one axis (infinite when vertical).
-            let steps = |g: f64, c: f64, axis: usize| -> f64 {
-                if slope[axis] > 0.0 {
-                    (c + 1.0 - 1e-6 - g) * per_column[axis]
-                } else if slope[axis] < 0.0 {
-                    (g - c - 1e-6) * per_column[axis]
-                } else {
-                    f64::INFINITY
-                }
-            };
-            let safe = steps(gx, cx, 0).min(steps(gy, cy, 1)).max(0.0);
-            let safe_end = if safe >= (values.len() - i) as f64 {
-                values.len()
-            } else {
-                i + safe as usize
-            };
-            let column_index = base / levels as usize;
-            let data = tiles.data(slot);
-            if prev.0 != tile {
-                prev = (tile, u32::MAX);
-            }
-            let span = Span {
-                values: &values[..safe_end],
-                first: i,
-                start_ns: seg.start_ns,
-                sample_ns: pulse.sample_ns,
-                // Fractional level of a bin t ns after t0: c0 + c1·t.
-                c0: (g.anchor[2] - ground - z_bottom) * inv_z,
-                c1: g.direction[2] * inv_z,
-                inv_q: p.inv_quantum,
-                base: base as u32,
-            };
-            let mut counts = SpanCounts::default();
-            if seq < skip {
-                // Already in the store (resume): count, do not deposit.
-                resumed += (safe_end - i) as u64;
-            } else if let Some(c) = &cal {
-                span.deposit(
-                    data,
-                    column_index,
-                    &mut prev.1,
-                    &mut counts,
-                    &mut scratch,
-                    |t| c.factor_at(t),
-                );
-            } else {
-                span.deposit(
-                    data,
-                    column_index,
-                    &mut prev.1,
-                    &mut counts,
-                    &mut scratch,
-                    |_| 1.0,
-                );
-            }
-            deposited += counts.deposited;
-            outside_heights += counts.outside_heights;
-            non_finite += counts.non_finite;
-            let mut j = safe_end.max(i);
-            let inv_q = p.inv_quantum;
-            let levels_f = levels as f64;
-            // One bin of the run at fractional level `kf`: the deposit and its counts.
-            let mut bin = |j: usize, t: f64, kf: f64| {
-                // In range, truncation is the floor.
-                if !(kf >= 0.0 && kf < levels_f) {
-                    outside_heights += 1;
-                    return;
-                }
-                let v = values[j];
-                let value = match &cal {
-                    Some(c) => v * c.factor_at(t),
-                    None => v,
-                };
-                if !value.is_finite() {
-                    non_finite += 1;
-                    return;
-                }
-                if seq < skip {
-                    resumed += 1;
-                    return;
-                }
-                let k = kf as usize;
-                data.deposit(base + k, quantise(value, inv_q), value);
-                let off = (base + k) as u32;
-                if prev.1 != off || prev.0 != tile {
-                    data.pass(base + k);
-                    prev = (tile, off);
-                }
-                deposited += 1;
-            };
-            // Then bins near the column's edge, tested one by one.
-            while j < values.len() {
-                let t = seg.start_ns + j as f64 * pulse.sample_ns;
-                let x = g.anchor[0] + t * g.direction[0];
-                let y = g.anchor[1] + t * g.direction[1];
-                let [gx, gy] = placer.grid_xy(x, y);
-                if !(gx >= cx && gx < cx + 1.0 && gy >= cy && gy < cy + 1.0) {
-                    break;
-                }
-                let z = g.anchor[2] + t * g.direction[2] - ground;
-                bin(j, t, (z - z_bottom) * inv_z);
-                j += 1;
-            }
-            i = j.max(i + 1);
+            i = walk.run(seg, values, i, tiles, stats, &mut scratch)?;
         }
     }
-    stats.bins_outside_heights += outside_heights;
-    stats.bins_non_finite += non_finite;
-    stats.bins_resumed += resumed;
-    if deposited > 0 {
-        stats.pulses_deposited += 1;
-        stats.bins_deposited += deposited;
-    }
+    walk.finish(stats);
     Ok(())
+}
+
+/// What [`deposit_on_axis`] counted so far, added to [`DepositStats`] once the pulse is done.
+#[derive(Default)]
+struct AxisCounts {
+    /// Bins deposited.
+    deposited: u64,
+    /// Bins outside the height range.
+    outside_heights: u64,
+    /// Bins whose intensity is not finite.
+    non_finite: u64,
+    /// Bins already in the store (resume), not deposited.
+    resumed: u64,
+}
+
+impl AxisCounts {
+    /// Adds `other`'s counts to these.
+    #[inline(always)]
+    fn add(&mut self, other: &AxisCounts) {
+        self.deposited += other.deposited;
+        self.outside_heights += other.outside_heights;
+        self.non_finite += other.non_finite;
+        self.resumed += other.resumed;
+    }
+}
+
+/// The counts and the last voxel of [`AxisWalk::deposit_edge`], kept in locals while it walks.
+struct EdgeState {
+    /// What the edge bins counted.
+    counts: AxisCounts,
+    /// The tile and offset of the voxel the last bin landed in.
+    prev: ([i64; 2], u32),
+}
+
+/// The pulse-wide constants of [`deposit_on_axis`] and the state it carries from one run of
+/// bins (bins in one column) to the next.
+struct AxisWalk<'a> {
+    /// The pulse's geometry: anchor (metres, output CRS) and direction (metres per ns).
+    g: &'a crate::pulse::PulseGeometry,
+    /// How bins become deposits.
+    p: &'a DepositParams,
+    /// The pulse's order of arrival.
+    seq: u64,
+    /// The pulse's GPS time, seconds.
+    now: f64,
+    /// Bin spacing, ns.
+    sample_ns: f64,
+    /// The pulse's calibration, if a `calibrate` stage ran.
+    cal: Option<crate::pulse::Calibration>,
+    /// Columns along a tile's side.
+    side: i64,
+    /// Levels of a column.
+    levels: i64,
+    /// Levels per metre.
+    inv_z: f64,
+    /// Bottom of level 0, metres.
+    z_bottom: f64,
+    /// Whether heights are above the DEM.
+    above_dem: bool,
+    /// The beam's horizontal slope in columns per bin, x and y.
+    slope: [f64; 2],
+    /// Bins per column along x and y (the slope's reciprocal; 0: vertical).
+    per_column: [f64; 2],
+    /// The tile of the previous run, its slot and resume mark (a pulse opens no tile twice: a
+    /// slot closed early is never one the current pulse has touched).
+    cur: ([i64; 2], usize, u64),
+    /// The tile and offset of the voxel the last bin landed in (its pass is counted once).
+    prev: ([i64; 2], u32),
+    /// What was counted so far.
+    counts: AxisCounts,
+}
+
+/// The column one run of bins stays in.
+struct AxisRun {
+    /// The column's tile.
+    tile: [i64; 2],
+    /// The tile's resume mark: pulses with a lower `seq` are already in the store.
+    skip: u64,
+    /// Offset of the column's level 0 in its tile.
+    base: usize,
+    /// The column's global index, x and y, as floats (the column's low edge in grid units).
+    col: [f64; 2],
+    /// Ground height under the column, metres (0 unless heights are above the DEM).
+    ground: f64,
+}
+
+impl<'a> AxisWalk<'a> {
+    /// The constants of `pulse` on the grid of `p`, nothing counted yet.
+    #[inline]
+    fn new(pulse: &Pulse, g: &'a crate::pulse::PulseGeometry, p: &'a DepositParams) -> Self {
+        let placer = &p.placer;
+        // The beam's horizontal slope in columns per bin, and its reciprocal (0: vertical).
+        let slope = [
+            pulse.sample_ns * g.direction[0] * placer.inv(0),
+            pulse.sample_ns * g.direction[1] * placer.inv(1),
+        ];
+        AxisWalk {
+            g,
+            p,
+            seq: pulse.seq,
+            now: pulse.gps_time,
+            sample_ns: pulse.sample_ns,
+            cal: pulse.calibration,
+            side: placer.side(),
+            levels: placer.levels(),
+            inv_z: placer.inv(2),
+            z_bottom: placer.z_bottom(),
+            above_dem: p.height == HeightMode::AboveDem,
+            slope,
+            per_column: slope.map(|s| if s != 0.0 { 1.0 / s.abs() } else { 0.0 }),
+            cur: ([i64::MIN; 2], 0, 0),
+            prev: ([i64::MIN; 2], u32::MAX),
+            counts: AxisCounts::default(),
+        }
+    }
+
+    /// Deposits the run of bins of `values` (the return segment `seg`) that starts at bin `i`
+    /// and stays in one column; returns the first bin after it. A first bin outside the extent
+    /// or the DEM is counted and makes a run of its own.
+    #[inline(always)]
+    fn run(
+        &mut self,
+        seg: &crate::pulse::Segment,
+        values: &[f32],
+        i: usize,
+        tiles: &mut TileSet,
+        stats: &mut DepositStats,
+        scratch: &mut Scratch,
+    ) -> Result<usize, StoreError> {
+        // The first bin of a run: its column, tile, slot and ground.
+        let t = seg.start_ns + i as f64 * self.sample_ns;
+        let x = self.g.anchor[0] + t * self.g.direction[0];
+        let y = self.g.anchor[1] + t * self.g.direction[1];
+        let Some((col, ground)) = self.locate(x, y, stats) else {
+            return Ok(i + 1);
+        };
+        let placer = &self.p.placer;
+        let tile = placer.tile_of(col);
+        let (slot, skip) = self.open_tile(tile, tiles)?;
+        let side = self.side;
+        let base = placer.offset(col[0] - tile[0] * side, col[1] - tile[1] * side, 0) as usize;
+        let run = AxisRun {
+            tile,
+            skip,
+            base,
+            col: [col[0] as f64, col[1] as f64],
+            ground,
+        };
+        let safe_end = self.safe_end(&run, x, y, i, values.len());
+        let data = tiles.data(slot);
+        if self.prev.0 != tile {
+            self.prev = (tile, u32::MAX);
+        }
+        self.deposit_inside(data, scratch, &run, seg, &values[..safe_end], i);
+        let j = self.deposit_edge(data, &run, seg, values, safe_end.max(i));
+        Ok(j.max(i + 1))
+    }
+
+    /// The column of a bin at `(x, y)` (metres) and the ground height under it (metres; 0
+    /// unless heights are above the DEM); None, counted, when the bin is outside the extent or
+    /// the DEM.
+    #[inline(always)]
+    fn locate(&self, x: f64, y: f64, stats: &mut DepositStats) -> Option<([i64; 2], f64)> {
+        let Some(col) = self.p.placer.column(x, y) else {
+            stats.bins_outside_extent += 1;
+            return None;
+        };
+        let ground = if self.above_dem {
+            match self.p.dem.as_ref().and_then(|d| d.height_at(x, y)) {
+                Some(h) => h,
+                None => {
+                    stats.bins_outside_dem += 1;
+                    return None;
+                }
+            }
+        } else {
+            0.0
+        };
+        Some((col, ground))
+    }
+
+    /// The slot of `tile` and its resume mark, looked up only when the tile is not the previous
+    /// run's; the slot is marked as touched at the pulse's time.
+    #[inline(always)]
+    fn open_tile(
+        &mut self,
+        tile: [i64; 2],
+        tiles: &mut TileSet,
+    ) -> Result<(usize, u64), StoreError> {
+        if tile != self.cur.0 {
+            let (slot, skip) = tiles.slot_for(tile, self.seq, self.now)?;
+            tiles.touched(slot, self.now);
+            self.cur = (tile, slot, skip);
+        }
+        Ok((self.cur.1, self.cur.2))
+    }
+
+    /// The end of the bins from `i` on (of `len`) certainly inside the run's column, from the
+    /// beam's slope in grid units (a margin of 1e-6 column keeps rounding from deciding): no
+    /// horizontal test needed for them. `(x, y)` is bin `i`'s position, metres.
+    #[inline(always)]
+    fn safe_end(&self, run: &AxisRun, x: f64, y: f64, i: usize, len: usize) -> usize {
+        let [gx, gy] = self.p.placer.grid_xy(x, y);
+        let safe = self
+            .steps(gx, run.col[0], 0)
+            .min(self.steps(gy, run.col[1], 1))
+            .max(0.0);
+        if safe >= (len - i) as f64 {
+            len
+        } else {
+            i + safe as usize
+        }
+    }
+
+    /// Bins until the beam, at fractional grid coordinate `g` along `axis`, leaves the column
+    /// whose low edge is `c` along that axis (infinite when the beam is vertical).
+    #[inline(always)]
+    fn steps(&self, g: f64, c: f64, axis: usize) -> f64 {
+        if self.slope[axis] > 0.0 {
+            (c + 1.0 - 1e-6 - g) * self.per_column[axis]
+        } else if self.slope[axis] < 0.0 {
+            (g - c - 1e-6) * self.per_column[axis]
+        } else {
+            f64::INFINITY
+        }
+    }
+
+    /// Deposits bins `first..values.len()`, all certainly inside the run's column, in blocks
+    /// ([`Span::deposit`]); on resume they are only counted.
+    #[inline(always)]
+    fn deposit_inside(
+        &mut self,
+        data: &mut TileData,
+        scratch: &mut Scratch,
+        run: &AxisRun,
+        seg: &crate::pulse::Segment,
+        values: &[f32],
+        first: usize,
+    ) {
+        let column_index = run.base / self.levels as usize;
+        let span = Span {
+            values,
+            first,
+            start_ns: seg.start_ns,
+            sample_ns: self.sample_ns,
+            // Fractional level of a bin t ns after t0: c0 + c1·t.
+            c0: (self.g.anchor[2] - run.ground - self.z_bottom) * self.inv_z,
+            c1: self.g.direction[2] * self.inv_z,
+            inv_q: self.p.inv_quantum,
+            base: run.base as u32,
+        };
+        let mut counts = SpanCounts::default();
+        if self.seq < run.skip {
+            // Already in the store (resume): count, do not deposit.
+            self.counts.resumed += (values.len() - first) as u64;
+        } else if let Some(c) = &self.cal {
+            span.deposit(
+                data,
+                column_index,
+                &mut self.prev.1,
+                &mut counts,
+                scratch,
+                |t| c.factor_at(t),
+            );
+        } else {
+            span.deposit(
+                data,
+                column_index,
+                &mut self.prev.1,
+                &mut counts,
+                scratch,
+                |_| 1.0,
+            );
+        }
+        self.counts.deposited += counts.deposited;
+        self.counts.outside_heights += counts.outside_heights;
+        self.counts.non_finite += counts.non_finite;
+    }
+
+    /// Deposits the bins from `j` on near the column's edge, tested one by one, until one
+    /// leaves the run's column; returns the first bin not deposited.
+    #[inline(always)]
+    fn deposit_edge(
+        &mut self,
+        data: &mut TileData,
+        run: &AxisRun,
+        seg: &crate::pulse::Segment,
+        values: &[f32],
+        mut j: usize,
+    ) -> usize {
+        let g = self.g;
+        let [cx, cy] = run.col;
+        // The counts and the last voxel, kept locally while the bins are walked.
+        let mut edge = EdgeState {
+            counts: AxisCounts::default(),
+            prev: self.prev,
+        };
+        while j < values.len() {
+            let t = seg.start_ns + j as f64 * self.sample_ns;
+            let x = g.anchor[0] + t * g.direction[0];
+            let y = g.anchor[1] + t * g.direction[1];
+            let [gx, gy] = self.p.placer.grid_xy(x, y);
+            if !(gx >= cx && gx < cx + 1.0 && gy >= cy && gy < cy + 1.0) {
+                break;
+            }
+            let z = g.anchor[2] + t * g.direction[2] - run.ground;
+            let kf = (z - self.z_bottom) * self.inv_z;
+            self.edge_bin(data, run, &mut edge, values[j], t, kf);
+            j += 1;
+        }
+        self.prev = edge.prev;
+        self.counts.add(&edge.counts);
+        j
+    }
+
+    /// One bin of the run, of signal `v` (volts) `t` ns after t0 at fractional level `kf`:
+    /// the deposit and its counts.
+    #[inline(always)]
+    fn edge_bin(
+        &self,
+        data: &mut TileData,
+        run: &AxisRun,
+        edge: &mut EdgeState,
+        v: f32,
+        t: f64,
+        kf: f64,
+    ) {
+        // In range, truncation is the floor.
+        if !(kf >= 0.0 && kf < self.levels as f64) {
+            edge.counts.outside_heights += 1;
+            return;
+        }
+        let value = match &self.cal {
+            Some(c) => v * c.factor_at(t),
+            None => v,
+        };
+        if !value.is_finite() {
+            edge.counts.non_finite += 1;
+            return;
+        }
+        if self.seq < run.skip {
+            edge.counts.resumed += 1;
+            return;
+        }
+        let k = kf as usize;
+        data.deposit(run.base + k, quantise(value, self.p.inv_quantum), value);
+        let off = (run.base + k) as u32;
+        if edge.prev.1 != off || edge.prev.0 != run.tile {
+            data.pass(run.base + k);
+            edge.prev = (run.tile, off);
+        }
+        edge.counts.deposited += 1;
+    }
+
+    /// Adds what the pulse's bins counted to `stats`, and the pulse when a bin was deposited.
+    #[inline]
+    fn finish(&self, stats: &mut DepositStats) {
+        let c = &self.counts;
+        stats.bins_outside_heights += c.outside_heights;
+        stats.bins_non_finite += c.non_finite;
+        stats.bins_resumed += c.resumed;
+        if c.deposited > 0 {
+            stats.pulses_deposited += 1;
+            stats.bins_deposited += c.deposited;
+        }
+    }
 }
 
 /// Bins `first..values.len()` of a return segment, all in one column.

@@ -1512,15 +1512,22 @@ impl ZarrStore {
     fn write_metadata(&self) -> Result<(), StoreError> {
         let g = &self.grid;
         fs::create_dir_all(&self.root).map_err(io(&self.root))?;
-        let span = &self.span;
-        let shape = span.shape(g);
-        let t = g.tile_columns as u64;
-        let corner = span.origin_m(g);
-        let extent = g.extent_origin();
-        let z0 = span.z_bottom_m(g);
-        let tm = g.tile_m();
+        let shape = self.span.shape(g);
         // Every node below the root, as its own `zarr.json` says, for the consolidated metadata.
         let mut nodes = serde_json::Map::new();
+        self.write_state_group(&mut nodes)?;
+        self.write_data_arrays(shape, &mut nodes)?;
+        self.write_coordinates(shape, &mut nodes)?;
+        self.write_spatial_ref(&mut nodes)?;
+        self.write_root_group(nodes)
+    }
+
+    /// Writes the group `fwlidar_state` (where the resume records live, so that Zarr readers
+    /// see a node) and adds it to `nodes`.
+    fn write_state_group(
+        &self,
+        nodes: &mut serde_json::Map<String, Value>,
+    ) -> Result<(), StoreError> {
         // The resume records live in a group of their own so that Zarr readers see a node.
         let state = self.root.join("fwlidar_state");
         fs::create_dir_all(&state).map_err(io(&state))?;
@@ -1537,43 +1544,20 @@ impl ZarrStore {
             "metadata": {},
         });
         nodes.insert("fwlidar_state".into(), consolidated_state);
-        let (height_name, height_long) = match g.height {
-            super::grid::HeightMode::Absolute => ("height", "height of the voxel centre (CRS z)"),
-            super::grid::HeightMode::AboveDem => (
-                "height_above_ground",
-                "height of the voxel centre above the DEM",
-            ),
-        };
-        let units = &self.info.intensity_units;
+        Ok(())
+    }
+
+    /// Writes the metadata of the four data arrays (of `shape` voxels, z, y, x; chunked by a
+    /// height chunk and a tile) and adds them to `nodes`.
+    fn write_data_arrays(
+        &self,
+        shape: [u64; 3],
+        nodes: &mut serde_json::Map<String, Value>,
+    ) -> Result<(), StoreError> {
+        let g = &self.grid;
+        let t = g.tile_columns as u64;
         for a in ARRAYS {
             let (dt, fill) = dtype(a);
-            let mut attrs = json!({
-                "grid_mapping": "spatial_ref",
-                "coordinates": "spatial_ref",
-            });
-            let m = attrs.as_object_mut().expect("object");
-            match a {
-                "intensity_sum" => {
-                    m.insert("long_name".into(), json!("sum of deposited intensity"));
-                    m.insert("units".into(), json!(units));
-                    m.insert("scale_factor".into(), json!(g.intensity_quantum));
-                }
-                "sample_count" => {
-                    m.insert("long_name".into(), json!("waveform bins deposited"));
-                    m.insert("units".into(), json!("1"));
-                }
-                "intensity_max" => {
-                    m.insert("long_name".into(), json!("largest deposited intensity"));
-                    m.insert("units".into(), json!(units));
-                }
-                _ => {
-                    m.insert(
-                        "long_name".into(),
-                        json!("pulses whose beam passed through the voxel"),
-                    );
-                    m.insert("units".into(), json!("1"));
-                }
-            }
             let meta = self.write_array_meta(
                 a,
                 json!(shape),
@@ -1581,10 +1565,65 @@ impl ZarrStore {
                 fill,
                 json!([g.chunk_levels(), t, t]),
                 json!(["z", "y", "x"]),
-                attrs,
+                self.data_array_attrs(a),
             )?;
             nodes.insert(a.into(), meta);
         }
+        Ok(())
+    }
+
+    /// The CF attributes of data array `a`: its long name, units (the intensity's for the
+    /// intensities) and, for the intensity sum, the quantum as scale factor.
+    fn data_array_attrs(&self, a: &str) -> Value {
+        let g = &self.grid;
+        let units = &self.info.intensity_units;
+        let mut attrs = json!({
+            "grid_mapping": "spatial_ref",
+            "coordinates": "spatial_ref",
+        });
+        let m = attrs.as_object_mut().expect("object");
+        match a {
+            "intensity_sum" => {
+                m.insert("long_name".into(), json!("sum of deposited intensity"));
+                m.insert("units".into(), json!(units));
+                m.insert("scale_factor".into(), json!(g.intensity_quantum));
+            }
+            "sample_count" => {
+                m.insert("long_name".into(), json!("waveform bins deposited"));
+                m.insert("units".into(), json!("1"));
+            }
+            "intensity_max" => {
+                m.insert("long_name".into(), json!("largest deposited intensity"));
+                m.insert("units".into(), json!(units));
+            }
+            _ => {
+                m.insert(
+                    "long_name".into(),
+                    json!("pulses whose beam passed through the voxel"),
+                );
+                m.insert("units".into(), json!("1"));
+            }
+        }
+        attrs
+    }
+
+    /// Writes the coordinate arrays `x`, `y`, `z` (voxel centres of the span's `shape`, metres)
+    /// with their one chunk each, and adds them to `nodes`.
+    fn write_coordinates(
+        &self,
+        shape: [u64; 3],
+        nodes: &mut serde_json::Map<String, Value>,
+    ) -> Result<(), StoreError> {
+        let g = &self.grid;
+        let corner = self.span.origin_m(g);
+        let z0 = self.span.z_bottom_m(g);
+        let (height_name, height_long) = match g.height {
+            super::grid::HeightMode::Absolute => ("height", "height of the voxel centre (CRS z)"),
+            super::grid::HeightMode::AboveDem => (
+                "height_above_ground",
+                "height of the voxel centre above the DEM",
+            ),
+        };
         // Coordinates: voxel centres.
         let xs: Vec<f64> = (0..shape[2])
             .map(|i| corner[0] + (i as f64 + 0.5) * g.voxel_size_m[0])
@@ -1622,26 +1661,42 @@ impl ZarrStore {
                 attrs,
             )?;
             nodes.insert(name.into(), meta);
-            let path = self.root.join(name).join("c").join("0");
-            if vals.is_empty() {
-                // An empty coordinate (a store with no tile) has no chunk.
-                if path.exists() {
-                    fs::remove_file(&path).map_err(io(&path))?;
-                }
-                continue;
-            }
-            let mut raw = Vec::with_capacity(vals.len() * 8);
-            for v in &vals {
-                raw.extend_from_slice(&v.to_le_bytes());
-            }
-            let mut packed = Vec::new();
-            self.layout
-                .codec()
-                .encode(&raw, &mut packed)
-                .map_err(io(&path))?;
-            fs::create_dir_all(path.parent().unwrap_or(&self.root)).map_err(io(&path))?;
-            write_atomic(&path, &packed)?;
+            self.write_coordinate_chunk(name, &vals)?;
         }
+        Ok(())
+    }
+
+    /// Writes the one chunk of coordinate array `name` holding `vals` (metres, little-endian
+    /// float64, through the store's codec); an empty coordinate (a store with no tile) has none,
+    /// and a chunk left from before is removed.
+    fn write_coordinate_chunk(&self, name: &str, vals: &[f64]) -> Result<(), StoreError> {
+        let path = self.root.join(name).join("c").join("0");
+        if vals.is_empty() {
+            // An empty coordinate (a store with no tile) has no chunk.
+            if path.exists() {
+                fs::remove_file(&path).map_err(io(&path))?;
+            }
+            return Ok(());
+        }
+        let mut raw = Vec::with_capacity(vals.len() * 8);
+        for v in vals {
+            raw.extend_from_slice(&v.to_le_bytes());
+        }
+        let mut packed = Vec::new();
+        self.layout
+            .codec()
+            .encode(&raw, &mut packed)
+            .map_err(io(&path))?;
+        fs::create_dir_all(path.parent().unwrap_or(&self.root)).map_err(io(&path))?;
+        write_atomic(&path, &packed)
+    }
+
+    /// Writes the CF grid mapping `spatial_ref` (a 0-d variable carrying the CRS as WKT and
+    /// EPSG code, when known) and adds it to `nodes`.
+    fn write_spatial_ref(
+        &self,
+        nodes: &mut serde_json::Map<String, Value>,
+    ) -> Result<(), StoreError> {
         // CF grid mapping: a 0-d variable carrying the CRS.
         let mut sr = json!({"long_name": "coordinate reference system"});
         if let Some(w) = &self.info.crs_wkt {
@@ -1661,6 +1716,19 @@ impl ZarrStore {
             sr,
         )?;
         nodes.insert("spatial_ref".into(), meta);
+        Ok(())
+    }
+
+    /// Writes the root group last, its attributes naming the span the chunks are keyed on
+    /// (origin and extent in metres) and its consolidated metadata holding `nodes`; the root
+    /// directory is synced.
+    fn write_root_group(&self, nodes: serde_json::Map<String, Value>) -> Result<(), StoreError> {
+        let g = &self.grid;
+        let span = &self.span;
+        let corner = span.origin_m(g);
+        let extent = g.extent_origin();
+        let z0 = span.z_bottom_m(g);
+        let tm = g.tile_m();
         // The root last: its attributes name the span the chunks are keyed on.
         let group = json!({
             "zarr_format": 3,

@@ -343,6 +343,238 @@ fn take_record<R: Read + Seek>(
     Ok(())
 }
 
+/// The first bytes of the public header block, as read by [`read_header_block`].
+struct HeaderBlock {
+    /// The first `HEADER_SIZE` bytes of the file (zeros past its end).
+    bytes: [u8; HEADER_SIZE],
+    /// Version major, minor.
+    version: (u8, u8),
+    /// Header size field, bytes.
+    header_size: u16,
+}
+
+/// Reads the public header block of a file of `file_len` bytes: refuses a file without the
+/// `LASF` signature, shorter than a header of its version, not LAS 1.3 or 1.4, or whose header
+/// size field is below its version's header size.
+fn read_header_block<R: Read + Seek>(
+    r: &mut Positioned<R>,
+    file: &str,
+    file_len: u64,
+) -> Result<HeaderBlock, LasReadError> {
+    let mut h = [0u8; HEADER_SIZE];
+    let n = file_len.min(HEADER_SIZE as u64) as usize;
+    read_at(r, file, file_len, 0, &mut h[..n], "the public header block")?;
+    if &h[0..4] != b"LASF" {
+        return Err(LasReadError::Signature {
+            file: file.into(),
+            found: String::from_utf8_lossy(&h[..n.min(4)]).into_owned(),
+        });
+    }
+    if file_len < HEADER_SIZE_13 as u64 {
+        return Err(LasReadError::Truncated {
+            file: file.into(),
+            what: "the public header block".into(),
+            start: 0,
+            end: HEADER_SIZE_13 as u64,
+            len: file_len,
+        });
+    }
+    let version = (h[24], h[25]);
+    if version.0 != 1 || !(3..=4).contains(&version.1) {
+        return Err(LasReadError::Unsupported {
+            file: file.into(),
+            field: "header: version".into(),
+            what: format!(
+                "LAS {}.{} (waveform packets need LAS 1.3 or 1.4)",
+                version.0, version.1
+            ),
+        });
+    }
+    let header_size = u16_at(&h, 94);
+    let need = if version.1 >= 4 {
+        HEADER_SIZE
+    } else {
+        HEADER_SIZE_13
+    };
+    if usize::from(header_size) < need {
+        return Err(invalid(
+            file,
+            "header: header size",
+            format!(
+                "{header_size} bytes, but a LAS 1.{} header has {need}",
+                version.1
+            ),
+        ));
+    }
+    if file_len < need as u64 {
+        return Err(LasReadError::Truncated {
+            file: file.into(),
+            what: format!("the LAS 1.{} public header block", version.1),
+            start: 0,
+            end: need as u64,
+            len: file_len,
+        });
+    }
+    Ok(HeaderBlock {
+        bytes: h,
+        version,
+        header_size,
+    })
+}
+
+/// The point data record format of a header, as checked by [`check_point_format`].
+struct PointFormat {
+    /// The format field as stored (bit 7 set when LAZ-compressed).
+    raw: u8,
+    /// Whether the point records are LAZ-compressed (bit 7).
+    compressed: bool,
+    /// The format without the compression bit.
+    format: u8,
+}
+
+/// Checks the point-record layout the header `h` states: a LAS point format (bit 6 clear) that
+/// carries waveform packets (4, 5, 9, 10), a record length that holds it, and point data that
+/// start after the `header_size`-byte header.
+fn check_point_format(
+    file: &str,
+    h: &[u8; HEADER_SIZE],
+    header_size: u16,
+) -> Result<PointFormat, LasReadError> {
+    let offset_to_point_data = u32_at(h, 96);
+    let raw_format = h[104];
+    // LASzip marks compressed point records by setting bit 7.
+    let compressed = raw_format & 0x80 != 0;
+    let point_format = raw_format & 0x7f;
+    if point_format & 0x40 != 0 {
+        return Err(LasReadError::Unsupported {
+            file: file.into(),
+            field: "header: point data record format".into(),
+            what: format!(
+                "{raw_format} (bit 6 set: no LAS format; early experimental LASzip versions \
+                 marked their files so)"
+            ),
+        });
+    }
+    let point_record_length = u16_at(h, 105);
+    if u64::from(offset_to_point_data) < u64::from(header_size) {
+        return Err(invalid(
+            file,
+            "header: offset to point data",
+            format!("{offset_to_point_data}, inside the {header_size}-byte header"),
+        ));
+    }
+    let Some(layout) = PointLayout::of(point_format) else {
+        let laz = if compressed {
+            format!(" (LAZ-compressed, stored as {raw_format})")
+        } else {
+            String::new()
+        };
+        return Err(LasReadError::Unsupported {
+            file: file.into(),
+            field: "header: point data record format".into(),
+            what: format!(
+                "point format {point_format}{laz}, which carries no waveform packets \
+                 (formats 4, 5, 9 and 10 do)"
+            ),
+        });
+    };
+    if usize::from(point_record_length) < layout.size {
+        return Err(invalid(
+            file,
+            "header: point data record length",
+            format!(
+                "{point_record_length} bytes, but point format {point_format} needs at \
+                 least {}",
+                layout.size
+            ),
+        ));
+    }
+    Ok(PointFormat {
+        raw: raw_format,
+        compressed,
+        format: point_format,
+    })
+}
+
+/// The public header fields of header bytes `h` of LAS `version`: the point counts are the
+/// 64-bit ones of LAS 1.4 when non-zero, else the legacy ones.
+fn decode_header(h: &[u8; HEADER_SIZE], version: (u8, u8), format: &PointFormat) -> Header {
+    let legacy_points = u64::from(u32_at(h, 107));
+    let mut legacy_by_return = [0u64; 15];
+    for (k, v) in legacy_by_return.iter_mut().take(5).enumerate() {
+        *v = u64::from(u32_at(h, 111 + 4 * k));
+    }
+    let f = |at: usize| f64_at(h, at);
+    let is_14 = version.1 >= 4;
+    let (start_of_first_evlr, number_of_evlrs, points_64) = if is_14 {
+        (u64_at(h, 235), u32_at(h, 243), u64_at(h, 247))
+    } else {
+        (0, 0, 0)
+    };
+    let (number_of_points, points_by_return) = if points_64 != 0 {
+        let mut by = [0u64; 15];
+        for (k, v) in by.iter_mut().enumerate() {
+            *v = u64_at(h, 255 + 8 * k);
+        }
+        (points_64, by)
+    } else {
+        (legacy_points, legacy_by_return)
+    };
+    Header {
+        global_encoding: u16_at(h, 6),
+        system_identifier: text(&h[26..58]),
+        generating_software: text(&h[58..90]),
+        creation_day_of_year: u16_at(h, 90),
+        creation_year: u16_at(h, 92),
+        offset_to_point_data: u32_at(h, 96),
+        number_of_vlrs: u32_at(h, 100),
+        point_format: format.format,
+        point_record_length: u16_at(h, 105),
+        scale: [f(131), f(139), f(147)],
+        offset: [f(155), f(163), f(171)],
+        max: [f(179), f(195), f(211)],
+        min: [f(187), f(203), f(219)],
+        start_of_waveform_data: u64_at(h, 227),
+        start_of_first_evlr,
+        number_of_evlrs,
+        number_of_points,
+        points_by_return,
+    }
+}
+
+/// The point records `header` announces must lie in the file (`file_len` bytes). LAZ
+/// (`compressed`): checked against the chunk table when the points are opened, `laz.rs`.
+fn check_points_fit(
+    file: &str,
+    header: &Header,
+    compressed: bool,
+    file_len: u64,
+) -> Result<(), LasReadError> {
+    let (number_of_points, point_record_length, offset_to_point_data) = (
+        header.number_of_points,
+        header.point_record_length,
+        header.offset_to_point_data,
+    );
+    // The point records must lie in the file (LAZ: checked against the chunk table when the
+    // points are opened, `laz.rs`).
+    let points_end = number_of_points
+        .checked_mul(u64::from(point_record_length))
+        .and_then(|b| b.checked_add(u64::from(offset_to_point_data)));
+    if !compressed && points_end.is_none_or(|e| e > file_len) {
+        return Err(LasReadError::Truncated {
+            file: file.into(),
+            what: format!(
+                "{number_of_points} point records of {point_record_length} bytes from byte \
+                 {offset_to_point_data}"
+            ),
+            start: u64::from(offset_to_point_data),
+            end: points_end.unwrap_or(u64::MAX),
+            len: file_len,
+        });
+    }
+    Ok(())
+}
+
 impl LasInfo {
     /// Reads the public header, the VLRs and (LAS 1.4) the EVLRs of `r`, named `file` in errors.
     /// Checks that the point records the header announces fit in the file.
@@ -351,174 +583,16 @@ impl LasInfo {
         // Header and VLRs are read through one buffer: a file with hundreds of descriptor VLRs
         // costs a few reads, not two system calls per record.
         let r = &mut Positioned::new(r, 1 << 13);
-        let mut h = [0u8; HEADER_SIZE];
-        let n = file_len.min(HEADER_SIZE as u64) as usize;
-        read_at(r, file, file_len, 0, &mut h[..n], "the public header block")?;
-        if &h[0..4] != b"LASF" {
-            return Err(LasReadError::Signature {
-                file: file.into(),
-                found: String::from_utf8_lossy(&h[..n.min(4)]).into_owned(),
-            });
-        }
-        if file_len < HEADER_SIZE_13 as u64 {
-            return Err(LasReadError::Truncated {
-                file: file.into(),
-                what: "the public header block".into(),
-                start: 0,
-                end: HEADER_SIZE_13 as u64,
-                len: file_len,
-            });
-        }
-        let version = (h[24], h[25]);
-        if version.0 != 1 || !(3..=4).contains(&version.1) {
-            return Err(LasReadError::Unsupported {
-                file: file.into(),
-                field: "header: version".into(),
-                what: format!(
-                    "LAS {}.{} (waveform packets need LAS 1.3 or 1.4)",
-                    version.0, version.1
-                ),
-            });
-        }
-        let header_size = u16_at(&h, 94);
-        let need = if version.1 >= 4 {
-            HEADER_SIZE
-        } else {
-            HEADER_SIZE_13
-        };
-        if usize::from(header_size) < need {
-            return Err(invalid(
-                file,
-                "header: header size",
-                format!(
-                    "{header_size} bytes, but a LAS 1.{} header has {need}",
-                    version.1
-                ),
-            ));
-        }
-        if file_len < need as u64 {
-            return Err(LasReadError::Truncated {
-                file: file.into(),
-                what: format!("the LAS 1.{} public header block", version.1),
-                start: 0,
-                end: need as u64,
-                len: file_len,
-            });
-        }
-        let global_encoding = u16_at(&h, 6);
-        let offset_to_point_data = u32_at(&h, 96);
-        let number_of_vlrs = u32_at(&h, 100);
-        let raw_format = h[104];
-        // LASzip marks compressed point records by setting bit 7.
-        let compressed = raw_format & 0x80 != 0;
-        let point_format = raw_format & 0x7f;
-        if point_format & 0x40 != 0 {
-            return Err(LasReadError::Unsupported {
-                file: file.into(),
-                field: "header: point data record format".into(),
-                what: format!(
-                    "{raw_format} (bit 6 set: no LAS format; early experimental LASzip versions \
-                     marked their files so)"
-                ),
-            });
-        }
-        let point_record_length = u16_at(&h, 105);
-        if u64::from(offset_to_point_data) < u64::from(header_size) {
-            return Err(invalid(
-                file,
-                "header: offset to point data",
-                format!("{offset_to_point_data}, inside the {header_size}-byte header"),
-            ));
-        }
-        let Some(layout) = PointLayout::of(point_format) else {
-            let laz = if compressed {
-                format!(" (LAZ-compressed, stored as {raw_format})")
-            } else {
-                String::new()
-            };
-            return Err(LasReadError::Unsupported {
-                file: file.into(),
-                field: "header: point data record format".into(),
-                what: format!(
-                    "point format {point_format}{laz}, which carries no waveform packets \
-                     (formats 4, 5, 9 and 10 do)"
-                ),
-            });
-        };
-        if usize::from(point_record_length) < layout.size {
-            return Err(invalid(
-                file,
-                "header: point data record length",
-                format!(
-                    "{point_record_length} bytes, but point format {point_format} needs at \
-                     least {}",
-                    layout.size
-                ),
-            ));
-        }
-        let legacy_points = u64::from(u32_at(&h, 107));
-        let mut legacy_by_return = [0u64; 15];
-        for (k, v) in legacy_by_return.iter_mut().take(5).enumerate() {
-            *v = u64::from(u32_at(&h, 111 + 4 * k));
-        }
-        let f = |at: usize| f64_at(&h, at);
-        let is_14 = version.1 >= 4;
-        let (start_of_first_evlr, number_of_evlrs, points_64) = if is_14 {
-            (u64_at(&h, 235), u32_at(&h, 243), u64_at(&h, 247))
-        } else {
-            (0, 0, 0)
-        };
-        let (number_of_points, points_by_return) = if points_64 != 0 {
-            let mut by = [0u64; 15];
-            for (k, v) in by.iter_mut().enumerate() {
-                *v = u64_at(&h, 255 + 8 * k);
-            }
-            (points_64, by)
-        } else {
-            (legacy_points, legacy_by_return)
-        };
-        let header = Header {
-            global_encoding,
-            system_identifier: text(&h[26..58]),
-            generating_software: text(&h[58..90]),
-            creation_day_of_year: u16_at(&h, 90),
-            creation_year: u16_at(&h, 92),
-            offset_to_point_data,
-            number_of_vlrs,
-            point_format,
-            point_record_length,
-            scale: [f(131), f(139), f(147)],
-            offset: [f(155), f(163), f(171)],
-            max: [f(179), f(195), f(211)],
-            min: [f(187), f(203), f(219)],
-            start_of_waveform_data: u64_at(&h, 227),
-            start_of_first_evlr,
-            number_of_evlrs,
-            number_of_points,
-            points_by_return,
-        };
-        // The point records must lie in the file (LAZ: checked against the chunk table when the
-        // points are opened, `laz.rs`).
-        let points_end = number_of_points
-            .checked_mul(u64::from(point_record_length))
-            .and_then(|b| b.checked_add(u64::from(offset_to_point_data)));
-        if !compressed && points_end.is_none_or(|e| e > file_len) {
-            return Err(LasReadError::Truncated {
-                file: file.into(),
-                what: format!(
-                    "{number_of_points} point records of {point_record_length} bytes from byte \
-                     {offset_to_point_data}"
-                ),
-                start: u64::from(offset_to_point_data),
-                end: points_end.unwrap_or(u64::MAX),
-                len: file_len,
-            });
-        }
+        let block = read_header_block(r, file, file_len)?;
+        let h = &block.bytes;
+        let format = check_point_format(file, h, block.header_size)?;
+        let header = decode_header(h, block.version, &format);
+        check_points_fit(file, &header, format.compressed, file_len)?;
         let mut info = LasInfo {
             file: file.into(),
             file_len,
-            version,
-            header_size,
+            version: block.version,
+            header_size: block.header_size,
             header,
             descriptors: vec![None; MAX_DESCRIPTORS + 1],
             wkt: None,
@@ -526,10 +600,22 @@ impl LasInfo {
             waveform: WaveformLocation::Absent,
             laz: None,
         };
+        info.read_vlrs(r)?;
+        info.check_laszip_vlr(&format)?;
+        let waveform_evlr = info.read_evlrs(r)?;
+        info.waveform = info.waveform_location(waveform_evlr)?;
+        Ok(info)
+    }
 
+    /// Reads the VLRs, between the header and the points, keeping what [`take_record`] keeps;
+    /// each must lie whole before the point data.
+    fn read_vlrs<R: Read + Seek>(&mut self, r: &mut Positioned<R>) -> Result<(), LasReadError> {
+        let (file, file_len) = (self.file.clone(), self.file_len);
+        let file = file.as_str();
+        let number_of_vlrs = self.header.number_of_vlrs;
         // VLRs: between the header and the points.
-        let mut at = u64::from(header_size);
-        let vlr_end = u64::from(offset_to_point_data);
+        let mut at = u64::from(self.header_size);
+        let vlr_end = u64::from(self.header.offset_to_point_data);
         let mut vh = [0u8; VLR_HEADER_SIZE];
         for i in 0..number_of_vlrs {
             if at + VLR_HEADER_SIZE as u64 > vlr_end {
@@ -558,13 +644,19 @@ impl LasInfo {
                     ),
                 ));
             }
-            take_record(r, &mut info, &user, record_id, payload_at, len, &label)?;
+            take_record(r, self, &user, record_id, payload_at, len, &label)?;
             at = payload_at + len;
         }
+        Ok(())
+    }
 
-        if compressed && info.laz.is_none() {
+    /// Compressed point records need the LASzip VLR; a plain file's LASzip VLR (kept from the
+    /// LAZ it was decompressed from) is dropped.
+    fn check_laszip_vlr(&mut self, format: &PointFormat) -> Result<(), LasReadError> {
+        let (raw_format, point_format) = (format.raw, format.format);
+        if format.compressed && self.laz.is_none() {
             return Err(invalid(
-                file,
+                &self.file,
                 "header: point data record format",
                 format!(
                     "{raw_format} says the point records are LAZ-compressed (format \
@@ -573,11 +665,25 @@ impl LasInfo {
                 ),
             ));
         }
-        if !compressed {
+        if !format.compressed {
             // A plain LAS file that kept the VLR of the LAZ it was decompressed from.
-            info.laz = None;
+            self.laz = None;
         }
+        Ok(())
+    }
 
+    /// Reads the EVLRs (LAS 1.4), after the points, keeping what [`take_record`] keeps; each
+    /// must lie whole in the file. Returns where the first waveform data packet EVLR
+    /// (`LASF_Spec` 65535) starts, bytes, if one does.
+    fn read_evlrs<R: Read + Seek>(
+        &mut self,
+        r: &mut Positioned<R>,
+    ) -> Result<Option<u64>, LasReadError> {
+        let (file, file_len) = (self.file.clone(), self.file_len);
+        let file = file.as_str();
+        let is_14 = self.version.1 >= 4;
+        let (start_of_first_evlr, number_of_evlrs) =
+            (self.header.start_of_first_evlr, self.header.number_of_evlrs);
         // EVLRs (LAS 1.4): after the points.
         let mut waveform_evlr = None;
         if is_14 && number_of_evlrs > 0 && start_of_first_evlr != 0 {
@@ -604,14 +710,25 @@ impl LasInfo {
                     waveform_evlr.get_or_insert(at);
                 } else {
                     let label = format!("EVLR {i} ({user} {record_id})");
-                    take_record(r, &mut info, &user, record_id, payload_at, len, &label)?;
+                    take_record(r, self, &user, record_id, payload_at, len, &label)?;
                 }
                 at = payload_at + len;
             }
         }
+        Ok(waveform_evlr)
+    }
 
-        let start = info.header.start_of_waveform_data;
-        info.waveform = if global_encoding & GLOBAL_WAVEFORM_EXTERNAL != 0 {
+    /// Where the waveform packets are, from the global encoding and the start of the waveform
+    /// data packet record (else the first waveform EVLR, `waveform_evlr`, for internal
+    /// packets); an internal record's 60-byte header must lie in the file.
+    fn waveform_location(
+        &self,
+        waveform_evlr: Option<u64>,
+    ) -> Result<WaveformLocation, LasReadError> {
+        let (file, file_len) = (self.file.as_str(), self.file_len);
+        let global_encoding = self.header.global_encoding;
+        let start = self.header.start_of_waveform_data;
+        Ok(if global_encoding & GLOBAL_WAVEFORM_EXTERNAL != 0 {
             WaveformLocation::External
         } else if global_encoding & GLOBAL_WAVEFORM_INTERNAL != 0 || start != 0 {
             let record_start = if start != 0 {
@@ -639,8 +756,7 @@ impl LasInfo {
             WaveformLocation::Internal { record_start }
         } else {
             WaveformLocation::Absent
-        };
-        Ok(info)
+        })
     }
 
     /// The coordinate reference system as [`crate::core::facts::SourceFacts::crs`] wants it: the WKT

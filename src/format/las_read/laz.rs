@@ -404,156 +404,215 @@ fn read_exact_at<R: Read + Seek>(
         .map_err(|e| io_err(file, what, e))
 }
 
+/// Where the chunk table of a LAZ file lies and how many chunks its header states.
+struct TablePlace {
+    /// Offset of the chunk table, bytes.
+    table_at: u64,
+    /// Start of the first chunk (after the 8-byte chunk table offset), bytes.
+    data_start: u64,
+    /// Number of chunks the table header states.
+    count: u64,
+}
+
+/// The field naming the chunk table at byte `table_at`.
+fn table_field(table_at: u64) -> String {
+    format!("LAZ chunk table (byte {table_at})")
+}
+
+/// Reads the chunk table offset of the file `info` describes: the first 8 bytes of the point
+/// data, or the file's last 8 bytes when those are not past the point data (a writer that could
+/// not seek back writes it there; LASzip reads it there). Refused unless past the offset
+/// itself. Returns the offset, bytes.
+fn chunk_table_offset<R: Read + Seek>(r: &mut R, info: &LasInfo) -> Result<u64, LasReadError> {
+    let file = info.file.as_str();
+    let len = info.file_len;
+    let at = u64::from(info.header.offset_to_point_data);
+    // The chunk table offset: the first 8 bytes of the point data. A writer that could not
+    // seek back writes it as the file's last 8 bytes instead (LASzip reads it there).
+    let mut b8 = [0u8; 8];
+    read_exact_at(r, file, len, at, &mut b8, "the LAZ chunk table offset")?;
+    let mut table_at = i64::from_le_bytes(b8);
+    if table_at <= at as i64 && len >= at + 16 {
+        read_exact_at(r, file, len, len - 8, &mut b8, "the LAZ chunk table offset")?;
+        table_at = i64::from_le_bytes(b8);
+    }
+    let data_start = at + 8;
+    if table_at < data_start as i64 {
+        return Err(invalid(
+            file,
+            format!("LAZ chunk table offset (byte {at})"),
+            format!(
+                "{table_at}: no chunk table (the writer did not finish the file, or it is \
+                 truncated)"
+            ),
+        ));
+    }
+    Ok(table_at as u64)
+}
+
+/// Reads the header of the chunk table at `table_at` (bytes) and checks its chunk count: no
+/// more chunks than the compressed bytes before it can hold, and some when the header
+/// announces points.
+fn chunk_count<R: Read + Seek>(
+    r: &mut R,
+    info: &LasInfo,
+    table_at: u64,
+) -> Result<TablePlace, LasReadError> {
+    let file = info.file.as_str();
+    let len = info.file_len;
+    let record_len = u64::from(info.header.point_record_length);
+    let n_points = info.header.number_of_points;
+    let at = u64::from(info.header.offset_to_point_data);
+    let data_start = at + 8;
+    let mut b = [0u8; 8];
+    read_exact_at(
+        r,
+        file,
+        len,
+        table_at,
+        &mut b,
+        &format!("the LAZ chunk table header (offset {table_at} read at byte {at})"),
+    )?;
+    let count = u64::from(u32::from_le_bytes([b[4], b[5], b[6], b[7]]));
+    // Each chunk starts with one uncompressed point and at least 4 bytes of coded data.
+    let min_chunk = record_len + 4;
+    let data_bytes = table_at - data_start;
+    let most = data_bytes / min_chunk;
+    if count > most {
+        return Err(invalid(
+            file,
+            table_field(table_at),
+            format!(
+                "{count} chunks, but the {data_bytes} bytes of compressed points before it \
+                 hold at most {most} (each chunk starts with an uncompressed {record_len}-byte \
+                 point)"
+            ),
+        ));
+    }
+    if n_points > 0 && count == 0 {
+        return Err(invalid(
+            file,
+            table_field(table_at),
+            format!("no chunks, but the header announces {n_points} points"),
+        ));
+    }
+    Ok(TablePlace {
+        table_at,
+        data_start,
+        count,
+    })
+}
+
+/// Decodes the chunk table's entries (`variable`: with a point count each), under
+/// [`guarded`]; entries past the end of the file or that do not decode are refused.
+fn read_chunk_table<R: Read + Seek>(
+    r: &mut R,
+    info: &LasInfo,
+    place: &TablePlace,
+    variable: bool,
+) -> Result<ChunkTable, LasReadError> {
+    let file = info.file.as_str();
+    let (table_at, count, len) = (place.table_at, place.count, info.file_len);
+    r.seek(SeekFrom::Start(table_at))
+        .map_err(|e| io_err(file, "the LAZ chunk table", e))?;
+    let mut br = BufReader::with_capacity(4096, &mut *r);
+    match guarded(|| ChunkTable::read(&mut br, variable)) {
+        Ok(Ok(t)) => Ok(t),
+        Ok(Err(e)) if e.kind() == std::io::ErrorKind::UnexpectedEof => Err(invalid(
+            file,
+            table_field(table_at),
+            format!("its {count} entries run past the end of the file ({len} bytes)"),
+        )),
+        Ok(Err(e)) => Err(io_err(file, "the LAZ chunk table", e)),
+        Err(p) => Err(invalid(
+            file,
+            table_field(table_at),
+            format!("damaged: its entries do not decode ({p})"),
+        )),
+    }
+}
+
+/// The chunks of `table`, laid end to end from the start of the point data: each chunk's byte
+/// range must end before the chunk table and hold at least one uncompressed point, and the
+/// chunks must hold every point the header announces (a last chunk's surplus is left out).
+fn chunk_ranges(
+    info: &LasInfo,
+    table: &ChunkTable,
+    vlr: &LazVlr,
+    place: &TablePlace,
+) -> Result<Vec<Chunk>, LasReadError> {
+    let file = info.file.as_str();
+    let record_len = u64::from(info.header.point_record_length);
+    let n_points = info.header.number_of_points;
+    let (table_at, count) = (place.table_at, place.count);
+    let min_chunk = record_len + 4;
+    let variable = vlr.uses_variable_size_chunks();
+    let chunk_size = u64::from(vlr.chunk_size());
+    let mut chunks = Vec::with_capacity(table.len());
+    let mut start = place.data_start;
+    let mut first = 0u64;
+    for (i, e) in table.as_ref().iter().enumerate() {
+        if first >= n_points {
+            break;
+        }
+        let stated = if variable { e.point_count } else { chunk_size };
+        let field = || format!("LAZ chunk {i} of {count} (chunk table at byte {table_at})");
+        if stated == 0 {
+            return Err(invalid(file, field(), "0 points"));
+        }
+        let end = start.checked_add(e.byte_count).filter(|&e| e <= table_at);
+        let Some(end) = end else {
+            return Err(invalid(
+                file,
+                field(),
+                format!(
+                    "{} bytes from byte {start}: past the start of the chunk table",
+                    e.byte_count
+                ),
+            ));
+        };
+        if e.byte_count < min_chunk {
+            return Err(invalid(
+                file,
+                field(),
+                format!(
+                    "{} bytes, fewer than one uncompressed {record_len}-byte point and the \
+                     coder's 4",
+                    e.byte_count
+                ),
+            ));
+        }
+        let points = stated.min(n_points - first);
+        chunks.push(Chunk {
+            start,
+            bytes: e.byte_count,
+            points,
+            first,
+        });
+        start = end;
+        first += points;
+    }
+    if first < n_points {
+        return Err(invalid(
+            file,
+            table_field(table_at),
+            format!("its {count} chunks hold {first} points, but the header announces {n_points}"),
+        ));
+    }
+    Ok(chunks)
+}
+
 impl<R: Read + Seek> LazPoints<R> {
     /// Checks the LASzip VLR `payload` and the chunk table of `r` (the whole file, described by
     /// `info`), and makes the decompressor.
     pub(super) fn open(info: &LasInfo, payload: &[u8], mut r: R) -> Result<Self, LasReadError> {
-        let file = info.file.as_str();
-        let len = info.file_len;
         let (vlr, items, layered) = check_vlr(info, payload)?;
         let record_len = u64::from(info.header.point_record_length);
-        let n_points = info.header.number_of_points;
-        let at = u64::from(info.header.offset_to_point_data);
-
-        // The chunk table offset: the first 8 bytes of the point data. A writer that could not
-        // seek back writes it as the file's last 8 bytes instead (LASzip reads it there).
-        let mut b8 = [0u8; 8];
-        read_exact_at(&mut r, file, len, at, &mut b8, "the LAZ chunk table offset")?;
-        let mut table_at = i64::from_le_bytes(b8);
-        if table_at <= at as i64 && len >= at + 16 {
-            read_exact_at(
-                &mut r,
-                file,
-                len,
-                len - 8,
-                &mut b8,
-                "the LAZ chunk table offset",
-            )?;
-            table_at = i64::from_le_bytes(b8);
-        }
-        let data_start = at + 8;
-        if table_at < data_start as i64 {
-            return Err(invalid(
-                file,
-                format!("LAZ chunk table offset (byte {at})"),
-                format!(
-                    "{table_at}: no chunk table (the writer did not finish the file, or it is \
-                     truncated)"
-                ),
-            ));
-        }
-        let table_at = table_at as u64;
-        let mut b = [0u8; 8];
-        read_exact_at(
-            &mut r,
-            file,
-            len,
-            table_at,
-            &mut b,
-            &format!("the LAZ chunk table header (offset {table_at} read at byte {at})"),
-        )?;
-        let count = u64::from(u32::from_le_bytes([b[4], b[5], b[6], b[7]]));
-        // Each chunk starts with one uncompressed point and at least 4 bytes of coded data.
-        let min_chunk = record_len + 4;
-        let data_bytes = table_at - data_start;
-        let most = data_bytes / min_chunk;
-        let table_field = || format!("LAZ chunk table (byte {table_at})");
-        if count > most {
-            return Err(invalid(
-                file,
-                table_field(),
-                format!(
-                    "{count} chunks, but the {data_bytes} bytes of compressed points before it \
-                     hold at most {most} (each chunk starts with an uncompressed {record_len}-byte \
-                     point)"
-                ),
-            ));
-        }
-        if n_points > 0 && count == 0 {
-            return Err(invalid(
-                file,
-                table_field(),
-                format!("no chunks, but the header announces {n_points} points"),
-            ));
-        }
+        let table_at = chunk_table_offset(&mut r, info)?;
+        let place = chunk_count(&mut r, info, table_at)?;
         let variable = vlr.uses_variable_size_chunks();
-        let table = {
-            r.seek(SeekFrom::Start(table_at))
-                .map_err(|e| io_err(file, "the LAZ chunk table", e))?;
-            let mut br = BufReader::with_capacity(4096, &mut r);
-            match guarded(|| ChunkTable::read(&mut br, variable)) {
-                Ok(Ok(t)) => t,
-                Ok(Err(e)) if e.kind() == std::io::ErrorKind::UnexpectedEof => {
-                    return Err(invalid(
-                        file,
-                        table_field(),
-                        format!("its {count} entries run past the end of the file ({len} bytes)"),
-                    ));
-                }
-                Ok(Err(e)) => return Err(io_err(file, "the LAZ chunk table", e)),
-                Err(p) => {
-                    return Err(invalid(
-                        file,
-                        table_field(),
-                        format!("damaged: its entries do not decode ({p})"),
-                    ));
-                }
-            }
-        };
-        let chunk_size = u64::from(vlr.chunk_size());
-        let mut chunks = Vec::with_capacity(table.len());
-        let mut start = data_start;
-        let mut first = 0u64;
-        for (i, e) in table.as_ref().iter().enumerate() {
-            if first >= n_points {
-                break;
-            }
-            let stated = if variable { e.point_count } else { chunk_size };
-            let field = || format!("LAZ chunk {i} of {count} (chunk table at byte {table_at})");
-            if stated == 0 {
-                return Err(invalid(file, field(), "0 points"));
-            }
-            let end = start.checked_add(e.byte_count).filter(|&e| e <= table_at);
-            let Some(end) = end else {
-                return Err(invalid(
-                    file,
-                    field(),
-                    format!(
-                        "{} bytes from byte {start}: past the start of the chunk table",
-                        e.byte_count
-                    ),
-                ));
-            };
-            if e.byte_count < min_chunk {
-                return Err(invalid(
-                    file,
-                    field(),
-                    format!(
-                        "{} bytes, fewer than one uncompressed {record_len}-byte point and the \
-                         coder's 4",
-                        e.byte_count
-                    ),
-                ));
-            }
-            let points = stated.min(n_points - first);
-            chunks.push(Chunk {
-                start,
-                bytes: e.byte_count,
-                points,
-                first,
-            });
-            start = end;
-            first += points;
-        }
-        if first < n_points {
-            return Err(invalid(
-                file,
-                table_field(),
-                format!(
-                    "its {count} chunks hold {first} points, but the header announces {n_points}"
-                ),
-            ));
-        }
+        let table = read_chunk_table(&mut r, info, &place, variable)?;
+        let chunks = chunk_ranges(info, &table, &vlr, &place)?;
 
         let layers = if layered {
             items.iter().map(|i| item_layers(i.item_type())).sum()
@@ -580,7 +639,7 @@ impl<R: Read + Seek> LazPoints<R> {
             read_in_chunk: 0,
             layers,
             chunk_head: vec![0u8; record_len as usize + 4 + 4 * layers],
-            data_start,
+            data_start: place.data_start,
             table_at,
             failed: false,
             chunks_started: 0,
