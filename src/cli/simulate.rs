@@ -12,11 +12,12 @@ use std::sync::atomic::AtomicBool;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
+use crate::core::sensor::SensorProfile;
 use crate::format::{CaptureHeader, CaptureWriter, FlushPolicy};
 use crate::pulse::{Pulse, SegmentKind};
 use crate::sim::scene::Scene;
 use crate::sim::world::scene::WorldScene;
-use crate::sim::world::{WorldItems, WorldSim};
+use crate::sim::world::{ShotTruth, WorldItems, WorldSim};
 use crate::sim::{SimItem, SimItems};
 
 /// Arguments of `fwlidar simulate`.
@@ -322,114 +323,266 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
             return run_live(&args, items);
         }
     };
-    let [
-        truth_path,
-        csv_path,
-        json_path,
-        truth_dir,
-        trees_path,
-        branches_path,
-    ] = truth_paths(&out);
-    for p in [
-        &out,
-        &truth_path,
-        &csv_path,
-        &json_path,
-        &truth_dir,
-        &trees_path,
-        &branches_path,
-    ] {
-        if p.exists() {
-            return Err(Failure::usage(format!(
-                "{} exists: simulated captures and their truth are never overwritten",
-                p.display()
-            )));
-        }
-    }
+    let paths = WorldPaths::new(out)?;
     let total = sim.plan().pulses();
     let mut items = WorldItems::new(sim).map_err(Failure::usage)?;
-    let table = toml::to_string(&scene)
-        .ok()
-        .and_then(|t| toml::from_str::<toml::Table>(&t).ok());
-    let header = CaptureHeader::simulated(&sensor, table.clone(), "simulated");
-    let mut writer = CaptureWriter::create(&out, &header.to_text(), FlushPolicy::default())
-        .map_err(Failure::job)?;
-    let truth_header = CaptureHeader::simulated(&sensor, table, "simulated truth (2 ns pulse)");
-    let mut truth_writer =
-        CaptureWriter::create(&truth_path, &truth_header.to_text(), FlushPolicy::default())
-            .map_err(Failure::job)?;
-    let csv_file = std::fs::File::create_new(&csv_path)
-        .map_err(|e| Failure::job(format!("cannot create {}: {e}", csv_path.display())))?;
-    let mut csv = std::io::BufWriter::new(csv_file);
-    let io = |e: std::io::Error| Failure::job(format!("{}: {e}", csv_path.display()));
-    writeln!(
-        csv,
-        "seq,gps_time_s,kind,object,range_m,range_end_m,east_m,north_m,up_m,fraction,reflectance,amplitude_dn,ray"
-    )
-    .map_err(io)?;
+    let mut files = WorldFiles::create(&scene, &sensor, &paths)?;
     let bar = progress(args.no_progress, total);
-    let (mut pulses, mut nav, mut lost_written) = (0u64, 0u64, 0usize);
-    let mut truth_pulse = Pulse::default();
-    let truth_steps = truth_steps_per_count(sensor.bits_per_sample);
-    while let Some(item) = items.next() {
-        for &seq in &items.lost()[lost_written..] {
-            writeln!(csv, "{seq},,lost,,,,,,,,,,").map_err(io)?;
+    let written = files.write_stream(&mut items, &sensor, &bar)?;
+    let bytes = files.finish()?;
+    let summary = world_summary(
+        &scene,
+        &scene_path,
+        &paths,
+        total,
+        &written,
+        items.lost().len(),
+    );
+    let (pulses, nav) = (written.pulses, written.nav);
+    write_tree_truth(&scene, &paths.trees, &paths.branches)?;
+    std::fs::write(
+        &paths.json,
+        serde_json::to_string_pretty(&summary).unwrap_or_default(),
+    )
+    .map_err(|e| Failure::job(format!("cannot write {}: {e}", paths.json.display())))?;
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    if !args.no_truth_voxels {
+        voxelise_truth(&paths.truth, &paths.truth_dir)?;
+    }
+    println!(
+        "wrote {}: {pulses} pulses ({} lost), {nav} navigation records, {bytes} bytes (scene {}, seed {}); truth in {} and {}",
+        paths.out.display(),
+        items.lost().len(),
+        scene_path.display(),
+        scene.seed,
+        paths.truth.display(),
+        paths.csv.display()
+    );
+    Ok(())
+}
+
+/// The files a described scene's simulation writes ([`truth_paths`] of the capture's).
+struct WorldPaths {
+    /// The capture.
+    out: PathBuf,
+    /// The truth capture (2 ns pulse).
+    truth: PathBuf,
+    /// Every scatterer met, CSV.
+    csv: PathBuf,
+    /// The JSON summary.
+    json: PathBuf,
+    /// Where the truth voxels go.
+    truth_dir: PathBuf,
+    /// The trees, CSV.
+    trees: PathBuf,
+    /// The trees' branches, CSV.
+    branches: PathBuf,
+}
+
+impl WorldPaths {
+    /// The files beside capture `out`; refused when any of them exists (simulated captures
+    /// and their truth are never overwritten).
+    fn new(out: PathBuf) -> Result<Self, Failure> {
+        let [truth, csv, json, truth_dir, trees, branches] = truth_paths(&out);
+        let paths = WorldPaths {
+            out,
+            truth,
+            csv,
+            json,
+            truth_dir,
+            trees,
+            branches,
+        };
+        for p in [
+            &paths.out,
+            &paths.truth,
+            &paths.csv,
+            &paths.json,
+            &paths.truth_dir,
+            &paths.trees,
+            &paths.branches,
+        ] {
+            if p.exists() {
+                return Err(Failure::usage(format!(
+                    "{} exists: simulated captures and their truth are never overwritten",
+                    p.display()
+                )));
+            }
         }
-        lost_written = items.lost().len();
-        match item {
-            SimItem::Pulse(p) => {
-                writer.write_pulse(&p).map_err(Failure::job)?;
-                let t = items.last_truth();
-                truth_pulse_of(&p, t, &sensor, truth_steps, &mut truth_pulse);
-                truth_writer
-                    .write_pulse(&truth_pulse)
-                    .map_err(Failure::job)?;
-                for s in &t.scatterers {
-                    writeln!(
-                        csv,
-                        "{},{:.9},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.6},{:.4},{:.4},{}",
-                        t.seq,
-                        t.gps_time,
-                        s.kind.name(),
-                        s.object,
-                        s.range_m,
-                        s.range_end_m,
-                        s.position[0],
-                        s.position[1],
-                        s.position[2],
-                        s.fraction,
-                        s.reflectance,
-                        s.amplitude_dn,
-                        s.ray
-                    )
-                    .map_err(io)?;
+        Ok(paths)
+    }
+}
+
+/// The open outputs of a described scene's simulation: the capture, the truth capture and the
+/// scatterers' CSV.
+struct WorldFiles {
+    writer: CaptureWriter<std::fs::File>,
+    truth_writer: CaptureWriter<std::fs::File>,
+    csv: std::io::BufWriter<std::fs::File>,
+    csv_path: PathBuf,
+    /// Lost pulses already written to the CSV.
+    lost_written: usize,
+}
+
+impl WorldFiles {
+    /// Creates the capture and the truth capture (headers with the scene's table) and the
+    /// scatterers' CSV with its header line.
+    fn create(
+        scene: &WorldScene,
+        sensor: &SensorProfile,
+        paths: &WorldPaths,
+    ) -> Result<Self, Failure> {
+        let table = toml::to_string(scene)
+            .ok()
+            .and_then(|t| toml::from_str::<toml::Table>(&t).ok());
+        let header = CaptureHeader::simulated(sensor, table.clone(), "simulated");
+        let writer = CaptureWriter::create(&paths.out, &header.to_text(), FlushPolicy::default())
+            .map_err(Failure::job)?;
+        let truth_header = CaptureHeader::simulated(sensor, table, "simulated truth (2 ns pulse)");
+        let truth_writer = CaptureWriter::create(
+            &paths.truth,
+            &truth_header.to_text(),
+            FlushPolicy::default(),
+        )
+        .map_err(Failure::job)?;
+        let csv_file = std::fs::File::create_new(&paths.csv)
+            .map_err(|e| Failure::job(format!("cannot create {}: {e}", paths.csv.display())))?;
+        let mut files = WorldFiles {
+            writer,
+            truth_writer,
+            csv: std::io::BufWriter::new(csv_file),
+            csv_path: paths.csv.clone(),
+            lost_written: 0,
+        };
+        writeln!(
+            files.csv,
+            "seq,gps_time_s,kind,object,range_m,range_end_m,east_m,north_m,up_m,fraction,reflectance,amplitude_dn,ray"
+        )
+        .map_err(|e| files.io(e))?;
+        Ok(files)
+    }
+
+    /// A write error of the CSV.
+    fn io(&self, e: std::io::Error) -> Failure {
+        Failure::job(format!("{}: {e}", self.csv_path.display()))
+    }
+
+    /// Writes every item of `items`: pulses to the capture, their truth to the truth capture
+    /// and their scatterers (and the lost pulses) to the CSV, navigation to both captures.
+    fn write_stream(
+        &mut self,
+        items: &mut WorldItems,
+        sensor: &SensorProfile,
+        bar: &Option<ProgressBar>,
+    ) -> Result<Written, Failure> {
+        let (mut pulses, mut nav) = (0u64, 0u64);
+        let mut truth_pulse = Pulse::default();
+        let truth_steps = truth_steps_per_count(sensor.bits_per_sample);
+        while let Some(item) = items.next() {
+            self.write_lost(items)?;
+            match item {
+                SimItem::Pulse(p) => {
+                    self.writer.write_pulse(&p).map_err(Failure::job)?;
+                    let t = items.last_truth();
+                    truth_pulse_of(&p, t, sensor, truth_steps, &mut truth_pulse);
+                    self.truth_writer
+                        .write_pulse(&truth_pulse)
+                        .map_err(Failure::job)?;
+                    self.write_scatterers(t)?;
+                    pulses += 1;
+                    tick(bar, pulses);
                 }
-                pulses += 1;
-                tick(&bar, pulses);
-            }
-            SimItem::Nav {
-                receive_time_ns,
-                bytes,
-            } => {
-                writer
-                    .write_nav(0, receive_time_ns, &bytes)
-                    .map_err(Failure::job)?;
-                truth_writer
-                    .write_nav(0, receive_time_ns, &bytes)
-                    .map_err(Failure::job)?;
-                nav += 1;
+                SimItem::Nav {
+                    receive_time_ns,
+                    bytes,
+                } => {
+                    self.writer
+                        .write_nav(0, receive_time_ns, &bytes)
+                        .map_err(Failure::job)?;
+                    self.truth_writer
+                        .write_nav(0, receive_time_ns, &bytes)
+                        .map_err(Failure::job)?;
+                    nav += 1;
+                }
             }
         }
+        self.write_lost(items)?;
+        Ok(Written {
+            pulses,
+            nav,
+            truth_steps,
+        })
     }
-    for &seq in &items.lost()[lost_written..] {
-        writeln!(csv, "{seq},,lost,,,,,,,,,,").map_err(io)?;
+
+    /// The pulses `items` lost since the last call, one CSV line each.
+    fn write_lost(&mut self, items: &WorldItems) -> Result<(), Failure> {
+        for &seq in &items.lost()[self.lost_written..] {
+            writeln!(self.csv, "{seq},,lost,,,,,,,,,,").map_err(|e| self.io(e))?;
+        }
+        self.lost_written = items.lost().len();
+        Ok(())
     }
-    csv.flush().map_err(io)?;
-    let bytes = writer.bytes_written();
-    writer.finish().map_err(Failure::job)?;
-    truth_writer.finish().map_err(Failure::job)?;
+
+    /// One CSV line per scatterer of pulse truth `t` (ranges and positions in metres, scene
+    /// frame; amplitudes in counts).
+    fn write_scatterers(&mut self, t: &ShotTruth) -> Result<(), Failure> {
+        for s in &t.scatterers {
+            writeln!(
+                self.csv,
+                "{},{:.9},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.6},{:.4},{:.4},{}",
+                t.seq,
+                t.gps_time,
+                s.kind.name(),
+                s.object,
+                s.range_m,
+                s.range_end_m,
+                s.position[0],
+                s.position[1],
+                s.position[2],
+                s.fraction,
+                s.reflectance,
+                s.amplitude_dn,
+                s.ray
+            )
+            .map_err(|e| self.io(e))?;
+        }
+        Ok(())
+    }
+
+    /// Flushes the CSV and finishes both captures; returns the capture's bytes.
+    fn finish(mut self) -> Result<u64, Failure> {
+        self.csv.flush().map_err(|e| self.io(e))?;
+        let bytes = self.writer.bytes_written();
+        self.writer.finish().map_err(Failure::job)?;
+        self.truth_writer.finish().map_err(Failure::job)?;
+        Ok(bytes)
+    }
+}
+
+/// What [`WorldFiles::write_stream`] wrote.
+struct Written {
+    /// Pulses recorded.
+    pulses: u64,
+    /// Navigation records.
+    nav: u64,
+    /// Steps per sensor count in the truth capture.
+    truth_steps: f64,
+}
+
+/// The JSON summary of a described scene's simulation: the scene, its frame, effects, what
+/// was written (`total` pulses generated, `lost` of them lost) and where.
+fn world_summary(
+    scene: &WorldScene,
+    scene_path: &Path,
+    paths: &WorldPaths,
+    total: u64,
+    written: &Written,
+    lost: usize,
+) -> serde_json::Value {
     let o = &scene.origin;
-    let summary = serde_json::json!({
+    serde_json::json!({
         "scene": scene_path.display().to_string(),
         "seed": scene.seed,
         "frame": {
@@ -440,37 +593,15 @@ fn run_world(args: SimulateArgs) -> Result<(), Failure> {
         },
         "effects": scene.effects.iter().map(|e| e.name()).collect::<Vec<_>>(),
         "pulses_generated": total,
-        "pulses_recorded": pulses,
-        "pulses_lost": items.lost().len(),
-        "navigation_records": nav,
-        "truth_capture": truth_path.display().to_string(),
-        "truth_steps_per_count": truth_steps,
-        "scatterers": csv_path.display().to_string(),
-        "trees": trees_path.display().to_string(),
-        "branches": branches_path.display().to_string(),
-    });
-    write_tree_truth(&scene, &trees_path, &branches_path)?;
-    std::fs::write(
-        &json_path,
-        serde_json::to_string_pretty(&summary).unwrap_or_default(),
-    )
-    .map_err(|e| Failure::job(format!("cannot write {}: {e}", json_path.display())))?;
-    if let Some(b) = bar {
-        b.finish_and_clear();
-    }
-    if !args.no_truth_voxels {
-        voxelise_truth(&truth_path, &truth_dir)?;
-    }
-    println!(
-        "wrote {}: {pulses} pulses ({} lost), {nav} navigation records, {bytes} bytes (scene {}, seed {}); truth in {} and {}",
-        out.display(),
-        items.lost().len(),
-        scene_path.display(),
-        scene.seed,
-        truth_path.display(),
-        csv_path.display()
-    );
-    Ok(())
+        "pulses_recorded": written.pulses,
+        "pulses_lost": lost,
+        "navigation_records": written.nav,
+        "truth_capture": paths.truth.display().to_string(),
+        "truth_steps_per_count": written.truth_steps,
+        "scatterers": paths.csv.display().to_string(),
+        "trees": paths.trees.display().to_string(),
+        "branches": paths.branches.display().to_string(),
+    })
 }
 
 /// Steps per sensor count in a truth capture: room for 16× the sensor's range in 16 bits

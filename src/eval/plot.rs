@@ -93,30 +93,84 @@ struct Panel<'a> {
     values: Vec<f64>,
 }
 
+/// The logarithmic time axis shared by both panels: decades `dec_lo..=dec_hi` (log10 of µs).
+#[derive(Clone, Copy)]
+struct TimeAxis {
+    dec_lo: f64,
+    dec_hi: f64,
+}
+
+impl TimeAxis {
+    /// Decades covering every positive finite time and budget (µs), at least one wide;
+    /// 10⁻²..10⁴ µs when there is none.
+    fn covering(times: &[f64], budgets: &[f64]) -> Self {
+        let finite_pos = times
+            .iter()
+            .chain(budgets)
+            .copied()
+            .filter(|t| t.is_finite() && *t > 0.0);
+        let lo = finite_pos.clone().fold(f64::INFINITY, f64::min);
+        let hi = finite_pos.fold(0.0f64, f64::max);
+        let (dec_lo, dec_hi) = if lo.is_finite() && hi > 0.0 {
+            (
+                lo.log10().floor(),
+                hi.log10().ceil().max(lo.log10().floor() + 1.0),
+            )
+        } else {
+            (-2.0, 4.0)
+        };
+        TimeAxis { dec_lo, dec_hi }
+    }
+
+    /// x (px) of time `t` (µs; the axis' start when not positive) in the panel at `x0` (px).
+    fn x(&self, x0: f64, t: f64) -> f64 {
+        let t = if t > 0.0 { t } else { 10f64.powf(self.dec_lo) };
+        x0 + (t.log10() - self.dec_lo) / (self.dec_hi - self.dec_lo) * PW
+    }
+}
+
+impl Panel<'_> {
+    /// y (px) of value `v`, clamped to the panel's range.
+    fn y(&self, v: f64) -> f64 {
+        TOP + PH - (v.clamp(0.0, self.y_max) / self.y_max) * PH
+    }
+}
+
 /// The SVG document. `workers` sets the time budget lines (budget = workers / rate).
 pub fn svg(settings: &[Setting], summary: &[SettingSummary], workers: usize) -> String {
     let times: Vec<f64> = summary.iter().map(|s| s.mean_ns / 1e3).collect();
     let budgets: Vec<f64> = RATES_HZ.iter().map(|&r| workers as f64 / r * 1e6).collect();
-    let finite_pos = times
-        .iter()
-        .chain(&budgets)
-        .copied()
-        .filter(|t| t.is_finite() && *t > 0.0);
-    let lo = finite_pos.clone().fold(f64::INFINITY, f64::min);
-    let hi = finite_pos.fold(0.0f64, f64::max);
-    let (dec_lo, dec_hi) = if lo.is_finite() && hi > 0.0 {
-        (
-            lo.log10().floor(),
-            hi.log10().ceil().max(lo.log10().floor() + 1.0),
-        )
-    } else {
-        (-2.0, 4.0)
-    };
-    let xpos = |x0: f64, t: f64| {
-        let t = if t > 0.0 { t } else { 10f64.powf(dec_lo) };
-        x0 + (t.log10() - dec_lo) / (dec_hi - dec_lo) * PW
-    };
+    let axis = TimeAxis::covering(&times, &budgets);
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        r#"<?xml version="1.0" encoding="UTF-8"?>
+<svg xmlns="http://www.w3.org/2000/svg" width="{WIDTH}" height="{HEIGHT}" viewBox="0 0 {WIDTH} {HEIGHT}" font-family="sans-serif" font-size="12">
+<rect x="0" y="0" width="{WIDTH}" height="{HEIGHT}" fill="white"/>
+<text x="{}" y="24" text-anchor="middle" font-size="15" font-weight="bold">fwlidar tradeoff: accuracy against time per pulse (pooled over pulse widths and truth families)</text>"#,
+        WIDTH / 2.0
+    );
+    for p in &panels(summary) {
+        panel_frame(&mut s, p, axis);
+        budget_lines(&mut s, p, axis, &budgets);
+        // Pareto front of this panel: a staircase through the non-dominated settings.
+        let points: Vec<(f64, f64)> = times
+            .iter()
+            .copied()
+            .zip(p.values.iter().copied())
+            .collect();
+        let front = pareto_front(&points);
+        front_path(&mut s, p, axis, &points, &front);
+        markers(&mut s, p, axis, settings, &points, &front);
+        let _ = writeln!(s, "</g>");
+    }
+    legend(&mut s, workers);
+    s
+}
 
+/// The two panels: RMSE (axis rounded up from 1.05 × the largest) and missed peaks (0..1),
+/// one value per setting.
+fn panels(summary: &[SettingSummary]) -> [Panel<'static>; 2] {
     let rmse: Vec<f64> = summary.iter().map(|s| s.rmse).collect();
     let missed: Vec<f64> = summary.iter().map(|s| 1.0 - s.detection_rate).collect();
     let rmax = rmse
@@ -125,7 +179,7 @@ pub fn svg(settings: &[Setting], summary: &[SettingSummary], workers: usize) -> 
         .filter(|v| v.is_finite())
         .fold(0.0, f64::max);
     let (r_max, r_step) = nice_axis(rmax * 1.05);
-    let panels = [
+    [
         Panel {
             x0: PANEL_X[0],
             title: "RMSE against time per pulse",
@@ -142,151 +196,161 @@ pub fn svg(settings: &[Setting], summary: &[SettingSummary], workers: usize) -> 
             y_step: 0.2,
             values: missed,
         },
-    ];
+    ]
+}
 
-    let mut s = String::new();
+/// Opens panel `p`'s group: its title and frame, the time axis (decades with minor ticks at
+/// 2..9, and its label) and the value axis (grid lines, ticks and label).
+fn panel_frame(s: &mut String, p: &Panel, axis: TimeAxis) {
+    let x0 = p.x0;
+    let (dec_lo, dec_hi) = (axis.dec_lo, axis.dec_hi);
     let _ = writeln!(
         s,
-        r#"<?xml version="1.0" encoding="UTF-8"?>
-<svg xmlns="http://www.w3.org/2000/svg" width="{WIDTH}" height="{HEIGHT}" viewBox="0 0 {WIDTH} {HEIGHT}" font-family="sans-serif" font-size="12">
-<rect x="0" y="0" width="{WIDTH}" height="{HEIGHT}" fill="white"/>
-<text x="{}" y="24" text-anchor="middle" font-size="15" font-weight="bold">fwlidar tradeoff: accuracy against time per pulse (pooled over pulse widths and truth families)</text>"#,
-        WIDTH / 2.0
-    );
-    for p in &panels {
-        let x0 = p.x0;
-        let ypos = |v: f64| TOP + PH - (v.clamp(0.0, p.y_max) / p.y_max) * PH;
-        let _ = writeln!(
-            s,
-            r##"<g><text x="{}" y="{}" text-anchor="middle" font-weight="bold">{}</text>
+        r##"<g><text x="{}" y="{}" text-anchor="middle" font-weight="bold">{}</text>
 <rect x="{x0}" y="{TOP}" width="{PW}" height="{PH}" fill="none" stroke="#333"/>"##,
-            x0 + PW / 2.0,
-            TOP - 8.0,
-            escape(p.title)
-        );
-        // Time axis: decades, with minor ticks at 2..9.
-        let mut d = dec_lo;
-        while d <= dec_hi + 1e-9 {
-            let x = x0 + (d - dec_lo) / (dec_hi - dec_lo) * PW;
-            let _ = writeln!(
-                s,
-                r##"<line x1="{x:.1}" y1="{TOP}" x2="{x:.1}" y2="{}" stroke="#ddd"/><text x="{x:.1}" y="{}" text-anchor="middle">{}</text>"##,
-                TOP + PH,
-                TOP + PH + 16.0,
-                format_decade(d)
-            );
-            if d < dec_hi - 1e-9 {
-                for m in 2..10 {
-                    let xm = x0 + (d + (m as f64).log10() - dec_lo) / (dec_hi - dec_lo) * PW;
-                    let _ = writeln!(
-                        s,
-                        r##"<line x1="{xm:.1}" y1="{}" x2="{xm:.1}" y2="{}" stroke="#333"/>"##,
-                        TOP + PH - 4.0,
-                        TOP + PH
-                    );
-                }
-            }
-            d += 1.0;
-        }
+        x0 + PW / 2.0,
+        TOP - 8.0,
+        escape(p.title)
+    );
+    // Time axis: decades, with minor ticks at 2..9.
+    let mut d = dec_lo;
+    while d <= dec_hi + 1e-9 {
+        let x = x0 + (d - dec_lo) / (dec_hi - dec_lo) * PW;
         let _ = writeln!(
             s,
-            r#"<text x="{}" y="{}" text-anchor="middle">time per pulse (µs, mean, one core; log scale)</text>"#,
-            x0 + PW / 2.0,
-            TOP + PH + 36.0
+            r##"<line x1="{x:.1}" y1="{TOP}" x2="{x:.1}" y2="{}" stroke="#ddd"/><text x="{x:.1}" y="{}" text-anchor="middle">{}</text>"##,
+            TOP + PH,
+            TOP + PH + 16.0,
+            format_decade(d)
         );
-        // Value axis.
-        let mut v = 0.0;
-        while v <= p.y_max + 1e-12 {
-            let y = ypos(v);
-            let _ = writeln!(
-                s,
-                r##"<line x1="{x0}" y1="{y:.1}" x2="{}" y2="{y:.1}" stroke="#eee"/><text x="{}" y="{:.1}" text-anchor="end">{}</text>"##,
-                x0 + PW,
-                x0 - 6.0,
-                y + 4.0,
-                trim_float(v)
-            );
-            v += p.y_step;
-        }
-        let _ = writeln!(
-            s,
-            r#"<text x="{}" y="{}" text-anchor="middle" transform="rotate(-90 {} {})">{}</text>"#,
-            x0 - 52.0,
-            TOP + PH / 2.0,
-            x0 - 52.0,
-            TOP + PH / 2.0,
-            escape(p.y_label)
-        );
-        // Pulse-rate budgets.
-        for (&b, &r) in budgets.iter().zip(&RATES_HZ) {
-            let x = xpos(x0, b);
-            let _ = writeln!(
-                s,
-                r##"<line x1="{x:.1}" y1="{TOP}" x2="{x:.1}" y2="{}" stroke="#999" stroke-dasharray="2 3"/><text x="{:.1}" y="{}" font-size="9" fill="#666" text-anchor="end" transform="rotate(-90 {:.1} {})">{}</text>"##,
-                TOP + PH,
-                x - 2.0,
-                TOP + 4.0,
-                x - 2.0,
-                TOP + 4.0,
-                escape(&rate(r)).replace(' ', "\u{a0}"),
-            );
-        }
-        // Pareto front of this panel: a staircase through the non-dominated settings.
-        let points: Vec<(f64, f64)> = times
-            .iter()
-            .copied()
-            .zip(p.values.iter().copied())
-            .collect();
-        let front = pareto_front(&points);
-        if !front.is_empty() {
-            let mut path = String::new();
-            for (k, &i) in front.iter().enumerate() {
-                let (x, y) = (xpos(x0, points[i].0), ypos(points[i].1));
-                if k == 0 {
-                    let _ = write!(path, "M{x:.1},{y:.1}");
-                } else {
-                    let _ = write!(path, " H{x:.1} V{y:.1}");
-                }
-            }
-            let _ = writeln!(
-                s,
-                r##"<path d="{path}" fill="none" stroke="#000" stroke-width="1.2" stroke-dasharray="6 3"/>"##
-            );
-        }
-        // Markers and their parameter labels; front members ringed in black.
-        for (i, set) in settings.iter().enumerate().take(points.len()) {
-            let (t, v) = points[i];
-            if !(t.is_finite() && v.is_finite()) {
-                continue;
-            }
-            let (x, y) = (xpos(x0, t), ypos(v));
-            let on_front = front.contains(&i);
-            let _ = writeln!(
-                s,
-                r##"<circle cx="{x:.1}" cy="{y:.1}" r="{}" fill="{}" stroke="{}" stroke-width="{}"><title>{}: {:.4} at {:.3} µs</title></circle>"##,
-                if on_front { 5.5 } else { 4.5 },
-                colour(set.method),
-                if on_front { "#000" } else { "#fff" },
-                if on_front { 1.5 } else { 0.8 },
-                escape(&set.label()),
-                v,
-                t
-            );
-            let label = short(set);
-            if !label.is_empty() {
+        if d < dec_hi - 1e-9 {
+            for m in 2..10 {
+                let xm = x0 + (d + (m as f64).log10() - dec_lo) / (dec_hi - dec_lo) * PW;
                 let _ = writeln!(
                     s,
-                    r##"<text x="{:.1}" y="{:.1}" font-size="9" fill="{}">{}</text>"##,
-                    x + 6.0,
-                    y - 5.0,
-                    colour(set.method),
-                    escape(&label)
+                    r##"<line x1="{xm:.1}" y1="{}" x2="{xm:.1}" y2="{}" stroke="#333"/>"##,
+                    TOP + PH - 4.0,
+                    TOP + PH
                 );
             }
         }
-        let _ = writeln!(s, "</g>");
+        d += 1.0;
     }
-    // Legend.
+    let _ = writeln!(
+        s,
+        r#"<text x="{}" y="{}" text-anchor="middle">time per pulse (µs, mean, one core; log scale)</text>"#,
+        x0 + PW / 2.0,
+        TOP + PH + 36.0
+    );
+    // Value axis.
+    let mut v = 0.0;
+    while v <= p.y_max + 1e-12 {
+        let y = p.y(v);
+        let _ = writeln!(
+            s,
+            r##"<line x1="{x0}" y1="{y:.1}" x2="{}" y2="{y:.1}" stroke="#eee"/><text x="{}" y="{:.1}" text-anchor="end">{}</text>"##,
+            x0 + PW,
+            x0 - 6.0,
+            y + 4.0,
+            trim_float(v)
+        );
+        v += p.y_step;
+    }
+    let _ = writeln!(
+        s,
+        r#"<text x="{}" y="{}" text-anchor="middle" transform="rotate(-90 {} {})">{}</text>"#,
+        x0 - 52.0,
+        TOP + PH / 2.0,
+        x0 - 52.0,
+        TOP + PH / 2.0,
+        escape(p.y_label)
+    );
+}
+
+/// Panel `p`'s dotted vertical lines at the pulse-rate `budgets` (µs per pulse, one per
+/// [`RATES_HZ`]), labelled with their rates.
+fn budget_lines(s: &mut String, p: &Panel, axis: TimeAxis, budgets: &[f64]) {
+    for (&b, &r) in budgets.iter().zip(&RATES_HZ) {
+        let x = axis.x(p.x0, b);
+        let _ = writeln!(
+            s,
+            r##"<line x1="{x:.1}" y1="{TOP}" x2="{x:.1}" y2="{}" stroke="#999" stroke-dasharray="2 3"/><text x="{:.1}" y="{}" font-size="9" fill="#666" text-anchor="end" transform="rotate(-90 {:.1} {})">{}</text>"##,
+            TOP + PH,
+            x - 2.0,
+            TOP + 4.0,
+            x - 2.0,
+            TOP + 4.0,
+            escape(&rate(r)).replace(' ', "\u{a0}"),
+        );
+    }
+}
+
+/// Panel `p`'s Pareto front (indices `front` into `points`, (time µs, value) per setting) as
+/// a dashed staircase; nothing when it is empty.
+fn front_path(s: &mut String, p: &Panel, axis: TimeAxis, points: &[(f64, f64)], front: &[usize]) {
+    if front.is_empty() {
+        return;
+    }
+    let mut path = String::new();
+    for (k, &i) in front.iter().enumerate() {
+        let (x, y) = (axis.x(p.x0, points[i].0), p.y(points[i].1));
+        if k == 0 {
+            let _ = write!(path, "M{x:.1},{y:.1}");
+        } else {
+            let _ = write!(path, " H{x:.1} V{y:.1}");
+        }
+    }
+    let _ = writeln!(
+        s,
+        r##"<path d="{path}" fill="none" stroke="#000" stroke-width="1.2" stroke-dasharray="6 3"/>"##
+    );
+}
+
+/// Panel `p`'s markers (one per setting with a finite time and value in `points`) and their
+/// parameter labels; members of `front` ringed in black.
+fn markers(
+    s: &mut String,
+    p: &Panel,
+    axis: TimeAxis,
+    settings: &[Setting],
+    points: &[(f64, f64)],
+    front: &[usize],
+) {
+    for (i, set) in settings.iter().enumerate().take(points.len()) {
+        let (t, v) = points[i];
+        if !(t.is_finite() && v.is_finite()) {
+            continue;
+        }
+        let (x, y) = (axis.x(p.x0, t), p.y(v));
+        let on_front = front.contains(&i);
+        let _ = writeln!(
+            s,
+            r##"<circle cx="{x:.1}" cy="{y:.1}" r="{}" fill="{}" stroke="{}" stroke-width="{}"><title>{}: {:.4} at {:.3} µs</title></circle>"##,
+            if on_front { 5.5 } else { 4.5 },
+            colour(set.method),
+            if on_front { "#000" } else { "#fff" },
+            if on_front { 1.5 } else { 0.8 },
+            escape(&set.label()),
+            v,
+            t
+        );
+        let label = short(set);
+        if !label.is_empty() {
+            let _ = writeln!(
+                s,
+                r##"<text x="{:.1}" y="{:.1}" font-size="9" fill="{}">{}</text>"##,
+                x + 6.0,
+                y - 5.0,
+                colour(set.method),
+                escape(&label)
+            );
+        }
+    }
+}
+
+/// The legend under the panels: the methods' colours, the front and budget line styles, and
+/// what the budget lines mean for `workers` threads; closes the document.
+fn legend(s: &mut String, workers: usize) {
     let ly = TOP + PH + 62.0;
     for (k, (m, name)) in METHODS.iter().enumerate() {
         let x = 40.0 + (k % 3) as f64 * 270.0;
@@ -311,7 +375,6 @@ pub fn svg(settings: &[Setting], summary: &[SettingSummary], workers: usize) -> 
         ly + 24.0,
         ly + 44.0
     );
-    s
 }
 
 fn format_decade(d: f64) -> String {

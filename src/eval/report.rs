@@ -128,6 +128,21 @@ pub fn markdown(
     plot_file: &str,
 ) -> String {
     let mut s = String::new();
+    setup_section(&mut s, config, cases, machine, plot_file);
+    summary_table(&mut s, settings, summary, machine.workers);
+    case_tables(&mut s, config, settings, cases);
+    s
+}
+
+/// The report's setup: cases (pulses, widths in ns, families, truth peaks per pulse), noise,
+/// truth and peak matching, the machine, and the plot.
+fn setup_section(
+    s: &mut String,
+    config: &SweepConfig,
+    cases: &[CaseResult],
+    machine: &Machine,
+    plot_file: &str,
+) {
     let w = machine.workers;
     let widths: Vec<String> = config.widths_ns.iter().map(|w| format!("{w}")).collect();
     let families: Vec<&str> = config.families.iter().map(|f| f.name()).collect();
@@ -173,7 +188,12 @@ pub fn markdown(
         w,
     );
     let _ = writeln!(s, "![error against time per pulse]({plot_file})\n");
+}
 
+/// The summary table: one row per setting (pooled over widths and families) with its times
+/// (µs per pulse), the largest pulse rate `w` workers sustain, which of [`RATES_HZ`] it
+/// keeps, its scores and whether it is on the Pareto front.
+fn summary_table(s: &mut String, settings: &[Setting], summary: &[SettingSummary], w: usize) {
     let _ = writeln!(
         s,
         "### Summary per setting (pooled over pulse widths and families)\n"
@@ -215,8 +235,12 @@ pub fn markdown(
         );
     }
     let _ = writeln!(s);
+}
 
-    // Per-case tables: rows = settings, columns = family × width.
+/// The per-case tables, one per score: rows = settings, columns = family × width (ns).
+fn case_tables(s: &mut String, config: &SweepConfig, settings: &[Setting], cases: &[CaseResult]) {
+    let widths: Vec<String> = config.widths_ns.iter().map(|w| format!("{w}")).collect();
+    let families: Vec<&str> = config.families.iter().map(|f| f.name()).collect();
     let mut cols: Vec<(usize, usize)> = Vec::new();
     for fi in 0..config.families.len() {
         for wi in 0..config.widths_ns.len() {
@@ -271,5 +295,4 @@ pub fn markdown(
         }
         let _ = writeln!(s);
     }
-    s
 }

@@ -31,9 +31,9 @@ use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::kernel::{Kernel, convolve_same, remove_baseline};
 use crate::sim::SimItem;
 use crate::sim::truth::gaussian_pulse;
-use crate::sim::world::WorldItems;
 use crate::sim::world::flight::Frames;
 use crate::sim::world::scene::Origin;
+use crate::sim::world::{ShotTruth, WorldItems};
 use crate::source::georeferencing::{GeoreferenceConfig, GeoreferencingSource};
 use crate::voxel::grid::{Grid, Placer, VoxelConfig};
 use crate::voxel::tiles::TileSet;
@@ -110,13 +110,74 @@ pub fn run_scene_steps(
     tolerance_bins: usize,
     scratch_dir: &std::path::Path,
 ) -> Result<Vec<StepResult>, StepsError> {
+    let mpn = items.sim().metres_per_ns();
+    // The stream is also written as a capture, for the georeference step.
+    let capture = scratch_dir.join("scene.fwcap");
+    let (shots, sample_ns) = collect_shots(&mut items, pulses, &capture)?;
+    if shots.is_empty() {
+        return Err(err("scene", "the scene has no pulses"));
+    }
+    let origin = items.sim().scene().origin.clone();
+    let bins = shots.iter().map(|s| s.received.len()).max().unwrap_or(0);
+    let taps = shots.iter().map(|s| s.outgoing.len()).max().unwrap_or(1);
+    let truth_kernel = gaussian_pulse(2.0, sample_ns).map_err(|e| err("truth kernel", e))?;
+    let mut truth_peaks: Vec<Vec<usize>> = Vec::with_capacity(shots.len());
+    for s in &shots {
+        let mut v = Vec::new();
+        local_peaks(&s.truth, peak_floor, &mut v);
+        truth_peaks.push(v);
+    }
+    let mut results = Vec::new();
+    let mut rl_outputs: Vec<Vec<f32>> = Vec::new();
+    let mut work = StepWork {
+        shots: &shots,
+        truth_peaks: &truth_peaks,
+        truth_kernel: &truth_kernel,
+        sample_ns,
+        peak_floor,
+        tolerance_bins,
+        bins,
+        taps,
+        kernel: Kernel::with_capacity(taps),
+        denoised: vec![0.0f32; bins],
+        output: vec![0.0f32; bins],
+        reblurred: vec![0.0f32; bins],
+        detected: Vec::with_capacity(bins),
+    };
+    for (si, (name, method)) in step_methods().iter().enumerate() {
+        // The RL step's outputs (seen through the 2 ns pulse) feed the voxel step.
+        let keep = (si == 2).then_some(&mut rl_outputs);
+        results.push(work.score_step(name, si == 0, method.as_ref(), keep)?);
+    }
+    let placed = georeference_step(&origin, mpn, &shots, &results[2], &capture)?;
+    let georef = placed.result;
+    results.push(georef);
+    results.push(voxel_step(
+        &shots,
+        &placed.map_geometry,
+        &placed.true_map_geometry,
+        &rl_outputs,
+        sample_ns,
+        peak_floor,
+        tolerance_bins,
+        scratch_dir,
+    )?);
+    Ok(results)
+}
+
+/// Takes the first `pulses` pulses of `items` (and the navigation that brackets them), writes
+/// the stream to `capture`, and returns the shots with a return and an outgoing segment, and
+/// the sample interval (ns) of the last pulse.
+fn collect_shots(
+    items: &mut WorldItems,
+    pulses: usize,
+    capture: &std::path::Path,
+) -> Result<(Vec<Shot>, f64), StepsError> {
     let baseline = items.sim().scene().sensor.baseline_dn as f32;
     let mpn = items.sim().metres_per_ns();
     let sensor = items.sim().sensor().clone();
-    // The stream is also written as a capture, for the georeference step.
-    let capture = scratch_dir.join("scene.fwcap");
     let header = CaptureHeader::simulated(&sensor, None, "simulated");
-    let mut writer = CaptureWriter::create(&capture, &header.to_text(), FlushPolicy::default())
+    let mut writer = CaptureWriter::create(capture, &header.to_text(), FlushPolicy::default())
         .map_err(|e| err("capture", e))?;
     let mut shots: Vec<Shot> = Vec::with_capacity(pulses);
     let mut sample_ns = 1.0;
@@ -143,60 +204,64 @@ pub fn run_scene_steps(
         }
         last_time = p.gps_time;
         writer.write_pulse(&p).map_err(|e| err("capture", e))?;
-        let t = items.last_truth();
         sample_ns = p.sample_ns;
         let steps_per_count = sensor.digitizer_gain_v_per_dn / p.gain_v_per_dn as f64;
-        let counts = |seg: usize| -> Vec<f32> {
-            p.raw_of(seg)
-                .iter()
-                .map(|&r| (r as f64 / steps_per_count) as f32 - baseline)
-                .collect()
-        };
-        let ret = p
-            .segments
-            .iter()
-            .position(|s| s.kind == SegmentKind::Return);
-        let out = p
-            .segments
-            .iter()
-            .position(|s| s.kind == SegmentKind::Outgoing);
-        let (Some(ret), Some(out)) = (ret, out) else {
-            continue;
-        };
-        shots.push(Shot {
-            id: p.pulse_id,
-            surfaces: t
-                .scatterers
-                .iter()
-                // Surfaces on the beam's axis (the georeference places the axis).
-                .filter(|s| s.range_m == s.range_end_m && s.ray == 0)
-                .map(|s| (s.range_m, s.position))
-                .collect(),
-            received: counts(ret),
-            outgoing: counts(out),
-            truth: t.truth.iter().map(|&v| v as f32).collect(),
-            geometry: PulseGeometry {
-                anchor: t.origin,
-                direction: [t.beam[0] * mpn, t.beam[1] * mpn, t.beam[2] * mpn],
-            },
-            start_ns: p.segments[ret].start_ns,
-        });
+        if let Some(shot) = shot_of(&p, items.last_truth(), steps_per_count, baseline, mpn) {
+            shots.push(shot);
+        }
     }
     writer.finish().map_err(|e| err("capture", e))?;
-    if shots.is_empty() {
-        return Err(err("scene", "the scene has no pulses"));
-    }
-    let origin = items.sim().scene().origin.clone();
-    let bins = shots.iter().map(|s| s.received.len()).max().unwrap_or(0);
-    let taps = shots.iter().map(|s| s.outgoing.len()).max().unwrap_or(1);
-    let truth_kernel = gaussian_pulse(2.0, sample_ns).map_err(|e| err("truth kernel", e))?;
-    let mut truth_peaks: Vec<Vec<usize>> = Vec::with_capacity(shots.len());
-    for s in &shots {
-        let mut v = Vec::new();
-        local_peaks(&s.truth, peak_floor, &mut v);
-        truth_peaks.push(v);
-    }
-    let methods: Vec<(String, Option<MethodConfig>)> = vec![
+    Ok((shots, sample_ns))
+}
+
+/// Pulse `p` (truth `t`) as the steps see it: its return and outgoing segments in counts
+/// above `baseline` (digitizer steps over `steps_per_count`), its truth, the surfaces on the
+/// beam's axis and its geometry (`mpn`: metres per ns); `None` without both segments.
+fn shot_of(
+    p: &Pulse,
+    t: &ShotTruth,
+    steps_per_count: f64,
+    baseline: f32,
+    mpn: f64,
+) -> Option<Shot> {
+    let counts = |seg: usize| -> Vec<f32> {
+        p.raw_of(seg)
+            .iter()
+            .map(|&r| (r as f64 / steps_per_count) as f32 - baseline)
+            .collect()
+    };
+    let ret = p
+        .segments
+        .iter()
+        .position(|s| s.kind == SegmentKind::Return)?;
+    let out = p
+        .segments
+        .iter()
+        .position(|s| s.kind == SegmentKind::Outgoing)?;
+    Some(Shot {
+        id: p.pulse_id,
+        surfaces: t
+            .scatterers
+            .iter()
+            // Surfaces on the beam's axis (the georeference places the axis).
+            .filter(|s| s.range_m == s.range_end_m && s.ray == 0)
+            .map(|s| (s.range_m, s.position))
+            .collect(),
+        received: counts(ret),
+        outgoing: counts(out),
+        truth: t.truth.iter().map(|&v| v as f32).collect(),
+        geometry: PulseGeometry {
+            anchor: t.origin,
+            direction: [t.beam[0] * mpn, t.beam[1] * mpn, t.beam[2] * mpn],
+        },
+        start_ns: p.segments[ret].start_ns,
+    })
+}
+
+/// The waveform steps, named as the results name them: raw, denoise, then each deconvolution
+/// method behind the denoise.
+fn step_methods() -> Vec<(String, Option<MethodConfig>)> {
+    vec![
         ("raw".into(), None),
         ("denoise".into(), None),
         (
@@ -224,71 +289,99 @@ pub fn run_scene_steps(
             "nnls max_iterations=100".into(),
             Some(MethodConfig::Nnls(NnlsConfig::default())),
         ),
-    ];
-    let mut results = Vec::new();
-    let mut rl_outputs: Vec<Vec<f32>> = Vec::new();
-    let mut kernel = Kernel::with_capacity(taps);
-    let mut denoised = vec![0.0f32; bins];
-    let mut output = vec![0.0f32; bins];
-    let mut reblurred = vec![0.0f32; bins];
-    let mut detected = Vec::with_capacity(bins);
-    for (si, (name, method)) in methods.iter().enumerate() {
-        let raw = si == 0;
+    ]
+}
+
+/// The shots, their truth and the buffers the waveform steps share.
+struct StepWork<'a> {
+    shots: &'a [Shot],
+    /// The truth's peaks of each shot.
+    truth_peaks: &'a [Vec<usize>],
+    /// The truth's 2 ns pulse.
+    truth_kernel: &'a Kernel,
+    /// Sample interval, ns.
+    sample_ns: f64,
+    peak_floor: f32,
+    tolerance_bins: usize,
+    /// The longest return segment, samples.
+    bins: usize,
+    /// The longest outgoing segment, samples.
+    taps: usize,
+    kernel: Kernel,
+    denoised: Vec<f32>,
+    output: Vec<f32>,
+    reblurred: Vec<f32>,
+    detected: Vec<usize>,
+}
+
+impl StepWork<'_> {
+    /// Runs step `name` on every shot (`raw`: the received waveform as it is; else denoised,
+    /// then deconvolved by `method` when there is one) and scores its outputs against the
+    /// truth, timing the step alone (ns per pulse). `keep` gets each output seen through the
+    /// truth's 2 ns pulse.
+    fn score_step(
+        &mut self,
+        name: &str,
+        raw: bool,
+        method: Option<&MethodConfig>,
+        mut keep: Option<&mut Vec<Vec<f32>>>,
+    ) -> Result<StepResult, StepsError> {
+        let (bins, taps, sample_ns) = (self.bins, self.taps, self.sample_ns);
+        let shots = self.shots;
         let mut denoise = Denoise::new(DenoiseConfig {
             max_samples: bins.max(16),
             ..DenoiseConfig::default()
         });
         // The deconvolve stage's own code: the method behind its default echo-window gate.
-        let mut deconv: Option<Gated> = method
-            .as_ref()
-            .map(|m| Gated::build(m, Gate::default_for(m), bins, taps));
+        let mut deconv: Option<Gated> =
+            method.map(|m| Gated::build(m, Gate::default_for(m), bins, taps));
         let (mut rmse, mut rmse_2ns) = (RmseAccumulator::default(), RmseAccumulator::default());
         let (mut peaks, mut n_truth, mut sam) = (PeakMatch::default(), 0u64, 0.0);
         let mut times = Vec::with_capacity(shots.len());
-        for (s, tp) in shots.iter().zip(&truth_peaks) {
+        for (s, tp) in shots.iter().zip(self.truth_peaks) {
             let n = s.received.len();
-            let out = &mut output[..n];
+            let out = &mut self.output[..n];
             let outgoing = remove_baseline(&s.outgoing);
-            kernel
+            self.kernel
                 .set_from_outgoing(&outgoing, taps)
                 .map_err(|e| err(name, e))?;
             let t0 = Instant::now();
             if raw {
                 out.copy_from_slice(&s.received);
             } else {
-                let den = &mut denoised[..n];
+                let den = &mut self.denoised[..n];
                 let noise = denoise
                     .denoise_segment(&s.received, sample_ns, den)
                     .map_err(|e| err(name, e))?;
                 match deconv.as_mut() {
                     None => out.copy_from_slice(den),
                     Some(d) => {
-                        d.run(den, &kernel, noise.noise_v, sample_ns, out)
+                        d.run(den, &self.kernel, noise.noise_v, sample_ns, out)
                             .map_err(|e| err(name, e))?;
                     }
                 }
             }
             times.push(t0.elapsed().as_secs_f64() * 1e9);
             rmse.add(&s.truth, out);
-            let rb = &mut reblurred[..n];
+            let rb = &mut self.reblurred[..n];
             if deconv.is_some() {
-                convolve_same(out, &truth_kernel, rb);
+                convolve_same(out, self.truth_kernel, rb);
                 rmse_2ns.add(&s.truth, rb);
             } else {
                 rmse_2ns.add(&s.truth, out);
             }
             sam += spectral_angle_deg(&s.truth, out);
-            local_peaks(out, peak_floor, &mut detected);
-            let m = match_peaks(tp, &detected, tolerance_bins);
+            local_peaks(out, self.peak_floor, &mut self.detected);
+            let m = match_peaks(tp, &self.detected, self.tolerance_bins);
             peaks.true_detections += m.true_detections;
             peaks.false_detections += m.false_detections;
             n_truth += tp.len() as u64;
-            if si == 2 {
-                rl_outputs.push(rb.to_vec());
+            if let Some(k) = keep.as_mut() {
+                k.push(rb.to_vec());
             }
         }
-        results.push(StepResult {
-            step: name.clone(),
+        Ok(StepResult {
+            step: name.to_string(),
             scored: shots.len(),
             rmse: rmse.rmse(),
             rmse_2ns: rmse_2ns.rmse(),
@@ -299,22 +392,8 @@ pub fn run_scene_steps(
             p99_ns: percentile(&times, 0.99),
             position_rms_m: f64::NAN,
             position_max_m: f64::NAN,
-        });
+        })
     }
-    let placed = georeference_step(&origin, mpn, &shots, &results[2], &capture)?;
-    let georef = placed.result;
-    results.push(georef);
-    results.push(voxel_step(
-        &shots,
-        &placed.map_geometry,
-        &placed.true_map_geometry,
-        &rl_outputs,
-        sample_ns,
-        peak_floor,
-        tolerance_bins,
-        scratch_dir,
-    )?);
-    Ok(results)
 }
 
 /// The georeference step's outcome: its scores and both geometries of every shot in the map.

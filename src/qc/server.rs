@@ -249,7 +249,10 @@ async fn style_css() -> Response {
 }
 
 async fn prometheus(State(st): State<AppState>) -> Response {
-    reply(prometheus::CONTENT_TYPE, prometheus::render(&st.hub.snapshot()))
+    reply(
+        prometheus::CONTENT_TYPE,
+        prometheus::render(&st.hub.snapshot()),
+    )
 }
 
 async fn status(State(st): State<AppState>) -> Response {

@@ -80,10 +80,58 @@ pub fn read_hyper_points(path: &Path) -> Result<PointSet, TreesError> {
 
 /// [`read_hyper_points`] on the file's bytes (`path` names it in errors).
 pub fn parse_hyper_points(path: &Path, b: &[u8]) -> Result<PointSet, TreesError> {
+    let h = parse_header(path, b)?;
+    let vlrs = read_vlrs(path, b, &h)?;
+    let (sig_at, sig_size) = signal_layout(path, vlrs.signal, h.record_len)?;
+    let available = b.len().saturating_sub(h.point_offset) / h.record_len;
+    if (available as u64) < h.count {
+        return Err(bad(
+            path,
+            "number of point records",
+            format!(
+                "{} points declared, the file holds {available} (cut off? `fwlidar repair` rebuilds the header)",
+                h.count
+            ),
+        ));
+    }
+    Ok(PointSet {
+        points: read_points(b, &h, sig_at, sig_size),
+        crs_wkt: vlrs.wkt,
+    })
+}
+
+/// What the reader needs of a LAS 1.4 header.
+struct Header {
+    /// Bytes of the header: where the VLRs start.
+    header_size: usize,
+    /// Where the point records start, bytes.
+    point_offset: usize,
+    /// Number of VLRs.
+    n_vlrs: u32,
+    /// Bytes of the format's standard fields (where the extra bytes start).
+    base: usize,
+    /// Bytes per point record.
+    record_len: usize,
+    /// Scale factors of X, Y, Z (finite, > 0).
+    scale: [f64; 3],
+    /// Offsets of X, Y, Z (finite).
+    offset: [f64; 3],
+    /// Number of point records declared.
+    count: u64,
+}
+
+/// The file ends inside the header, at `field`.
+fn short(path: &Path, field: &str) -> TreesError {
+    bad(path, field, "the file ends inside the header")
+}
+
+/// The header of LAS file `b`: signature, version 1.4, point format 6, 7 or 8 with records
+/// long enough for it, finite scale factors (> 0) and offsets.
+fn parse_header(path: &Path, b: &[u8]) -> Result<Header, TreesError> {
     if b.get(0..4) != Some(b"LASF".as_slice()) {
         return Err(bad(path, "file signature", "not a LAS file (no \"LASF\")"));
     }
-    let short = |field: &str| bad(path, field, "the file ends inside the header");
+    let short = |field: &str| short(path, field);
     let (major, minor) = (b.get(24).copied(), b.get(25).copied());
     if major != Some(1) || minor.is_none_or(|m| m < 4) {
         return Err(bad(
@@ -134,13 +182,37 @@ pub fn parse_hyper_points(path: &Path, b: &[u8]) -> Result<PointSet, TreesError>
     {
         return Err(bad(path, "scale factors", "not finite and positive"));
     }
-    // VLRs: the CRS (LASF_Projection / 2112) and the Extra Bytes (LASF_Spec / 4).
-    let mut at = header_size;
-    let mut wkt = None;
-    let mut signal: Option<(usize, u8)> = None;
-    for i in 0..n_vlrs {
+    Ok(Header {
+        header_size,
+        point_offset,
+        n_vlrs,
+        base,
+        record_len,
+        scale: [sx, sy, sz],
+        offset: [ox, oy, oz],
+        count,
+    })
+}
+
+/// What the VLRs hold for the reader.
+struct Vlrs {
+    /// The CRS as OGC WKT (LASF_Projection / 2112).
+    wkt: Option<String>,
+    /// The `signal` extra dimension: its byte in a record and its data type.
+    signal: Option<(usize, u8)>,
+}
+
+/// Reads the header's VLRs: the CRS (LASF_Projection / 2112) and the Extra Bytes
+/// (LASF_Spec / 4).
+fn read_vlrs(path: &Path, b: &[u8], h: &Header) -> Result<Vlrs, TreesError> {
+    let mut at = h.header_size;
+    let mut vlrs = Vlrs {
+        wkt: None,
+        signal: None,
+    };
+    for i in 0..h.n_vlrs {
         let field = format!("VLR {i}");
-        let head = b.get(at..at + 54).ok_or_else(|| short(&field))?;
+        let head = b.get(at..at + 54).ok_or_else(|| short(path, &field))?;
         let user = String::from_utf8_lossy(&head[2..18])
             .trim_end_matches('\0')
             .to_string();
@@ -150,37 +222,59 @@ pub fn parse_hyper_points(path: &Path, b: &[u8]) -> Result<PointSet, TreesError>
             .get(at + 54..at + 54 + len)
             .ok_or_else(|| bad(path, &field, "its data run past the end of the file"))?;
         if user == "LASF_Projection" && id == 2112 {
-            wkt = Some(
+            vlrs.wkt = Some(
                 String::from_utf8_lossy(data)
                     .trim_end_matches('\0')
                     .to_string(),
             );
         } else if user == "LASF_Spec" && id == 4 {
-            let mut pos = 0usize;
-            for d in data.chunks_exact(192) {
-                let ty = d[2];
-                let name = String::from_utf8_lossy(&d[4..36])
-                    .trim_end_matches('\0')
-                    .to_string();
-                let size = if ty == 0 {
-                    d[3] as usize // undocumented extra bytes: options hold the count
-                } else {
-                    extra_size(ty).ok_or_else(|| {
-                        bad(
-                            path,
-                            "extra bytes",
-                            format!("dimension {name:?} has data type {ty}"),
-                        )
-                    })?
-                };
-                if name == "signal" {
-                    signal = Some((base + pos, ty));
-                }
-                pos += size;
-            }
+            extra_bytes(path, data, h.base, &mut vlrs.signal)?;
         }
         at += 54 + len;
     }
+    Ok(vlrs)
+}
+
+/// Walks the Extra Bytes descriptors in `data` (192 bytes each; the extra bytes start at byte
+/// `base` of a record): `signal` gets the byte and data type of a dimension named `signal`.
+fn extra_bytes(
+    path: &Path,
+    data: &[u8],
+    base: usize,
+    signal: &mut Option<(usize, u8)>,
+) -> Result<(), TreesError> {
+    let mut pos = 0usize;
+    for d in data.chunks_exact(192) {
+        let ty = d[2];
+        let name = String::from_utf8_lossy(&d[4..36])
+            .trim_end_matches('\0')
+            .to_string();
+        let size = if ty == 0 {
+            d[3] as usize // undocumented extra bytes: options hold the count
+        } else {
+            extra_size(ty).ok_or_else(|| {
+                bad(
+                    path,
+                    "extra bytes",
+                    format!("dimension {name:?} has data type {ty}"),
+                )
+            })?
+        };
+        if name == "signal" {
+            *signal = Some((base + pos, ty));
+        }
+        pos += size;
+    }
+    Ok(())
+}
+
+/// Where `signal` is in a record of `record_len` bytes and its size (4: float, 8: double);
+/// refused when absent, of another type or past the record's end.
+fn signal_layout(
+    path: &Path,
+    signal: Option<(usize, u8)>,
+    record_len: usize,
+) -> Result<(usize, usize), TreesError> {
     let Some((sig_at, sig_ty)) = signal else {
         return Err(bad(
             path,
@@ -206,18 +300,17 @@ pub fn parse_hyper_points(path: &Path, b: &[u8]) -> Result<PointSet, TreesError>
             format!("{record_len} bytes cannot hold \"signal\" at byte {sig_at}"),
         ));
     }
-    let available = b.len().saturating_sub(point_offset) / record_len;
-    if (available as u64) < count {
-        return Err(bad(
-            path,
-            "number of point records",
-            format!(
-                "{count} points declared, the file holds {available} (cut off? `fwlidar repair` rebuilds the header)"
-            ),
-        ));
-    }
-    let mut points = Vec::with_capacity(count as usize);
-    for k in 0..count as usize {
+    Ok((sig_at, sig_size))
+}
+
+/// The header's `count` point records of `b` (checked to be in the file), scaled and offset
+/// to the CRS's units, with their signal (`sig_size` bytes at `sig_at`); records whose signal
+/// is not finite are left out.
+fn read_points(b: &[u8], h: &Header, sig_at: usize, sig_size: usize) -> Vec<TreePoint> {
+    let (point_offset, record_len) = (h.point_offset, h.record_len);
+    let ([sx, sy, sz], [ox, oy, oz]) = (h.scale, h.offset);
+    let mut points = Vec::with_capacity(h.count as usize);
+    for k in 0..h.count as usize {
         let r = &b[point_offset + k * record_len..point_offset + (k + 1) * record_len];
         let (Some(x), Some(y), Some(z)) = (le_i32(r, 0), le_i32(r, 4), le_i32(r, 8)) else {
             unreachable!("a record holds at least 30 bytes")
@@ -241,10 +334,7 @@ pub fn parse_hyper_points(path: &Path, b: &[u8]) -> Result<PointSet, TreesError>
             gps_time,
         });
     }
-    Ok(PointSet {
-        points,
-        crs_wkt: wkt,
-    })
+    points
 }
 
 #[cfg(test)]

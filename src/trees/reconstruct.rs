@@ -658,69 +658,24 @@ pub fn reconstruct(
     // be noise (and the ground echo's far tail); the threshold scan starts above the 99.9th
     // percentile of their signal.
     let below = (2.0 * opts.ground_clearance_m).max(1.0);
-    let mut noise: Vec<f32> = points
-        .iter()
-        .filter(|p| p.xyz[2] < ground.at(p.xyz[0], p.xyz[1]) - below)
-        .map(|p| p.signal)
-        .collect();
-    noise.sort_by(f32::total_cmp);
-    let noise_floor = (noise.len() >= 100).then(|| quantile(&noise, 0.999));
-    // 1. Ground off: below the clearance, and each pulse's ground echo whole — from its peak
-    // (the strongest sample within 1 m of the ground) up and down while the signal falls (by
-    // more than the noise it does not rise above the lowest so far), so that a long pulse's
-    // tail does not join the stems and branches into one cluster.
-    let tol = noise_floor.unwrap_or(0.0);
-    let mut in_echo = vec![false; n];
-    for (i, p) in points.iter().enumerate() {
-        if p.xyz[2] - ground.at(p.xyz[0], p.xyz[1]) < opts.ground_clearance_m {
-            labels[i].part = Part::Ground;
-        }
-    }
-    for mut idx in by_pulse(points) {
-        idx.sort_by(|&a, &b| points[a].xyz[2].total_cmp(&points[b].xyz[2]));
-        let near = |i: usize| {
-            let p = points[i].xyz;
-            (p[2] - ground.at(p[0], p[1])).abs() <= 1.0
-        };
-        let Some(peak) = (0..idx.len())
-            .filter(|&k| near(idx[k]))
-            .max_by(|&a, &b| points[idx[a]].signal.total_cmp(&points[idx[b]].signal))
-        else {
-            continue;
-        };
-        let step = |low: f32, k: usize, j: usize| {
-            let (a, b) = (&points[idx[k]], &points[idx[j]]);
-            b.signal <= low + tol && (b.xyz[2] - a.xyz[2]).abs() < 0.5
-        };
-        labels[idx[peak]].part = Part::Ground;
-        in_echo[idx[peak]] = true;
-        for dir in [1i64, -1] {
-            let (mut k, mut low) = (peak, points[idx[peak]].signal);
-            loop {
-                let j = k as i64 + dir;
-                if j < 0 || j as usize >= idx.len() || !step(low, k, j as usize) {
-                    break;
-                }
-                k = j as usize;
-                low = low.min(points[idx[k]].signal);
-                labels[idx[k]].part = Part::Ground;
-                in_echo[idx[k]] = true;
-            }
-        }
-    }
+    let first_floor = noise_floor_of(&noise_below(points, &ground, below, None));
+    // 1. Ground off.
+    let in_echo = label_ground(
+        points,
+        &ground,
+        opts,
+        first_floor.unwrap_or(0.0),
+        &mut labels,
+    );
     let above: Vec<usize> = (0..n).filter(|&i| labels[i].part != Part::Ground).collect();
     // The noise again, without the ground echoes' lower tails (a long pulse's reaches more
     // than 1 m below the ground).
-    let mut noise: Vec<f32> = points
-        .iter()
-        .zip(&in_echo)
-        .filter(|(p, e)| !**e && p.xyz[2] < ground.at(p.xyz[0], p.xyz[1]) - below)
-        .map(|(p, _)| p.signal)
-        .collect();
-    noise.sort_by(f32::total_cmp);
-    let noise_floor = (noise.len() >= 100)
-        .then(|| quantile(&noise, 0.999))
-        .or(noise_floor);
+    let noise_samples = noise_below(points, &ground, below, Some(&in_echo));
+    let noise = NoiseFloor {
+        floor_v: noise_floor_of(&noise_samples).or(first_floor),
+        samples: noise_samples.len(),
+        below_m: below,
+    };
     let ground_points = n - above.len();
     let xyz: Vec<[f64; 3]> = above.iter().map(|&i| points[i].xyz).collect();
     let signal: Vec<f32> = above.iter().map(|&i| points[i].signal).collect();
@@ -731,240 +686,32 @@ pub fn reconstruct(
         .unwrap_or_else(|| (1.5 * spacing.unwrap_or(0.5)).max(0.3));
     let min_points = opts.min_points.unwrap_or(5);
     // 2. The threshold.
-    let mut sorted = signal.clone();
-    sorted.sort_by(f32::total_cmp);
-    let threshold = match opts.threshold {
-        Threshold::Fixed(t) => ThresholdChoice {
-            chosen_v: t,
-            reason: "given".into(),
-            curve: Vec::new(),
-        },
-        Threshold::Auto => {
-            let steps = opts.threshold_steps.max(2);
-            let mut curve: Vec<ThresholdRow> = Vec::new();
-            let q0 = noise_floor.map_or(0.0, |f| {
-                sorted.partition_point(|s| *s < f) as f64 / sorted.len().max(1) as f64
-            });
-            for k in 0..=(steps * 95 / 100) {
-                let q = q0 + (1.0 - q0) * k as f64 / steps as f64;
-                let t = quantile(&sorted, q).max(noise_floor.unwrap_or(f32::MIN));
-                if curve.last().is_some_and(|r| r.threshold_v == t) {
-                    continue;
-                }
-                curve.push(threshold_row(
-                    &xyz,
-                    &signal,
-                    t,
-                    q,
-                    eps,
-                    min_points,
-                    opts.min_branch_points,
-                ));
-            }
-            let most = curve
-                .iter()
-                .map(|r| r.branch_clusters)
-                .max()
-                .ok_or_else(|| TreesError::Input("no point above the ground".into()))?;
-            // The plateau's start: the lowest threshold with 90 % of the most branch-sized
-            // clusters. Above it the count creeps up as branches break into pieces while
-            // samples are lost.
-            let best = curve
-                .iter()
-                .position(|r| r.branch_clusters as f64 >= PLATEAU * most as f64)
-                .unwrap_or(0);
-            let r = &curve[best];
-            ThresholdChoice {
-                chosen_v: r.threshold_v,
-                reason: format!(
-                    "the lowest threshold with 90 % of the most clusters of at least {} points \
-                     ({} of {}) over {} thresholds from {} to the {:.0}th percentile of the \
-                     above-ground signal: lower thresholds merge branches through foliage and \
-                     noise, higher ones break them and lose samples",
-                    opts.min_branch_points,
-                    r.branch_clusters,
-                    most,
-                    curve.len(),
-                    match noise_floor {
-                        Some(f) => format!(
-                            "the noise (99.9th percentile of the {} samples more than {below} m \
-                             below the ground: {f:.4} V)",
-                            noise.len()
-                        ),
-                        None => "the lowest signal (too few samples below the ground to \
-                                 measure the noise)"
-                            .to_string(),
-                    },
-                    100.0 * curve.last().map_or(0.0, |r| r.quantile)
-                ),
-                curve,
-            }
-        }
-    };
+    let cluster = Clustering { eps, min_points };
+    let threshold = choose_threshold(opts, &xyz, &signal, &noise, cluster)?;
     // 3. Above the threshold, then the foliage filter.
-    let mut sel: Vec<usize> = above
+    let sel: Vec<usize> = above
         .iter()
         .copied()
         .filter(|&i| points[i].signal >= threshold.chosen_v)
         .collect();
-    let mut foliage_points = 0;
-    if opts.foliage_radius_m > 0.0 && !sel.is_empty() {
-        let sxyz: Vec<[f64; 3]> = sel.iter().map(|&i| points[i].xyz).collect();
-        let nb = Neighbours::new(&sxyz);
-        let mut keep = Vec::with_capacity(sel.len());
-        let mut hood = Vec::new();
-        for (k, &i) in sel.iter().enumerate() {
-            let near = nb.within(sxyz[k], opts.foliage_radius_m);
-            let volume = if near.len() >= 6 {
-                hood.clear();
-                hood.extend(near.iter().map(|&j| sxyz[j]));
-                principal_axes(&hood).is_some_and(|(_, l, _)| {
-                    l[0] > 0.0 && l[2] / l[0] > opts.foliage_max_scattering
-                })
-            } else {
-                false
-            };
-            if volume {
-                labels[i].part = Part::Foliage;
-                foliage_points += 1;
-            } else {
-                keep.push(i);
-            }
-        }
-        sel = keep;
-    }
+    let (sel, foliage_points) = foliage_filter(points, sel, opts, &mut labels);
     let selected_points = sel.len();
     // 4. Trees.
-    let mut tree_of: HashMap<usize, usize> = HashMap::new();
-    let mut positions: Vec<[f64; 2]> = Vec::new();
-    match &opts.stems {
-        Some(stems) => {
-            positions = stems.clone();
-            for &i in &sel {
-                let p = points[i].xyz;
-                let best = stems
-                    .iter()
-                    .enumerate()
-                    .map(|(t, s)| (t, (p[0] - s[0]).powi(2) + (p[1] - s[1]).powi(2)))
-                    .min_by(|a, b| a.1.total_cmp(&b.1));
-                if let Some((t, d2)) = best
-                    && d2 < 100.0
-                {
-                    tree_of.insert(i, t);
-                }
-            }
-        }
-        None => {
-            // Seen from above, the points DBSCAN puts in a cluster (isolated noise left out).
-            let sxyz: Vec<[f64; 3]> = sel.iter().map(|&i| points[i].xyz).collect();
-            let l3 = dbscan(&sxyz, eps, min_points);
-            let clustered: Vec<usize> = (0..sel.len()).filter(|&k| l3[k] != NOISE).collect();
-            let flat: Vec<[f64; 3]> = clustered
-                .iter()
-                .map(|&k| [sxyz[k][0], sxyz[k][1], 0.0])
-                .collect();
-            let sel: Vec<usize> = clustered.iter().map(|&k| sel[k]).collect();
-            let l = dbscan(&flat, opts.tree_eps_m, min_points);
-            for (t, m) in members(&l)
-                .into_iter()
-                .filter(|m| m.len() >= 3 * opts.min_branch_points)
-                .enumerate()
-            {
-                let mut c = [0.0, 0.0];
-                for &k in &m {
-                    c[0] += flat[k][0] / m.len() as f64;
-                    c[1] += flat[k][1] / m.len() as f64;
-                    tree_of.insert(sel[k], t);
-                }
-                positions.push(c);
-            }
-        }
-    }
-    let mut per_tree: Vec<Vec<usize>> = vec![Vec::new(); positions.len()];
-    for &i in &sel {
-        if let Some(&t) = tree_of.get(&i) {
-            per_tree[t].push(i);
-        }
-    }
+    let (positions, per_tree) = find_trees(points, &sel, opts, cluster);
     // 5. Per tree: stem, then branches.
+    let fit = TreeFit {
+        points,
+        opts,
+        ground: &ground,
+        cluster,
+    };
     let mut trees = Vec::new();
     let mut next_id = 0usize;
     for (t, idx) in per_tree.iter().enumerate() {
         if idx.is_empty() {
             continue;
         }
-        for &i in idx {
-            labels[i].tree = t as i32;
-            labels[i].part = Part::Crown;
-        }
-        let top = idx
-            .iter()
-            .map(|&i| points[i].xyz[2])
-            .fold(f64::MIN, f64::max);
-        // The stem: first a vertical line through the tree's centre; then, where the branches
-        // point back to one place, through that place (the least-squares meeting point of their
-        // axes seen from above); then, where the points around it span 2 m of height, a line
-        // fitted to them (kept within 20° of vertical).
-        let mut stem = Stem::vertical(positions[t], &ground);
-        let mut fits = branch_fits(points, idx, &stem, eps, min_points, opts);
-        if opts.stems.is_none()
-            && let Some(p) = meeting_point(&fits)
-            && (p[0] - positions[t][0]).hypot(p[1] - positions[t][1]) < 4.0
-        {
-            stem = Stem::vertical(p, &ground);
-        }
-        let stem_pts = stem.refine(points, idx, &ground, opts.stem_radius_m);
-        fits = branch_fits(points, idx, &stem, eps, min_points, opts);
-        let (base, axis) = (stem.base, stem.axis);
-        let height = top - base[2];
-        let mut radii: Vec<f64> = stem_pts
-            .iter()
-            .map(|&i| stem_distance(base, axis, points[i].xyz))
-            .collect();
-        radii.sort_by(f64::total_cmp);
-        let rms = if radii.is_empty() {
-            f64::NAN
-        } else {
-            (radii.iter().map(|r| r * r).sum::<f64>() / radii.len() as f64).sqrt()
-        };
-        let stem_id = next_id;
-        next_id += 1;
-        let mut cylinders = vec![Cylinder {
-            tree: t,
-            id: stem_id,
-            parent: None,
-            kind: CylinderKind::Stem,
-            start: base,
-            axis,
-            length_m: height / axis[2],
-            radius_m: radii.get(radii.len() / 2).copied().unwrap_or(f64::NAN),
-            fit_rms_m: rms,
-            points: stem_pts.len(),
-            reconnect_m: 0.0,
-        }];
-        for &i in &stem_pts {
-            labels[i].part = Part::Stem;
-            labels[i].cluster = stem_id as i32;
-        }
-        for bf in fits {
-            let Some(c) = bf.cylinder(&stem, top, t, next_id, stem_id) else {
-                continue;
-            };
-            next_id += 1;
-            for &i in &bf.members {
-                labels[i].part = Part::Branch;
-                labels[i].cluster = c.id as i32;
-            }
-            cylinders.push(c);
-        }
-        trees.push(TreeModel {
-            id: t,
-            position: [base[0], base[1]],
-            ground_z: base[2],
-            height_m: height,
-            points: idx.len(),
-            cylinders,
-        });
+        trees.push(fit.model(t, idx, positions[t], &mut labels, &mut next_id));
     }
     Ok(Reconstruction {
         threshold,
@@ -974,12 +721,471 @@ pub fn reconstruct(
         input_points: n,
         ground_points,
         above_ground_points: above.len(),
-        noise_floor_v: noise_floor,
+        noise_floor_v: noise.floor_v,
         selected_points,
         foliage_points,
         trees,
         labels,
     })
+}
+
+/// The DBSCAN parameters of the clustering steps.
+#[derive(Clone, Copy, Debug)]
+struct Clustering {
+    /// Radius, m.
+    eps: f64,
+    /// Core size, points.
+    min_points: usize,
+}
+
+/// The noise below the ground the threshold scan starts from.
+struct NoiseFloor {
+    /// The 99.9th percentile of its signal, V (`None`: too few samples).
+    floor_v: Option<f32>,
+    /// Samples it was measured on.
+    samples: usize,
+    /// How far below the ground they are, at least, m.
+    below_m: f64,
+}
+
+/// The signals (V, sorted) of the samples more than `below` m under the ground, those in a
+/// ground echo (`in_echo`, when given) left out.
+fn noise_below(
+    points: &[TreePoint],
+    ground: &Ground,
+    below: f64,
+    in_echo: Option<&[bool]>,
+) -> Vec<f32> {
+    let mut noise: Vec<f32> = points
+        .iter()
+        .enumerate()
+        .filter(|(i, p)| {
+            !in_echo.is_some_and(|e| e[*i]) && p.xyz[2] < ground.at(p.xyz[0], p.xyz[1]) - below
+        })
+        .map(|(_, p)| p.signal)
+        .collect();
+    noise.sort_by(f32::total_cmp);
+    noise
+}
+
+/// The 99.9th percentile of `sorted` noise signals (V); `None` with fewer than 100.
+fn noise_floor_of(sorted: &[f32]) -> Option<f32> {
+    (sorted.len() >= 100).then(|| quantile(sorted, 0.999))
+}
+
+/// Step 1, ground off: labels as ground the points below the clearance, and each pulse's ground
+/// echo whole — from its peak (the strongest sample within 1 m of the ground) up and down while
+/// the signal falls (by more than the noise `tol` (V) it does not rise above the lowest so
+/// far), so that a long pulse's tail does not join the stems and branches into one cluster.
+/// Returns which points are in a ground echo.
+fn label_ground(
+    points: &[TreePoint],
+    ground: &Ground,
+    opts: &TreesOptions,
+    tol: f32,
+    labels: &mut [PointLabel],
+) -> Vec<bool> {
+    let mut in_echo = vec![false; points.len()];
+    for (i, p) in points.iter().enumerate() {
+        if p.xyz[2] - ground.at(p.xyz[0], p.xyz[1]) < opts.ground_clearance_m {
+            labels[i].part = Part::Ground;
+        }
+    }
+    for mut idx in by_pulse(points) {
+        idx.sort_by(|&a, &b| points[a].xyz[2].total_cmp(&points[b].xyz[2]));
+        ground_echo(points, &idx, ground, tol, labels, &mut in_echo);
+    }
+    in_echo
+}
+
+/// One pulse's ground echo (its samples `idx`, sorted by height): from its peak up and down
+/// while the signal does not rise by more than `tol` (V) above the lowest so far and the
+/// samples are under 0.5 m apart; labelled ground and marked `in_echo`.
+fn ground_echo(
+    points: &[TreePoint],
+    idx: &[usize],
+    ground: &Ground,
+    tol: f32,
+    labels: &mut [PointLabel],
+    in_echo: &mut [bool],
+) {
+    let near = |i: usize| {
+        let p = points[i].xyz;
+        (p[2] - ground.at(p[0], p[1])).abs() <= 1.0
+    };
+    let Some(peak) = (0..idx.len())
+        .filter(|&k| near(idx[k]))
+        .max_by(|&a, &b| points[idx[a]].signal.total_cmp(&points[idx[b]].signal))
+    else {
+        return;
+    };
+    let step = |low: f32, k: usize, j: usize| {
+        let (a, b) = (&points[idx[k]], &points[idx[j]]);
+        b.signal <= low + tol && (b.xyz[2] - a.xyz[2]).abs() < 0.5
+    };
+    labels[idx[peak]].part = Part::Ground;
+    in_echo[idx[peak]] = true;
+    for dir in [1i64, -1] {
+        let (mut k, mut low) = (peak, points[idx[peak]].signal);
+        loop {
+            let j = k as i64 + dir;
+            if j < 0 || j as usize >= idx.len() || !step(low, k, j as usize) {
+                break;
+            }
+            k = j as usize;
+            low = low.min(points[idx[k]].signal);
+            labels[idx[k]].part = Part::Ground;
+            in_echo[idx[k]] = true;
+        }
+    }
+}
+
+/// Step 2, the threshold (V) on the above-ground points (`xyz`, `signal`): the given one, or the
+/// plateau of the threshold curve ([`auto_threshold`]).
+fn choose_threshold(
+    opts: &TreesOptions,
+    xyz: &[[f64; 3]],
+    signal: &[f32],
+    noise: &NoiseFloor,
+    cluster: Clustering,
+) -> Result<ThresholdChoice, TreesError> {
+    Ok(match opts.threshold {
+        Threshold::Fixed(t) => ThresholdChoice {
+            chosen_v: t,
+            reason: "given".into(),
+            curve: Vec::new(),
+        },
+        Threshold::Auto => auto_threshold(opts, xyz, signal, noise, cluster)?,
+    })
+}
+
+/// The threshold curve, from the noise floor (or the lowest signal) up to the 95th percentile
+/// of the above-ground signal in `threshold_steps` quantile steps, and its plateau's start:
+/// the lowest threshold with 90 % of the most branch-sized clusters.
+fn auto_threshold(
+    opts: &TreesOptions,
+    xyz: &[[f64; 3]],
+    signal: &[f32],
+    noise: &NoiseFloor,
+    cluster: Clustering,
+) -> Result<ThresholdChoice, TreesError> {
+    let noise_floor = noise.floor_v;
+    let mut sorted = signal.to_vec();
+    sorted.sort_by(f32::total_cmp);
+    let steps = opts.threshold_steps.max(2);
+    let mut curve: Vec<ThresholdRow> = Vec::new();
+    let q0 = noise_floor.map_or(0.0, |f| {
+        sorted.partition_point(|s| *s < f) as f64 / sorted.len().max(1) as f64
+    });
+    for k in 0..=(steps * 95 / 100) {
+        let q = q0 + (1.0 - q0) * k as f64 / steps as f64;
+        let t = quantile(&sorted, q).max(noise_floor.unwrap_or(f32::MIN));
+        if curve.last().is_some_and(|r| r.threshold_v == t) {
+            continue;
+        }
+        curve.push(threshold_row(
+            xyz,
+            signal,
+            t,
+            q,
+            cluster.eps,
+            cluster.min_points,
+            opts.min_branch_points,
+        ));
+    }
+    let most = curve
+        .iter()
+        .map(|r| r.branch_clusters)
+        .max()
+        .ok_or_else(|| TreesError::Input("no point above the ground".into()))?;
+    // The plateau's start: the lowest threshold with 90 % of the most branch-sized
+    // clusters. Above it the count creeps up as branches break into pieces while
+    // samples are lost.
+    let best = curve
+        .iter()
+        .position(|r| r.branch_clusters as f64 >= PLATEAU * most as f64)
+        .unwrap_or(0);
+    let r = &curve[best];
+    Ok(ThresholdChoice {
+        chosen_v: r.threshold_v,
+        reason: threshold_reason(opts, r, most, &curve, noise),
+        curve,
+    })
+}
+
+/// Why the automatic threshold is `r` (`most`: the most branch-sized clusters on `curve`).
+fn threshold_reason(
+    opts: &TreesOptions,
+    r: &ThresholdRow,
+    most: usize,
+    curve: &[ThresholdRow],
+    noise: &NoiseFloor,
+) -> String {
+    let below = noise.below_m;
+    format!(
+        "the lowest threshold with 90 % of the most clusters of at least {} points \
+         ({} of {}) over {} thresholds from {} to the {:.0}th percentile of the \
+         above-ground signal: lower thresholds merge branches through foliage and \
+         noise, higher ones break them and lose samples",
+        opts.min_branch_points,
+        r.branch_clusters,
+        most,
+        curve.len(),
+        match noise.floor_v {
+            Some(f) => format!(
+                "the noise (99.9th percentile of the {} samples more than {below} m \
+                 below the ground: {f:.4} V)",
+                noise.samples
+            ),
+            None => "the lowest signal (too few samples below the ground to \
+                     measure the noise)"
+                .to_string(),
+        },
+        100.0 * curve.last().map_or(0.0, |r| r.quantile)
+    )
+}
+
+/// Step 3, the foliage filter: of the selected points `sel`, those whose neighbourhood (within
+/// `foliage_radius_m`, at least 6 points) scatters in volume rather than along a line or a
+/// plane are labelled foliage and left out. Returns the points kept and the number left out.
+fn foliage_filter(
+    points: &[TreePoint],
+    sel: Vec<usize>,
+    opts: &TreesOptions,
+    labels: &mut [PointLabel],
+) -> (Vec<usize>, usize) {
+    let mut foliage_points = 0;
+    let active = opts.foliage_radius_m > 0.0 && !sel.is_empty();
+    if !active {
+        return (sel, foliage_points);
+    }
+    let sxyz: Vec<[f64; 3]> = sel.iter().map(|&i| points[i].xyz).collect();
+    let nb = Neighbours::new(&sxyz);
+    let mut keep = Vec::with_capacity(sel.len());
+    let mut hood = Vec::new();
+    for (k, &i) in sel.iter().enumerate() {
+        let near = nb.within(sxyz[k], opts.foliage_radius_m);
+        let volume = if near.len() >= 6 {
+            hood.clear();
+            hood.extend(near.iter().map(|&j| sxyz[j]));
+            principal_axes(&hood)
+                .is_some_and(|(_, l, _)| l[0] > 0.0 && l[2] / l[0] > opts.foliage_max_scattering)
+        } else {
+            false
+        };
+        if volume {
+            labels[i].part = Part::Foliage;
+            foliage_points += 1;
+        } else {
+            keep.push(i);
+        }
+    }
+    (keep, foliage_points)
+}
+
+/// Step 4, trees: their positions (x, y) and each one's points of `sel` — at the given stems, or
+/// found by clustering the points seen from above.
+fn find_trees(
+    points: &[TreePoint],
+    sel: &[usize],
+    opts: &TreesOptions,
+    cluster: Clustering,
+) -> (Vec<[f64; 2]>, Vec<Vec<usize>>) {
+    let (positions, tree_of) = match &opts.stems {
+        Some(stems) => (stems.clone(), trees_at_stems(points, sel, stems)),
+        None => trees_from_clusters(points, sel, opts, cluster),
+    };
+    let mut per_tree: Vec<Vec<usize>> = vec![Vec::new(); positions.len()];
+    for &i in sel {
+        if let Some(&t) = tree_of.get(&i) {
+            per_tree[t].push(i);
+        }
+    }
+    (positions, per_tree)
+}
+
+/// The tree of each point of `sel`: the nearest of the given `stems` (x, y), when within
+/// 10 m.
+fn trees_at_stems(
+    points: &[TreePoint],
+    sel: &[usize],
+    stems: &[[f64; 2]],
+) -> HashMap<usize, usize> {
+    let mut tree_of: HashMap<usize, usize> = HashMap::new();
+    for &i in sel {
+        let p = points[i].xyz;
+        let best = stems
+            .iter()
+            .enumerate()
+            .map(|(t, s)| (t, (p[0] - s[0]).powi(2) + (p[1] - s[1]).powi(2)))
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        if let Some((t, d2)) = best
+            && d2 < 100.0
+        {
+            tree_of.insert(i, t);
+        }
+    }
+    tree_of
+}
+
+/// Trees seen from above: the points of `sel` DBSCAN puts in a cluster (isolated noise left
+/// out), flattened and clustered again with `tree_eps_m`; clusters of at least three
+/// branches' worth of points are trees, at their centroids. Returns the positions and the
+/// tree of each point.
+fn trees_from_clusters(
+    points: &[TreePoint],
+    sel: &[usize],
+    opts: &TreesOptions,
+    cluster: Clustering,
+) -> (Vec<[f64; 2]>, HashMap<usize, usize>) {
+    let min_points = cluster.min_points;
+    let mut tree_of: HashMap<usize, usize> = HashMap::new();
+    let mut positions: Vec<[f64; 2]> = Vec::new();
+    let sxyz: Vec<[f64; 3]> = sel.iter().map(|&i| points[i].xyz).collect();
+    let l3 = dbscan(&sxyz, cluster.eps, min_points);
+    let clustered: Vec<usize> = (0..sel.len()).filter(|&k| l3[k] != NOISE).collect();
+    let flat: Vec<[f64; 3]> = clustered
+        .iter()
+        .map(|&k| [sxyz[k][0], sxyz[k][1], 0.0])
+        .collect();
+    let sel: Vec<usize> = clustered.iter().map(|&k| sel[k]).collect();
+    let l = dbscan(&flat, opts.tree_eps_m, min_points);
+    for (t, m) in members(&l)
+        .into_iter()
+        .filter(|m| m.len() >= 3 * opts.min_branch_points)
+        .enumerate()
+    {
+        let mut c = [0.0, 0.0];
+        for &k in &m {
+            c[0] += flat[k][0] / m.len() as f64;
+            c[1] += flat[k][1] / m.len() as f64;
+            tree_of.insert(sel[k], t);
+        }
+        positions.push(c);
+    }
+    (positions, tree_of)
+}
+
+/// What the per-tree step shares.
+struct TreeFit<'a> {
+    points: &'a [TreePoint],
+    opts: &'a TreesOptions,
+    ground: &'a Ground,
+    cluster: Clustering,
+}
+
+impl TreeFit<'_> {
+    /// Step 5, tree `t` (its points `idx`, found at `position`): its stem, then its branches, as
+    /// cylinders numbered from `next_id` on; labels its points.
+    fn model(
+        &self,
+        t: usize,
+        idx: &[usize],
+        position: [f64; 2],
+        labels: &mut [PointLabel],
+        next_id: &mut usize,
+    ) -> TreeModel {
+        let points = self.points;
+        for &i in idx {
+            labels[i].tree = t as i32;
+            labels[i].part = Part::Crown;
+        }
+        let top = idx
+            .iter()
+            .map(|&i| points[i].xyz[2])
+            .fold(f64::MIN, f64::max);
+        let (stem, stem_pts, fits) = self.stem_and_branches(idx, position);
+        let base = stem.base;
+        let height = top - base[2];
+        let stem_id = *next_id;
+        *next_id += 1;
+        let mut cylinders = vec![self.stem_cylinder(t, stem_id, &stem, &stem_pts, height)];
+        for &i in &stem_pts {
+            labels[i].part = Part::Stem;
+            labels[i].cluster = stem_id as i32;
+        }
+        for bf in fits {
+            let Some(c) = bf.cylinder(&stem, top, t, *next_id, stem_id) else {
+                continue;
+            };
+            *next_id += 1;
+            for &i in &bf.members {
+                labels[i].part = Part::Branch;
+                labels[i].cluster = c.id as i32;
+            }
+            cylinders.push(c);
+        }
+        TreeModel {
+            id: t,
+            position: [base[0], base[1]],
+            ground_z: base[2],
+            height_m: height,
+            points: idx.len(),
+            cylinders,
+        }
+    }
+
+    /// The stem of the tree of points `idx` found at `position`: first a vertical line
+    /// through the tree's centre; then, where the branches point back to one place, through
+    /// that place (the least-squares meeting point of their axes seen from above, within 4 m);
+    /// then moved to its points ([`Stem::refine`]). Returns it, its points and the branch fits
+    /// around it.
+    fn stem_and_branches(
+        &self,
+        idx: &[usize],
+        position: [f64; 2],
+    ) -> (Stem, Vec<usize>, Vec<BranchFit>) {
+        let (points, opts) = (self.points, self.opts);
+        let (eps, min_points) = (self.cluster.eps, self.cluster.min_points);
+        let mut stem = Stem::vertical(position, self.ground);
+        let first = branch_fits(points, idx, &stem, eps, min_points, opts);
+        if opts.stems.is_none()
+            && let Some(p) = meeting_point(&first)
+            && (p[0] - position[0]).hypot(p[1] - position[1]) < 4.0
+        {
+            stem = Stem::vertical(p, self.ground);
+        }
+        let stem_pts = stem.refine(points, idx, self.ground, opts.stem_radius_m);
+        let fits = branch_fits(points, idx, &stem, eps, min_points, opts);
+        (stem, stem_pts, fits)
+    }
+
+    /// The stem's cylinder (number `id` of tree `t`): from its base along its axis to the
+    /// tree's `height` (m), its radius the median distance of its points `stem_pts` (m) and
+    /// their RMS distance its fit error (m).
+    fn stem_cylinder(
+        &self,
+        t: usize,
+        id: usize,
+        stem: &Stem,
+        stem_pts: &[usize],
+        height: f64,
+    ) -> Cylinder {
+        let (base, axis) = (stem.base, stem.axis);
+        let mut radii: Vec<f64> = stem_pts
+            .iter()
+            .map(|&i| stem_distance(base, axis, self.points[i].xyz))
+            .collect();
+        radii.sort_by(f64::total_cmp);
+        let rms = if radii.is_empty() {
+            f64::NAN
+        } else {
+            (radii.iter().map(|r| r * r).sum::<f64>() / radii.len() as f64).sqrt()
+        };
+        Cylinder {
+            tree: t,
+            id,
+            parent: None,
+            kind: CylinderKind::Stem,
+            start: base,
+            axis,
+            length_m: height / axis[2],
+            radius_m: radii.get(radii.len() / 2).copied().unwrap_or(f64::NAN),
+            fit_rms_m: rms,
+            points: stem_pts.len(),
+            reconnect_m: 0.0,
+        }
+    }
 }
 
 #[cfg(test)]

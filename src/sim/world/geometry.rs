@@ -249,80 +249,7 @@ pub fn tree_branches(seed: u64, index: u32, t: &cfg::Tree) -> Vec<cfg::Branch> {
 impl Scene {
     /// Builds the traced scene from its description (`base_dir`: where relative paths start).
     pub fn build(s: &WorldScene, base_dir: &Path) -> Result<Scene, SceneError> {
-        let refl = |name: &str| s.reflectance(name).unwrap_or(0.0);
-        let (ground, ground_reflectance) = match &s.terrain {
-            cfg::Terrain::Flat { height_m, material } => (
-                Ground::Plane {
-                    h0: *height_m,
-                    gx: 0.0,
-                    gy: 0.0,
-                },
-                refl(material),
-            ),
-            cfg::Terrain::Plane {
-                height_m,
-                slope_deg,
-                aspect_deg,
-                material,
-            } => {
-                // Downhill towards the aspect: the height falls by tan(slope) per metre along
-                // (sin a, cos a).
-                let t = slope_deg.to_radians().tan();
-                let a = aspect_deg.to_radians();
-                (
-                    Ground::Plane {
-                        h0: *height_m,
-                        gx: -t * a.sin(),
-                        gy: -t * a.cos(),
-                    },
-                    refl(material),
-                )
-            }
-            cfg::Terrain::Geotiff {
-                path,
-                datum_m,
-                material,
-            } => {
-                let full = base_dir.join(path);
-                let dem = Dem::open(&full).map_err(|e| SceneError::Invalid {
-                    field: "terrain.path",
-                    reason: e.to_string(),
-                })?;
-                let (w, h) = (dem.size.0 as f64, dem.size.1 as f64);
-                let cx = dem.first_centre[0] + (w - 1.0) / 2.0 * dem.pixel[0];
-                let cy = dem.first_centre[1] - (h - 1.0) / 2.0 * dem.pixel[1];
-                let (mut min, mut max) = (f64::INFINITY, f64::NEG_INFINITY);
-                for r in 0..dem.size.1 {
-                    for c in 0..dem.size.0 {
-                        let x = dem.first_centre[0] + c as f64 * dem.pixel[0];
-                        let y = dem.first_centre[1] - r as f64 * dem.pixel[1];
-                        if let Some(z) = dem.height_at(x, y) {
-                            min = min.min(z - datum_m);
-                            max = max.max(z - datum_m);
-                        }
-                    }
-                }
-                if !min.is_finite() {
-                    return Err(SceneError::Invalid {
-                        field: "terrain.path",
-                        reason: format!("{}: the DEM has no valid height", full.display()),
-                    });
-                }
-                let step = dem.pixel[0].abs().min(dem.pixel[1].abs()) / 2.0;
-                (
-                    Ground::Dem {
-                        dem: Box::new(dem),
-                        cx,
-                        cy,
-                        datum: *datum_m,
-                        min,
-                        max,
-                        step,
-                    },
-                    refl(material),
-                )
-            }
-        };
+        let (ground, ground_reflectance) = ground_of(s, base_dir)?;
         let mut scene = Scene {
             ground,
             ground_reflectance,
@@ -340,175 +267,161 @@ impl Scene {
             trees.extend(f.trees(s.seed, i));
         }
         for (i, t) in trees.iter().enumerate() {
-            let i = i as u32;
-            let [x, y] = t.position_m;
-            let z0 = scene.ground_height(x, y).unwrap_or(0.0);
-            let top = z0 + t.height_m;
-            if t.stem_radius_m > 0.0 {
-                objects.push(cylinder(
-                    [x, y, z0],
-                    [0.0, 0.0, 1.0],
-                    t.height_m,
-                    t.stem_radius_m,
-                    refl(&t.bark),
-                    ObjectKind::Stem,
-                    i,
-                ));
-            }
-            let cb = z0 + t.crown.base_m;
-            let depth = top - cb;
-            for b in &tree_branches(s.seed, i, t) {
-                let (z, a) = (b.zenith_deg.to_radians(), b.azimuth_deg.to_radians());
-                objects.push(cylinder(
-                    [x, y, z0 + b.height_m],
-                    [z.sin() * a.sin(), z.sin() * a.cos(), z.cos()],
-                    b.length_m,
-                    b.radius_m,
-                    refl(&t.bark),
-                    ObjectKind::Branch,
-                    i,
-                ));
-            }
-            if t.leaf_area_density > 0.0 {
-                let r = t.crown.radius_m;
-                let env = match t.crown.shape {
-                    CrownShape::Ellipsoid => Envelope::Ellipsoid {
-                        c: [x, y, (cb + top) / 2.0],
-                        r,
-                        rz: depth / 2.0,
-                    },
-                    CrownShape::Cone => Envelope::Cone {
-                        c: [x, y],
-                        base: cb,
-                        top,
-                        r,
-                    },
-                    CrownShape::Cylinder => Envelope::Cylinder {
-                        c: [x, y],
-                        base: cb,
-                        top,
-                        r,
-                    },
-                };
-                objects.push(Object {
-                    shape: Shape::Medium {
-                        env,
-                        extinction: t.g_function * t.leaf_area_density,
-                    },
-                    reflectance: refl(&t.leaf),
-                    kind: ObjectKind::Crown,
-                    index: i,
-                    lo: [x - r, y - r, cb],
-                    hi: [x + r, y + r, top],
-                });
-            }
+            scene.push_tree(s, i as u32, t, &mut objects);
         }
-        let plane_of_ground = |scene: &Scene, rect: &[f64; 4]| -> (f64, f64, f64) {
-            match &scene.ground {
-                Ground::Plane { h0, gx, gy } => (*h0, *gx, *gy),
-                Ground::Dem { .. } => (
-                    scene
-                        .ground_height((rect[0] + rect[2]) / 2.0, (rect[1] + rect[3]) / 2.0)
-                        .unwrap_or(0.0),
-                    0.0,
-                    0.0,
-                ),
-            }
-        };
         for (i, g) in s.grass.iter().enumerate() {
             if g.leaf_area_density <= 0.0 {
                 continue;
             }
-            let (h0, gx, gy) = plane_of_ground(&scene, &g.rectangle_m);
-            let r = g.rectangle_m;
-            let zs = [r[0], r[2]]
-                .iter()
-                .flat_map(|&x| [r[1], r[3]].map(move |y| h0 + gx * x + gy * y))
-                .collect::<Vec<_>>();
-            let zlo = zs.iter().cloned().fold(f64::INFINITY, f64::min);
-            let zhi = zs.iter().cloned().fold(f64::NEG_INFINITY, f64::max) + g.height_m;
-            objects.push(Object {
-                shape: Shape::Medium {
-                    env: Envelope::Layer {
-                        rect: r,
-                        h0,
-                        gx,
-                        gy,
-                        lo: 0.0,
-                        hi: g.height_m,
-                    },
-                    extinction: g.g_function * g.leaf_area_density,
-                },
-                reflectance: refl(&g.material),
-                kind: ObjectKind::Grass,
-                index: i as u32,
-                lo: [r[0], r[1], zlo],
-                hi: [r[2], r[3], zhi],
-            });
+            objects.push(scene.grass_object(s, i as u32, g));
         }
-        let base_of = |scene: &Scene, r: &[f64; 4]| {
-            scene
-                .ground_height((r[0] + r[2]) / 2.0, (r[1] + r[3]) / 2.0)
-                .unwrap_or(0.0)
-        };
         for (i, b) in s.boxes.iter().enumerate() {
-            let r = b.rectangle_m;
-            let z0 = base_of(&scene, &r);
-            let (lo, hi) = ([r[0], r[1], z0 - 50.0], [r[2], r[3], z0 + b.height_m]);
-            objects.push(Object {
-                shape: Shape::Aabb { lo, hi },
-                reflectance: refl(&b.material),
-                kind: ObjectKind::Box,
-                index: i as u32,
-                lo,
-                hi,
-            });
+            objects.push(scene.box_object(s, i as u32, b));
         }
         for (i, b) in s.roof.iter().enumerate() {
-            let r = b.rectangle_m;
-            let z0 = base_of(&scene, &r);
-            let (lo, hi) = ([r[0], r[1], z0 - 50.0], [r[2], r[3], z0 + b.eave_height_m]);
-            objects.push(Object {
-                shape: Shape::Aabb { lo, hi },
-                reflectance: refl(&b.wall),
-                kind: ObjectKind::Wall,
-                index: i as u32,
-                lo,
-                hi,
-            });
-            let (eave, ridge) = (z0 + b.eave_height_m, z0 + b.ridge_height_m);
-            let halves = match b.ridge {
-                Ridge::EastWest => {
-                    let m = (r[1] + r[3]) / 2.0;
-                    let g = (ridge - eave) / (m - r[1]);
-                    // South half rises northwards, north half falls.
-                    [
-                        ([r[0], r[1], r[2], m], eave - g * r[1], 0.0, g),
-                        ([r[0], m, r[2], r[3]], eave + g * r[3], 0.0, -g),
-                    ]
-                }
-                Ridge::NorthSouth => {
-                    let m = (r[0] + r[2]) / 2.0;
-                    let g = (ridge - eave) / (m - r[0]);
-                    [
-                        ([r[0], r[1], m, r[3]], eave - g * r[0], g, 0.0),
-                        ([m, r[1], r[2], r[3]], eave + g * r[2], -g, 0.0),
-                    ]
-                }
-            };
-            for (rect, h0, gx, gy) in halves {
-                objects.push(Object {
-                    shape: Shape::RoofPlane { rect, h0, gx, gy },
-                    reflectance: refl(&b.material),
-                    kind: ObjectKind::Roof,
-                    index: i as u32,
-                    lo: [rect[0], rect[1], eave],
-                    hi: [rect[2], rect[3], ridge],
-                });
-            }
+            scene.push_roof(s, i as u32, b, &mut objects);
         }
         scene.index(objects);
         Ok(scene)
+    }
+
+    /// Tree number `i`'s objects onto `objects`: its stem (when its radius is > 0), its
+    /// branches ([`tree_branches`]) and its leafy crown (when its leaf area density is > 0),
+    /// standing on the ground at its position.
+    fn push_tree(&self, s: &WorldScene, i: u32, t: &cfg::Tree, objects: &mut Vec<Object>) {
+        let [x, y] = t.position_m;
+        let z0 = self.ground_height(x, y).unwrap_or(0.0);
+        let top = z0 + t.height_m;
+        if t.stem_radius_m > 0.0 {
+            objects.push(cylinder(
+                [x, y, z0],
+                [0.0, 0.0, 1.0],
+                t.height_m,
+                t.stem_radius_m,
+                refl(s, &t.bark),
+                ObjectKind::Stem,
+                i,
+            ));
+        }
+        let cb = z0 + t.crown.base_m;
+        for b in &tree_branches(s.seed, i, t) {
+            let (z, a) = (b.zenith_deg.to_radians(), b.azimuth_deg.to_radians());
+            objects.push(cylinder(
+                [x, y, z0 + b.height_m],
+                [z.sin() * a.sin(), z.sin() * a.cos(), z.cos()],
+                b.length_m,
+                b.radius_m,
+                refl(s, &t.bark),
+                ObjectKind::Branch,
+                i,
+            ));
+        }
+        if t.leaf_area_density > 0.0 {
+            let r = t.crown.radius_m;
+            objects.push(Object {
+                shape: Shape::Medium {
+                    env: crown_envelope(t.crown.shape, [x, y], cb, top, r),
+                    extinction: t.g_function * t.leaf_area_density,
+                },
+                reflectance: refl(s, &t.leaf),
+                kind: ObjectKind::Crown,
+                index: i,
+                lo: [x - r, y - r, cb],
+                hi: [x + r, y + r, top],
+            });
+        }
+    }
+
+    /// The ground plane `(h0, gx, gy)` (`z = h0 + gx x + gy y`, metres) a layer over `rect`
+    /// stands on: the terrain's plane, or over a DEM the level plane at the height of the
+    /// rectangle's centre.
+    fn plane_of_ground(&self, rect: &[f64; 4]) -> (f64, f64, f64) {
+        match &self.ground {
+            Ground::Plane { h0, gx, gy } => (*h0, *gx, *gy),
+            Ground::Dem { .. } => (self.base_of(rect), 0.0, 0.0),
+        }
+    }
+
+    /// The terrain's height at the centre of `r` (`[west, south, east, north]`), metres; 0
+    /// outside a DEM.
+    fn base_of(&self, r: &[f64; 4]) -> f64 {
+        self.ground_height((r[0] + r[2]) / 2.0, (r[1] + r[3]) / 2.0)
+            .unwrap_or(0.0)
+    }
+
+    /// Grass patch number `i`: a layer of leaves `height_m` thick over its rectangle,
+    /// following the ground's plane.
+    fn grass_object(&self, s: &WorldScene, i: u32, g: &cfg::Grass) -> Object {
+        let (h0, gx, gy) = self.plane_of_ground(&g.rectangle_m);
+        let r = g.rectangle_m;
+        let zs = [r[0], r[2]]
+            .iter()
+            .flat_map(|&x| [r[1], r[3]].map(move |y| h0 + gx * x + gy * y))
+            .collect::<Vec<_>>();
+        let zlo = zs.iter().cloned().fold(f64::INFINITY, f64::min);
+        let zhi = zs.iter().cloned().fold(f64::NEG_INFINITY, f64::max) + g.height_m;
+        Object {
+            shape: Shape::Medium {
+                env: Envelope::Layer {
+                    rect: r,
+                    h0,
+                    gx,
+                    gy,
+                    lo: 0.0,
+                    hi: g.height_m,
+                },
+                extinction: g.g_function * g.leaf_area_density,
+            },
+            reflectance: refl(s, &g.material),
+            kind: ObjectKind::Grass,
+            index: i,
+            lo: [r[0], r[1], zlo],
+            hi: [r[2], r[3], zhi],
+        }
+    }
+
+    /// Box number `i`: a solid from 50 m below the ground at its centre up to `height_m`
+    /// above it.
+    fn box_object(&self, s: &WorldScene, i: u32, b: &cfg::BoxObject) -> Object {
+        let r = b.rectangle_m;
+        let z0 = self.base_of(&r);
+        let (lo, hi) = ([r[0], r[1], z0 - 50.0], [r[2], r[3], z0 + b.height_m]);
+        Object {
+            shape: Shape::Aabb { lo, hi },
+            reflectance: refl(s, &b.material),
+            kind: ObjectKind::Box,
+            index: i,
+            lo,
+            hi,
+        }
+    }
+
+    /// Building number `i` onto `objects`: its walls (a solid from 50 m below the ground at
+    /// its centre up to the eaves), then its two roof planes rising from the eaves to the
+    /// ridge.
+    fn push_roof(&self, s: &WorldScene, i: u32, b: &cfg::Roof, objects: &mut Vec<Object>) {
+        let r = b.rectangle_m;
+        let z0 = self.base_of(&r);
+        let (lo, hi) = ([r[0], r[1], z0 - 50.0], [r[2], r[3], z0 + b.eave_height_m]);
+        objects.push(Object {
+            shape: Shape::Aabb { lo, hi },
+            reflectance: refl(s, &b.wall),
+            kind: ObjectKind::Wall,
+            index: i,
+            lo,
+            hi,
+        });
+        let (eave, ridge) = (z0 + b.eave_height_m, z0 + b.ridge_height_m);
+        for (rect, h0, gx, gy) in roof_halves(b.ridge, &r, eave, ridge) {
+            objects.push(Object {
+                shape: Shape::RoofPlane { rect, h0, gx, gy },
+                reflectance: refl(s, &b.material),
+                kind: ObjectKind::Roof,
+                index: i,
+                lo: [rect[0], rect[1], eave],
+                hi: [rect[2], rect[3], ridge],
+            });
+        }
     }
 
     fn index(&mut self, objects: Vec<Object>) {
@@ -705,6 +618,147 @@ impl Scene {
         scratch
             .media
             .sort_by(|a, b| a.enter_m.total_cmp(&b.enter_m));
+    }
+}
+
+/// Reflectance of material `name` in scene `s` (0 when unknown).
+fn refl(s: &WorldScene, name: &str) -> f64 {
+    s.reflectance(name).unwrap_or(0.0)
+}
+
+/// The scene's terrain as traced, and its reflectance.
+fn ground_of(s: &WorldScene, base_dir: &Path) -> Result<(Ground, f64), SceneError> {
+    Ok(match &s.terrain {
+        cfg::Terrain::Flat { height_m, material } => (
+            Ground::Plane {
+                h0: *height_m,
+                gx: 0.0,
+                gy: 0.0,
+            },
+            refl(s, material),
+        ),
+        cfg::Terrain::Plane {
+            height_m,
+            slope_deg,
+            aspect_deg,
+            material,
+        } => {
+            // Downhill towards the aspect: the height falls by tan(slope) per metre along
+            // (sin a, cos a).
+            let t = slope_deg.to_radians().tan();
+            let a = aspect_deg.to_radians();
+            (
+                Ground::Plane {
+                    h0: *height_m,
+                    gx: -t * a.sin(),
+                    gy: -t * a.cos(),
+                },
+                refl(s, material),
+            )
+        }
+        cfg::Terrain::Geotiff {
+            path,
+            datum_m,
+            material,
+        } => (
+            dem_ground(&base_dir.join(path), *datum_m)?,
+            refl(s, material),
+        ),
+    })
+}
+
+/// The terrain from the DEM at `full` (a GeoTIFF), centred on the scene's origin, its heights
+/// less `datum_m` (metres); with its lowest and highest heights and the ray march's step
+/// (half the smaller pixel side), metres.
+fn dem_ground(full: &Path, datum_m: f64) -> Result<Ground, SceneError> {
+    let dem = Dem::open(full).map_err(|e| SceneError::Invalid {
+        field: "terrain.path",
+        reason: e.to_string(),
+    })?;
+    let (w, h) = (dem.size.0 as f64, dem.size.1 as f64);
+    let cx = dem.first_centre[0] + (w - 1.0) / 2.0 * dem.pixel[0];
+    let cy = dem.first_centre[1] - (h - 1.0) / 2.0 * dem.pixel[1];
+    let (mut min, mut max) = (f64::INFINITY, f64::NEG_INFINITY);
+    for r in 0..dem.size.1 {
+        for c in 0..dem.size.0 {
+            let x = dem.first_centre[0] + c as f64 * dem.pixel[0];
+            let y = dem.first_centre[1] - r as f64 * dem.pixel[1];
+            if let Some(z) = dem.height_at(x, y) {
+                min = min.min(z - datum_m);
+                max = max.max(z - datum_m);
+            }
+        }
+    }
+    if !min.is_finite() {
+        return Err(SceneError::Invalid {
+            field: "terrain.path",
+            reason: format!("{}: the DEM has no valid height", full.display()),
+        });
+    }
+    let step = dem.pixel[0].abs().min(dem.pixel[1].abs()) / 2.0;
+    Ok(Ground::Dem {
+        dem: Box::new(dem),
+        cx,
+        cy,
+        datum: datum_m,
+        min,
+        max,
+        step,
+    })
+}
+
+/// The envelope of a crown of `shape` centred on `c` (east, north, m), from height `base` to
+/// `top` (m), of radius `r` (m).
+fn crown_envelope(shape: CrownShape, c: [f64; 2], base: f64, top: f64, r: f64) -> Envelope {
+    let [x, y] = c;
+    match shape {
+        CrownShape::Ellipsoid => Envelope::Ellipsoid {
+            c: [x, y, (base + top) / 2.0],
+            r,
+            rz: (top - base) / 2.0,
+        },
+        CrownShape::Cone => Envelope::Cone {
+            c: [x, y],
+            base,
+            top,
+            r,
+        },
+        CrownShape::Cylinder => Envelope::Cylinder {
+            c: [x, y],
+            base,
+            top,
+            r,
+        },
+    }
+}
+
+/// The two planes of a gable roof over `r` (`[west, south, east, north]`, m) with its ridge
+/// along `ridge` through the middle: each half's rectangle and plane `z = h0 + gx x + gy y`,
+/// rising from `eave` at the edge to `ridge_z` at the middle (m).
+fn roof_halves(
+    ridge: Ridge,
+    r: &[f64; 4],
+    eave: f64,
+    ridge_z: f64,
+) -> [([f64; 4], f64, f64, f64); 2] {
+    match ridge {
+        Ridge::EastWest => {
+            let m = (r[1] + r[3]) / 2.0;
+            let g = (ridge_z - eave) / (m - r[1]);
+            // South half rises northwards, north half falls.
+            [
+                ([r[0], r[1], r[2], m], eave - g * r[1], 0.0, g),
+                ([r[0], m, r[2], r[3]], eave + g * r[3], 0.0, -g),
+            ]
+        }
+        Ridge::NorthSouth => {
+            let m = (r[0] + r[2]) / 2.0;
+            let g = (ridge_z - eave) / (m - r[0]);
+            [
+                ([r[0], r[1], m, r[3]], eave - g * r[0], g, 0.0),
+                ([m, r[1], r[2], r[3]], eave + g * r[2], -g, 0.0),
+            ]
+        }
     }
 }
 

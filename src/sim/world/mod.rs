@@ -36,9 +36,9 @@ use crate::sim::nmea::NavFix;
 use crate::sim::scene::SceneError;
 
 use flight::{FlightPlan, Shot, footprint_rays};
-use geometry::{ObjectKind, TraceScratch, V3};
+use geometry::{Hit, MediumSpan, ObjectKind, TraceScratch, V3};
 use render::{EchoShape, add_gaussian, add_ringing};
-use scene::{Effect, Noise, PulseShape, WorldScene};
+use scene::{Effect, Noise, PulseShape, Ringing, WorldScene};
 
 /// Quarter-sample bins for media.
 const FINE: usize = 4;
@@ -442,6 +442,18 @@ impl WorldSim {
         pulse: &mut Pulse,
         truth: &mut ShotTruth,
     ) {
+        let frame = self.begin_pulse(k, shot, jitter, truth);
+        self.set_rays(shot);
+        for ri in 0..self.rays.len() {
+            self.render_ray(ri, shot, &frame, truth);
+        }
+        self.spread_media_bins(&frame, truth);
+        self.write_pulse(k, shot, &frame, pulse, truth);
+    }
+
+    /// Starts pulse `k`: its window and fine bins (cleared), and `truth`'s header with its
+    /// waveforms zeroed over the window.
+    fn begin_pulse(&mut self, k: u64, shot: &Shot, jitter: f64, truth: &mut ShotTruth) -> Frame {
         let s = &self.scene;
         let n = s.sensor.return_samples as usize;
         let dt = self.dt;
@@ -468,8 +480,29 @@ impl WorldSim {
         let fine_t0 = start - margin as f64 * dt;
         let fine_n = (n + 2 * margin) * FINE;
         let delta = dt / FINE as f64;
+        let frame = Frame {
+            n,
+            start,
+            jitter,
+            gain_t,
+            ringing,
+            margin,
+            fine_t0,
+            fine_n,
+            delta,
+            peak: s.sensor.peak_dn,
+            r_ref: s.sensor.reference_range_m,
+            mpn: self.metres_per_ns,
+        };
         self.fine.clear();
         self.fine.resize(fine_n, 0.0);
+        frame
+    }
+
+    /// The sub-rays of `shot` and their shares of the pulse's energy: across the footprint
+    /// with the `footprint` effect, else the beam's axis alone.
+    fn set_rays(&mut self, shot: &Shot) {
+        let s = &self.scene;
         if s.has(Effect::Footprint) {
             footprint_rays(
                 shot.beam,
@@ -481,153 +514,109 @@ impl WorldSim {
             self.rays.clear();
             self.rays.push((shot.beam, 1.0));
         }
-        let peak = s.sensor.peak_dn;
-        let r_ref = s.sensor.reference_range_m;
-        let mpn = self.metres_per_ns;
-        for ri in 0..self.rays.len() {
-            let (d, w) = self.rays[ri];
-            self.geo.trace(shot.origin, d, &mut self.scratch);
-            let stop = self
-                .scratch
-                .hits
-                .first()
-                .map_or(f64::INFINITY, |h| h.range_m);
-            // Media: walk the breakpoints; in each stretch the active media share the
-            // extinction.
-            let mut trans = 1.0f64;
-            let media = &self.scratch.media;
-            if !media.is_empty() {
-                let mut cuts = [0.0f64; 16];
-                let mut nc = 0;
-                for m in media.iter().take(8) {
-                    cuts[nc] = m.enter_m;
-                    cuts[nc + 1] = m.exit_m.min(stop);
-                    nc += 2;
-                }
-                let cuts = &mut cuts[..nc];
-                cuts.sort_by(f64::total_cmp);
-                for c in 0..nc.saturating_sub(1) {
-                    let (a, b) = (cuts[c], cuts[c + 1]);
-                    if b <= a {
-                        continue;
-                    }
-                    let mid = 0.5 * (a + b);
-                    let (mut k_tot, mut k_rho) = (0.0, 0.0);
-                    for m in media.iter().take(8) {
-                        if m.enter_m <= mid && mid < m.exit_m {
-                            k_tot += m.extinction_per_m;
-                            k_rho += m.extinction_per_m * m.reflectance;
-                        }
-                    }
-                    if k_tot <= 0.0 {
-                        continue;
-                    }
-                    let rho = k_rho / k_tot;
-                    let t_a = trans;
-                    // Transmission at range r inside this stretch.
-                    let t_at = |r: f64| t_a * (-k_tot * (r - a)).exp();
-                    // Quarter-sample bins (true time): the energy intercepted in each, at its
-                    // centre. Inside the stretch the transmission falls by a constant factor
-                    // per whole bin.
-                    let (ta, tb) = (a / mpn, b / mpn);
-                    let f_lo = ((ta - fine_t0) / delta).floor().max(0.0) as usize;
-                    let f_hi = (((tb - fine_t0) / delta).ceil().max(0.0) as usize).min(fine_n);
-                    let per_bin = (-k_tot * delta * mpn).exp();
-                    let mut sum_amp = 0.0;
-                    let mut t_u = f64::NAN;
-                    for f in f_lo..f_hi {
-                        let u = (fine_t0 + f as f64 * delta).max(ta);
-                        let v = (fine_t0 + (f + 1) as f64 * delta).min(tb);
-                        if v <= u {
-                            continue;
-                        }
-                        let (ru, rv) = (u * mpn, v * mpn);
-                        if t_u.is_nan() {
-                            t_u = t_at(ru);
-                        }
-                        let t_v = if v < tb && u > ta {
-                            t_u * per_bin
-                        } else {
-                            t_at(rv)
-                        };
-                        let e = t_u - t_v;
-                        t_u = t_v;
-                        let r_mid = 0.5 * (ru + rv);
-                        let amp = peak * w * rho * e * (r_ref / r_mid).powi(2);
-                        self.fine[f] += amp;
-                        sum_amp += amp;
-                    }
-                    // The whole stretch attenuates, inside the recorded window or not.
-                    let whole = t_at(b);
-                    trans = whole;
-                    for m in media.iter().take(8) {
-                        if m.enter_m <= mid && mid < m.exit_m {
-                            let share = m.extinction_per_m / k_tot;
-                            truth.scatterers.push(Scatterer {
-                                kind: m.kind,
-                                object: m.object,
-                                range_m: a,
-                                range_end_m: b,
-                                position: at(shot.origin, a, d),
-                                fraction: w * (t_a - whole) * share,
-                                reflectance: m.reflectance,
-                                amplitude_dn: sum_amp * share * m.reflectance / rho.max(1e-300),
-                                ray: ri as u32,
-                            });
-                        }
-                    }
-                }
-            }
-            if let Some(h) = self.scratch.hits.first() {
-                let amp = peak
-                    * w
-                    * h.reflectance
-                    * h.cos_incidence
-                    * trans
-                    * (r_ref / h.range_m).powi(2);
-                let t = h.range_m / mpn;
-                truth.scatterers.push(Scatterer {
-                    kind: h.kind,
-                    object: h.object,
-                    range_m: h.range_m,
-                    range_end_m: h.range_m,
-                    position: at(shot.origin, h.range_m, d),
-                    fraction: w * trans,
-                    reflectance: h.reflectance,
-                    amplitude_dn: amp,
-                    ray: ri as u32,
-                });
-                self.echo.add(&mut truth.clean, start, dt, t + jitter, amp);
-                add_gaussian(
-                    &mut truth.truth,
-                    start,
-                    dt,
-                    t,
-                    amp * gain_t,
-                    self.sigma_truth,
-                );
-                if let Some(r) = &ringing {
-                    add_ringing(&mut truth.clean, start, dt, t + jitter, amp, r);
-                }
-            }
+    }
+
+    /// Traces sub-ray `ri`: the media it crosses go to the fine bins and its first solid hit
+    /// to the waveforms, both to the truth's scatterers.
+    #[inline]
+    fn render_ray(&mut self, ri: usize, shot: &Shot, frame: &Frame, truth: &mut ShotTruth) {
+        let (d, w) = self.rays[ri];
+        self.geo.trace(shot.origin, d, &mut self.scratch);
+        let stop = self
+            .scratch
+            .hits
+            .first()
+            .map_or(f64::INFINITY, |h| h.range_m);
+        let ray = Ray {
+            origin: shot.origin,
+            d,
+            w,
+            index: ri as u32,
+        };
+        let media = &self.scratch.media;
+        let trans = if media.is_empty() {
+            1.0f64
+        } else {
+            deposit_media(
+                media,
+                stop,
+                &ray,
+                frame,
+                &mut self.fine,
+                &mut truth.scatterers,
+            )
+        };
+        if let Some(&h) = self.scratch.hits.first() {
+            self.add_surface_echo(&h, trans, &ray, frame, truth);
         }
-        // The media's bins: from the per-phase kernel tables (no exponential per bin), or
-        // one by one when jitter or ringing move or add to them.
-        let exact = jitter != 0.0 || ringing.is_some();
-        for f in 0..fine_n {
-            let amp = self.fine[f];
-            if amp == 0.0 {
-                continue;
-            }
+    }
+
+    /// The echo of solid hit `h` of `ray`, reached with transmission `trans` (0..1): a
+    /// scatterer, the received echo (delayed by the jitter, with its ringing) and the
+    /// truth's 2 ns pulse.
+    #[inline]
+    fn add_surface_echo(
+        &self,
+        h: &Hit,
+        trans: f64,
+        ray: &Ray,
+        frame: &Frame,
+        truth: &mut ShotTruth,
+    ) {
+        let (start, dt, jitter) = (frame.start, self.dt, frame.jitter);
+        let amp = frame.peak
+            * ray.w
+            * h.reflectance
+            * h.cos_incidence
+            * trans
+            * (frame.r_ref / h.range_m).powi(2);
+        let t = h.range_m / frame.mpn;
+        truth.scatterers.push(Scatterer {
+            kind: h.kind,
+            object: h.object,
+            range_m: h.range_m,
+            range_end_m: h.range_m,
+            position: at(ray.origin, h.range_m, ray.d),
+            fraction: ray.w * trans,
+            reflectance: h.reflectance,
+            amplitude_dn: amp,
+            ray: ray.index,
+        });
+        self.echo.add(&mut truth.clean, start, dt, t + jitter, amp);
+        add_gaussian(
+            &mut truth.truth,
+            start,
+            dt,
+            t,
+            amp * frame.gain_t,
+            self.sigma_truth,
+        );
+        if let Some(r) = &frame.ringing {
+            add_ringing(&mut truth.clean, start, dt, t + jitter, amp, r);
+        }
+    }
+
+    /// The media's fine bins onto the waveforms: from the per-phase kernel tables (no
+    /// exponential per bin), or one by one when jitter or ringing move or add to them.
+    fn spread_media_bins(&self, frame: &Frame, truth: &mut ShotTruth) {
+        let (start, dt, jitter, margin) = (frame.start, self.dt, frame.jitter, frame.margin);
+        let exact = jitter != 0.0 || frame.ringing.is_some();
+        let fine = &self.fine[..frame.fine_n];
+        // Most bins are empty: each non-empty one is found by a scan of its own, which keeps
+        // the bin's work (and anything the optimiser would hoist from it) off the empty ones.
+        let mut f = 0;
+        while let Some(k) = fine[f..].iter().position(|&a| a != 0.0) {
+            f += k;
+            let amp = fine[f];
             let (q, phase) = (f / FINE, f % FINE);
             // Sample i lies (i + margin − q)·dt − (phase + ½)·δ after the bin's centre.
             self.kernels
                 .truth
-                .add(&mut truth.truth, margin, q, phase, amp * gain_t);
+                .add(&mut truth.truth, margin, q, phase, amp * frame.gain_t);
             if exact {
-                let t = fine_t0 + (f as f64 + 0.5) * delta + jitter;
+                let t = frame.fine_t0 + (f as f64 + 0.5) * frame.delta + jitter;
                 self.echo.add(&mut truth.clean, start, dt, t, amp);
-                if let Some(r) = &ringing {
+                if let Some(r) = &frame.ringing {
                     add_ringing(&mut truth.clean, start, dt, t, amp, r);
                 }
             } else {
@@ -635,8 +624,21 @@ impl WorldSim {
                     .clean
                     .add(&mut truth.clean, margin, q, phase, amp);
             }
+            f += 1;
         }
-        // The pulse.
+    }
+
+    /// The recorded pulse: its header, the digitized outgoing pulse (delayed by the jitter)
+    /// and the digitized return window of `truth.clean`.
+    fn write_pulse(
+        &mut self,
+        k: u64,
+        shot: &Shot,
+        frame: &Frame,
+        pulse: &mut Pulse,
+        truth: &ShotTruth,
+    ) {
+        let (dt, jitter, n) = (self.dt, frame.jitter, frame.n);
         pulse.reset();
         pulse.seq = k;
         pulse.pulse_id = k;
@@ -673,7 +675,7 @@ impl WorldSim {
             let raw = self.digitize(truth.clean[i]);
             pulse.raw.push(raw);
         }
-        let ret = pulse.push_segment(SegmentKind::Return, 0, start, []);
+        let ret = pulse.push_segment(SegmentKind::Return, 0, frame.start, []);
         pulse.segments[ret].first = first as u32;
         pulse.segments[ret].len = n as u32;
     }
@@ -702,6 +704,179 @@ impl WorldSim {
         let x = (v * self.steps_per_count).clamp(0.0, self.max_raw);
         ((x + ROUND) - ROUND) as u16
     }
+}
+
+/// What the steps of rendering one pulse share: its window, the fine bins of the media and
+/// the constants of the echo amplitude.
+#[derive(Debug)]
+struct Frame {
+    /// Return samples.
+    n: usize,
+    /// Time of the first return sample after t0, ns.
+    start: f64,
+    /// The emission came this much after the recorded t0, ns.
+    jitter: f64,
+    /// Gain of the truth's 2 ns pulse (area preserving).
+    gain_t: f64,
+    /// The ringing to add, with the `ringing` effect.
+    ringing: Option<Ringing>,
+    /// Samples of fine bins before (and after) the window.
+    margin: usize,
+    /// Time of the first fine bin's start after t0, ns.
+    fine_t0: f64,
+    /// Fine bins.
+    fine_n: usize,
+    /// Width of a fine bin, ns.
+    delta: f64,
+    /// Echo amplitude of a unit reflector at the reference range, counts.
+    peak: f64,
+    /// The reference range, metres.
+    r_ref: f64,
+    /// Metres of range per nanosecond of two-way time.
+    mpn: f64,
+}
+
+/// One sub-ray of a pulse.
+#[derive(Clone, Copy, Debug)]
+struct Ray {
+    /// Scanner origin, scene frame, metres.
+    origin: V3,
+    /// Unit direction.
+    d: V3,
+    /// Share of the pulse's energy (0..1).
+    w: f64,
+    /// Number of the sub-ray (0: the beam's axis).
+    index: u32,
+}
+
+/// A stretch `a..b` (range, metres) of one or more media along a ray.
+#[derive(Clone, Copy, Debug)]
+struct Stretch {
+    /// Range where it starts, metres.
+    a: f64,
+    /// Range where it ends, metres.
+    b: f64,
+    /// Transmission where it starts (0..1).
+    t_a: f64,
+    /// Extinction of the media active in it, per metre.
+    k_tot: f64,
+    /// Their mean reflectance, weighted by extinction.
+    rho: f64,
+}
+
+impl Stretch {
+    /// Transmission at range `r` (metres) inside the stretch.
+    #[inline]
+    fn transmission_at(&self, r: f64) -> f64 {
+        self.t_a * (-self.k_tot * (r - self.a)).exp()
+    }
+}
+
+/// Walks the breakpoints of the `media` (the first 8) `ray` crosses before `stop_m` (range of
+/// its first solid hit, metres): in each stretch the active media share the extinction, the
+/// energy they intercept goes to the `fine` bins and one scatterer per medium to
+/// `scatterers`. Returns the transmission (0..1) past the last stretch.
+#[inline]
+fn deposit_media(
+    media: &[MediumSpan],
+    stop_m: f64,
+    ray: &Ray,
+    frame: &Frame,
+    fine: &mut [f64],
+    scatterers: &mut Vec<Scatterer>,
+) -> f64 {
+    let mut trans = 1.0f64;
+    let mut cuts = [0.0f64; 16];
+    let mut nc = 0;
+    for m in media.iter().take(8) {
+        cuts[nc] = m.enter_m;
+        cuts[nc + 1] = m.exit_m.min(stop_m);
+        nc += 2;
+    }
+    let cuts = &mut cuts[..nc];
+    cuts.sort_by(f64::total_cmp);
+    for c in 0..nc.saturating_sub(1) {
+        let (a, b) = (cuts[c], cuts[c + 1]);
+        if b <= a {
+            continue;
+        }
+        let mid = 0.5 * (a + b);
+        let (mut k_tot, mut k_rho) = (0.0, 0.0);
+        for m in media.iter().take(8) {
+            if m.enter_m <= mid && mid < m.exit_m {
+                k_tot += m.extinction_per_m;
+                k_rho += m.extinction_per_m * m.reflectance;
+            }
+        }
+        if k_tot <= 0.0 {
+            continue;
+        }
+        let st = Stretch {
+            a,
+            b,
+            t_a: trans,
+            k_tot,
+            rho: k_rho / k_tot,
+        };
+        let sum_amp = deposit_stretch(&st, ray, frame, fine);
+        // The whole stretch attenuates, inside the recorded window or not.
+        let whole = st.transmission_at(b);
+        trans = whole;
+        for m in media.iter().take(8) {
+            if m.enter_m <= mid && mid < m.exit_m {
+                let share = m.extinction_per_m / k_tot;
+                scatterers.push(Scatterer {
+                    kind: m.kind,
+                    object: m.object,
+                    range_m: a,
+                    range_end_m: b,
+                    position: at(ray.origin, a, ray.d),
+                    fraction: ray.w * (st.t_a - whole) * share,
+                    reflectance: m.reflectance,
+                    amplitude_dn: sum_amp * share * m.reflectance / st.rho.max(1e-300),
+                    ray: ray.index,
+                });
+            }
+        }
+    }
+    trans
+}
+
+/// The energy stretch `st` of `ray` intercepts, into the quarter-sample `fine` bins (true
+/// time), each bin's at its centre; inside the stretch the transmission falls by a constant
+/// factor per whole bin. Returns the sum of the amplitudes deposited, counts.
+#[inline]
+fn deposit_stretch(st: &Stretch, ray: &Ray, frame: &Frame, fine: &mut [f64]) -> f64 {
+    let (mpn, delta, fine_t0, fine_n) = (frame.mpn, frame.delta, frame.fine_t0, frame.fine_n);
+    let (ta, tb) = (st.a / mpn, st.b / mpn);
+    let f_lo = ((ta - fine_t0) / delta).floor().max(0.0) as usize;
+    let f_hi = (((tb - fine_t0) / delta).ceil().max(0.0) as usize).min(fine_n);
+    let per_bin = (-st.k_tot * delta * mpn).exp();
+    let mut sum_amp = 0.0;
+    let mut t_u = f64::NAN;
+    for (f, bin) in fine.iter_mut().enumerate().take(f_hi).skip(f_lo) {
+        let u = (fine_t0 + f as f64 * delta).max(ta);
+        let v = (fine_t0 + (f + 1) as f64 * delta).min(tb);
+        if v <= u {
+            continue;
+        }
+        let (ru, rv) = (u * mpn, v * mpn);
+        if t_u.is_nan() {
+            t_u = st.transmission_at(ru);
+        }
+        let t_v = if v < tb && u > ta {
+            t_u * per_bin
+        } else {
+            st.transmission_at(rv)
+        };
+        let e = t_u - t_v;
+        t_u = t_v;
+        let r_mid = 0.5 * (ru + rv);
+        let amp = frame.peak * ray.w * st.rho * e * (frame.r_ref / r_mid).powi(2);
+        *bin += amp;
+        sum_amp += amp;
+    }
+    sum_amp
 }
 
 /// An echo shape sampled at the sample interval for each of the [`FINE`] phases of a bin

@@ -861,8 +861,28 @@ impl WorldScene {
 
     /// Checks every value (sensor-dependent ones against `sensor`).
     pub fn validate(&self, sensor: &SensorProfile) -> Result<(), SceneError> {
-        let pos = |v: f64| v.is_finite() && v > 0.0;
-        let nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        self.validate_general()?;
+        self.validate_terrain()?;
+        for t in &self.tree {
+            self.validate_tree(t)?;
+        }
+        for f in &self.forest {
+            validate_forest(f)?;
+        }
+        for g in &self.grass {
+            self.validate_grass(g)?;
+        }
+        self.validate_buildings()?;
+        self.validate_flight(sensor)?;
+        self.validate_scan()?;
+        self.validate_sensor()?;
+        self.validate_effects()?;
+        self.validate_navigation()
+    }
+
+    /// The scene's top-level values: no `multiple_scattering` effect, the GPS start time
+    /// (s, >= 0) and the origin's latitude (degrees, within ±89°).
+    fn validate_general(&self) -> Result<(), SceneError> {
         need(!self.has(Effect::MultipleScattering), "effects", || {
             "`multiple_scattering` is not simulated: the simulator traces single-bounce returns \
              only (leave it out)"
@@ -875,25 +895,32 @@ impl WorldScene {
         )?;
         need(self.origin.lat_deg.abs() < 89.0, "origin.lat_deg", || {
             format!("must be within ±89°, got {}", self.origin.lat_deg)
-        })?;
-        let material = |name: &str, field: &'static str| -> Result<(), SceneError> {
-            match self.reflectance(name) {
-                Some(r) if (0.0..=1.0).contains(&r) => Ok(()),
-                Some(r) => Err(invalid(
-                    field,
-                    format!("material `{name}` reflectance {r} is not in 0..1"),
-                )),
-                None => Err(invalid(
-                    field,
-                    format!(
-                        "material `{name}` is not in [materials] nor a default ({})",
-                        DEFAULT_MATERIALS.map(|m| m.0).join(", ")
-                    ),
-                )),
-            }
-        };
+        })
+    }
+
+    /// Material `name` (reported as `field`) is in `[materials]` or a default, with a
+    /// reflectance in 0..1.
+    fn validate_material(&self, name: &str, field: &'static str) -> Result<(), SceneError> {
+        match self.reflectance(name) {
+            Some(r) if (0.0..=1.0).contains(&r) => Ok(()),
+            Some(r) => Err(invalid(
+                field,
+                format!("material `{name}` reflectance {r} is not in 0..1"),
+            )),
+            None => Err(invalid(
+                field,
+                format!(
+                    "material `{name}` is not in [materials] nor a default ({})",
+                    DEFAULT_MATERIALS.map(|m| m.0).join(", ")
+                ),
+            )),
+        }
+    }
+
+    /// `[terrain]`: its material, and a plane's slope (degrees, 0..80).
+    fn validate_terrain(&self) -> Result<(), SceneError> {
         match &self.terrain {
-            Terrain::Flat { material: m, .. } => material(m, "terrain.material")?,
+            Terrain::Flat { material: m, .. } => self.validate_material(m, "terrain.material"),
             Terrain::Plane {
                 slope_deg,
                 material: m,
@@ -902,109 +929,83 @@ impl WorldScene {
                 need((0.0..80.0).contains(slope_deg), "terrain.slope_deg", || {
                     format!("must be in 0..80, got {slope_deg}")
                 })?;
-                material(m, "terrain.material")?
+                self.validate_material(m, "terrain.material")
             }
-            Terrain::Geotiff { material: m, .. } => material(m, "terrain.material")?,
+            Terrain::Geotiff { material: m, .. } => self.validate_material(m, "terrain.material"),
         }
-        for t in &self.tree {
-            need(pos(t.height_m), "tree.height_m", || {
-                format!("must be > 0, got {}", t.height_m)
-            })?;
+    }
+
+    /// One `[[tree]]`: heights and radii (m), leaf area density (m²/m³), G function, listed
+    /// branches, bark and leaf materials.
+    fn validate_tree(&self, t: &Tree) -> Result<(), SceneError> {
+        need(pos(t.height_m), "tree.height_m", || {
+            format!("must be > 0, got {}", t.height_m)
+        })?;
+        need(
+            nonneg(t.crown.base_m) && t.crown.base_m < t.height_m,
+            "tree.crown.base_m",
+            || {
+                format!(
+                    "must be in 0..height_m ({}), got {}",
+                    t.height_m, t.crown.base_m
+                )
+            },
+        )?;
+        need(pos(t.crown.radius_m), "tree.crown.radius_m", || {
+            format!("must be > 0, got {}", t.crown.radius_m)
+        })?;
+        need(
+            nonneg(t.leaf_area_density),
+            "tree.leaf_area_density",
+            || format!("must be >= 0 m²/m³, got {}", t.leaf_area_density),
+        )?;
+        need(
+            pos(t.g_function) && t.g_function <= 1.0,
+            "tree.g_function",
+            || format!("must be in (0, 1], got {}", t.g_function),
+        )?;
+        need(nonneg(t.stem_radius_m), "tree.stem_radius_m", || {
+            format!("must be >= 0, got {}", t.stem_radius_m)
+        })?;
+        for b in &t.branches {
             need(
-                nonneg(t.crown.base_m) && t.crown.base_m < t.height_m,
-                "tree.crown.base_m",
-                || {
-                    format!(
-                        "must be in 0..height_m ({}), got {}",
-                        t.height_m, t.crown.base_m
-                    )
-                },
-            )?;
-            need(pos(t.crown.radius_m), "tree.crown.radius_m", || {
-                format!("must be > 0, got {}", t.crown.radius_m)
-            })?;
-            need(
-                nonneg(t.leaf_area_density),
-                "tree.leaf_area_density",
-                || format!("must be >= 0 m²/m³, got {}", t.leaf_area_density),
-            )?;
-            need(
-                pos(t.g_function) && t.g_function <= 1.0,
-                "tree.g_function",
-                || format!("must be in (0, 1], got {}", t.g_function),
-            )?;
-            need(nonneg(t.stem_radius_m), "tree.stem_radius_m", || {
-                format!("must be >= 0, got {}", t.stem_radius_m)
-            })?;
-            for b in &t.branches {
-                need(
-                    pos(b.length_m) && pos(b.radius_m) && nonneg(b.height_m),
-                    "tree.branches",
-                    || format!("length, radius must be > 0 and height >= 0: {b:?}"),
-                )?;
-            }
-            material(&t.bark, "tree.bark")?;
-            material(&t.leaf, "tree.leaf")?;
-        }
-        for f in &self.forest {
-            rect(&f.rectangle_m, "forest.rectangle_m")?;
-            let [lo, hi] = f.height_range_m;
-            need(
-                pos(lo) && hi >= lo && hi.is_finite(),
-                "forest.height_range_m",
-                || {
-                    format!(
-                        "must be [lowest > 0, highest >= lowest], got {:?}",
-                        f.height_range_m
-                    )
-                },
-            )?;
-            need(
-                nonneg(f.trees_per_ha) && f.trees_per_ha <= 20_000.0,
-                "forest.trees_per_ha",
-                || format!("must be in 0..=20000, got {}", f.trees_per_ha),
-            )?;
-            let area =
-                (f.rectangle_m[2] - f.rectangle_m[0]) * (f.rectangle_m[3] - f.rectangle_m[1]);
-            need(
-                area / 10_000.0 * f.trees_per_ha <= 1e6,
-                "forest.trees_per_ha",
-                || "more than a million trees: use a smaller rectangle".into(),
-            )?;
-            need(
-                pos(f.crown_radius_fraction) && (0.0..1.0).contains(&f.crown_base_fraction),
-                "forest.crown_radius_fraction",
-                || "crown_radius_fraction must be > 0 and crown_base_fraction in 0..1".into(),
-            )?;
-            need(
-                nonneg(f.leaf_area_density),
-                "forest.leaf_area_density",
-                || format!("must be >= 0, got {}", f.leaf_area_density),
+                pos(b.length_m) && pos(b.radius_m) && nonneg(b.height_m),
+                "tree.branches",
+                || format!("length, radius must be > 0 and height >= 0: {b:?}"),
             )?;
         }
-        for g in &self.grass {
-            rect(&g.rectangle_m, "grass.rectangle_m")?;
-            need(pos(g.height_m), "grass.height_m", || {
-                format!("must be > 0, got {}", g.height_m)
-            })?;
-            need(
-                nonneg(g.leaf_area_density),
-                "grass.leaf_area_density",
-                || format!("must be >= 0, got {}", g.leaf_area_density),
-            )?;
-            need(
-                pos(g.g_function) && g.g_function <= 1.0,
-                "grass.g_function",
-                || format!("must be in (0, 1], got {}", g.g_function),
-            )?;
-            material(&g.material, "grass.material")?;
-        }
+        self.validate_material(&t.bark, "tree.bark")?;
+        self.validate_material(&t.leaf, "tree.leaf")
+    }
+
+    /// One `[[grass]]`: rectangle (m), height (m), leaf area density (m²/m³), G function and
+    /// material.
+    fn validate_grass(&self, g: &Grass) -> Result<(), SceneError> {
+        rect(&g.rectangle_m, "grass.rectangle_m")?;
+        need(pos(g.height_m), "grass.height_m", || {
+            format!("must be > 0, got {}", g.height_m)
+        })?;
+        need(
+            nonneg(g.leaf_area_density),
+            "grass.leaf_area_density",
+            || format!("must be >= 0, got {}", g.leaf_area_density),
+        )?;
+        need(
+            pos(g.g_function) && g.g_function <= 1.0,
+            "grass.g_function",
+            || format!("must be in (0, 1], got {}", g.g_function),
+        )?;
+        self.validate_material(&g.material, "grass.material")
+    }
+
+    /// Every `[[boxes]]` then every `[[roof]]`: rectangles (m), heights (m) and materials.
+    fn validate_buildings(&self) -> Result<(), SceneError> {
         for b in &self.boxes {
             rect(&b.rectangle_m, "box.rectangle_m")?;
             need(pos(b.height_m), "box.height_m", || {
                 format!("must be > 0, got {}", b.height_m)
             })?;
-            material(&b.material, "box.material")?;
+            self.validate_material(&b.material, "box.material")?;
         }
         for r in &self.roof {
             rect(&r.rectangle_m, "roof.rectangle_m")?;
@@ -1018,9 +1019,15 @@ impl WorldScene {
                     )
                 },
             )?;
-            material(&r.material, "roof.material")?;
-            material(&r.wall, "roof.wall")?;
+            self.validate_material(&r.material, "roof.material")?;
+            self.validate_material(&r.wall, "roof.wall")?;
         }
+        Ok(())
+    }
+
+    /// `[flight]`: altitude (m), speed (m/s), turn time (s), the pulse rate in force (Hz, at
+    /// most 10 MHz; the sensor's unless the flight gives one), and `lines` or a `grid`.
+    fn validate_flight(&self, sensor: &SensorProfile) -> Result<(), SceneError> {
         let f = &self.flight;
         need(pos(f.altitude_m), "flight.altitude_m", || {
             format!("must be > 0, got {}", f.altitude_m)
@@ -1046,7 +1053,7 @@ impl WorldScene {
                     matches!(f.scan, ScanPattern::Fixed { .. }),
                     "flight.scan",
                     || "a plot grid takes a `fixed` scan (its zenith and azimuth)".into(),
-                )?;
+                )
             }
             (None, false) => {
                 for l in &f.lines {
@@ -1054,23 +1061,25 @@ impl WorldScene {
                         format!("a line needs two different ends: {l:?}")
                     })?;
                 }
+                Ok(())
             }
-            (Some(_), false) => {
-                return Err(invalid("flight", "give `lines` or `grid`, not both".into()));
-            }
-            (None, true) => {
-                return Err(invalid(
-                    "flight.lines",
-                    "a flight needs at least one line (or a `grid`)".into(),
-                ));
-            }
+            (Some(_), false) => Err(invalid("flight", "give `lines` or `grid`, not both".into())),
+            (None, true) => Err(invalid(
+                "flight.lines",
+                "a flight needs at least one line (or a `grid`)".into(),
+            )),
         }
-        match &f.scan {
+    }
+
+    /// `[flight.scan]`: a fixed zenith (degrees, 0..60), or a scanning half angle (degrees,
+    /// 0..60 exclusive) and rate (Hz, > 0).
+    fn validate_scan(&self) -> Result<(), SceneError> {
+        match &self.flight.scan {
             ScanPattern::Fixed { zenith_deg, .. } => need(
                 (0.0..60.0).contains(zenith_deg),
                 "flight.scan.zenith_deg",
                 || format!("must be in 0..60, got {zenith_deg}"),
-            )?,
+            ),
             ScanPattern::Oscillating {
                 half_angle_deg,
                 rate_hz,
@@ -1090,9 +1099,15 @@ impl WorldScene {
                 )?;
                 need(pos(*rate_hz), "flight.scan.rate_hz", || {
                     format!("must be > 0, got {rate_hz}")
-                })?;
+                })
             }
         }
+    }
+
+    /// `[sensor]`: levels (counts), reference range (m), pulse shape, receiver and outgoing
+    /// widths (ns), return samples, window top (m, below the flight altitude) and refractive
+    /// index.
+    fn validate_sensor(&self) -> Result<(), SceneError> {
         let s = &self.sensor;
         for (v, field) in [
             (s.peak_dn, "sensor.peak_dn"),
@@ -1104,27 +1119,7 @@ impl WorldScene {
         need(nonneg(s.baseline_dn), "sensor.baseline_dn", || {
             format!("must be >= 0, got {}", s.baseline_dn)
         })?;
-        match &s.pulse_shape {
-            PulseShape::Gaussian => {}
-            PulseShape::Bigaussian { rise_ns, fall_ns } => need(
-                pos(*rise_ns) && pos(*fall_ns) && rise_ns + fall_ns <= 1000.0,
-                "sensor.pulse_shape",
-                || format!("rise_ns and fall_ns must be > 0, got {rise_ns} and {fall_ns}"),
-            )?,
-            PulseShape::Measured { samples, sample_ns } => need(
-                pos(*sample_ns)
-                    && samples.len() >= 3
-                    && samples.len() <= 100_000
-                    && samples.iter().all(|v| v.is_finite() && *v >= 0.0)
-                    && samples.iter().any(|v| *v > 0.0),
-                "sensor.pulse_shape",
-                || {
-                    "a measured pulse needs sample_ns > 0 and 3 to 100000 finite, non-negative \
-                     samples, not all zero"
-                        .into()
-                },
-            )?,
-        }
+        validate_pulse_shape(&s.pulse_shape)?;
         need(
             nonneg(s.receiver_fwhm_ns),
             "sensor.receiver_fwhm_ns",
@@ -1141,7 +1136,7 @@ impl WorldScene {
             || format!("must be in 1..=65535, got {}", s.return_samples),
         )?;
         need(
-            pos(s.window_top_m) && s.window_top_m < f.altitude_m,
+            pos(s.window_top_m) && s.window_top_m < self.flight.altitude_m,
             "sensor.window_top_m",
             || format!("must be in (0, altitude), got {}", s.window_top_m),
         )?;
@@ -1149,30 +1144,14 @@ impl WorldScene {
             (1.0..=1.001).contains(&s.refractive_index),
             "sensor.refractive_index",
             || format!("must be in 1..=1.001, got {}", s.refractive_index),
-        )?;
+        )
+    }
+
+    /// The effects' settings: `[noise]` (counts) when the `noise` effect is named, packet
+    /// loss (fraction, 0..1), timing jitter (ns), footprint rings (1..=8) and `[ringing]`.
+    fn validate_effects(&self) -> Result<(), SceneError> {
         if self.has(Effect::Noise) {
-            match &self.noise {
-                None => {
-                    return Err(invalid(
-                        "noise",
-                        "the `noise` effect needs a [noise] table (kind = uniform | gaussian | \
-                         poisson)"
-                            .into(),
-                    ));
-                }
-                Some(Noise::Uniform { amplitude_dn: v })
-                | Some(Noise::Gaussian { sigma_dn: v }) => {
-                    need(nonneg(*v), "noise", || format!("must be >= 0, got {v}"))?
-                }
-                Some(Noise::Poisson {
-                    photons_per_dn,
-                    dark_sigma_dn,
-                }) => need(
-                    pos(*photons_per_dn) && nonneg(*dark_sigma_dn),
-                    "noise",
-                    || "photons_per_dn must be > 0 and dark_sigma_dn >= 0".into(),
-                )?,
-            }
+            validate_noise(self.noise.as_ref())?;
         }
         need(
             (0.0..1.0).contains(&self.packet_loss),
@@ -1192,7 +1171,11 @@ impl WorldScene {
             nonneg(r.amplitude) && pos(r.period_ns) && pos(r.decay_ns),
             "ringing",
             || "amplitude >= 0, period_ns and decay_ns > 0".into(),
-        )?;
+        )
+    }
+
+    /// `[navigation]`: its own checks, and the tables the navigation effects named need.
+    fn validate_navigation(&self) -> Result<(), SceneError> {
         let n = &self.navigation;
         n.validate()
             .map_err(|e| invalid("navigation", e.to_string()))?;
@@ -1212,8 +1195,106 @@ impl WorldScene {
                 "the `navigation_dropouts` effect needs `dropouts` or `random_dropout_probability`"
                     .into()
             },
-        )?;
-        Ok(())
+        )
+    }
+}
+
+/// `v` is finite and > 0.
+fn pos(v: f64) -> bool {
+    v.is_finite() && v > 0.0
+}
+
+/// `v` is finite and >= 0.
+fn nonneg(v: f64) -> bool {
+    v.is_finite() && v >= 0.0
+}
+
+/// One `[[forest]]`: rectangle (m), height range (m), density (trees per hectare, at most
+/// 20 000 and a million trees in all), crown fractions and leaf area density (m²/m³).
+fn validate_forest(f: &Forest) -> Result<(), SceneError> {
+    rect(&f.rectangle_m, "forest.rectangle_m")?;
+    let [lo, hi] = f.height_range_m;
+    need(
+        pos(lo) && hi >= lo && hi.is_finite(),
+        "forest.height_range_m",
+        || {
+            format!(
+                "must be [lowest > 0, highest >= lowest], got {:?}",
+                f.height_range_m
+            )
+        },
+    )?;
+    need(
+        nonneg(f.trees_per_ha) && f.trees_per_ha <= 20_000.0,
+        "forest.trees_per_ha",
+        || format!("must be in 0..=20000, got {}", f.trees_per_ha),
+    )?;
+    let area = (f.rectangle_m[2] - f.rectangle_m[0]) * (f.rectangle_m[3] - f.rectangle_m[1]);
+    need(
+        area / 10_000.0 * f.trees_per_ha <= 1e6,
+        "forest.trees_per_ha",
+        || "more than a million trees: use a smaller rectangle".into(),
+    )?;
+    need(
+        pos(f.crown_radius_fraction) && (0.0..1.0).contains(&f.crown_base_fraction),
+        "forest.crown_radius_fraction",
+        || "crown_radius_fraction must be > 0 and crown_base_fraction in 0..1".into(),
+    )?;
+    need(
+        nonneg(f.leaf_area_density),
+        "forest.leaf_area_density",
+        || format!("must be >= 0, got {}", f.leaf_area_density),
+    )
+}
+
+/// `[sensor.pulse_shape]`: a bigaussian's rise and fall (ns, > 0, together at most 1000 ns),
+/// or a measured pulse's sample interval (ns, > 0) and 3 to 100 000 finite, non-negative
+/// samples, not all zero.
+fn validate_pulse_shape(shape: &PulseShape) -> Result<(), SceneError> {
+    match shape {
+        PulseShape::Gaussian => Ok(()),
+        PulseShape::Bigaussian { rise_ns, fall_ns } => need(
+            pos(*rise_ns) && pos(*fall_ns) && rise_ns + fall_ns <= 1000.0,
+            "sensor.pulse_shape",
+            || format!("rise_ns and fall_ns must be > 0, got {rise_ns} and {fall_ns}"),
+        ),
+        PulseShape::Measured { samples, sample_ns } => need(
+            pos(*sample_ns)
+                && samples.len() >= 3
+                && samples.len() <= 100_000
+                && samples.iter().all(|v| v.is_finite() && *v >= 0.0)
+                && samples.iter().any(|v| *v > 0.0),
+            "sensor.pulse_shape",
+            || {
+                "a measured pulse needs sample_ns > 0 and 3 to 100000 finite, non-negative \
+                 samples, not all zero"
+                    .into()
+            },
+        ),
+    }
+}
+
+/// `[noise]` of a scene naming the `noise` effect: present, with amplitudes (counts) >= 0 or a
+/// Poisson model's photons per count > 0 and dark noise (counts) >= 0.
+fn validate_noise(noise: Option<&Noise>) -> Result<(), SceneError> {
+    match noise {
+        None => Err(invalid(
+            "noise",
+            "the `noise` effect needs a [noise] table (kind = uniform | gaussian | \
+             poisson)"
+                .into(),
+        )),
+        Some(Noise::Uniform { amplitude_dn: v }) | Some(Noise::Gaussian { sigma_dn: v }) => {
+            need(nonneg(*v), "noise", || format!("must be >= 0, got {v}"))
+        }
+        Some(Noise::Poisson {
+            photons_per_dn,
+            dark_sigma_dn,
+        }) => need(
+            pos(*photons_per_dn) && nonneg(*dark_sigma_dn),
+            "noise",
+            || "photons_per_dn must be > 0 and dark_sigma_dn >= 0".into(),
+        ),
     }
 }
 
