@@ -1,16 +1,20 @@
 //! # fwlidar — a streaming processor for airborne small-footprint full-waveform LiDAR
 //!
 //! ```text
-//!  digitizer frames ─┐                                                          ┌─> processed pulses
-//!  (capture | later  │                                                          ├─> summary / telemetry
-//!   udp, LAS, PLS)   ├─> source ─[edge]─> worker × N: denoise ─> … ─[edge]─> sink (order restored)
-//!  GNSS/INS bytes ───┘        └─[nav channel]─> navigation consumer
+//!  digitizer frames ─┐                                                          ┌─> waveforms, returns.las
+//!  (capture, UDP/TCP,│                                                          ├─> voxels.zarr, rasters
+//!   LAS, PLS, GEDI)  ├─> source ─[edge]─> worker × N: denoise ─> … ─[edge]─> sink (order restored)
+//!  GNSS/INS bytes ───┘        └─[nav channel]─> navigation consumer             └─> summary / QC
 //! ```
 //!
 //! The item that flows is a [`pulse::Pulse`]. Sources decode recorded or live input into pooled
-//! pulses; per-pulse [`pipeline::Stage`]s run on worker threads; sinks write outputs in arrival
-//! order. See `docs/architecture.md` for the threads, queues and the stage contract.
+//! pulses; per-pulse stages ([`stages`], one file each, on the runtime's [`pipeline::Stage`]
+//! contract) run on worker threads; sinks write outputs in arrival order; [`run`] puts a run
+//! together for replay and the daemon. The modules form layers (`tests/layering.rs`), from
+//! [`core`] (units, validation, loading) and [`pulse`] up to [`cli`]; `docs/architecture.md`
+//! draws them and describes the threads, queues and the stage contract.
 #![deny(missing_docs)]
+#![deny(clippy::too_many_lines)]
 // Pulses travel as `Box<Pulse>` on purpose: a pooled pulse moves between threads by pointer,
 // its buffers never copied, so `Vec<Box<Pulse>>` is the right shape for emit buffers.
 #![allow(clippy::vec_box)]

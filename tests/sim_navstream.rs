@@ -20,7 +20,7 @@ use fwlidar::sim::navstream::{
     Dropout, InspvaxRecord, LongHeader, NavNoise, NavStream, NavigationConfig, StreamFormat,
     TimeRecord, id, write_frame,
 };
-use fwlidar::sim::nmea::NavFix;
+use fwlidar::sim::nmea_writer::NavFix;
 
 /// Start of every run: 1 s before a whole GPS second (so a ZDA dates the NMEA times).
 const T0: f64 = 345_599.0;

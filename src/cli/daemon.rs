@@ -219,28 +219,8 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     drop(server);
 
     let summary_path = out_dir.join(format!("{segment_stem}.summary.json"));
-    let summary = DaemonSummary {
-        run: Summary {
-            report: &report,
-            warnings: &[],
-        },
-        daemon: SegmentSummary {
-            survey: d.survey.clone(),
-            segment: segment.display().to_string(),
-            seq_base: control.seq_base,
-            frames_received: last.pulses.frames_received,
-            frames_recorded: last.pulses.frames_recorded,
-            frames_lost: last.pulses.frames_lost,
-            frames_bad: last.pulses.frames_bad,
-            drops: last.drops.clone(),
-            dropped_total: last.pulses.dropped_total,
-        },
-    };
-    // Through a JSON value: every key in sorted order, as the segment summaries have them.
-    let summary = serde_json::to_value(&summary).unwrap_or_default();
-    let json = serde_json::to_vec_pretty(&summary)
-        .map_err(|e| Failure::job(format!("cannot encode summary: {e}")))?;
-    let written = write_atomic(&summary_path, &json);
+    let written =
+        write_segment_summary(&summary_path, &report, &d.survey, &segment, &control, &last);
     print_summary(
         &report,
         &[],
@@ -262,6 +242,40 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     }
     written.map_err(Failure::job)?;
     Ok(())
+}
+
+/// Writes a segment's `<survey>_NNNN.summary.json`: the run's summary and the daemon's part
+/// (what the recording received, kept and lost), every key in sorted order as the segment
+/// summaries have them.
+fn write_segment_summary(
+    path: &Path,
+    report: &crate::run::RunReport,
+    survey: &str,
+    segment: &Path,
+    control: &RunControl,
+    last: &crate::qc::QcSnapshot,
+) -> Result<(), String> {
+    let summary = DaemonSummary {
+        run: Summary {
+            report,
+            warnings: &[],
+        },
+        daemon: SegmentSummary {
+            survey: survey.to_string(),
+            segment: segment.display().to_string(),
+            seq_base: control.seq_base,
+            frames_received: last.pulses.frames_received,
+            frames_recorded: last.pulses.frames_recorded,
+            frames_lost: last.pulses.frames_lost,
+            frames_bad: last.pulses.frames_bad,
+            drops: last.drops.clone(),
+            dropped_total: last.pulses.dropped_total,
+        },
+    };
+    let summary = serde_json::to_value(&summary).unwrap_or_default();
+    let json =
+        serde_json::to_vec_pretty(&summary).map_err(|e| format!("cannot encode summary: {e}"))?;
+    write_atomic(path, &json).map_err(|e| e.to_string())
 }
 
 /// The run configuration with the command line's overrides (`--frames`, `--qc`,

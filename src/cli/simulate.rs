@@ -15,7 +15,7 @@ use crate::cli::Failure;
 use crate::core::sensor::SensorProfile;
 use crate::format::{CaptureHeader, CaptureWriter, FlushPolicy};
 use crate::pulse::{Pulse, SegmentKind};
-use crate::sim::scene::Scene;
+use crate::sim::analytic_scene::Scene;
 use crate::sim::world::scene::WorldScene;
 use crate::sim::world::{ShotTruth, WorldItems, WorldSim};
 use crate::sim::{SimItem, SimItems};

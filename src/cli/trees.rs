@@ -12,8 +12,8 @@ use std::time::Instant;
 use crate::cli::Failure;
 use crate::trees::output::write_all;
 use crate::trees::points::read_hyper_points;
-use crate::trees::score::{read_truth_branches, read_truth_trees, score};
-use crate::trees::{Threshold, TreesOptions, reconstruct};
+use crate::trees::score::{Score, read_truth_branches, read_truth_trees, score};
+use crate::trees::{Reconstruction, Threshold, TreesOptions, reconstruct};
 
 /// Which processed waveform the points come from when INPUT is replayed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -298,38 +298,8 @@ fn peak_rss_mb() -> Option<f64> {
 /// Runs `fwlidar trees`.
 pub fn run(args: TreesArgs) -> Result<(), Failure> {
     let started = Instant::now();
-    let threshold = match args.threshold.as_str() {
-        "auto" => Threshold::Auto,
-        v => match v.parse::<f32>() {
-            Ok(t) if t.is_finite() && t >= 0.0 => Threshold::Fixed(t),
-            _ => {
-                return Err(Failure::usage(format!(
-                    "--threshold must be \"auto\" or a number of volts ≥ 0, got {v:?}"
-                )));
-            }
-        },
-    };
-    if !args.input.exists() {
-        return Err(Failure::usage(format!(
-            "{}: no such file or folder",
-            args.input.display()
-        )));
-    }
-    if args.out.exists() && !args.force {
-        let busy = std::fs::read_dir(&args.out)
-            .map(|mut d| d.next().is_some())
-            .unwrap_or(true);
-        if busy {
-            return Err(Failure::usage(format!(
-                "{}: not empty; --force replaces the products of an earlier `fwlidar trees` \
-                 ({})",
-                args.out.display(),
-                PRODUCTS.join(", ")
-            )));
-        }
-    }
-    std::fs::create_dir_all(&args.out)
-        .map_err(|e| Failure::job(format!("cannot create {}: {e}", args.out.display())))?;
+    let threshold = parse_threshold(&args.threshold)?;
+    check_input_and_out(&args)?;
     // Truth and stems read before the long part, so a typo fails fast.
     let truth = match &args.truth {
         Some(b) => {
@@ -340,27 +310,7 @@ pub fn run(args: TreesArgs) -> Result<(), Failure> {
         None => None,
     };
     let stems = args.stems.as_deref().map(read_stems).transpose()?;
-    let las = if args.input.is_dir() {
-        let p = args.input.join(crate::sink::hyper_points::FILE_NAME);
-        if !p.exists() {
-            return Err(Failure::usage(format!(
-                "{}: no {} in this folder (replay with `--set output.hyper_points=true --set \
-                 output.hyper_threshold_v=0.002`)",
-                args.input.display(),
-                crate::sink::hyper_points::FILE_NAME
-            )));
-        }
-        p
-    } else if is_hyper_las(&args.input) {
-        args.input.clone()
-    } else {
-        let dir = args.out.join("replay");
-        if dir.exists() {
-            std::fs::remove_dir_all(&dir)
-                .map_err(|e| Failure::job(format!("cannot clear {}: {e}", dir.display())))?;
-        }
-        replay_points(&args, &dir)?
-    };
+    let las = points_file(&args)?;
     let t_read = Instant::now();
     let set = read_hyper_points(&las).map_err(Failure::job)?;
     eprintln!("{}: {} points", las.display(), set.points.len());
@@ -390,20 +340,111 @@ pub fn run(args: TreesArgs) -> Result<(), Failure> {
         truth.as_ref().map(|(_, b)| b.as_slice()),
     )
     .map_err(Failure::job)?;
-    let branches: usize = r.trees.iter().map(|t| t.cylinders.len() - 1).sum();
+    let seconds = Seconds {
+        total: started.elapsed().as_secs_f64(),
+        read: t_rec.duration_since(t_read).as_secs_f64(),
+        reconstruct: rec_s,
+        per_tree: if r.trees.is_empty() {
+            f64::NAN
+        } else {
+            rec_s / r.trees.len() as f64
+        },
+    };
+    write_trees_json(&args, &las, &r, sc.as_ref(), seconds)?;
+    print_outcome(&args, &r, sc.as_ref());
+    Ok(())
+}
+
+/// `--threshold`: `auto`, or volts.
+fn parse_threshold(text: &str) -> Result<Threshold, Failure> {
+    match text {
+        "auto" => Ok(Threshold::Auto),
+        v => match v.parse::<f32>() {
+            Ok(t) if t.is_finite() && t >= 0.0 => Ok(Threshold::Fixed(t)),
+            _ => Err(Failure::usage(format!(
+                "--threshold must be \"auto\" or a number of volts ≥ 0, got {v:?}"
+            ))),
+        },
+    }
+}
+
+/// The input exists; the output folder is empty (or `--force`) and is created.
+fn check_input_and_out(args: &TreesArgs) -> Result<(), Failure> {
+    if !args.input.exists() {
+        return Err(Failure::usage(format!(
+            "{}: no such file or folder",
+            args.input.display()
+        )));
+    }
+    if args.out.exists() && !args.force {
+        let busy = std::fs::read_dir(&args.out)
+            .map(|mut d| d.next().is_some())
+            .unwrap_or(true);
+        if busy {
+            return Err(Failure::usage(format!(
+                "{}: not empty; --force replaces the products of an earlier `fwlidar trees` \
+                 ({})",
+                args.out.display(),
+                PRODUCTS.join(", ")
+            )));
+        }
+    }
+    std::fs::create_dir_all(&args.out)
+        .map_err(|e| Failure::job(format!("cannot create {}: {e}", args.out.display())))
+}
+
+/// The hyper point cloud to reconstruct from: the input's, a replay folder's, or one replayed
+/// from the input now (into `OUT/replay`).
+fn points_file(args: &TreesArgs) -> Result<PathBuf, Failure> {
+    Ok(if args.input.is_dir() {
+        let p = args.input.join(crate::sink::hyper_points::FILE_NAME);
+        if !p.exists() {
+            return Err(Failure::usage(format!(
+                "{}: no {} in this folder (replay with `--set output.hyper_points=true --set \
+                 output.hyper_threshold_v=0.002`)",
+                args.input.display(),
+                crate::sink::hyper_points::FILE_NAME
+            )));
+        }
+        p
+    } else if is_hyper_las(&args.input) {
+        args.input.clone()
+    } else {
+        let dir = args.out.join("replay");
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir)
+                .map_err(|e| Failure::job(format!("cannot clear {}: {e}", dir.display())))?;
+        }
+        replay_points(args, &dir)?
+    })
+}
+
+/// Seconds taken, for `trees.json`.
+#[derive(serde::Serialize)]
+struct Seconds {
+    total: f64,
+    read: f64,
+    reconstruct: f64,
+    per_tree: f64,
+}
+
+/// `trees.json`: the input, the points file, the waveform, the reconstruction, its scores, the
+/// seconds taken and the peak memory (keys in sorted order, through a JSON value).
+fn write_trees_json(
+    args: &TreesArgs,
+    las: &Path,
+    r: &Reconstruction,
+    sc: Option<&Score>,
+    seconds: Seconds,
+) -> Result<(), Failure> {
     let summary = serde_json::json!({
         "input": args.input.display().to_string(),
         "points_file": las.display().to_string(),
         "waveform": format!("{:?}", args.waveform).to_lowercase(),
-        "reconstruction": &r,
-        "score": sc.as_ref().map(|s| &s.summary),
-        "tree_scores": sc.as_ref().map(|s| &s.trees),
-        "seconds": {
-            "total": started.elapsed().as_secs_f64(),
-            "read": t_rec.duration_since(t_read).as_secs_f64(),
-            "reconstruct": rec_s,
-            "per_tree": if r.trees.is_empty() { f64::NAN } else { rec_s / r.trees.len() as f64 },
-        },
+        "reconstruction": r,
+        "score": sc.map(|s| &s.summary),
+        "tree_scores": sc.map(|s| &s.trees),
+        "seconds": seconds,
         "peak_memory_mb": peak_rss_mb(),
     });
     let path = args.out.join("trees.json");
@@ -411,7 +452,12 @@ pub fn run(args: TreesArgs) -> Result<(), Failure> {
         &path,
         serde_json::to_string_pretty(&summary).unwrap_or_default() + "\n",
     )
-    .map_err(|e| Failure::job(format!("cannot write {}: {e}", path.display())))?;
+    .map_err(|e| Failure::job(format!("cannot write {}: {e}", path.display())))
+}
+
+/// The trees, branches and threshold found, the scores against the truth, the files written.
+fn print_outcome(args: &TreesArgs, r: &Reconstruction, sc: Option<&Score>) {
+    let branches: usize = r.trees.iter().map(|t| t.cylinders.len() - 1).sum();
     println!(
         "{} trees, {} branches from {} points (threshold {:.4} V: {}); foliage removed {}; \
          DBSCAN eps {:.2} m, min {} points",
@@ -428,7 +474,7 @@ pub fn run(args: TreesArgs) -> Result<(), Failure> {
         r.eps_m,
         r.min_points
     );
-    if let Some(s) = &sc {
+    if let Some(s) = sc {
         let m = &s.summary;
         println!(
             "truth: {}/{} trees; branches > 1 m found {}/{} ({:.0} %), {} extra; median |error|: \
@@ -453,5 +499,4 @@ pub fn run(args: TreesArgs) -> Result<(), Failure> {
         args.out.display(),
         if sc.is_some() { ", scores.csv" } else { "" }
     );
-    Ok(())
 }

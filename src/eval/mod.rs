@@ -8,7 +8,7 @@
 //! - [`scene_steps`]: the seed's stepwise evaluation on a described scene (raw, denoise,
 //!   deconvolution, voxelised), scored against the scene's truth.
 
-pub mod metrics;
+pub mod accuracy;
 pub mod plot;
 pub mod report;
 pub mod scene_steps;

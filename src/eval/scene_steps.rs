@@ -1,6 +1,6 @@
 //! The seed's stepwise evaluation on a described scene (`fwlidar tradeoff --scene`): the same
 //! simulated pulses scored against their truth after each processing step — raw, denoise, each
-//! deconvolution method, and voxelised — with the seed's metrics ([`crate::eval::metrics`]) and
+//! deconvolution method, and voxelised — with the seed's metrics ([`crate::eval::accuracy`]) and
 //! the time per pulse of the step.
 //!
 //! Units: the received return segment in counts above the scene's baseline (the digitizer's
@@ -16,7 +16,7 @@
 
 use std::time::Instant;
 
-use crate::eval::metrics::{
+use crate::eval::accuracy::{
     PeakMatch, RmseAccumulator, local_peaks, match_peaks, spectral_angle_deg,
 };
 use crate::eval::tradeoff::percentile;

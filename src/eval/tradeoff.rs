@@ -1,7 +1,7 @@
 //! The accuracy/time sweep behind `fwlidar tradeoff`: every processing setting (raw, denoise
 //! only, then each deconvolution method at several settings after denoise) run on the same
 //! simulated pulses with known truth ([`crate::sim::truth`]), scored with the seed's metrics
-//! ([`crate::eval::metrics`]) and timed per pulse.
+//! ([`crate::eval::accuracy`]) and timed per pulse.
 //!
 //! **Timing**: one thread, one core. For each (setting, pulse width, family) the processing
 //! objects are built once, warmed up on the first pulses (FFT plans, buffers), then every pulse
@@ -14,7 +14,7 @@
 
 use std::time::Instant;
 
-use crate::eval::metrics::{
+use crate::eval::accuracy::{
     PeakMatch, RmseAccumulator, local_peaks, match_peaks, spectral_angle_deg,
 };
 use crate::signal::deconvolve::{

@@ -224,6 +224,50 @@ impl Product {
     }
 
     /// The cells whose box meets the box `[x0, x1) × [y0, y1)`.
+    /// Store tiles the cell `key` waits for: those of `unread` that overlap it, and the one
+    /// being read.
+    fn tiles_over(&self, key: (i64, i64), grid: &Grid, unread: &HashSet<[i64; 2]>) -> u32 {
+        let (cx, cy) = key;
+        let (x0, y0) = (cx as f64 * self.cell, cy as f64 * self.cell);
+        let [sx, sy] = grid.tile_m();
+        let tx0 = ((x0 - grid.origin_m[0]) / sx).floor() as i64;
+        let ty0 = ((y0 - grid.origin_m[1]) / sy).floor() as i64;
+        let tx1 = ((x0 + self.cell - grid.origin_m[0]) / sx).ceil() as i64;
+        let ty1 = ((y0 + self.cell - grid.origin_m[1]) / sy).ceil() as i64;
+        let mut count = 1u32;
+        for ty in ty0..ty1 {
+            for tx in tx0..tx1 {
+                if unread.contains(&[tx, ty]) {
+                    count += 1;
+                }
+            }
+        }
+        count
+    }
+
+    /// Counts one tile fewer for every cell over the box `x0, y0, x1, y1` (a tile just read);
+    /// returns the cells that wait for no more, taken out, in row order.
+    fn finished_over(&mut self, x0: f64, y0: f64, x1: f64, y1: f64) -> Vec<((i64, i64), CellAcc)> {
+        let (lo, hi) = self.cells_over(x0, y0, x1, y1);
+        let mut done = Vec::new();
+        for cy in lo[1]..=hi[1] {
+            for cx in lo[0]..=hi[0] {
+                let key = (cx, cy);
+                let Some(r) = self.remaining.get_mut(&key) else {
+                    continue;
+                };
+                *r = r.saturating_sub(1);
+                if *r == 0 {
+                    self.remaining.remove(&key);
+                    if let Some(acc) = self.pending.remove(&key) {
+                        done.push((key, acc));
+                    }
+                }
+            }
+        }
+        done
+    }
+
     fn cells_over(&self, x0: f64, y0: f64, x1: f64, y1: f64) -> ([i64; 2], [i64; 2]) {
         let (a, b) = self.key(x0, y0);
         let c = (x1 / self.cell).ceil() as i64 - 1;
@@ -263,38 +307,15 @@ pub fn compute_store_metrics(
     opts: &StoreMetricsOptions,
     progress: &mut dyn FnMut(u64, u64),
 ) -> Result<StoreMetricsReport, StoreMetricsError> {
-    let spath = store_path.display().to_string();
+    check_options(opts)?;
+    let (mut store, epsg) = open_store(store_path)?;
     let store_err = |source| StoreMetricsError::Store {
-        path: spath.clone(),
+        path: store_path.display().to_string(),
         source,
     };
-    let unusable = |what: String| StoreMetricsError::Unusable {
-        path: spath.clone(),
-        what,
-    };
-    check_options(opts)?;
-    if !store_path.join("zarr.json").is_file() {
-        return Err(unusable(if store_path.exists() {
-            "no zarr.json: not a voxel store (give the voxels.zarr folder a replay wrote)".into()
-        } else {
-            "does not exist".into()
-        }));
-    }
-    let mut store = ZarrStore::open(store_path).map_err(store_err)?;
     let grid = store.grid().clone();
     let info = store.info().clone();
-    let epsg = info
-        .epsg
-        .or_else(|| info.crs_wkt.as_deref().and_then(epsg_of))
-        .filter(|&c| crate::geo::crs::OutputCrs::from_epsg(c).is_ok())
-        .ok_or_else(|| {
-            unusable(format!(
-                "its CRS (EPSG {:?}) is not a projected CRS with an EPSG code; rasters need one",
-                info.epsg
-            ))
-        })?;
-    let column_m = grid.voxel_size_m[0];
-    let cell = opts.cell_m.unwrap_or(column_m);
+    let cell = opts.cell_m.unwrap_or(grid.voxel_size_m[0]);
     let profile_cell = opts.profile_cell_m.unwrap_or(cell);
     let (config, settings_from) = match metrics_config_of(&info.configuration) {
         Some(c) => (c, "store configuration"),
@@ -310,7 +331,6 @@ pub fn compute_store_metrics(
         noise_floor: opts.noise_floor,
         ..Default::default()
     };
-
     let same = (cell - profile_cell).abs() < 1e-9;
     let mut products = vec![Product::new(cell)];
     if !same {
@@ -327,14 +347,9 @@ pub fn compute_store_metrics(
         samples: Vec::new(),
         sorted: Vec::new(),
     };
-
     let tiles = store.tiles();
     let total = tiles.len() as u64;
-    let unread: HashSet<[i64; 2]> = tiles.iter().copied().collect();
-    let mut unread = unread;
-    let placer = Placer::new(&grid);
-    let side = grid.tile_columns as i64;
-    let levels_per_chunk = grid.chunk_levels() as usize;
+    let mut unread: HashSet<[i64; 2]> = tiles.iter().copied().collect();
     let mut data = TileData::for_grid(&grid);
     let mut clock = std::time::Instant::now();
     let mut lap = |into: &mut f64| {
@@ -347,94 +362,14 @@ pub fn compute_store_metrics(
         lap(&mut report.read_s);
         unread.remove(&t);
         report.tiles_read += 1;
-        let present = data.present();
-        for j in 0..side {
-            for i in 0..side {
-                let col = (j * side + i) as usize;
-                // The column's bins and pulses.
-                let mut any = false;
-                let mut pulses = 0u32;
-                for &kc in &present {
-                    if let Some(c) = data.chunk(kc as usize) {
-                        let r = col * levels_per_chunk..(col + 1) * levels_per_chunk;
-                        if c.samples[r.clone()].iter().any(|&s| s > 0) {
-                            any = true;
-                        }
-                        pulses = pulses.max(c.pulses[r].iter().copied().max().unwrap_or(0));
-                    }
-                }
-                if !any {
-                    continue;
-                }
-                report.columns += 1;
-                let [x, y] = placer.column_centre([t[0] * side + i, t[1] * side + j]);
-                for p in products.iter_mut() {
-                    let key = p.key(x, y);
-                    let acc = p.pending.entry(key).or_default();
-                    acc.pulses += u64::from(pulses);
-                    for &kc in &present {
-                        let Some(c) = data.chunk(kc as usize) else {
-                            continue;
-                        };
-                        let r = col * levels_per_chunk..(col + 1) * levels_per_chunk;
-                        if c.samples[r.clone()].iter().all(|&s| s == 0) {
-                            continue;
-                        }
-                        let (e, s) = acc.chunks.entry(kc).or_insert_with(|| {
-                            (vec![0; levels_per_chunk], vec![0; levels_per_chunk])
-                        });
-                        for ((e, s), (q, k)) in e
-                            .iter_mut()
-                            .zip(s.iter_mut())
-                            .zip(c.sum_q[r.clone()].iter().zip(&c.samples[r]))
-                        {
-                            *e = e.saturating_add(*q);
-                            *s = s.saturating_add(*k);
-                        }
-                    }
-                    if !p.remaining.contains_key(&key) {
-                        // Store tiles not yet read that overlap the cell (this one included).
-                        let (cx, cy) = key;
-                        let (x0, y0) = (cx as f64 * p.cell, cy as f64 * p.cell);
-                        let [sx, sy] = grid.tile_m();
-                        let tx0 = ((x0 - grid.origin_m[0]) / sx).floor() as i64;
-                        let ty0 = ((y0 - grid.origin_m[1]) / sy).floor() as i64;
-                        let tx1 = ((x0 + p.cell - grid.origin_m[0]) / sx).ceil() as i64;
-                        let ty1 = ((y0 + p.cell - grid.origin_m[1]) / sy).ceil() as i64;
-                        let mut count = 1u32;
-                        for ty in ty0..ty1 {
-                            for tx in tx0..tx1 {
-                                if unread.contains(&[tx, ty]) {
-                                    count += 1;
-                                }
-                            }
-                        }
-                        p.remaining.insert(key, count);
-                    }
-                }
-            }
-        }
+        accumulate_tile(&data, t, &grid, &unread, &mut products, &mut report);
         // Cells this tile overlaps: one tile fewer to wait for; finished ones are measured.
         let [x0, y0, x1, y1] = tile_box(&grid, t);
         for (pi, p) in products.iter_mut().enumerate() {
             p.peak = p.peak.max(p.pending.len());
-            let (lo, hi) = p.cells_over(x0, y0, x1, y1);
-            for cy in lo[1]..=hi[1] {
-                for cx in lo[0]..=hi[0] {
-                    let key = (cx, cy);
-                    let Some(r) = p.remaining.get_mut(&key) else {
-                        continue;
-                    };
-                    *r = r.saturating_sub(1);
-                    if *r == 0 {
-                        p.remaining.remove(&key);
-                        if let Some(acc) = p.pending.remove(&key) {
-                            let cell_m = p.cell;
-                            let m = measurer.measure(&acc, key, cell_m, &mut report);
-                            out.place(pi, same, key, cell_m, &m, acc.pulses, &mut report)?;
-                        }
-                    }
-                }
+            for (key, acc) in p.finished_over(x0, y0, x1, y1) {
+                let m = measurer.measure(&acc, key, p.cell, &mut report);
+                out.place(pi, same, key, p.cell, &m, acc.pulses, &mut report)?;
             }
         }
         lap(&mut report.measure_s);
@@ -454,10 +389,13 @@ pub fn compute_store_metrics(
     report.peak_pending_cells = products.iter().map(|p| p.peak).sum();
     lap(&mut report.measure_s);
     if report.cells_ok[0] == 0 && report.cells_ok[1] == 0 {
-        return Err(unusable(format!(
-            "no cell has metrics ({} tiles, {} columns with bins read); nothing written",
-            report.tiles_read, report.columns
-        )));
+        return Err(StoreMetricsError::Unusable {
+            path: store_path.display().to_string(),
+            what: format!(
+                "no cell has metrics ({} tiles, {} columns with bins read); nothing written",
+                report.tiles_read, report.columns
+            ),
+        });
     }
     let bands = profile_bands(&STORE_EXTRA_BANDS);
     report.raster_tiles = {
@@ -466,6 +404,107 @@ pub fn compute_store_metrics(
     };
     lap(&mut report.write_s);
     Ok(report)
+}
+
+/// Opens the voxel store at `store_path` and finds its CRS's EPSG code (a projected CRS with
+/// one: the rasters need it). The errors name the store.
+fn open_store(store_path: &Path) -> Result<(ZarrStore, u32), StoreMetricsError> {
+    let spath = store_path.display().to_string();
+    let unusable = |what: String| StoreMetricsError::Unusable {
+        path: spath.clone(),
+        what,
+    };
+    if !store_path.join("zarr.json").is_file() {
+        return Err(unusable(if store_path.exists() {
+            "no zarr.json: not a voxel store (give the voxels.zarr folder a replay wrote)".into()
+        } else {
+            "does not exist".into()
+        }));
+    }
+    let store = ZarrStore::open(store_path).map_err(|source| StoreMetricsError::Store {
+        path: spath.clone(),
+        source,
+    })?;
+    let info = store.info();
+    let epsg = info
+        .epsg
+        .or_else(|| info.crs_wkt.as_deref().and_then(epsg_of))
+        .filter(|&c| crate::geo::crs::OutputCrs::from_epsg(c).is_ok())
+        .ok_or_else(|| {
+            unusable(format!(
+                "its CRS (EPSG {:?}) is not a projected CRS with an EPSG code; rasters need one",
+                info.epsg
+            ))
+        })?;
+    Ok((store, epsg))
+}
+
+/// Adds every column of tile `t` (its bins and pulses, in `data`) that holds a sample to the
+/// cells of each product it lies in; a cell seen for the first time learns how many store tiles
+/// it waits for (those of `unread` it overlaps, and this one).
+fn accumulate_tile(
+    data: &TileData,
+    t: [i64; 2],
+    grid: &Grid,
+    unread: &HashSet<[i64; 2]>,
+    products: &mut [Product],
+    report: &mut StoreMetricsReport,
+) {
+    let placer = Placer::new(grid);
+    let side = grid.tile_columns as i64;
+    let levels_per_chunk = grid.chunk_levels() as usize;
+    let present = data.present();
+    for j in 0..side {
+        for i in 0..side {
+            let col = (j * side + i) as usize;
+            let r = col * levels_per_chunk..(col + 1) * levels_per_chunk;
+            // The column's bins and pulses.
+            let mut any = false;
+            let mut pulses = 0u32;
+            for &kc in &present {
+                if let Some(c) = data.chunk(kc as usize) {
+                    if c.samples[r.clone()].iter().any(|&s| s > 0) {
+                        any = true;
+                    }
+                    pulses = pulses.max(c.pulses[r.clone()].iter().copied().max().unwrap_or(0));
+                }
+            }
+            if !any {
+                continue;
+            }
+            report.columns += 1;
+            let [x, y] = placer.column_centre([t[0] * side + i, t[1] * side + j]);
+            for p in products.iter_mut() {
+                let key = p.key(x, y);
+                let acc = p.pending.entry(key).or_default();
+                acc.pulses += u64::from(pulses);
+                for &kc in &present {
+                    let Some(c) = data.chunk(kc as usize) else {
+                        continue;
+                    };
+                    if c.samples[r.clone()].iter().all(|&s| s == 0) {
+                        continue;
+                    }
+                    let (e, s) = acc
+                        .chunks
+                        .entry(kc)
+                        .or_insert_with(|| (vec![0; levels_per_chunk], vec![0; levels_per_chunk]));
+                    for ((e, s), (q, k)) in e
+                        .iter_mut()
+                        .zip(s.iter_mut())
+                        .zip(c.sum_q[r.clone()].iter().zip(&c.samples[r.clone()]))
+                    {
+                        *e = e.saturating_add(*q);
+                        *s = s.saturating_add(*k);
+                    }
+                }
+                if !p.remaining.contains_key(&key) {
+                    let count = p.tiles_over(key, grid, unread);
+                    p.remaining.insert(key, count);
+                }
+            }
+        }
+    }
 }
 
 /// The cell values in per-raster-tile grids.

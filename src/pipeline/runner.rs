@@ -247,9 +247,9 @@ fn nanos(d: Duration) -> u64 {
 /// `on_tick` is called about ten times a second on the calling thread (progress bars).
 pub fn run<S: Report, K: Report, N: Report>(
     spec: &PipelineSpec,
-    mut source: Box<dyn Source<Report = S>>,
-    mut sink: Box<dyn PulseSink<Report = K>>,
-    mut nav: Box<dyn NavConsumer<Report = N>>,
+    source: Box<dyn Source<Report = S>>,
+    sink: Box<dyn PulseSink<Report = K>>,
+    nav: Box<dyn NavConsumer<Report = N>>,
     control: &RunControl<S, K, N>,
     mut on_tick: impl FnMut(&LiveCounters),
 ) -> RunReport<S, K, N> {
@@ -262,260 +262,48 @@ pub fn run<S: Report, K: Report, N: Report>(
     // pool's slots are preallocated, 16 bytes each: the source's share is capped at 2^18.)
     let held = source.held_pulses().min(1 << 18);
     let pool = PulsePool::new(workers * (2 * cap + 8) + 8 + held);
-    let fatal: Arc<Mutex<Option<String>>> = Arc::new(Mutex::new(None));
-    let set_fatal = {
-        let fatal = fatal.clone();
-        let stop = control.stop.clone();
-        move |msg: String| {
-            let mut f = fatal.lock().unwrap_or_else(|e| e.into_inner());
-            if f.is_none() {
-                *f = Some(msg);
-            }
-            stop.store(true, Ordering::SeqCst);
-        }
-    };
-
-    let mut in_txs = Vec::with_capacity(workers);
-    let mut in_rxs = Vec::with_capacity(workers);
-    let mut out_txs = Vec::with_capacity(workers);
-    let mut out_rxs = Vec::with_capacity(workers);
-    for _ in 0..workers {
-        let (tx, rx) = edge::<Box<Pulse>>(cap, spec.input_policy);
-        in_txs.push(tx);
-        in_rxs.push(rx);
-        let (tx, rx) = edge::<WorkerOut>(cap, FullPolicy::Block);
-        out_txs.push(tx);
-        out_rxs.push(rx);
-    }
+    let fatal = Fatal::new(control.stop.clone());
+    let edges = Edges::new(workers, cap, spec.input_policy);
     let (nav_tx, nav_rx) = bounded::<NavChunk>(4096);
     // Disconnected when the sink thread ends: wakes the ticking caller at once.
     let (sink_alive_tx, sink_alive_rx) = bounded::<()>(0);
 
     thread::scope(|scope| {
-        // Navigation consumer.
-        let nav_thread = thread::Builder::new()
-            .name("nav".into())
+        let spawn = |name: String| thread::Builder::new().name(name);
+        let nav_thread = spawn("nav".into())
             .spawn_scoped(scope, {
                 let publish = control.publish.clone();
-                move || {
-                    let mut last = Instant::now();
-                    loop {
-                        // With live publishing, wake up when quiet too, so the latest state
-                        // is published even when the bytes stop.
-                        let chunk = match &publish {
-                            None => nav_rx.recv().ok(),
-                            Some(_) => match nav_rx.recv_timeout(PUBLISH_EVERY) {
-                                Ok(c) => Some(c),
-                                Err(crossbeam_channel::RecvTimeoutError::Timeout) => None,
-                                Err(crossbeam_channel::RecvTimeoutError::Disconnected) => break,
-                            },
-                        };
-                        match (chunk, &publish) {
-                            (Some(c), _) => nav.consume(c),
-                            (None, None) => break,
-                            (None, Some(_)) => {}
-                        }
-                        if let Some(p) = &publish
-                            && last.elapsed() >= PUBLISH_EVERY
-                        {
-                            last = Instant::now();
-                            *lock(&p.nav) = nav.report();
-                        }
-                    }
-                    nav.finish();
-                    let report = nav.report();
-                    if let Some(p) = &publish {
-                        *lock(&p.nav) = report.clone();
-                    }
-                    report
-                }
+                move || nav_loop(nav, nav_rx, publish.as_deref())
             })
             .expect("spawn nav thread");
-
-        // Workers.
         let mut worker_threads = Vec::with_capacity(workers);
-        for (i, (rx, tx)) in in_rxs.into_iter().zip(out_txs).enumerate() {
+        for (i, (rx, tx)) in edges.in_rxs.into_iter().zip(edges.out_txs).enumerate() {
             let stages = (spec.stages)();
-            let pool = pool.clone();
-            let set_fatal = set_fatal.clone();
+            let (pool, fatal) = (pool.clone(), fatal.clone());
             let publish = control.publish.clone().map(|p| (i, p));
             worker_threads.push(
-                thread::Builder::new()
-                    .name(format!("worker-{i}"))
+                spawn(format!("worker-{i}"))
                     .spawn_scoped(scope, move || {
-                        worker(rx, tx, stages, &pool, &set_fatal, publish.as_ref())
+                        worker(rx, tx, stages, &pool, &|m| fatal.set(m), publish.as_ref())
                     })
                     .expect("spawn worker thread"),
             );
         }
-
-        // Sink: round-robin merge restores arrival order.
-        let sink_thread = {
-            let pool = pool.clone();
-            let live = control.live.clone();
-            let publish = control.publish.clone();
-            let set_fatal = set_fatal.clone();
-            thread::Builder::new()
-                .name("sink".into())
-                .spawn_scoped(scope, move || {
+        let sink_thread = spawn("sink".into())
+            .spawn_scoped(scope, {
+                let (pool, fatal, control) = (pool.clone(), fatal.clone(), control.clone());
+                move || {
                     let _alive = sink_alive_tx;
-                    let mut e2e = LatencyHistogram::default();
-                    let mut last_publish = Instant::now();
-                    let mut finished = vec![false; out_rxs.len()];
-                    let mut k = 0usize;
-                    let mut failed = false;
-                    while !finished.iter().all(|f| *f) {
-                        if finished[k] {
-                            k = (k + 1) % out_rxs.len();
-                            continue;
-                        }
-                        let got = match &publish {
-                            None => Ok(out_rxs[k].recv()),
-                            Some(_) => out_rxs[k].recv_deadline(last_publish + PUBLISH_EVERY),
-                        };
-                        let got = match got {
-                            Ok(g) => g,
-                            Err(_) => {
-                                // Quiet: publish what the last pulses changed.
-                                if let Some(pb) = &publish {
-                                    last_publish = Instant::now();
-                                    *lock(&pb.end_to_end) = e2e.clone();
-                                    *lock(&pb.sink) = sink.report();
-                                    *lock(&pb.output_queues) =
-                                        out_rxs.iter().map(|rx| rx.len() as u64).collect();
-                                }
-                                continue;
-                            }
-                        };
-                        let (p, last) = match got {
-                            Some(WorkerOut::Pulse(p)) => (p, false),
-                            Some(WorkerOut::Last(p)) => (p, true),
-                            Some(WorkerOut::Done) => {
-                                k = (k + 1) % out_rxs.len();
-                                continue;
-                            }
-                            None => {
-                                finished[k] = true;
-                                k = (k + 1) % out_rxs.len();
-                                continue;
-                            }
-                        };
-                        if !failed {
-                            if let Err(e) = sink.write(&p) {
-                                failed = true;
-                                set_fatal(format!("sink `{}`: {e}", sink.name()));
-                            } else {
-                                e2e.record(nanos(p.arrived.elapsed()));
-                                let n = live.pulses_out.load(Ordering::Relaxed);
-                                live.pulses_out.store(n + 1, Ordering::Relaxed);
-                            }
-                        }
-                        if let Some(pb) = &publish
-                            && last_publish.elapsed() >= PUBLISH_EVERY
-                        {
-                            last_publish = Instant::now();
-                            *lock(&pb.end_to_end) = e2e.clone();
-                            *lock(&pb.sink) = sink.report();
-                            *lock(&pb.output_queues) =
-                                out_rxs.iter().map(|rx| rx.len() as u64).collect();
-                            let mut slot = lock(&pb.sampled_pulse);
-                            match slot.as_mut() {
-                                Some((t, q)) => {
-                                    *t = last_publish;
-                                    q.copy_from(&p);
-                                }
-                                None => *slot = Some((last_publish, p.clone())),
-                            }
-                        }
-                        pool.give(p);
-                        if last {
-                            k = (k + 1) % out_rxs.len();
-                        }
-                    }
-                    if let Err(e) = sink.finish() {
-                        set_fatal(format!("sink `{}`: {e}", sink.name()));
-                    }
-                    if let Some(pb) = &publish {
-                        *lock(&pb.end_to_end) = e2e.clone();
-                        *lock(&pb.sink) = sink.report();
-                    }
-                    (e2e, sink.report())
-                })
-                .expect("spawn sink thread")
-        };
-
-        // Source, on this scope's own thread.
-        let source_thread = {
-            let pool = pool.clone();
-            let control = control.clone();
-            let set_fatal = set_fatal.clone();
-            thread::Builder::new()
-                .name("source".into())
-                .spawn_scoped(scope, move || {
-                    let live = &control.live;
-                    let mut stopped_early = false;
-                    let mut k = 0usize;
-                    let mut in_txs = in_txs;
-                    let mut last_publish = Instant::now();
-                    loop {
-                        if let Some(pb) = &control.publish
-                            && last_publish.elapsed() >= PUBLISH_EVERY
-                        {
-                            last_publish = Instant::now();
-                            *lock(&pb.source) = source.report();
-                            *lock(&pb.input_queues) = in_txs
-                                .iter()
-                                .map(|tx| (tx.len() as u64, tx.stats().capacity() as u64))
-                                .collect();
-                        }
-                        if control.stop.load(Ordering::Relaxed) {
-                            stopped_early = true;
-                            break;
-                        }
-                        let ev = source.next(&pool);
-                        if let Some((done, total)) = source.progress() {
-                            live.progress_done.store(done, Ordering::Relaxed);
-                            live.progress_total.store(total, Ordering::Relaxed);
-                        }
-                        match ev {
-                            Ok(SourceEvent::Pulse(mut p)) => {
-                                let n = live.pulses_in.load(Ordering::Relaxed);
-                                p.seq = control.seq_base + n;
-                                live.pulses_in.store(n + 1, Ordering::Relaxed);
-                                match in_txs[k].send(p) {
-                                    Sent::Queued => k = (k + 1) % in_txs.len(),
-                                    Sent::Dropped(p) => {
-                                        live.input_dropped.fetch_add(1, Ordering::Relaxed);
-                                        pool.give(p);
-                                    }
-                                    Sent::Closed(p) => {
-                                        pool.give(p);
-                                        break;
-                                    }
-                                }
-                            }
-                            Ok(SourceEvent::Nav(chunk)) => {
-                                if nav_tx.send(chunk).is_err() {
-                                    break;
-                                }
-                            }
-                            Ok(SourceEvent::Idle) => {}
-                            Ok(SourceEvent::End) => break,
-                            Err(e) => {
-                                set_fatal(format!("source `{}`: {e}", source.name()));
-                                break;
-                            }
-                        }
-                    }
-                    in_txs.clear();
-                    drop(nav_tx);
-                    if let Some(pb) = &control.publish {
-                        *lock(&pb.source) = source.report();
-                    }
-                    (stopped_early, source.report())
-                })
-                .expect("spawn source thread")
-        };
+                    sink_loop(sink, edges.out_rxs, &pool, &control, &fatal)
+                }
+            })
+            .expect("spawn sink thread");
+        let source_thread = spawn("source".into())
+            .spawn_scoped(scope, {
+                let (pool, fatal, control) = (pool.clone(), fatal.clone(), control.clone());
+                move || source_loop(source, edges.in_txs, nav_tx, &pool, &control, &fatal)
+            })
+            .expect("spawn source thread");
 
         while !(source_thread.is_finished() && sink_thread.is_finished()) {
             on_tick(&control.live);
@@ -540,15 +328,322 @@ pub fn run<S: Report, K: Report, N: Report>(
                 acc.merge(t);
             }
         }
+        let ended = Ended {
+            stopped_early,
+            source: source_report,
+            sinks: sink_report,
+            nav: nav_report,
+            end_to_end: e2e,
+            stages,
+            fatal: fatal.message(),
+        };
+        ended.report(workers, &control.live, &pool, started)
+    })
+}
 
-        let live = &control.live;
+/// The run's first fatal error, shared by its threads: setting it stops the run.
+#[derive(Clone)]
+struct Fatal {
+    message: Arc<Mutex<Option<String>>>,
+    stop: Arc<AtomicBool>,
+}
+
+impl Fatal {
+    fn new(stop: Arc<AtomicBool>) -> Self {
+        Fatal {
+            message: Arc::new(Mutex::new(None)),
+            stop,
+        }
+    }
+
+    /// Records `msg` unless an error came first, and stops the run.
+    fn set(&self, msg: String) {
+        let mut f = lock(&self.message);
+        if f.is_none() {
+            *f = Some(msg);
+        }
+        self.stop.store(true, Ordering::SeqCst);
+    }
+
+    /// The error, if any.
+    fn message(&self) -> Option<String> {
+        lock(&self.message).clone()
+    }
+}
+
+/// The edges of a run: one into each worker (with the input's policy) and one out of each
+/// worker into the sink (blocking).
+struct Edges {
+    in_txs: Vec<EdgeTx<Box<Pulse>>>,
+    in_rxs: Vec<EdgeRx<Box<Pulse>>>,
+    out_txs: Vec<EdgeTx<WorkerOut>>,
+    out_rxs: Vec<EdgeRx<WorkerOut>>,
+}
+
+impl Edges {
+    fn new(workers: usize, cap: usize, input_policy: FullPolicy) -> Self {
+        let mut e = Edges {
+            in_txs: Vec::with_capacity(workers),
+            in_rxs: Vec::with_capacity(workers),
+            out_txs: Vec::with_capacity(workers),
+            out_rxs: Vec::with_capacity(workers),
+        };
+        for _ in 0..workers {
+            let (tx, rx) = edge::<Box<Pulse>>(cap, input_policy);
+            e.in_txs.push(tx);
+            e.in_rxs.push(rx);
+            let (tx, rx) = edge::<WorkerOut>(cap, FullPolicy::Block);
+            e.out_txs.push(tx);
+            e.out_rxs.push(rx);
+        }
+        e
+    }
+}
+
+/// The navigation thread: every chunk to the consumer; with live publishing, its report about
+/// four times a second, and when the bytes stop. Returns the final report.
+fn nav_loop<S, K, N: Report>(
+    mut nav: Box<dyn NavConsumer<Report = N>>,
+    rx: crossbeam_channel::Receiver<NavChunk>,
+    publish: Option<&LivePublish<S, K, N>>,
+) -> N {
+    let mut last = Instant::now();
+    loop {
+        // With live publishing, wake up when quiet too, so the latest state is published even
+        // when the bytes stop.
+        let chunk = match &publish {
+            None => rx.recv().ok(),
+            Some(_) => match rx.recv_timeout(PUBLISH_EVERY) {
+                Ok(c) => Some(c),
+                Err(crossbeam_channel::RecvTimeoutError::Timeout) => None,
+                Err(crossbeam_channel::RecvTimeoutError::Disconnected) => break,
+            },
+        };
+        match (chunk, &publish) {
+            (Some(c), _) => nav.consume(c),
+            (None, None) => break,
+            (None, Some(_)) => {}
+        }
+        if let Some(p) = &publish
+            && last.elapsed() >= PUBLISH_EVERY
+        {
+            last = Instant::now();
+            *lock(&p.nav) = nav.report();
+        }
+    }
+    nav.finish();
+    let report = nav.report();
+    if let Some(p) = &publish {
+        *lock(&p.nav) = report.clone();
+    }
+    report
+}
+
+/// The sink thread: reads the workers' edges in the source's round-robin order, so pulses are
+/// written in arrival order; records each pulse's latency from its arrival; with live
+/// publishing, publishes the sink's report and a copy of a recent pulse about four times a
+/// second. Returns the end-to-end histogram and the sink's final report.
+fn sink_loop<S, K: Report, N>(
+    mut sink: Box<dyn PulseSink<Report = K>>,
+    mut out_rxs: Vec<EdgeRx<WorkerOut>>,
+    pool: &PulsePool,
+    control: &RunControl<S, K, N>,
+    fatal: &Fatal,
+) -> (LatencyHistogram, K) {
+    let live = &control.live;
+    let publish = control.publish.as_deref();
+    let mut e2e = LatencyHistogram::default();
+    let mut last_publish = Instant::now();
+    let mut finished = vec![false; out_rxs.len()];
+    let mut k = 0usize;
+    let mut failed = false;
+    while !finished.iter().all(|f| *f) {
+        if finished[k] {
+            k = (k + 1) % out_rxs.len();
+            continue;
+        }
+        let got = match publish {
+            None => Ok(out_rxs[k].recv()),
+            Some(_) => out_rxs[k].recv_deadline(last_publish + PUBLISH_EVERY),
+        };
+        let got = match got {
+            Ok(g) => g,
+            Err(_) => {
+                // Quiet: publish what the last pulses changed.
+                if let Some(pb) = publish {
+                    last_publish = Instant::now();
+                    publish_sink(pb, &e2e, sink.as_ref(), &out_rxs);
+                }
+                continue;
+            }
+        };
+        let (p, last) = match got {
+            Some(WorkerOut::Pulse(p)) => (p, false),
+            Some(WorkerOut::Last(p)) => (p, true),
+            Some(WorkerOut::Done) => {
+                k = (k + 1) % out_rxs.len();
+                continue;
+            }
+            None => {
+                finished[k] = true;
+                k = (k + 1) % out_rxs.len();
+                continue;
+            }
+        };
+        if !failed {
+            if let Err(e) = sink.write(&p) {
+                failed = true;
+                fatal.set(format!("sink `{}`: {e}", sink.name()));
+            } else {
+                e2e.record(nanos(p.arrived.elapsed()));
+                let n = live.pulses_out.load(Ordering::Relaxed);
+                live.pulses_out.store(n + 1, Ordering::Relaxed);
+            }
+        }
+        if let Some(pb) = publish
+            && last_publish.elapsed() >= PUBLISH_EVERY
+        {
+            last_publish = Instant::now();
+            publish_sink(pb, &e2e, sink.as_ref(), &out_rxs);
+            let mut slot = lock(&pb.sampled_pulse);
+            match slot.as_mut() {
+                Some((t, q)) => {
+                    *t = last_publish;
+                    q.copy_from(&p);
+                }
+                None => *slot = Some((last_publish, p.clone())),
+            }
+        }
+        pool.give(p);
+        if last {
+            k = (k + 1) % out_rxs.len();
+        }
+    }
+    if let Err(e) = sink.finish() {
+        fatal.set(format!("sink `{}`: {e}", sink.name()));
+    }
+    if let Some(pb) = publish {
+        *lock(&pb.end_to_end) = e2e.clone();
+        *lock(&pb.sink) = sink.report();
+    }
+    (e2e, sink.report())
+}
+
+/// Publishes the sink thread's part: the end-to-end latency, the sink's report and the fill of
+/// the workers' output edges.
+fn publish_sink<S, K: Report, N>(
+    pb: &LivePublish<S, K, N>,
+    e2e: &LatencyHistogram,
+    sink: &dyn PulseSink<Report = K>,
+    out_rxs: &[EdgeRx<WorkerOut>],
+) {
+    *lock(&pb.end_to_end) = e2e.clone();
+    *lock(&pb.sink) = sink.report();
+    *lock(&pb.output_queues) = out_rxs.iter().map(|rx| rx.len() as u64).collect();
+}
+
+/// The source thread: reads the source, numbers its pulses and deals them round-robin to the
+/// workers' edges (a pulse dropped at a full edge does not advance the round), hands the
+/// navigation bytes to the navigation thread; stops at the source's end, its error (fatal) or
+/// the stop flag. Returns whether it was stopped early, and the source's report.
+fn source_loop<S: Report, K, N>(
+    mut source: Box<dyn Source<Report = S>>,
+    mut in_txs: Vec<EdgeTx<Box<Pulse>>>,
+    nav_tx: crossbeam_channel::Sender<NavChunk>,
+    pool: &PulsePool,
+    control: &RunControl<S, K, N>,
+    fatal: &Fatal,
+) -> (bool, S) {
+    let live = &control.live;
+    let mut stopped_early = false;
+    let mut k = 0usize;
+    let mut last_publish = Instant::now();
+    loop {
+        if let Some(pb) = &control.publish
+            && last_publish.elapsed() >= PUBLISH_EVERY
+        {
+            last_publish = Instant::now();
+            *lock(&pb.source) = source.report();
+            *lock(&pb.input_queues) = in_txs
+                .iter()
+                .map(|tx| (tx.len() as u64, tx.stats().capacity() as u64))
+                .collect();
+        }
+        if control.stop.load(Ordering::Relaxed) {
+            stopped_early = true;
+            break;
+        }
+        let ev = source.next(pool);
+        if let Some((done, total)) = source.progress() {
+            live.progress_done.store(done, Ordering::Relaxed);
+            live.progress_total.store(total, Ordering::Relaxed);
+        }
+        match ev {
+            Ok(SourceEvent::Pulse(mut p)) => {
+                let n = live.pulses_in.load(Ordering::Relaxed);
+                p.seq = control.seq_base + n;
+                live.pulses_in.store(n + 1, Ordering::Relaxed);
+                match in_txs[k].send(p) {
+                    Sent::Queued => k = (k + 1) % in_txs.len(),
+                    Sent::Dropped(p) => {
+                        live.input_dropped.fetch_add(1, Ordering::Relaxed);
+                        pool.give(p);
+                    }
+                    Sent::Closed(p) => {
+                        pool.give(p);
+                        break;
+                    }
+                }
+            }
+            Ok(SourceEvent::Nav(chunk)) => {
+                if nav_tx.send(chunk).is_err() {
+                    break;
+                }
+            }
+            Ok(SourceEvent::Idle) => {}
+            Ok(SourceEvent::End) => break,
+            Err(e) => {
+                fatal.set(format!("source `{}`: {e}", source.name()));
+                break;
+            }
+        }
+    }
+    in_txs.clear();
+    drop(nav_tx);
+    if let Some(pb) = &control.publish {
+        *lock(&pb.source) = source.report();
+    }
+    (stopped_early, source.report())
+}
+
+/// What the threads of a finished run returned.
+struct Ended<S, K, N> {
+    stopped_early: bool,
+    source: S,
+    sinks: K,
+    nav: N,
+    end_to_end: LatencyHistogram,
+    stages: Vec<StageTelemetry>,
+    fatal: Option<String>,
+}
+
+impl<S: Report, K: Report, N: Report> Ended<S, K, N> {
+    /// The run's report: counts, drops by reason (the input edge's and the stages'), errors,
+    /// telemetry, the ports' reports, wall time and rate since `started`.
+    fn report(
+        self,
+        workers: usize,
+        live: &LiveCounters,
+        pool: &PulsePool,
+        started: Instant,
+    ) -> RunReport<S, K, N> {
         let mut dropped = BTreeMap::new();
         let input_dropped = live.input_dropped.load(Ordering::Relaxed);
         if input_dropped > 0 {
             dropped.insert(INPUT_QUEUE_FULL.to_string(), input_dropped);
         }
         let mut errors = 0;
-        for s in &stages {
+        for s in &self.stages {
             errors += s.errors;
             for (r, c) in s.dropped.iter() {
                 *dropped.entry(format!("{}.{r}", s.name)).or_insert(0) += c;
@@ -564,14 +659,14 @@ pub fn run<S: Report, K: Report, N: Report>(
             dropped_total: dropped.values().sum(),
             dropped,
             errors,
-            stages: stages.iter().map(|s| s.report()).collect(),
-            end_to_end: e2e.summary(),
-            source: source_report,
-            nav: nav_report,
-            sinks: sink_report,
+            stages: self.stages.iter().map(|s| s.report()).collect(),
+            end_to_end: self.end_to_end.summary(),
+            source: self.source,
+            nav: self.nav,
+            sinks: self.sinks,
             pool_allocations: pool.allocated(),
-            stopped_early,
-            fatal: fatal.lock().unwrap_or_else(|e| e.into_inner()).clone(),
+            stopped_early: self.stopped_early,
+            fatal: self.fatal,
             wall_time_s: wall,
             pulses_per_s: if wall > 0.0 {
                 pulses_out as f64 / wall
@@ -579,7 +674,7 @@ pub fn run<S: Report, K: Report, N: Report>(
                 0.0
             },
         }
-    })
+    }
 }
 
 /// Where worker `i` publishes its telemetry (with live publishing on).

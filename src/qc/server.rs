@@ -738,6 +738,8 @@ mod demo {
         }
     }
 
+    // A test fixture: one snapshot written out field by field, every part of the page fed.
+    #[allow(clippy::too_many_lines)]
     fn demo_snapshot(k: u64, start: f64) -> (QcSnapshot, HistoryPoint) {
         let t = start + k as f64;
         let kf = k as f64;

@@ -20,7 +20,7 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::core::sensor::SensorProfile;
 use crate::pulse::{Pulse, SegmentKind};
-use crate::sim::scene::{NoiseConfig, Scene, SceneError};
+use crate::sim::analytic_scene::{NoiseConfig, Scene, SceneError};
 
 /// Ratio of a Gaussian's FWHM to its standard deviation, `2 sqrt(2 ln 2)`.
 pub const FWHM_PER_SIGMA: f64 = 2.354_820_045_030_949;

@@ -1,30 +1,34 @@
 //! The simulator: synthetic pulses and navigation messages from a described scene, with the
 //! truth to score processing against.
 //!
-//! - [`scene`]: the `[scene]` configuration (TOML) and its validation;
+//! - [`analytic_scene`]: the analytic scene's `[scene]` configuration (TOML) and its
+//!   validation;
 //! - [`analytic`]: the first scene generator, analytic nadir waveforms of flat ground under one
 //!   partially covering plane;
-//! - [`nmea`]: NMEA 0183 GGA/PASHR sentences for a straight flight line;
+//! - [`nmea_writer`]: NMEA 0183 GGA/PASHR sentences for a straight flight line (the reading side
+//!   is `nav::nmea`);
+//! - [`world`]: described scenes (terrain, trees, grass, buildings, flight plan, scan pattern,
+//!   effects) and their simulator;
 //! - [`truth`]: seeded truth cross-sections (sparse surfaces, canopy layers) with their 2 ns
 //!   truth waveforms and noisy received waveforms, for scoring the signal chain.
 //!
 //! [`SimItems`] interleaves the two streams in time order, as a capture would hold them.
 
 pub mod analytic;
+pub mod analytic_scene;
 pub mod capture_items;
 pub mod live;
 pub mod navstream;
-pub mod nmea;
-pub mod scene;
+pub mod nmea_writer;
 pub mod truth;
 pub mod world;
 
 pub use analytic::{AnalyticSim, PulseTruth, SurfaceKind, SurfaceTruth};
-pub use scene::{FlightConfig, NoiseConfig, Scene, SceneError, SceneFile};
+pub use analytic_scene::{FlightConfig, NoiseConfig, Scene, SceneError, SceneFile};
 
 use crate::core::sensor::SensorProfile;
 use crate::pulse::Pulse;
-use nmea::FlightLine;
+use nmea_writer::FlightLine;
 
 /// One item of the simulated stream.
 // Nearly every item is a pulse (a navigation epoch comes once per thousands of pulses), so the
@@ -147,7 +151,7 @@ mod tests {
                     assert!(lines.len() == 2 || lines.len() == 3, "{lines:?}");
                     assert!(lines[0].starts_with("$GPGGA") && lines[1].starts_with("$PASHR"));
                     assert!(lines.get(2).is_none_or(|l| l.starts_with("$GPZDA")));
-                    assert!(lines.iter().all(|l| nmea::checksum_ok(l)));
+                    assert!(lines.iter().all(|l| nmea_writer::checksum_ok(l)));
                     nav_times.push(*receive_time_ns);
                     *receive_time_ns
                 }

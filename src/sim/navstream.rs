@@ -16,7 +16,7 @@
 //!
 //! Per epoch ([`NavStream::epoch_bytes`]):
 //! - **nmea**: `$GPGGA` and `$PASHR`, plus `$GPZDA` when the epoch falls on a whole UTC second
-//!   (the writers of [`crate::sim::nmea`]);
+//!   (the writers of [`crate::sim::nmea_writer`]);
 //! - **novatel**: a binary INSPVAX (long header; position above mean sea level with an
 //!   undulation of 0, velocity, attitude and their standard deviations; time in the header's
 //!   GPS week and milliseconds), plus a binary TIME (GPS − UTC and the UTC date) when the epoch
@@ -36,7 +36,7 @@ use serde::{Deserialize, Serialize};
 use crate::nav::crc::novatel_crc32;
 use crate::nav::dating::{GPS_EPOCH_DAYS, WEEK_S, civil_of_days};
 use crate::nav::trajectory::radii;
-use crate::sim::nmea::{NavFix, gga, pashr, zda};
+use crate::sim::nmea_writer::{NavFix, gga, pashr, zda};
 
 #[cfg(test)]
 mod tests;

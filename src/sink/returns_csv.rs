@@ -18,7 +18,7 @@
 //!   empty when not calibrated (no such stage, or a return at or before the emission).
 //!
 //! Pulses without returns write nothing. The file appears atomically at the end of the run
-//! (see [`AtomicFile`]); the georeferenced LAS returns of later issues replace it for mapping.
+//! (see [`AtomicFile`]); `returns.las` (`sink::las_wave`) holds the same returns for mapping.
 
 use std::io::Write;
 use std::path::Path;

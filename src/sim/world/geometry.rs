@@ -13,7 +13,7 @@
 use std::path::Path;
 
 use crate::geo::dem::Dem;
-use crate::sim::scene::SceneError;
+use crate::sim::analytic_scene::SceneError;
 
 use super::scene::{self as cfg, CrownShape, Ridge, WorldScene};
 

@@ -31,9 +31,9 @@ use crate::core::sensor::SensorProfile;
 use crate::pulse::{Pulse, SegmentKind};
 use crate::sim::SimItem;
 use crate::sim::analytic::FWHM_PER_SIGMA;
+use crate::sim::analytic_scene::SceneError;
 use crate::sim::navstream::NavStream;
-use crate::sim::nmea::NavFix;
-use crate::sim::scene::SceneError;
+use crate::sim::nmea_writer::NavFix;
 
 use flight::{FlightPlan, Shot, footprint_rays};
 use geometry::{Hit, MediumSpan, ObjectKind, TraceScratch, V3};

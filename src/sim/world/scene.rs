@@ -33,8 +33,8 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::core::sensor::SensorProfile;
+use crate::sim::analytic_scene::SceneError;
 use crate::sim::navstream::NavigationConfig;
-use crate::sim::scene::SceneError;
 
 /// A whole described scene file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -812,10 +812,10 @@ impl WorldScene {
         path: &Path,
         sets: &[String],
     ) -> Result<(WorldScene, SensorProfile), SceneError> {
-        let mut text = crate::sim::scene::read(path)?;
+        let mut text = crate::sim::analytic_scene::read(path)?;
         if !sets.is_empty() {
             let what = path.display().to_string();
-            let mut table: toml::Table = crate::sim::scene::parse_toml(&text, &what)?;
+            let mut table: toml::Table = crate::sim::analytic_scene::parse_toml(&text, &what)?;
             crate::core::overrides::apply_all(&mut table, sets).map_err(|e| {
                 SceneError::Invalid {
                     field: "--set",
@@ -828,7 +828,8 @@ impl WorldScene {
                 message: e.to_string(),
             })?;
         }
-        let scene: WorldScene = crate::sim::scene::parse_toml(&text, &path.display().to_string())?;
+        let scene: WorldScene =
+            crate::sim::analytic_scene::parse_toml(&text, &path.display().to_string())?;
         let base = path.parent().unwrap_or(Path::new("."));
         let sensor = scene.resolve_sensor(base)?;
         scene.validate(&sensor)?;
@@ -837,7 +838,7 @@ impl WorldScene {
 
     /// The sensor profile, from the file or inline.
     pub fn resolve_sensor(&self, base_dir: &Path) -> Result<SensorProfile, SceneError> {
-        let analytic = crate::sim::scene::Scene {
+        let analytic = crate::sim::analytic_scene::Scene {
             sensor: self.sensor.inline.clone(),
             sensor_profile: self.sensor.profile.clone(),
             ..Default::default()

@@ -1,5 +1,5 @@
 use super::*;
-use crate::sim::scene::parse_toml;
+use crate::sim::analytic_scene::parse_toml;
 
 /// A scene from TOML text, its sensor the CAO profile (16 ns, 1 ns, 8 bit, 0.56 mrad).
 fn world(text: &str) -> WorldSim {

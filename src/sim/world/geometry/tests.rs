@@ -6,7 +6,7 @@ fn scene(text: &str) -> Scene {
         "\n[flight]\nlines = [{ start_m = [0.0, 0.0], end_m = [1.0, 0.0] }]\n\
          [sensor]\nprofile = \"x.toml\"\n",
     );
-    let s: WorldScene = crate::sim::scene::parse_toml(&full, "t").unwrap();
+    let s: WorldScene = crate::sim::analytic_scene::parse_toml(&full, "t").unwrap();
     Scene::build(&s, Path::new(".")).unwrap()
 }
 

@@ -5,7 +5,7 @@
 //! Sentences end in CR LF. The checksum is the XOR of every byte between `$` and `*`, written
 //! as two upper-case hexadecimal digits.
 
-use crate::sim::scene::FlightConfig;
+use crate::sim::analytic_scene::FlightConfig;
 
 use crate::nav::crc::nmea_xor as checksum;
 use crate::nav::trajectory::radii;
