@@ -1,6 +1,6 @@
 //! Scoring the signal chain against a known truth, and what the score costs in time.
 //!
-//! - [`metrics`]: the seed's accuracy metrics (RMSE eq. 14, true/false peak detections eq. 15,
+//! - [`accuracy`]: the seed's accuracy metrics (RMSE eq. 14, true/false peak detections eq. 15,
 //!   spectral angle);
 //! - [`tradeoff`]: the sweep of methods and settings over simulated pulses, timed per pulse;
 //! - [`report`]: its CSV and markdown;

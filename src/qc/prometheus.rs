@@ -5,7 +5,7 @@
 //! are the value at the snapshot. Latencies are real histograms (`_bucket{le=…}`, `_sum`,
 //! `_count`) built from [`StageLatency::buckets`]. The full list, with units, is in `docs/qc.md`.
 //!
-//! The families are the table [`METRICS`], written in its order by one loop.
+//! The families are the table `METRICS`, written in its order by one loop.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;

@@ -19,7 +19,7 @@
 //!   and types;
 //! - its tests.
 //!
-//! The kinds form one closed list, [`stage_kinds!`] below: a `#[serde(tag = "type")]` enum,
+//! The kinds form one closed list, `stage_kinds!` below: a `#[serde(tag = "type")]` enum,
 //! [`StageConfig`]. **Adding a stage is one new file here and one line in that list**
 //! (`docs/architecture.md`, "Adding a stage"); nothing else in the crate names a stage kind:
 //! whatever needs to know what a chain does asks the [`Chain`].
@@ -149,7 +149,7 @@ pub trait StageKind: Validate + Send + Sync {
     }
 
     /// For a stage that finds the returns ([`Products::returns`]) and found none in any pulse:
-    /// the rest of the sentence "the <kind> stage found no return in any of the N pulses out"
+    /// the rest of the sentence "the `<kind>` stage found no return in any of the N pulses out"
     /// and the setting to change. Default: none.
     fn no_returns_advice(&self, _at: &str) -> Option<Advice> {
         None
