@@ -8,6 +8,11 @@
 //! - `metrics/survey_line_dem_edge`: the same with `ground = "dem"` (each pulse given a nadir
 //!   geometry that crosses a flat 1 m DEM inside its window) and `top = "leading_edge"`.
 //!
+//! - `metrics/csv_row`: one row of `pulse_metrics.csv` (`forest::products::format_row`, 150
+//!   columns with 20 PAVD bins) for the survey line's metrics, as the run's sink writes it;
+//! - `fixed_text/push_fixed` against `fixed_text/std_format`: the 150 numbers of such rows
+//!   written with `core::fixed_text::push_fixed` and with `write!("{:.N}")` (same text).
+//!
 //! Criterion reports the mean per pulse (throughput); the bench also prints the mean, p50, p99
 //! and p99.9 of single-pulse timings (three passes, `Instant` per pulse) for the tail.
 
@@ -175,5 +180,93 @@ fn survey_line_dem_edge(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, gedi, survey_line, survey_line_dem_edge);
+fn csv_row(c: &mut Criterion) {
+    use fwlidar::core::fixed_text::push_fixed;
+    use fwlidar::forest::products::format_row;
+    use std::fmt::Write as _;
+    let pulses: Vec<_> = survey::survey_line_pulses(1000, 4, None)
+        .into_iter()
+        .map(|(p, _)| p)
+        .collect();
+    let mut stage = Metrics::new(MetricsConfig::default());
+    let metrics: Vec<_> = pulses.iter().map(|p| stage.measure(p)).collect();
+    let mut line = String::with_capacity(4096);
+    let mut times = Vec::new();
+    for _ in 0..3 {
+        for (i, m) in metrics.iter().enumerate() {
+            let t0 = Instant::now();
+            format_row(
+                &mut line,
+                i as u64,
+                Some(1.0e5 + i as f64 * 2.5e-6),
+                false,
+                m,
+                20,
+                f32::NAN,
+            );
+            black_box(&line);
+            times.push(t0.elapsed().as_nanos() as u64);
+        }
+    }
+    tail("metrics/csv_row", times);
+    let mut i = 0;
+    c.bench_function("metrics/csv_row", |b| {
+        b.iter(|| {
+            i += 1;
+            let m = &metrics[i % metrics.len()];
+            format_row(
+                &mut line,
+                i as u64,
+                Some(1.0e5 + i as f64 * 2.5e-6),
+                false,
+                m,
+                20,
+                f32::NAN,
+            );
+            black_box(line.len())
+        })
+    });
+    // The numbers of those rows with their decimals, written both ways.
+    let numbers: Vec<(f64, usize)> = metrics
+        .iter()
+        .flat_map(|m| {
+            let mut v: Vec<(f64, usize)> = m.rh.iter().map(|&x| (f64::from(x), 3)).collect();
+            v.extend(m.pavd[..20].iter().map(|&x| (f64::from(x), 6)));
+            v.extend(m.ground_xyz.iter().map(|&x| (x, 3)));
+            v.extend([(f64::from(m.cover), 5), (f64::from(m.energy_total), 2)]);
+            v
+        })
+        .filter(|(x, _)| x.is_finite())
+        .collect();
+    let per_row = numbers.len() / metrics.len().max(1);
+    let mut group = c.benchmark_group("fixed_text");
+    group.throughput(criterion::Throughput::Elements(per_row as u64));
+    let mut j = 0;
+    group.bench_function("push_fixed", |b| {
+        b.iter(|| {
+            line.clear();
+            for _ in 0..per_row {
+                let (x, d) = numbers[j % numbers.len()];
+                j += 1;
+                push_fixed(&mut line, x, d);
+            }
+            black_box(line.len())
+        })
+    });
+    let mut j = 0;
+    group.bench_function("std_format", |b| {
+        b.iter(|| {
+            line.clear();
+            for _ in 0..per_row {
+                let (x, d) = numbers[j % numbers.len()];
+                j += 1;
+                let _ = write!(line, "{x:.d$}");
+            }
+            black_box(line.len())
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, gedi, survey_line, survey_line_dem_edge, csv_row);
 criterion_main!(benches);

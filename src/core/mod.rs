@@ -7,11 +7,14 @@
 //!   at once ([`config_error`]), and `--set KEY=VALUE` overrides;
 //! - [`sensor`]: the sensor profile a capture carries and the stages read their physics from;
 //! - [`facts`]: what an input states about itself;
-//! - [`atomic_file`]: output files that appear complete or not at all.
+//! - [`atomic_file`]: output files that appear complete or not at all;
+//! - [`fixed_text`]: decimal text of floats with a fixed number of decimals, fast and exactly as
+//!   `format!` writes it.
 
 pub mod atomic_file;
 pub mod config_error;
 pub mod facts;
+pub mod fixed_text;
 pub mod overrides;
 pub mod sensor;
 pub mod toml_load;

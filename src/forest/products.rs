@@ -7,6 +7,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use crate::core::fixed_text::push_fixed;
 use crate::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
 use crate::raster::cog::{CogOptions, write_cog};
 use crate::raster::grid::{CellGrid, CellStat};
@@ -245,30 +246,30 @@ pub fn format_row(
 ) {
     use std::fmt::Write as _;
     l.clear();
-    match gps_time {
-        Some(t) => {
-            let _ = write!(l, "{pulse_id},{t:.9}");
-        }
-        None => {
-            let _ = write!(l, "{pulse_id},");
-        }
+    let _ = write!(l, "{pulse_id},");
+    if let Some(t) = gps_time {
+        push_fixed(l, t, 9);
     }
     if shot_number {
         let _ = write!(l, ",{pulse_id}");
     }
+    let xyz = |l: &mut String, p: [f64; 3]| {
+        for v in p {
+            l.push(',');
+            push_fixed(l, v, 3);
+        }
+    };
     if m.ground_xyz.iter().all(|v| v.is_finite()) {
-        let [x, y, z] = m.ground_xyz;
-        let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
+        xyz(l, m.ground_xyz);
     } else {
         l.push_str(",,,");
     }
     let _ = write!(l, ",{}", m.status.as_str());
     let ok = m.status == MetricsStatus::Ok;
     let f = |l: &mut String, v: f32, digits: usize| {
+        l.push(',');
         if ok && v.is_finite() {
-            let _ = write!(l, ",{v:.digits$}");
-        } else {
-            l.push(',');
+            push_fixed(l, f64::from(v), digits);
         }
     };
     f(l, m.canopy_height, 3);
@@ -306,10 +307,9 @@ pub fn format_row(
     f(l, m.noise_sd, 4);
     f(l, m.smoothing_ns, 3);
     for v in [m.top_ns, m.ground_ns, m.bottom_ns, m.mode_ns] {
+        l.push(',');
         if ok && v.is_finite() {
-            let _ = write!(l, ",{v:.3}");
-        } else {
-            l.push(',');
+            push_fixed(l, v, 3);
         }
     }
     if ok {
@@ -318,8 +318,7 @@ pub fn format_row(
         l.push(',');
     }
     if ok && m.top_xyz.iter().all(|v| v.is_finite()) {
-        let [x, y, z] = m.top_xyz;
-        let _ = write!(l, ",{x:.3},{y:.3},{z:.3}");
+        xyz(l, m.top_xyz);
     } else {
         l.push_str(",,,");
     }
