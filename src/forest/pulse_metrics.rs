@@ -252,6 +252,8 @@ pub struct WaveformInput<'a> {
 pub struct MetricsComputer {
     smooth: Vec<f64>,
     kernel: Vec<f64>,
+    /// σ, bins, that `kernel` was built for.
+    kernel_sigma_bins: f64,
     energy: Vec<f64>,
     heights: Vec<f64>,
     canopy: Vec<f64>,
@@ -265,6 +267,7 @@ impl MetricsComputer {
         MetricsComputer {
             smooth: Vec::with_capacity(samples),
             kernel: Vec::with_capacity(256),
+            kernel_sigma_bins: 0.0,
             energy: Vec::with_capacity(samples * SUBBINS + 1),
             heights: Vec::with_capacity(samples * SUBBINS + 1),
             canopy: Vec::with_capacity(samples * SUBBINS + 1),
@@ -416,16 +419,20 @@ impl MetricsComputer {
             return;
         }
         let half = ((4.0 * sigma_bins).round() as usize).clamp(1, 1024);
-        self.kernel.clear();
-        let mut sum = 0.0;
-        for i in 0..=2 * half {
-            let d = i as f64 - half as f64;
-            let v = (-0.5 * d * d / (sigma_bins * sigma_bins)).exp();
-            sum += v;
-            self.kernel.push(v);
-        }
-        for v in &mut self.kernel {
-            *v /= sum;
+        // The kernel of the last σ is kept: a line's pulses share one σ (bit for bit).
+        if self.kernel_sigma_bins.to_bits() != sigma_bins.to_bits() || self.kernel.is_empty() {
+            self.kernel.clear();
+            let mut sum = 0.0;
+            for i in 0..=2 * half {
+                let d = i as f64 - half as f64;
+                let v = (-0.5 * d * d / (sigma_bins * sigma_bins)).exp();
+                sum += v;
+                self.kernel.push(v);
+            }
+            for v in &mut self.kernel {
+                *v /= sum;
+            }
+            self.kernel_sigma_bins = sigma_bins;
         }
         // Edges held at the end samples: a padded copy, then one dot product per sample
         // (contiguous, so it vectorises).
