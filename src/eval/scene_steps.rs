@@ -275,6 +275,10 @@ fn step_methods() -> Vec<(String, Option<MethodConfig>)> {
             })),
         ),
         (
+            "rl_wiener iterations=16".into(),
+            Some(MethodConfig::RichardsonLucy(RlConfig::onboard())),
+        ),
+        (
             "gold iterations=20".into(),
             Some(MethodConfig::Gold(GoldConfig {
                 iterations: 20,

@@ -119,6 +119,10 @@ pub const COARSE_RL: [(u32, u32); 1] = [(50, 10)];
 /// `rl_acc_2ns`): without the coarse-to-fine start (the control), then with it.
 pub const COARSE_TARGET_ACCELERATED: [(u32, u32); 4] = [(0, 13), (13, 10), (13, 13), (33, 13)];
 
+/// Iteration counts of RL from the on-board Wiener start (method `rl_wiener`:
+/// [`RlConfig::onboard`] at these budgets; 16 is the on-board setting).
+pub const WIENER_START_ITERATIONS: [u32; 3] = [12, 16, 20];
+
 /// The full list of settings: raw, denoise, RL and Gold at [`ITERATIONS`], accelerated RL at
 /// [`ACCELERATED_ITERATIONS`], Wiener at [`WIENER_NOISE_SCALES`] (cut-off 0.2 GHz,
 /// regularisation 1e-3), RL, accelerated RL and Gold stopped by the noise at
@@ -127,7 +131,8 @@ pub const COARSE_TARGET_ACCELERATED: [(u32, u32); 4] = [(0, 13), (13, 10), (13, 
 /// at [`TARGET_ITERATIONS`] (`rl_2ns`), Wiener at [`TARGET_WIENER_NOISE_SCALES`]
 /// (`wiener_2ns`), NNLS at [`TARGET_NNLS_CAPS`] (`nnls_2ns`); last, RL with the
 /// coarse-to-fine start at [`COARSE_RL`] and accelerated RL to the 2 ns pulse with it at
-/// [`COARSE_TARGET_ACCELERATED`] (`rl_acc_2ns`). Other parameters at their defaults.
+/// [`COARSE_TARGET_ACCELERATED`] (`rl_acc_2ns`); then RL from the on-board Wiener start at
+/// [`WIENER_START_ITERATIONS`] (`rl_wiener`). Other parameters at their defaults.
 pub fn default_settings() -> Vec<Setting> {
     let plain = |method: &'static str, processing: Processing| Setting {
         method,
@@ -270,6 +275,19 @@ pub fn default_settings() -> Vec<Setting> {
             "rl_acc_2ns",
             parameter,
             rl_coarse(it, true, coarse),
+        ));
+    }
+    // The on-board setting and its neighbours: RL from a Wiener start to a 4 ns target,
+    // output floor at 5.5 noise levels (`RlConfig::onboard`).
+    for it in WIENER_START_ITERATIONS {
+        let config = RlConfig {
+            iterations: it,
+            ..RlConfig::onboard()
+        };
+        s.push(deconvolve(
+            "rl_wiener",
+            format!("iterations={it}"),
+            MethodConfig::RichardsonLucy(config),
         ));
     }
     s

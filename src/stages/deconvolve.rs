@@ -64,7 +64,7 @@ use crate::signal::deconvolve::GateError;
 use crate::signal::deconvolve::response::ResponseError;
 use crate::signal::deconvolve::richardson_lucy::MAX_COARSE_ITERATIONS;
 use crate::signal::deconvolve::response::response_from_flat_target;
-use crate::signal::deconvolve::{Deconvolver, Gate, Gated, MethodConfig, Targeted};
+use crate::signal::deconvolve::{Deconvolver, Gate, Gated, MethodConfig, Targeted, WienerConfig};
 use crate::signal::kernel::{Kernel, RecordLevels};
 
 /// Where the stage's kernel (system response) comes from.
@@ -446,6 +446,20 @@ pub(crate) const MAX_KERNEL_TAPS: usize = 65_536;
 
 /// Checks a cut-off frequency (GHz) at `path`: positive and below the sensor's Nyquist frequency
 /// when the sample interval is known.
+/// The checks of a Wiener filter's settings at `path` (the method, or RL's `wiener_start`).
+fn check_wiener(c: &WienerConfig, path: &str, v: &mut Validator) {
+    check_cutoff(c.cutoff_ghz, field(path, "cutoff_ghz"), v);
+    v.require(
+        c.noise_scale.is_finite() && c.noise_scale >= 0.0,
+        field(path, "noise_scale"),
+        format!("must be a finite number ≥ 0, got {}", c.noise_scale),
+    );
+    v.positive(c.regularisation as f64, field(path, "regularisation"));
+    if let Some(fwhm) = c.target_fwhm_ns {
+        v.positive(fwhm, field(path, "target_fwhm_ns"));
+    }
+}
+
 fn check_cutoff(cutoff_ghz: f64, path: String, v: &mut Validator) {
     v.positive(cutoff_ghz, path.clone());
     let positive = cutoff_ghz.is_finite() && cutoff_ghz > 0.0;
@@ -517,6 +531,18 @@ impl Validate for DeconvolveConfig {
                         c.coarse_fwhm_samples
                     ),
                 );
+                if let Some(w) = &c.wiener_start {
+                    let start = field(&method, "wiener_start");
+                    check_wiener(w, &start, v);
+                    v.require(
+                        c.coarse_iterations == 0,
+                        start,
+                        "excludes coarse_iterations (both choose the start): keep one".to_string(),
+                    );
+                }
+                if let Some(kappa) = c.floor_noise {
+                    v.positive(kappa as f64, field(&method, "floor_noise"));
+                }
             }
             MethodConfig::Gold(c) => {
                 check_iterations(c.iterations, field(&method, "iterations"), v);
@@ -526,15 +552,7 @@ impl Validate for DeconvolveConfig {
                     v.positive(tau as f64, field(&method, "stop_at_noise"));
                 }
             }
-            MethodConfig::Wiener(c) => {
-                check_cutoff(c.cutoff_ghz, field(&method, "cutoff_ghz"), v);
-                v.require(
-                    c.noise_scale.is_finite() && c.noise_scale >= 0.0,
-                    field(&method, "noise_scale"),
-                    format!("must be a finite number ≥ 0, got {}", c.noise_scale),
-                );
-                v.positive(c.regularisation as f64, field(&method, "regularisation"));
-            }
+            MethodConfig::Wiener(c) => check_wiener(c, &method, v),
             MethodConfig::Nnls(c) => {
                 check_iterations(c.max_iterations, field(&method, "max_iterations"), v);
                 v.require(
@@ -1283,6 +1301,7 @@ mod tests {
                 cutoff_ghz: 0.2,
                 noise_scale: -1.0,
                 regularisation: 0.0,
+                target_fwhm_ns: None,
             }))
         };
         Validate::validate(&bad, "s", &mut v);
@@ -1332,6 +1351,28 @@ mod tests {
             Validate::validate(&bad, "s", &mut v);
             assert_eq!(v.issues().len(), 1, "{fwhm}");
         }
+        let mut v = Validator::new(None);
+        let bad = DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig {
+            coarse_iterations: 5,
+            floor_noise: Some(-1.0),
+            wiener_start: Some(WienerConfig {
+                target_fwhm_ns: Some(f64::NAN),
+                noise_scale: f32::INFINITY,
+                ..WienerConfig::default()
+            }),
+            ..RlConfig::default()
+        }));
+        Validate::validate(&bad, "s", &mut v);
+        let paths: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+        assert_eq!(
+            paths,
+            [
+                "s.method.wiener_start.noise_scale",
+                "s.method.wiener_start.target_fwhm_ns",
+                "s.method.wiener_start",
+                "s.method.floor_noise"
+            ]
+        );
         let mut v = Validator::new(None);
         let bad = DeconvolveConfig::with_method(MethodConfig::Gold(GoldConfig {
             iterations: 1,

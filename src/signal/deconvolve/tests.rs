@@ -14,7 +14,8 @@ const MAX_N: usize = 4096;
 const MAX_M: usize = 256;
 
 /// The four methods at their defaults, Richardson-Lucy accelerated, Richardson-Lucy and Gold
-/// stopping by the noise, Richardson-Lucy with the coarse-to-fine start, and the four
+/// stopping by the noise, Richardson-Lucy with the coarse-to-fine start and with the on-board
+/// Wiener start and noise floor, and the four
 /// delivering their result as seen by a 2 ns target pulse (`target.rs`; NNLS's solver
 /// internals are also tested in its module).
 fn methods() -> Vec<Box<dyn Deconvolver>> {
@@ -68,6 +69,9 @@ fn plain_methods() -> Vec<Box<dyn Deconvolver>> {
             ..RlConfig::default()
         })
         .build(MAX_N, MAX_M),
+        // The on-board chain's deconvolution: a Wiener start to a 4 ns target, 16
+        // iterations, the output's noise floor (config/onboard.toml).
+        MethodConfig::RichardsonLucy(RlConfig::onboard()).build(MAX_N, MAX_M),
     ]
 }
 

@@ -58,6 +58,11 @@ pub struct WienerConfig {
     /// (dimensionless, > 0); bounds the gain at `1/(2√ρ)`. Default 1e-3.
     #[serde(default = "default_regularisation")]
     pub regularisation: f32,
+    /// Deliver the estimate as seen by a Gaussian target pulse of this FWHM, ns (the filter
+    /// multiplied by the target's spectrum `exp(−2π²s²f²)`, `s = FWHM / 2.3548`; no extra
+    /// FFT). Default none: the cross-section itself, band-limited by `cutoff_ghz`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_fwhm_ns: Option<f64>,
 }
 
 fn default_cutoff_ghz() -> f64 {
@@ -87,6 +92,7 @@ impl Default for WienerConfig {
             cutoff_ghz: default_cutoff_ghz(),
             noise_scale: default_noise_scale(),
             regularisation: default_regularisation(),
+            target_fwhm_ns: None,
         }
     }
 }
@@ -119,6 +125,50 @@ pub struct Wiener {
     /// unchanged (calibrated) kernel is not transformed again; `None` until the first run.
     cached_kernel: Vec<f32>,
     cached_key: Option<(usize, usize)>,
+}
+
+/// The spectrum of a unit-area Gaussian target pulse at the bins `k = 0, 1, …` of a real FFT
+/// of length `len` at `sample_ns`: `T(k) = exp(−a·k²)` with `a = 2π²s² / (len·Δt)²` (`s` the
+/// target's standard deviation, ns), by the exact recurrence `T(k+1) = T(k)·q_k`,
+/// `q_{k+1} = q_k·exp(−2a)`: two `exp` per segment, not one per bin. Without a target every
+/// gain is 1.
+#[derive(Clone, Copy, Debug)]
+struct TargetGain {
+    /// `exp(−a)`, or 1 without a target.
+    q0: f64,
+    /// `exp(−2a)`, or 1 without a target.
+    q_step: f64,
+}
+
+impl TargetGain {
+    fn new(fwhm_ns: Option<f64>, len: usize, sample_ns: f64) -> Self {
+        match fwhm_ns {
+            Some(fwhm) if fwhm.is_finite() && fwhm > 0.0 => {
+                let s = fwhm / (8.0 * std::f64::consts::LN_2).sqrt();
+                let df = 1.0 / (len as f64 * sample_ns);
+                let a = 2.0 * std::f64::consts::PI.powi(2) * s * s * df * df;
+                TargetGain {
+                    q0: (-a).exp(),
+                    q_step: (-2.0 * a).exp(),
+                }
+            }
+            _ => TargetGain {
+                q0: 1.0,
+                q_step: 1.0,
+            },
+        }
+    }
+
+    /// `T(0), T(1), …` in order.
+    fn iter(self) -> impl Iterator<Item = f32> {
+        let (mut t, mut q) = (1.0f64, self.q0);
+        std::iter::repeat_with(move || {
+            let v = t as f32;
+            t *= q;
+            q *= self.q_step;
+            v
+        })
+    }
 }
 
 /// Smallest even `N ≥ min` whose prime factors are 2, 3 and 5.
@@ -268,12 +318,17 @@ impl Deconvolver for Wiener {
             // NaN or infinite: keep everything (the stage validates the configuration).
             bins
         };
-        for (s, r) in spectrum[..first_zeroed].iter_mut().zip(rs.iter()) {
+        let target = TargetGain::new(self.config.target_fwhm_ns, len, sample_ns);
+        for ((s, r), t) in spectrum[..first_zeroed]
+            .iter_mut()
+            .zip(rs.iter())
+            .zip(target.iter())
+        {
             let p2 = s.norm_sqr();
             let r2 = r.norm_sqr();
             let den = p2 * (r2 + rho) + n2 * r2.max(rho);
             *s = if den > 0.0 && den.is_finite() {
-                *s * r.conj() * (p2 / den)
+                *s * r.conj() * (p2 / den * t)
             } else {
                 Complex::new(0.0, 0.0)
             };
