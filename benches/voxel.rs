@@ -1,12 +1,24 @@
 //! Voxel tiles: depositing the 256 return bins of one pulse (steady state, tile open), nadir and
 //! 20° off nadir, with and without the footprint spread; writing one tile to the store
 //! (uncompressed bytes per second, gzip level 1 and fsync included).
+//!
+//! `voxel_deposit_survey_line/all_pulses`: the deposit of [`MIX_PULSES`] survey-line pulses
+//! (`config/scenes/survey_line.toml`, consecutive shots as the sink receives them — 1.75 scan
+//! sweeps at the line's start and as many over the stand of trees; 256 return bins each, ±15°
+//! scan from 1000 m) on the on-board grid (1 × 1 × 0.5 m,
+//! `config/onboard.toml`), calibrated as the on-board chain leaves them, every tile open (steady
+//! state). Criterion reports the time per pass over all pulses; the bench also prints the mean,
+//! p50, p99 and p99.9 of single-pulse timings (`Instant` per pulse, each pulse's fastest of three
+//! passes: a pass preempted on a loaded machine does not count).
+
+#[path = "common/survey.rs"]
+mod survey;
 
 use std::hint::black_box;
 use std::time::{Duration, Instant};
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use fwlidar::pulse::{Pulse, PulseGeometry, SegmentKind};
+use fwlidar::pulse::{Calibration, Pulse, PulseGeometry, SegmentKind};
 use fwlidar::voxel::grid::{Grid, Placer, VoxelConfig};
 use fwlidar::voxel::tile::TileData;
 use fwlidar::voxel::tiles::TileSet;
@@ -129,5 +141,118 @@ fn write(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, deposit, write);
+/// Pulses of the survey-line mix (half at the line's start, half over the trees).
+const MIX_PULSES: usize = 10_000;
+/// Consecutive shots, as the sink receives them (the cache sees the scan's own reuse).
+const MIX_STRIDE: usize = 1;
+/// Metres of range per nanosecond of two-way travel (c / 2n, n = 1.00027).
+const METRES_PER_NS: f64 = 0.149_855;
+
+/// Survey-line pulses as the on-board chain hands them to the voxel sink: geometry from the
+/// simulator's truth (scene frame moved to UTM-sized coordinates, t0 at emission), the signal
+/// in volts above the first sample, a range-normalised calibration.
+fn survey_line_deposits() -> Vec<Pulse> {
+    let mut raw = survey::survey_line_pulses(MIX_PULSES / 2, MIX_STRIDE, None);
+    raw.extend(survey::survey_line_pulses(
+        MIX_PULSES / 2,
+        MIX_STRIDE,
+        Some(-100.0),
+    ));
+    raw.into_iter()
+        .map(|(mut p, t)| {
+            let o = [357_000.0, 7_235_000.0, 0.0];
+            p.geometry = Some(PulseGeometry {
+                anchor: [o[0] + t.origin[0], o[1] + t.origin[1], t.origin[2]],
+                direction: t.beam.map(|b| b * METRES_PER_NS),
+            });
+            let base = p.raw[0] as f32;
+            p.signal = p
+                .raw
+                .iter()
+                .map(|&r| (r as f32 - base) * p.gain_v_per_dn)
+                .collect();
+            p.calibration = Some(Calibration {
+                scale: 1.0,
+                emission_ns: 0.0,
+                metres_per_ns: METRES_PER_NS,
+                reference_range_m: 1000.0,
+                range_normalised: true,
+            });
+            p
+        })
+        .collect()
+}
+
+/// The deposit of the survey line's pulses (per-pulse figures printed).
+fn deposit_survey_line(c: &mut Criterion) {
+    let mut pulses = survey_line_deposits();
+    let onboard = VoxelConfig {
+        enabled: true,
+        voxel_size_m: [1.0, 1.0, 0.5],
+        ..VoxelConfig::default()
+    };
+    let first = fwlidar::sink::voxel_tiles::extent_centre(&pulses[0]).unwrap();
+    let grid = Grid::new(&onboard, first);
+    let dir = tempfile::tempdir().unwrap();
+    let store =
+        ZarrStore::create_or_open(&dir.path().join("v.zarr"), grid.clone(), info()).unwrap();
+    let mut tiles = TileSet::new(store, 100_000, 1e12);
+    let params = DepositParams {
+        placer: Placer::new(&grid),
+        height: grid.height,
+        dem: None,
+        inv_quantum: 1.0 / grid.intensity_quantum,
+        footprint_divergence_rad: None,
+    };
+    let mut stats = DepositStats::default();
+    let n = pulses.len() as u64;
+    // One pass over every pulse; with `times`, each pulse's time is kept when it is its
+    // fastest so far (a pass preempted on a loaded machine does not count).
+    let mut pass = |pulses: &mut [Pulse], times: Option<&mut Vec<u64>>| {
+        let mut times = times;
+        for (i, p) in pulses.iter_mut().enumerate() {
+            p.seq += n;
+            let t0 = Instant::now();
+            deposit_pulse(black_box(p), &mut tiles, &params, &mut stats).unwrap();
+            if let Some(t) = times.as_deref_mut() {
+                t[i] = t[i].min(t0.elapsed().as_nanos() as u64);
+            }
+        }
+    };
+    pass(&mut pulses, None);
+    let mut times = vec![u64::MAX; pulses.len()];
+    for _ in 0..3 {
+        pass(&mut pulses, Some(&mut times));
+    }
+    times.sort_unstable();
+    let q = |f: f64| times[((times.len() - 1) as f64 * f).round() as usize] as f64 / 1e3;
+    let mean = times.iter().sum::<u64>() as f64 / times.len() as f64 / 1e3;
+    println!(
+        "voxel_deposit_survey_line: {} pulses, {} bins, each pulse's fastest of three passes: \
+         mean {mean:.3} µs, p50 {:.3} µs, p99 {:.3} µs, p99.9 {:.3} µs",
+        pulses.len(),
+        pulses
+            .iter()
+            .flat_map(|p| p.segments.iter().filter(|s| s.kind == SegmentKind::Return))
+            .map(|s| s.len as usize)
+            .sum::<usize>(),
+        q(0.5),
+        q(0.99),
+        q(0.999)
+    );
+    let mut g = c.benchmark_group("voxel_deposit_survey_line");
+    g.throughput(Throughput::Elements(n));
+    g.bench_function("all_pulses", |b| {
+        b.iter_custom(|iters| {
+            let t0 = Instant::now();
+            for _ in 0..iters {
+                pass(&mut pulses, None);
+            }
+            t0.elapsed()
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, deposit, deposit_survey_line, write);
 criterion_main!(benches);

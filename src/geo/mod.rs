@@ -9,5 +9,7 @@ pub mod crs;
 pub mod dem;
 /// Direct georeferencing of one pulse (pose, scan angles, lever arm, boresight → geometry).
 pub mod direct_georeference;
+/// A local quadratic model of the map projection (`[georeference] projection = "per_span"`).
+pub mod local_projection;
 /// The source wrapper that georeferences a pulse stream from its navigation stream.
 pub use crs::{GeoError, OutputCrs, ecef_of, geodetic_of_ecef, utm_epsg};

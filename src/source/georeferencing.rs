@@ -25,7 +25,8 @@ use crate::core::facts::SourceFacts;
 use crate::core::validate::{Validate, Validator, field};
 use crate::geo::crs::OutputCrs;
 use crate::geo::dem::Dem;
-use crate::geo::direct_georeference::{Mounting, georeference};
+use crate::geo::direct_georeference::{Mounting, georeference, georeference_local};
+use crate::geo::local_projection::LocalProjection;
 use crate::nav::dating::{GpsTime, WEEK_S};
 use crate::nav::decoder::{LEAP_SECONDS_NOW, NavDecoder};
 use crate::nav::trajectory::{Interpolation, Miss, Trajectory, TrajectoryConfig};
@@ -41,6 +42,27 @@ pub enum OnMissing {
     Drop,
     /// Pass it on without geometry (counted by reason).
     Pass,
+}
+
+/// How a pulse's chord is taken into the output CRS (`[georeference] projection`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Projection {
+    /// Both ends of every pulse's chord converted exactly (WGS84, then the map projection).
+    /// Default.
+    #[default]
+    PerPulse,
+    /// From a quadratic model of the projection rebuilt once per kilometre of travel
+    /// ([`crate::geo::local_projection`]): the source thread's cost per pulse falls, the
+    /// coordinates move by a few µm (docs/navigation.md).
+    PerSpan,
+}
+
+impl Projection {
+    /// The default, exact path.
+    fn is_per_pulse(&self) -> bool {
+        *self == Projection::PerPulse
+    }
 }
 
 /// `[georeference]` of a run configuration.
@@ -84,6 +106,11 @@ pub struct GeoreferenceConfig {
     /// Default 0.
     #[serde(default)]
     pub pulse_time_offset_s: f64,
+    /// How the chord reaches the output CRS: exactly per pulse, or from a local model per span
+    /// of a kilometre. Default "per_pulse" (left out of the configuration written into outputs,
+    /// so that their configuration text and run key stay those of earlier versions).
+    #[serde(default, skip_serializing_if = "Projection::is_per_pulse")]
+    pub projection: Projection,
 }
 
 fn default_n() -> f64 {
@@ -115,6 +142,7 @@ impl Default for GeoreferenceConfig {
             on_missing: OnMissing::Drop,
             dem: None,
             pulse_time_offset_s: 0.0,
+            projection: Projection::PerPulse,
         }
     }
 }
@@ -190,6 +218,8 @@ pub struct GeoreferencingSource {
     decoders: BTreeMap<u8, NavDecoder>,
     trajectory: Trajectory,
     crs: Option<OutputCrs>,
+    /// The local model of the projection (`projection = "per_span"`).
+    local: Option<LocalProjection>,
     mount: Option<Mounting>,
     pending: VecDeque<Box<Pulse>>,
     ready: VecDeque<Box<Pulse>>,
@@ -217,6 +247,7 @@ impl GeoreferencingSource {
             Some(code) => Some(OutputCrs::from_epsg(code).map_err(|e| e.to_string())?),
             None => None,
         };
+        let local = (cfg.projection == Projection::PerSpan).then(LocalProjection::new);
         Ok(GeoreferencingSource {
             inner,
             trajectory: Trajectory::new(TrajectoryConfig {
@@ -227,6 +258,7 @@ impl GeoreferencingSource {
             cfg,
             decoders: BTreeMap::new(),
             crs,
+            local,
             mount: None,
             pending: VecDeque::new(),
             ready: VecDeque::new(),
@@ -430,8 +462,14 @@ impl GeoreferencingSource {
                 if !lo.is_finite() {
                     (lo, hi) = (0.0, 1.0);
                 }
-                georeference(crs, pos, &att, p.scan_angle_deg, &mount, (lo, hi))
-                    .map_err(|_| "projection_failed")
+                let window = (lo, hi);
+                match self.local.as_mut() {
+                    None => georeference(crs, pos, &att, p.scan_angle_deg, &mount, window),
+                    Some(local) => {
+                        georeference_local(crs, local, pos, &att, p.scan_angle_deg, &mount, window)
+                    }
+                }
+                .map_err(|_| "projection_failed")
             });
             match placed {
                 Ok(g) => {
