@@ -115,6 +115,10 @@ impl StageKind for DecomposeConfig {
         "decompose"
     }
 
+    fn changes_waveform(&self) -> bool {
+        false
+    }
+
     fn build(&self) -> Result<Box<dyn Stage>, BuildError> {
         Ok(Box::new(Decompose::new(self.clone())))
     }
