@@ -284,7 +284,10 @@ fn a_chain_from_a_run_configuration_is_scored_beside_the_built_in_settings() {
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
-    assert!(err.contains("[300/300]"), "49 settings and the chain: {err}");
+    assert!(
+        err.contains("[300/300]"),
+        "49 settings and the chain: {err}"
+    );
     assert!(
         err.contains("chain:onboard runs denoise, deconvolve"),
         "what the chain runs: {err}"
