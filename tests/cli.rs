@@ -775,3 +775,64 @@ fn import_of_a_capture_keeps_every_pulse_and_never_overwrites() {
     assert!(!out2.exists());
     assert!(!dir.path().join("x.fwcap.partial").exists());
 }
+
+/// The decompose stage's `pulses = "auto"`: replay with LAS on decomposes every pulse (the
+/// same returns as `pulses = "all"`); replay of the on-board configuration, whose outputs
+/// write no returns, passes every pulse on undecomposed (no QC viewer in replay).
+#[test]
+fn replay_with_las_on_decomposes_every_pulse() {
+    let dir = tempfile::tempdir().unwrap();
+    let onboard = Path::new(ROOT).join("config/onboard.toml");
+    let input = sample();
+    let run = |name: &str, sets: &[&str]| -> serde_json::Value {
+        let out = dir.path().join(name);
+        let mut args = vec![
+            "replay",
+            input.to_str().unwrap(),
+            "--config",
+            onboard.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--no-progress",
+            "--workers",
+            "2",
+            "--set",
+            "pipeline.input_edge=\"block\"",
+        ];
+        for s in sets {
+            args.extend(["--set", s]);
+        }
+        let o = fwlidar(&args);
+        assert!(o.status.success(), "{name}: {}", text(&o.stderr));
+        read_summary(&out)
+    };
+    let auto = run("auto", &["output.las=true"]);
+    let all = run(
+        "all",
+        &["output.las=true", "pipeline.stages[2].pulses=\"all\""],
+    );
+    let (a, b) = (&auto["sinks"]["las"], &all["sinks"]["las"]);
+    assert!(a["points"].as_u64().unwrap() > 0, "{a:#}");
+    assert_eq!(a["points"], b["points"]);
+    assert_eq!(a["pulses_without_returns"], b["pulses_without_returns"]);
+    assert_eq!(auto["pulses_out"], all["pulses_out"]);
+    // On board's outputs (no LAS): no returns written, nothing decomposed.
+    let board = run("board", &[]);
+    assert!(board["sinks"]["las"].is_null(), "{:#}", board["sinks"]);
+    assert_eq!(board["pulses_out"], all["pulses_out"]);
+    let p50 = |s: &serde_json::Value, name: &str| {
+        s["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|t| t["name"] == name)
+            .and_then(|t| t["service"]["p50_ns"].as_f64())
+            .unwrap()
+    };
+    assert!(
+        p50(&board, "decompose") < 0.25 * p50(&all, "decompose"),
+        "decompose p50 {} ns on board's outputs, {} ns for every pulse",
+        p50(&board, "decompose"),
+        p50(&all, "decompose")
+    );
+}

@@ -512,6 +512,75 @@ fn records_every_frame_processes_live_and_stops_cleanly() {
     assert!(u(&sm["sinks"]["voxels"]["deposits"]["pulses_deposited"]) > 0);
 }
 
+/// On board without LAS (nothing writes the returns), the decompose stage decomposes only the
+/// pulses the source marks for the QC page's waveform viewer: the viewer still shows the
+/// sampled pulse's returns, and the stage passes every other pulse on in a fraction of a fit.
+#[test]
+fn the_waveform_viewer_shows_returns_when_only_its_pulses_are_decomposed() {
+    let _one = one_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+    let nav = dir.path().join("gnss0");
+    let qc = free_port();
+    let (sim, port) = start_simulator(&two_layer(), 300_000, "0.5", &[], &nav);
+    let mut setup = Setup::new("sampled", format!("tcp-connect:127.0.0.1:{port}"), &nav, qc);
+    setup.daemon_extra = "[output]\nlas = false";
+    let d = start_daemon(dir.path(), &setup);
+    wait_status(qc, Duration::from_secs(30), "pulses processed", |s| {
+        u(&s["pulses"]["pulses_processed"]) > 2000
+    });
+    // The viewer's pulse carries its returns (a sampled pulse may miss the echoes: wait for
+    // one that has them).
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let wf = loop {
+        let (code, body) = get(qc, "/api/waveform");
+        if code == 200 {
+            let wf: serde_json::Value = serde_json::from_str(&body).unwrap();
+            if wf["returns"].as_array().is_some_and(|r| !r.is_empty()) {
+                break wf;
+            }
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no sampled pulse with returns: {code} {body}"
+        );
+        std::thread::sleep(Duration::from_millis(250));
+    };
+    let steps: Vec<&str> = wf["steps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|s| s["name"].as_str())
+        .collect();
+    assert_eq!(steps, ["raw", "denoise", "deconvolve"], "{wf:#}");
+    for r in wf["returns"].as_array().unwrap() {
+        assert!(r["amplitude"].as_f64().unwrap() > 0.0, "{r}");
+        assert!(r["sigma_ns"].as_f64().unwrap() > 0.0, "{r}");
+    }
+    // The pipeline's decompose stage skipped the unmarked pulses: its median service time is
+    // far below the deconvolution's.
+    let s = status(qc);
+    let stage_p50 = |name: &str| {
+        s["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|t| t["name"] == name)
+            .and_then(|t| t["p50_us"].as_f64())
+            .unwrap_or_else(|| panic!("no {name} in {s:#}"))
+    };
+    assert!(
+        stage_p50("decompose") < 0.25 * stage_p50("deconvolve"),
+        "decompose p50 {} µs, deconvolve p50 {} µs",
+        stage_p50("decompose"),
+        stage_p50("deconvolve")
+    );
+    drop(sim);
+    d.signal(libc::SIGTERM);
+    let (code, _, err) = d.wait(Duration::from_secs(60));
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!dir.path().join("out/returns").exists(), "no LAS on board");
+}
+
 #[test]
 fn starts_and_serves_qc_with_every_input_absent_then_picks_them_up() {
     let _one = one_at_a_time();

@@ -266,3 +266,115 @@ fn bad_arguments_fail_with_a_usage_error_and_write_nothing() {
         "invalid value",
     );
 }
+
+#[test]
+fn a_chain_from_a_run_configuration_is_scored_beside_the_built_in_settings() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("t");
+    let onboard = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/onboard.toml");
+    let o = fwlidar(&[
+        "tradeoff",
+        "--quick",
+        "--pulses",
+        "12",
+        "--chain",
+        onboard.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("[300/300]"),
+        "49 settings and the chain: {err}"
+    );
+    assert!(
+        err.contains("chain:onboard runs denoise, deconvolve"),
+        "what the chain runs: {err}"
+    );
+    // The cases: one row per (pulse width, family), method `chain:onboard`.
+    let csv = std::fs::read_to_string(out.join("tradeoff.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .filter(|r: &Vec<&str>| r[0] == "chain:onboard")
+        .collect();
+    assert_eq!(rows.len(), 6, "{csv}");
+    for r in &rows {
+        assert_eq!(r.len(), COLUMNS.len());
+        assert_eq!(r[1], "", "no parameter");
+        let rmse: f64 = r[5].parse().unwrap();
+        assert!(rmse.is_finite() && rmse > 0.0 && rmse < 0.5, "{r:?}");
+    }
+    // The pulse-weighted summary: a row per setting, the chain's beside RL 20, comparable.
+    let summary = std::fs::read_to_string(out.join("tradeoff_summary.csv")).unwrap();
+    let mut lines = summary.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(&header[..4], ["method", "parameter", "pulses", "rmse"]);
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 50);
+    let row = |m: &str, p: &str| {
+        rows.iter()
+            .find(|r| r[0] == m && r[1] == p)
+            .unwrap_or_else(|| panic!("no {m} {p}"))
+    };
+    let (chain, rl20) = (row("chain:onboard", ""), row("rl", "iterations=20"));
+    assert_eq!(chain[2], "72", "12 pulses × 6 cases");
+    let col = |r: &Vec<&str>, name: &str| -> f64 {
+        r[header.iter().position(|c| *c == name).unwrap()]
+            .parse()
+            .unwrap()
+    };
+    for name in ["rmse", "detection_rate", "false_per_pulse"] {
+        let (c, b) = (col(chain, name), col(rl20, name));
+        assert!(
+            (c - b).abs() <= 0.2 * b.abs() + 0.05,
+            "{name}: chain {c}, RL 20 {b}"
+        );
+    }
+    let md = std::fs::read_to_string(out.join("tradeoff.md")).unwrap();
+    assert!(md.contains("| chain:onboard |"), "{md}");
+    assert!(md.contains("### Chains"));
+    let svg = std::fs::read_to_string(out.join("tradeoff.svg")).unwrap();
+    check_xml(&svg).unwrap();
+    assert!(svg.contains("chain:onboard"));
+}
+
+#[test]
+fn a_bad_chain_file_fails_naming_the_file_and_the_field_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let o = out.to_str().unwrap();
+    let missing = dir.path().join("absent.toml");
+    let o1 = fwlidar(&["tradeoff", "--out", o, "--chain", missing.to_str().unwrap()]);
+    assert_eq!(o1.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o1.stderr);
+    assert!(err.contains("absent.toml"), "{err}");
+
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(
+        &bad,
+        "[[pipeline.stages]]\ntype = \"denoise\"\n[[pipeline.stages]]\ntype = \"deconvolve\"\n\
+         method = { method = \"richardson_lucy\", iterations = 0 }\n",
+    )
+    .unwrap();
+    let o2 = fwlidar(&["tradeoff", "--out", o, "--chain", bad.to_str().unwrap()]);
+    assert_eq!(o2.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o2.stderr);
+    assert!(
+        err.contains("bad.toml") && err.contains("pipeline.stages[1].method"),
+        "{err}"
+    );
+
+    let nothing = dir.path().join("nothing.toml");
+    std::fs::write(&nothing, "[[pipeline.stages]]\ntype = \"passthrough\"\n").unwrap();
+    let o3 = fwlidar(&["tradeoff", "--out", o, "--chain", nothing.to_str().unwrap()]);
+    assert_eq!(o3.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o3.stderr);
+    assert!(
+        err.contains("nothing.toml: pipeline.stages: no stage changes the waveform"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing written");
+}

@@ -1,8 +1,9 @@
 //! `fwlidar tradeoff`: what accuracy costs in time. Sweeps raw, denoise only, and every
 //! deconvolution method at several settings over simulated pulses with known truth
-//! ([`crate::eval::tradeoff`]), and writes `tradeoff.csv`, `tradeoff.md` and `tradeoff.svg` into
-//! the output folder, each atomically (complete or not at all), after the whole sweep ran.
-//! Progress goes to stderr, one line per case.
+//! ([`crate::eval::tradeoff`]), with each `--chain FILE`'s stages beside them
+//! ([`crate::eval::chain`]), and writes `tradeoff.csv`, `tradeoff_summary.csv`, `tradeoff.md`
+//! and `tradeoff.svg` into the output folder, each atomically (complete or not at all), after
+//! the whole sweep ran. Progress goes to stderr, one line per case.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -10,8 +11,9 @@ use std::time::Instant;
 
 use crate::cli::Failure;
 use crate::core::atomic_file::write_atomic;
-use crate::eval::report::{Machine, csv, markdown};
-use crate::eval::tradeoff::{SweepConfig, default_settings, run_sweep, summarise};
+use crate::eval::chain::ChainSpec;
+use crate::eval::report::{Machine, csv, markdown, summary_csv};
+use crate::eval::tradeoff::{Setting, SweepConfig, default_settings, run_sweep, summarise};
 use crate::eval::{plot, report};
 use crate::sim::truth::TruthFamily;
 
@@ -21,9 +23,16 @@ pub const QUICK_PULSES: usize = 24;
 /// Arguments of `fwlidar tradeoff`.
 #[derive(Debug, clap::Args)]
 pub struct TradeoffArgs {
-    /// Output folder (created if missing): `tradeoff.csv`, `tradeoff.md`, `tradeoff.svg`.
+    /// Output folder (created if missing): `tradeoff.csv`, `tradeoff_summary.csv`,
+    /// `tradeoff.md`, `tradeoff.svg`.
     #[arg(long, default_value = "out/tradeoff")]
     pub out: PathBuf,
+    /// A run configuration (e.g. `config/onboard.toml`) whose `[[pipeline.stages]]` are scored
+    /// beside the built-in settings as `chain:<file stem>`: its stages that change the waveform
+    /// (denoise, deconvolve) run as replay runs them on each simulated pulse, recorded as a
+    /// 16-bit digitizer would with its outgoing pulse. Repeatable.
+    #[arg(long = "chain", value_name = "FILE", conflicts_with = "scene")]
+    pub chains: Vec<PathBuf>,
     /// Simulated pulses per (pulse width, truth family) case. Default 1000 (24 with `--quick`).
     #[arg(long)]
     pub pulses: Option<usize>,
@@ -245,6 +254,33 @@ pub fn run(args: TradeoffArgs) -> Result<(), Failure> {
         ..SweepConfig::default()
     };
     config.validate().map_err(Failure::usage)?;
+    let mut settings = default_settings();
+    for path in &args.chains {
+        let spec = ChainSpec::load(path).map_err(Failure::usage)?;
+        if settings.iter().any(|s| s.method == spec.method()) {
+            return Err(Failure::usage(format!(
+                "--chain {}: a chain named `{}` is given twice (chains are named by their \
+                 file's stem)",
+                path.display(),
+                spec.method()
+            )));
+        }
+        eprintln!(
+            "tradeoff: {} runs {} from {}{}",
+            spec.method(),
+            spec.stage_names().join(", "),
+            path.display(),
+            if spec.skipped.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    " (not {}: they do not change the waveform)",
+                    spec.skipped.join(", ")
+                )
+            }
+        );
+        settings.push(Setting::chain(spec));
+    }
     std::fs::create_dir_all(&args.out).map_err(|e| {
         Failure::job(format!(
             "cannot create output folder {}: {e}",
@@ -252,7 +288,6 @@ pub fn run(args: TradeoffArgs) -> Result<(), Failure> {
         ))
     })?;
     let machine = Machine::detect();
-    let settings = default_settings();
     eprintln!(
         "tradeoff: {} settings × {} pulse widths × {} families, {} pulses each, one thread \
          ({} cores, rates for {} worker(s))",
@@ -285,6 +320,10 @@ pub fn run(args: TradeoffArgs) -> Result<(), Failure> {
     let files = [
         ("tradeoff.csv", csv(&settings, &cases, machine.workers)),
         (
+            "tradeoff_summary.csv",
+            summary_csv(&settings, &summary, machine.workers),
+        ),
+        (
             "tradeoff.md",
             markdown(&config, &settings, &cases, &summary, &machine, plot_name),
         ),
@@ -306,7 +345,7 @@ pub fn run(args: TradeoffArgs) -> Result<(), Failure> {
         })
         .collect::<Vec<_>>();
     eprintln!(
-        "tradeoff: done in {:.1} s; Pareto front: {}; wrote {}/{{tradeoff.csv,tradeoff.md,tradeoff.svg}}",
+        "tradeoff: done in {:.1} s; Pareto front: {}; wrote {}/{{tradeoff.csv,tradeoff_summary.csv,tradeoff.md,tradeoff.svg}}",
         start.elapsed().as_secs_f64(),
         best.join(", "),
         args.out.display()

@@ -23,12 +23,13 @@ fn colour(method: &str) -> &'static str {
         "rl_acc_2ns" => "#393b79",
         "wiener_2ns" => "#bcbd22",
         "nnls_2ns" => "#8c564b",
+        // A chain (`chain:<name>`) and anything else.
         _ => "#000000",
     }
 }
 
-/// Legend names of the methods.
-const METHODS: [(&str, &str); 11] = [
+/// Legend names of the methods (the last, `chain`, stands for every `chain:<name>`).
+const METHODS: [(&str, &str); 12] = [
     ("raw", "raw (no processing)"),
     ("denoise", "denoise only"),
     ("rl", "Richardson-Lucy (iterations)"),
@@ -43,6 +44,7 @@ const METHODS: [(&str, &str); 11] = [
     ),
     ("wiener_2ns", "Wiener to the 2 ns pulse (noise scale)"),
     ("nnls_2ns", "NNLS drawn as the 2 ns pulse (cap)"),
+    ("chain", "a run configuration's stages (--chain; file name)"),
 ];
 
 fn escape(s: &str) -> String {
@@ -52,8 +54,11 @@ fn escape(s: &str) -> String {
         .replace('"', "&quot;")
 }
 
-/// The short label next to a marker: the parameter's value.
+/// The short label next to a marker: the parameter's value, or a chain's name.
 fn short(set: &Setting) -> String {
+    if let Some(name) = set.method.strip_prefix("chain:") {
+        return name.to_string();
+    }
     set.parameter
         .split_once('=')
         .map(|(_, v)| v.to_string())
@@ -327,7 +332,7 @@ fn markers(
             s,
             r##"<circle cx="{x:.1}" cy="{y:.1}" r="{}" fill="{}" stroke="{}" stroke-width="{}"><title>{}: {:.4} at {:.3} µs</title></circle>"##,
             if on_front { 5.5 } else { 4.5 },
-            colour(set.method),
+            colour(&set.method),
             if on_front { "#000" } else { "#fff" },
             if on_front { 1.5 } else { 0.8 },
             escape(&set.label()),
@@ -341,7 +346,7 @@ fn markers(
                 r##"<text x="{:.1}" y="{:.1}" font-size="9" fill="{}">{}</text>"##,
                 x + 6.0,
                 y - 5.0,
-                colour(set.method),
+                colour(&set.method),
                 escape(&label)
             );
         }

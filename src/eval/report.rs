@@ -1,10 +1,11 @@
 //! The written results of `fwlidar tradeoff`: one CSV row per (setting, pulse width, family)
-//! case, and a markdown report (setup, a summary per setting with the pulse rates it sustains,
-//! and per-case tables).
+//! case, one CSV row per setting pooled over the cases (`tradeoff_summary.csv`), and a markdown
+//! report (setup, a summary per setting with the pulse rates it sustains, what each `--chain`
+//! ran, and per-case tables).
 
 use std::fmt::Write as _;
 
-use crate::eval::tradeoff::{CaseResult, Setting, SettingSummary, SweepConfig};
+use crate::eval::tradeoff::{CaseResult, Processing, Setting, SettingSummary, SweepConfig};
 
 /// Pulse rates the report checks every setting against, pulses per second.
 pub const RATES_HZ: [f64; 4] = [100e3, 500e3, 1e6, 2e6];
@@ -29,6 +30,62 @@ pub const CSV_COLUMNS: [&str; 17] = [
     "time_p99_us",
     "max_rate_hz",
 ];
+
+/// Columns of the summary CSV (`tradeoff_summary.csv`), in order.
+pub const SUMMARY_COLUMNS: [&str; 17] = [
+    "method",
+    "parameter",
+    "pulses",
+    "rmse",
+    "rmse_2ns",
+    "true_detections",
+    "truth_peaks",
+    "detection_rate",
+    "false_detections",
+    "false_per_pulse",
+    "sam_deg",
+    "time_mean_us",
+    "time_median_us",
+    "slowest_case_median_us",
+    "max_rate_hz",
+    "dropped",
+    "pareto",
+];
+
+/// The summary CSV: a header of [`SUMMARY_COLUMNS`], then one row per setting pooled over
+/// every (pulse width, family) case, each pulse weighing the same ([`SettingSummary`]): RMSE
+/// over every bin of every pulse, detection rate = true detections / truth peaks, false peaks
+/// per pulse = false detections / pulses, times in µs (mean and median over every pulse), the
+/// rate `workers` threads sustain at the slowest case's median, pulses/s.
+pub fn summary_csv(settings: &[Setting], summary: &[SettingSummary], workers: usize) -> String {
+    let mut s = SUMMARY_COLUMNS.join(",");
+    s.push('\n');
+    for sm in summary {
+        let set = &settings[sm.setting];
+        let _ = writeln!(
+            s,
+            "{},{},{},{:.6},{:.6},{},{},{:.4},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.0},{},{}",
+            set.method,
+            set.parameter,
+            sm.pulses,
+            sm.rmse,
+            sm.rmse_2ns,
+            sm.true_detections,
+            sm.truth_peaks,
+            sm.detection_rate,
+            sm.false_detections,
+            sm.false_per_pulse,
+            sm.sam_deg,
+            sm.mean_ns / 1e3,
+            sm.median_ns / 1e3,
+            sm.slowest_case_median_ns / 1e3,
+            sm.max_rate_hz(workers),
+            sm.dropped,
+            sm.pareto,
+        );
+    }
+    s
+}
 
 /// The machine the sweep ran on, as the report states it.
 #[derive(Clone, Debug, PartialEq)]
@@ -130,6 +187,7 @@ pub fn markdown(
     let mut s = String::new();
     setup_section(&mut s, config, cases, machine, plot_file);
     summary_table(&mut s, settings, summary, machine.workers);
+    chain_notes(&mut s, settings, summary);
     case_tables(&mut s, config, settings, cases);
     s
 }
@@ -196,7 +254,14 @@ fn setup_section(
 fn summary_table(s: &mut String, settings: &[Setting], summary: &[SettingSummary], w: usize) {
     let _ = writeln!(
         s,
-        "### Summary per setting (pooled over pulse widths and families)\n"
+        "### Summary per setting (pulse-weighted over pulse widths and families)\n"
+    );
+    let _ = writeln!(
+        s,
+        "Every pulse of every case weighs the same: RMSE over every bin of every pulse (the \
+         square root of the pulse-weighted mean of the cases' squared RMSEs), true detections = \
+         Σ true / Σ truth peaks, false/pulse = Σ false / Σ pulses, times over every pulse. \
+         `tradeoff_summary.csv` holds the same rows with the counts.\n"
     );
     let rate_heads: Vec<String> = RATES_HZ.iter().map(|&r| rate(r)).collect();
     let _ = writeln!(
@@ -235,6 +300,51 @@ fn summary_table(s: &mut String, settings: &[Setting], summary: &[SettingSummary
         );
     }
     let _ = writeln!(s);
+}
+
+/// What each chain (`--chain`) ran and left out, and the pulses its stages dropped (scored as
+/// all-zero waveforms); nothing without chains.
+fn chain_notes(s: &mut String, settings: &[Setting], summary: &[SettingSummary]) {
+    let chains: Vec<(&Setting, u64)> = summary
+        .iter()
+        .filter_map(|sm| {
+            let set = &settings[sm.setting];
+            matches!(set.processing, Processing::Chain(_)).then_some((set, sm.dropped))
+        })
+        .collect();
+    if chains.is_empty() {
+        return;
+    }
+    let _ = writeln!(s, "### Chains\n");
+    for (set, dropped) in chains {
+        let Processing::Chain(spec) = &set.processing else {
+            continue;
+        };
+        let skipped = if spec.skipped.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; not run (they do not change the waveform): {}",
+                spec.skipped.join(", ")
+            )
+        };
+        let _ = writeln!(
+            s,
+            "- `{}`: the stages of `{}` that change the waveform, {}{skipped}; {dropped} \
+             pulse(s) dropped by a stage (scored as all-zero waveforms).",
+            set.method,
+            spec.file.display(),
+            spec.stage_names().join(" → "),
+        );
+    }
+    let _ = writeln!(
+        s,
+        "\nA chain's pulse is the simulated waveform as a 16-bit digitizer records it (one gain \
+         per pulse over its range), with its outgoing pulse (the case's system pulse, noise-free) \
+         as a second segment: a `kernel = \"outgoing\"` deconvolution uses it after the denoise \
+         stage, as replay does, where the built-in settings deconvolve by the exact system \
+         pulse. Timed as the built-in settings: the stages alone, one thread.\n"
+    );
 }
 
 /// The per-case tables, one per score: rows = settings, columns = family × width (ns).

@@ -11,12 +11,18 @@
 //! pipeline reuses a pulse's buffers), and the pulse is scored after the second clock read, so
 //! only processing is timed and nothing is allocated per pulse. The figure reported is the
 //! median over pulses (the 99th percentile is kept too).
+//!
+//! **Chains**: a run configuration's stages ([`crate::eval::chain`], `--chain FILE`) are one
+//! more setting, [`Processing::Chain`], run on the same pulses through the stages' own code and
+//! timed the same way (the pulse is made from the simulated waveform before the clock starts,
+//! its waveform read back after it stops).
 
 use std::time::Instant;
 
 use crate::eval::accuracy::{
     PeakMatch, RmseAccumulator, local_peaks, match_peaks, spectral_angle_deg,
 };
+use crate::eval::chain::{ChainRunner, ChainSpec};
 use crate::signal::deconvolve::{
     DeconvError, Deconvolver, Gate, Gated, GoldConfig, MethodConfig, NnlsConfig, RlConfig,
     Targeted, WienerConfig,
@@ -42,6 +48,14 @@ pub enum TradeoffError {
     /// The denoise step refused a simulated segment.
     #[error("denoise: {0}")]
     Denoise(#[from] DenoiseError),
+    /// A chain's stage failed fatally (a stage it cannot build is refused when it is loaded).
+    #[error("{chain}: {source}")]
+    Stage {
+        /// The chain's method name (`chain:<name>`).
+        chain: String,
+        /// Why.
+        source: crate::pipeline::stage::StageError,
+    },
     /// A deconvolution refused a simulated segment.
     #[error("{method}: {source}")]
     Deconvolve {
@@ -61,13 +75,16 @@ pub enum Processing {
     Denoise,
     /// Denoise, then this deconvolution.
     Deconvolve(MethodConfig),
+    /// The waveform stages of a run configuration, as replay runs them.
+    Chain(ChainSpec),
 }
 
 /// One point of the sweep: a method and its setting.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Setting {
-    /// Method family for colour and grouping: `raw`, `denoise`, `rl`, `gold`, `wiener`, `nnls`.
-    pub method: &'static str,
+    /// Method family for colour and grouping: `raw`, `denoise`, `rl`, `gold`, `wiener`, `nnls`
+    /// (and the others of [`default_settings`]), or `chain:<name>` for a chain.
+    pub method: String,
     /// The varied parameter as `name=value` (empty for `raw` and `denoise`).
     pub parameter: String,
     /// What to run.
@@ -78,6 +95,16 @@ pub struct Setting {
 }
 
 impl Setting {
+    /// The setting of a run configuration's chain: method `chain:<name>`, no parameter.
+    pub fn chain(spec: ChainSpec) -> Setting {
+        Setting {
+            method: spec.method(),
+            parameter: String::new(),
+            processing: Processing::Chain(spec),
+            target_fwhm_ns: None,
+        }
+    }
+
     /// `method` or `method parameter`, for tables and progress.
     pub fn label(&self) -> String {
         if self.parameter.is_empty() {
@@ -135,13 +162,13 @@ pub const WIENER_START_ITERATIONS: [u32; 3] = [12, 16, 20];
 /// [`WIENER_START_ITERATIONS`] (`rl_wiener`). Other parameters at their defaults.
 pub fn default_settings() -> Vec<Setting> {
     let plain = |method: &'static str, processing: Processing| Setting {
-        method,
+        method: method.into(),
         parameter: String::new(),
         processing,
         target_fwhm_ns: None,
     };
     let deconvolve = |method: &'static str, parameter: String, config: MethodConfig| Setting {
-        method,
+        method: method.into(),
         parameter,
         processing: Processing::Deconvolve(config),
         target_fwhm_ns: method.ends_with("_2ns").then_some(TRUTH_FWHM_NS),
@@ -396,6 +423,9 @@ pub struct CaseResult {
     pub truth_peaks: u64,
     /// Mean spectral angle, degrees.
     pub sam_deg: f64,
+    /// Pulses a chain's stage dropped or rejected (scored as an all-zero waveform); 0 for
+    /// the built-in settings.
+    pub dropped: u64,
     /// Wall-clock processing time of every pulse, ns, in pulse order.
     pub times_ns: Vec<f64>,
 }
@@ -465,12 +495,14 @@ struct Runner {
     denoise: Option<Denoise>,
     deconv: Option<Targeted>,
     denoised: Vec<f32>,
+    /// A chain's stages and its pulse (with [`Processing::Chain`]; the rest is then unused).
+    chain: Option<(String, ChainRunner)>,
 }
 
 impl Runner {
     fn new(setting: &Setting, bins: usize, taps: usize) -> Self {
         let denoise = match setting.processing {
-            Processing::Raw => None,
+            Processing::Raw | Processing::Chain(_) => None,
             _ => Some(Denoise::new(DenoiseConfig {
                 max_samples: bins,
                 ..DenoiseConfig::default()
@@ -487,14 +519,43 @@ impl Runner {
             )),
             _ => None,
         };
+        let chain = match &setting.processing {
+            Processing::Chain(spec) => Some((spec.method(), spec.runner())),
+            _ => None,
+        };
         Runner {
             denoise,
             deconv,
             denoised: vec![0.0; bins],
+            chain,
         }
     }
 
-    /// Processes one received waveform into `out` (same length).
+    /// Before the clock starts: a chain's pulse made from `received` and the outgoing pulse
+    /// `kernel` (nothing for the built-in settings).
+    #[inline]
+    fn load(&mut self, received: &[f32], kernel: &Kernel, sample_ns: f64) {
+        if let Some((_, c)) = self.chain.as_mut() {
+            c.load(received, kernel, sample_ns);
+        }
+    }
+
+    /// After the clock stopped: a chain's waveform into `out` (nothing for the built-in
+    /// settings, which wrote it in [`Runner::run`]).
+    #[inline]
+    fn unload(&mut self, out: &mut [f32]) {
+        if let Some((_, c)) = self.chain.as_ref() {
+            c.unload(out);
+        }
+    }
+
+    /// Pulses a chain dropped so far (0 for the built-in settings).
+    fn dropped(&self) -> u64 {
+        self.chain.as_ref().map_or(0, |(_, c)| c.dropped().total())
+    }
+
+    /// Processes one received waveform into `out` (same length); a chain processes the pulse
+    /// [`Runner::load`] made.
     #[inline]
     fn run(
         &mut self,
@@ -503,6 +564,12 @@ impl Runner {
         sample_ns: f64,
         out: &mut [f32],
     ) -> Result<(), TradeoffError> {
+        if let Some((name, c)) = self.chain.as_mut() {
+            return c.run().map_err(|source| TradeoffError::Stage {
+                chain: name.clone(),
+                source,
+            });
+        }
         let Some(denoise) = self.denoise.as_mut() else {
             out.copy_from_slice(received);
             return Ok(());
@@ -526,6 +593,84 @@ impl Runner {
     }
 }
 
+/// The simulated pulses of one (pulse width, family) case, their truth peaks, and the scoring
+/// buffers (reused from case to case).
+struct CaseInput<'a> {
+    config: &'a SweepConfig,
+    generator: &'a TruthGenerator,
+    kernel: &'a Kernel,
+    width_ns: f64,
+    family: TruthFamily,
+    pulses: &'a [TruthPulse],
+    truth_peaks: &'a [Vec<usize>],
+}
+
+/// Scoring buffers, sized once for the sweep.
+struct Scratch {
+    output: Vec<f32>,
+    reblurred: Vec<f32>,
+    detected: Vec<usize>,
+}
+
+/// Runs setting `si` on one case: builds its processing, warms it up, then times and scores
+/// every pulse.
+fn run_case(
+    input: &CaseInput<'_>,
+    si: usize,
+    setting: &Setting,
+    scratch: &mut Scratch,
+) -> Result<CaseResult, TradeoffError> {
+    let config = input.config;
+    let (kernel, sample_ns) = (input.kernel, config.sample_ns);
+    let mut runner = Runner::new(setting, config.bins, kernel.taps.len());
+    let Scratch {
+        output,
+        reblurred,
+        detected,
+    } = scratch;
+    for p in input.pulses.iter().take(WARMUP_PULSES) {
+        runner.load(&p.received, kernel, sample_ns);
+        runner.run(&p.received, kernel, sample_ns, output)?;
+    }
+    let warm_drops = runner.dropped();
+    let mut case = CaseResult {
+        setting: si,
+        width_ns: input.width_ns,
+        family: input.family,
+        pulses: config.pulses,
+        rmse: RmseAccumulator::default(),
+        rmse_2ns: RmseAccumulator::default(),
+        peaks: PeakMatch::default(),
+        truth_peaks: 0,
+        sam_deg: 0.0,
+        dropped: 0,
+        times_ns: Vec::with_capacity(config.pulses),
+    };
+    for (p, tp) in input.pulses.iter().zip(input.truth_peaks) {
+        runner.load(&p.received, kernel, sample_ns);
+        // Timed: this pulse's processing only, into the reused output buffer (as the
+        // pipeline reuses a pulse's buffers); the push cannot reallocate.
+        let t0 = Instant::now();
+        runner.run(&p.received, kernel, sample_ns, output)?;
+        let dt = t0.elapsed();
+        case.times_ns.push(dt.as_secs_f64() * 1e9);
+        // Scoring, after the clock stopped.
+        runner.unload(output);
+        case.rmse.add(&p.truth, output);
+        convolve_same(output, input.generator.truth_kernel(), reblurred);
+        case.rmse_2ns.add(&p.truth, reblurred);
+        case.sam_deg += spectral_angle_deg(&p.truth, output);
+        local_peaks(output, config.peak_floor, detected);
+        let m = match_peaks(tp, detected, config.peak_tolerance_bins);
+        case.peaks.true_detections += m.true_detections;
+        case.peaks.false_detections += m.false_detections;
+        case.truth_peaks += tp.len() as u64;
+    }
+    case.sam_deg /= config.pulses as f64;
+    case.dropped = runner.dropped() - warm_drops;
+    Ok(case)
+}
+
 /// Runs every setting on every (pulse width, family) case; calls `progress` after each case.
 /// Results are in the order width → family → setting.
 pub fn run_sweep(
@@ -540,9 +685,11 @@ pub fn run_sweep(
     let mut results = Vec::with_capacity(total);
     let mut pulses: Vec<TruthPulse> = vec![TruthPulse::default(); config.pulses];
     let mut truth_peaks: Vec<Vec<usize>> = vec![Vec::with_capacity(bins / 2 + 1); config.pulses];
-    let mut output: Vec<f32> = vec![0.0; bins];
-    let mut reblurred: Vec<f32> = vec![0.0; bins];
-    let mut detected: Vec<usize> = Vec::with_capacity(bins / 2 + 1);
+    let mut scratch = Scratch {
+        output: vec![0.0; bins],
+        reblurred: vec![0.0; bins],
+        detected: Vec::with_capacity(bins / 2 + 1),
+    };
 
     for &width in &config.widths_ns {
         let kernel = gaussian_pulse(width, config.sample_ns)?;
@@ -551,43 +698,17 @@ pub fn run_sweep(
                 generator.pulse(family, i as u64, &kernel, config.noise_fraction, p);
                 local_peaks(&p.truth, config.peak_floor, tp);
             }
+            let input = CaseInput {
+                config,
+                generator: &generator,
+                kernel: &kernel,
+                width_ns: width,
+                family,
+                pulses: &pulses,
+                truth_peaks: &truth_peaks,
+            };
             for (si, setting) in settings.iter().enumerate() {
-                let mut runner = Runner::new(setting, bins, kernel.taps.len());
-                for p in pulses.iter().take(WARMUP_PULSES) {
-                    runner.run(&p.received, &kernel, config.sample_ns, &mut output)?;
-                }
-                let mut case = CaseResult {
-                    setting: si,
-                    width_ns: width,
-                    family,
-                    pulses: config.pulses,
-                    rmse: RmseAccumulator::default(),
-                    rmse_2ns: RmseAccumulator::default(),
-                    peaks: PeakMatch::default(),
-                    truth_peaks: 0,
-                    sam_deg: 0.0,
-                    times_ns: Vec::with_capacity(config.pulses),
-                };
-                for (p, tp) in pulses.iter().zip(&truth_peaks) {
-                    // Timed: this pulse's processing only, into the reused output buffer (as
-                    // the pipeline reuses a pulse's buffers); the push cannot reallocate.
-                    let t0 = Instant::now();
-                    runner.run(&p.received, &kernel, config.sample_ns, &mut output)?;
-                    let dt = t0.elapsed();
-                    case.times_ns.push(dt.as_secs_f64() * 1e9);
-                    // Scoring, after the clock stopped.
-                    case.rmse.add(&p.truth, &output);
-                    convolve_same(&output, generator.truth_kernel(), &mut reblurred);
-                    case.rmse_2ns.add(&p.truth, &reblurred);
-                    case.sam_deg += spectral_angle_deg(&p.truth, &output);
-                    local_peaks(&output, config.peak_floor, &mut detected);
-                    let m = match_peaks(tp, &detected, config.peak_tolerance_bins);
-                    case.peaks.true_detections += m.true_detections;
-                    case.peaks.false_detections += m.false_detections;
-                    case.truth_peaks += tp.len() as u64;
-                }
-                case.sam_deg /= config.pulses as f64;
-                results.push(case);
+                results.push(run_case(&input, si, setting, &mut scratch)?);
                 progress(Progress {
                     done: results.len(),
                     total,
@@ -600,11 +721,24 @@ pub fn run_sweep(
     Ok(results)
 }
 
-/// One setting's scores pooled over every (pulse width, family) case.
+/// One setting's scores pooled over every (pulse width, family) case, each pulse weighing the
+/// same: the RMSE over every bin of every pulse (every waveform has the same bins, so its
+/// square is the pulse-weighted mean of the cases' squared RMSEs), detections over every truth
+/// peak, false peaks and times over every pulse.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SettingSummary {
     /// Index into the settings list.
     pub setting: usize,
+    /// Pulses scored over every case.
+    pub pulses: usize,
+    /// True detections over every case.
+    pub true_detections: u64,
+    /// False detections over every case.
+    pub false_detections: u64,
+    /// Truth peaks over every case.
+    pub truth_peaks: u64,
+    /// Pulses a chain dropped over every case (0 for the built-in settings).
+    pub dropped: u64,
     /// Pooled RMSE (fraction of the truth's peak).
     pub rmse: f64,
     /// Pooled RMSE of the output through the truth's 2 ns pulse (fraction of the truth's peak).
@@ -642,6 +776,7 @@ pub fn summarise(settings: &[Setting], cases: &[CaseResult]) -> Vec<SettingSumma
             let mut rmse = RmseAccumulator::default();
             let mut rmse_2ns = RmseAccumulator::default();
             let (mut tp, mut fp, mut truth, mut pulses, mut sam) = (0u64, 0u64, 0u64, 0usize, 0.0);
+            let mut dropped = 0u64;
             let mut times = Vec::new();
             let mut slowest = 0.0f64;
             for c in &mine {
@@ -652,11 +787,17 @@ pub fn summarise(settings: &[Setting], cases: &[CaseResult]) -> Vec<SettingSumma
                 truth += c.truth_peaks;
                 pulses += c.pulses;
                 sam += c.sam_deg * c.pulses as f64;
+                dropped += c.dropped;
                 times.extend_from_slice(&c.times_ns);
                 slowest = slowest.max(c.median_ns());
             }
             SettingSummary {
                 setting: si,
+                pulses,
+                true_detections: tp,
+                false_detections: fp,
+                truth_peaks: truth,
+                dropped,
                 rmse: rmse.rmse(),
                 rmse_2ns: rmse_2ns.rmse(),
                 detection_rate: if truth == 0 {

@@ -151,7 +151,8 @@ pub struct LivePublish<S = (), K = (), N = ()> {
     pub input_queues: Mutex<Vec<(u64, u64)>>,
     /// Pulses waiting in each worker's output edge (to the sink).
     pub output_queues: Mutex<Vec<u64>>,
-    /// A copy of a recent pulse as it left the sink (for the waveform viewer), with the time it
+    /// A copy of the last pulse the source marked for the waveform viewer
+    /// ([`Pulse::qc_sample`], about four a second) as it left the sink, with the time it
     /// was taken.
     pub sampled_pulse: Mutex<Option<(Instant, Box<Pulse>)>>,
 }
@@ -441,8 +442,8 @@ fn nav_loop<S, K, N: Report>(
 
 /// The sink thread: reads the workers' edges in the source's round-robin order, so pulses are
 /// written in arrival order; records each pulse's latency from its arrival; with live
-/// publishing, publishes the sink's report and a copy of a recent pulse about four times a
-/// second. Returns the end-to-end histogram and the sink's final report.
+/// publishing, publishes the sink's report about four times a second and a copy of each pulse
+/// the source marked for the waveform viewer ([`Pulse::qc_sample`]). Returns the end-to-end histogram and the sink's final report.
 fn sink_loop<S, K: Report, N>(
     mut sink: Box<dyn PulseSink<Report = K>>,
     mut out_rxs: Vec<EdgeRx<WorkerOut>>,
@@ -500,18 +501,21 @@ fn sink_loop<S, K: Report, N>(
                 live.pulses_out.store(n + 1, Ordering::Relaxed);
             }
         }
-        if let Some(pb) = publish
-            && last_publish.elapsed() >= PUBLISH_EVERY
-        {
-            last_publish = Instant::now();
-            publish_sink(pb, &e2e, sink.as_ref(), &out_rxs);
-            let mut slot = lock(&pb.sampled_pulse);
-            match slot.as_mut() {
-                Some((t, q)) => {
-                    *t = last_publish;
-                    q.copy_from(&p);
+        if let Some(pb) = publish {
+            if last_publish.elapsed() >= PUBLISH_EVERY {
+                last_publish = Instant::now();
+                publish_sink(pb, &e2e, sink.as_ref(), &out_rxs);
+            }
+            // The pulse the source marked for the waveform viewer.
+            if p.qc_sample {
+                let mut slot = lock(&pb.sampled_pulse);
+                match slot.as_mut() {
+                    Some((t, q)) => {
+                        *t = Instant::now();
+                        q.copy_from(&p);
+                    }
+                    None => *slot = Some((Instant::now(), p.clone())),
                 }
-                None => *slot = Some((last_publish, p.clone())),
             }
         }
         pool.give(p);
@@ -543,8 +547,9 @@ fn publish_sink<S, K: Report, N>(
 }
 
 /// The source thread: reads the source, numbers its pulses and deals them round-robin to the
-/// workers' edges (a pulse dropped at a full edge does not advance the round), hands the
-/// navigation bytes to the navigation thread; stops at the source's end, its error (fatal) or
+/// workers' edges (a pulse dropped at a full edge does not advance the round), with live
+/// publishing marks the first pulse queued in each publishing interval for the waveform viewer
+/// ([`Pulse::qc_sample`]), hands the navigation bytes to the navigation thread; stops at the source's end, its error (fatal) or
 /// the stop flag. Returns whether it was stopped early, and the source's report.
 fn source_loop<S: Report, K, N>(
     mut source: Box<dyn Source<Report = S>>,
@@ -558,6 +563,9 @@ fn source_loop<S: Report, K, N>(
     let mut stopped_early = false;
     let mut k = 0usize;
     let mut last_publish = Instant::now();
+    // With live publishing, a pulse is marked for the QC page's waveform viewer once every
+    // PUBLISH_EVERY (`Pulse::qc_sample`): the first one queued after the interval.
+    let mut last_mark = Instant::now();
     loop {
         if let Some(pb) = &control.publish
             && last_publish.elapsed() >= PUBLISH_EVERY
@@ -583,8 +591,15 @@ fn source_loop<S: Report, K, N>(
                 let n = live.pulses_in.load(Ordering::Relaxed);
                 p.seq = control.seq_base + n;
                 live.pulses_in.store(n + 1, Ordering::Relaxed);
+                let mark = control.publish.is_some() && last_mark.elapsed() >= PUBLISH_EVERY;
+                p.qc_sample = mark;
                 match in_txs[k].send(p) {
-                    Sent::Queued => k = (k + 1) % in_txs.len(),
+                    Sent::Queued => {
+                        if mark {
+                            last_mark = Instant::now();
+                        }
+                        k = (k + 1) % in_txs.len();
+                    }
                     Sent::Dropped(p) => {
                         live.input_dropped.fetch_add(1, Ordering::Relaxed);
                         pool.give(p);

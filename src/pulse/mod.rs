@@ -261,6 +261,11 @@ pub struct Pulse {
     /// How to turn the signal's volts into calibrated backscatter, from the `calibrate` stage
     /// (`None` before it, or when it did not run).
     pub calibration: Option<Calibration>,
+    /// Marked by the pipeline's source for the QC page's waveform viewer (live runs only, about
+    /// four pulses a second; `pipeline::runner`): the pulse the viewer will show. Work that only
+    /// the viewer uses is done for these alone (a `decompose` stage with `pulses =
+    /// "qc_sampled"`). False otherwise, and always in replay.
+    pub qc_sample: bool,
     /// When the pulse entered the process (for latency measurement).
     pub arrived: Instant,
 }
@@ -285,6 +290,7 @@ impl Default for Pulse {
             returns: Vec::new(),
             metrics: None,
             calibration: None,
+            qc_sample: false,
             arrived: Instant::now(),
         }
     }
@@ -311,6 +317,7 @@ impl Pulse {
         self.returns.clone_from(&other.returns);
         self.metrics = other.metrics;
         self.calibration = other.calibration;
+        self.qc_sample = other.qc_sample;
         self.arrived = other.arrived;
     }
 
@@ -333,6 +340,7 @@ impl Pulse {
         self.returns.clear();
         self.metrics = None;
         self.calibration = None;
+        self.qc_sample = false;
         self.arrived = Instant::now();
     }
 

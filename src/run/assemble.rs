@@ -35,7 +35,8 @@ pub enum Workers {
 }
 
 /// Puts a run together from its opened `input`: prepares the configured stages for it (the
-/// input's facts, the DEM; a stage that cannot be built is a configuration error), shapes the
+/// input's facts, the DEM, whether the outputs write returns; a stage that cannot be built is a
+/// configuration error), shapes the
 /// pipeline, and builds the outputs with `outputs` (replay's or the daemon's,
 /// [`super::outputs`]).
 pub fn assemble(
@@ -45,9 +46,14 @@ pub fn assemble(
     outputs: impl FnOnce(&Chain, &Input) -> Result<Vec<Box<DynSink>>, RunError>,
 ) -> Result<Assembled, RunError> {
     let facts = input.source.facts();
+    let writes_returns = match workers {
+        Workers::Replay(_) => super::outputs::replay_writes_returns(config),
+        Workers::Live(_) => super::outputs::daemon_writes_returns(config),
+    };
     let ctx = RunContext {
         facts: &facts,
         dem: input.dem.as_ref(),
+        writes_returns,
     };
     let chain = Chain::prepare(&config.pipeline.stages, &ctx).map_err(RunError::usage)?;
     let p = &config.pipeline;

@@ -50,6 +50,18 @@ pub fn replay_run_key(inputs: &[PathBuf], shard: Option<Shard>, config: &RunConf
     )
 }
 
+/// Whether replay's outputs write the discrete returns (`returns.csv`, `returns.las`) when the
+/// chain finds them: what [`replay_sinks`] asks of `[output]` (`stages::RunContext`).
+pub fn replay_writes_returns(config: &RunConfig) -> bool {
+    config.output.returns || config.output.las
+}
+
+/// Whether the daemon's outputs write the discrete returns (the segment's LAS files) when the
+/// chain finds them: what [`daemon_sinks`] asks of `[output]`.
+pub fn daemon_writes_returns(config: &RunConfig) -> bool {
+    config.output.las
+}
+
 /// What replay writes into `out_dir`: the outputs `[output]` and `[voxels]` ask for, each only
 /// when the chain produces what it holds (returns after a decompose stage, metrics after a
 /// metrics stage). `input_path` is the first input (a GEDI granule adds `shot_number` to
@@ -160,7 +172,7 @@ pub fn daemon_sinks(
             VoxelUse::Daemon,
         )?);
     }
-    if config.output.las && chain.products().returns {
+    if daemon_writes_returns(config) && chain.products().returns {
         let dir = out_dir.join("returns").join(segment_stem);
         std::fs::create_dir_all(&dir).map_err(|e| {
             RunError::job(format!("cannot create LAS folder {}: {e}", dir.display()))

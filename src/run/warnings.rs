@@ -575,6 +575,7 @@ mod tests {
             &crate::stages::RunContext {
                 facts: &facts,
                 dem: None,
+                writes_returns: true,
             },
         )
         .unwrap()

@@ -130,6 +130,37 @@ pub struct DecomposeConfig {
     /// flank; see [`PeakRule`]).
     #[serde(default)]
     pub peak_rule: PeakRule,
+    /// Which pulses the `decompose` stage decomposes (see [`DecomposePulses`]): `"auto"`
+    /// (default), `"all"` or `"qc_sampled"`. Not written back when `"auto"`, so a
+    /// configuration without the key reads and writes as before it existed.
+    #[serde(default, skip_serializing_if = "DecomposePulses::is_auto")]
+    pub pulses: DecomposePulses,
+}
+
+/// Which pulses a `decompose` stage decomposes (`decompose.pulses`). The returns are read by
+/// the returns' outputs (LAS, `returns.csv`) and by the QC page's waveform viewer, which shows
+/// the returns of the pulses the pipeline's source marks for it ([`Pulse::qc_sample`], about
+/// four a second on board, none in replay).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DecomposePulses {
+    /// Decided when the run is put together (the stage's `prepare`): `all` when one of the
+    /// run's outputs writes the returns, `qc_sampled` otherwise. Default. (Where no run decides
+    /// it, as in `fwlidar process`, every pulse.)
+    #[default]
+    Auto,
+    /// Every pulse.
+    All,
+    /// Only the pulses marked for the waveform viewer; the others pass on without returns,
+    /// after the same checks (a pulse the decomposition would drop is dropped all the same).
+    QcSampled,
+}
+
+impl DecomposePulses {
+    /// Whether this is `auto` (not written back to TOML).
+    pub fn is_auto(&self) -> bool {
+        *self == DecomposePulses::Auto
+    }
 }
 
 /// What the decomposition fits (`decompose.baseline`).
@@ -232,6 +263,7 @@ impl Default for DecomposeConfig {
             running_mean_bins: 0,
             start_values: StartValues::HalfWidth,
             peak_rule: PeakRule::RiseAndFall,
+            pulses: DecomposePulses::Auto,
         }
     }
 }
@@ -795,6 +827,49 @@ pub struct Decompose {
 }
 
 impl Decompose {
+    /// Whether `pulse` is to be decomposed: every pulse, unless the configuration says
+    /// [`DecomposePulses::QcSampled`] (then the marked ones, [`Pulse::qc_sample`]).
+    #[inline]
+    pub fn wants(&self, pulse: &Pulse) -> bool {
+        pulse.qc_sample || self.decomposer.config.pulses != DecomposePulses::QcSampled
+    }
+
+    /// What [`Decompose::decompose_pulse`] makes of a pulse it does not decompose (see
+    /// [`Decompose::wants`]): the same drops and rejections of a pulse it cannot use (a few
+    /// comparisons per segment), otherwise passed on with no returns.
+    pub fn pass_pulse(&self, pulse: &mut Pulse) -> Verdict {
+        if let Some(refused) = self.refusal(pulse) {
+            return refused;
+        }
+        pulse.returns.clear();
+        Verdict::DONE
+    }
+
+    /// The verdict on a pulse the decomposition cannot use, `None` for a usable one: not
+    /// denoised (dropped), a segment past the samples (rejected), a return segment longer than
+    /// `max_samples` (dropped).
+    fn refusal(&self, pulse: &Pulse) -> Option<Verdict> {
+        if pulse.signal.len() != pulse.raw.len() {
+            return Some(Verdict::Drop("not_denoised"));
+        }
+        let n = pulse.signal.len();
+        if pulse
+            .segments
+            .iter()
+            .any(|s| s.first as usize + s.len as usize > n)
+        {
+            return Some(Verdict::Reject("segment_out_of_bounds"));
+        }
+        if pulse
+            .segments
+            .iter()
+            .any(|s| s.kind == SegmentKind::Return && s.len as usize > self.max_samples)
+        {
+            return Some(Verdict::Drop("segment_too_long"));
+        }
+        None
+    }
+
     /// Builds the stage with buffers for [`DecomposeConfig::max_samples`].
     pub fn new(config: DecomposeConfig) -> Self {
         let max_samples = config.max_samples;
@@ -811,23 +886,8 @@ impl Decompose {
     /// `decompose` stage does to each pulse): dropped `not_denoised`, `segment_too_long`;
     /// rejected `segment_out_of_bounds`, `non_finite_input`.
     pub fn decompose_pulse(&mut self, pulse: &mut Pulse) -> Verdict {
-        if pulse.signal.len() != pulse.raw.len() {
-            return Verdict::Drop("not_denoised");
-        }
-        let n = pulse.signal.len();
-        if pulse
-            .segments
-            .iter()
-            .any(|s| s.first as usize + s.len as usize > n)
-        {
-            return Verdict::Reject("segment_out_of_bounds");
-        }
-        if pulse
-            .segments
-            .iter()
-            .any(|s| s.kind == SegmentKind::Return && s.len as usize > self.max_samples)
-        {
-            return Verdict::Drop("segment_too_long");
+        if let Some(refused) = self.refusal(pulse) {
+            return refused;
         }
         let p = pulse;
         p.returns.clear();

@@ -10,5 +10,5 @@ pub mod kernel;
 pub mod peaks;
 
 pub use calibrate::{Calibrate, CalibrateConfig};
-pub use decompose::{Decompose, DecomposeBaseline, DecomposeConfig, StartValues};
+pub use decompose::{Decompose, DecomposeBaseline, DecomposeConfig, DecomposePulses, StartValues};
 pub use denoise::{Denoise, DenoiseConfig};

@@ -38,6 +38,10 @@ impl StageKind for CalibrateConfig {
         "calibrate"
     }
 
+    fn changes_waveform(&self) -> bool {
+        false
+    }
+
     /// Fills the system constant and the time origin the configuration leaves to the input
     /// ([`CalibrateConfig::resolve_from_input`]) and logs what was decided.
     fn prepare(&mut self, ctx: &RunContext<'_>) {

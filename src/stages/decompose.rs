@@ -2,12 +2,23 @@
 //! into discrete returns ([`crate::signal::decompose`]). Its configuration,
 //! [`DecomposeConfig`], is the method's parameter set (also used by `fwlidar process`), defined
 //! beside the method.
+//!
+//! **Which pulses** (`pulses`, [`DecomposePulses`]): the returns are read by the returns'
+//! outputs (LAS, `returns.csv`) and by the QC page's waveform viewer, which shows the returns of
+//! the pulses the pipeline's source marks for it (`Pulse::qc_sample`, about four a second on
+//! board). With the default `"auto"`, [`StageKind::prepare`] decides from the run: every pulse
+//! when one of its outputs writes the returns ([`RunContext::writes_returns`]), otherwise only
+//! the marked ones (`"qc_sampled"`): on board without LAS, the ~5-10 µs fit of every other
+//! pulse is saved. The pulses left out pass the same checks (a pulse the decomposition would
+//! drop is dropped all the same) and go on without returns.
 
-use super::{Advice, BuildError, MAX_SEGMENT_SAMPLES, MIN_SEGMENT_SAMPLES, Products, StageKind};
+use super::{
+    Advice, BuildError, MAX_SEGMENT_SAMPLES, MIN_SEGMENT_SAMPLES, Products, RunContext, StageKind,
+};
 use crate::core::validate::{Validate, Validator, field};
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::Pulse;
-pub use crate::signal::decompose::DecomposeConfig;
+pub use crate::signal::decompose::{DecomposeConfig, DecomposePulses};
 use crate::signal::decompose::{Decompose, MAX_RUNNING_MEAN_BINS};
 use crate::signal::gauss_fit::MAX_COMPONENTS;
 
@@ -115,6 +126,30 @@ impl StageKind for DecomposeConfig {
         "decompose"
     }
 
+    fn changes_waveform(&self) -> bool {
+        false
+    }
+
+    fn prepare(&mut self, ctx: &RunContext<'_>) {
+        if self.pulses == DecomposePulses::Auto {
+            self.pulses = if ctx.writes_returns {
+                DecomposePulses::All
+            } else {
+                DecomposePulses::QcSampled
+            };
+            tracing::info!(
+                pulses = ?self.pulses,
+                "decompose stage: {}",
+                if ctx.writes_returns {
+                    "an output writes the returns: every pulse is decomposed"
+                } else {
+                    "no output writes the returns: only the pulses the QC waveform viewer shows \
+                     are decomposed"
+                }
+            );
+        }
+    }
+
     fn build(&self) -> Result<Box<dyn Stage>, BuildError> {
         Ok(Box::new(Decompose::new(self.clone())))
     }
@@ -136,9 +171,14 @@ impl StageKind for DecomposeConfig {
     }
 
     fn cost_lines(&self) -> Vec<String> {
+        // `auto` is decided per run (`fwlidar validate` does not know the run's outputs).
+        let which = match self.pulses {
+            DecomposePulses::QcSampled => ", only for the QC waveform viewer's ~4 pulses a second",
+            DecomposePulses::Auto | DecomposePulses::All => "",
+        };
         vec![format!(
             "decompose: at most {} Levenberg-Marquardt steps and {} components per return \
-             segment of <= {} samples",
+             segment of <= {} samples{which}",
             self.max_iterations, self.max_components, self.max_samples
         )]
     }
@@ -150,7 +190,11 @@ impl Stage for Decompose {
     }
 
     fn process(&mut self, mut pulse: Box<Pulse>, out: &mut Emitter<'_>) -> Result<(), StageError> {
-        let verdict = self.decompose_pulse(&mut pulse);
+        let verdict = if self.wants(&pulse) {
+            self.decompose_pulse(&mut pulse)
+        } else {
+            self.pass_pulse(&mut pulse)
+        };
         out.give(pulse, verdict);
         Ok(())
     }
@@ -159,7 +203,103 @@ impl Stage for Decompose {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::facts::SourceFacts;
+    use crate::pipeline::testing::run_stage;
     use crate::stages::StageConfig;
+
+    /// `pulses = "auto"` decided by the run's outputs: every pulse when one writes the
+    /// returns, else the QC viewer's marked pulses alone.
+    #[test]
+    fn auto_decomposes_every_pulse_only_when_an_output_writes_the_returns() {
+        let facts = SourceFacts::default();
+        let prepared = |pulses: DecomposePulses, writes_returns: bool| {
+            let mut c = DecomposeConfig {
+                pulses,
+                ..Default::default()
+            };
+            c.prepare(&RunContext {
+                facts: &facts,
+                dem: None,
+                writes_returns,
+            });
+            c.pulses
+        };
+        assert_eq!(DecomposeConfig::default().pulses, DecomposePulses::Auto);
+        assert_eq!(prepared(DecomposePulses::Auto, true), DecomposePulses::All);
+        assert_eq!(
+            prepared(DecomposePulses::Auto, false),
+            DecomposePulses::QcSampled
+        );
+        // An explicit choice stays.
+        assert_eq!(prepared(DecomposePulses::All, false), DecomposePulses::All);
+        // The key parses; `auto` is not written back.
+        let c = stage("type = \"decompose\"\npulses = \"qc_sampled\"").unwrap();
+        let StageConfig::Decompose(d) = &c else {
+            panic!("{c:?}")
+        };
+        assert_eq!(d.pulses, DecomposePulses::QcSampled);
+        assert!(toml::to_string(&c).unwrap().contains("pulses = \"qc_sampled\""));
+        let text = toml::to_string(&StageConfig::Decompose(DecomposeConfig::default())).unwrap();
+        assert!(!text.contains("pulses"), "{text}");
+        assert!(stage("type = \"decompose\"\npulses = \"some\"").is_err());
+    }
+
+    /// With `qc_sampled`, the marked pulses get their returns, the others pass on without
+    /// them (after the same checks); with `all`, every pulse gets them.
+    #[test]
+    fn qc_sampled_decomposes_the_marked_pulses_alone() {
+        // Denoised pulses with one echo each (signal in volts, raw counts alongside).
+        let pulses: Vec<Pulse> = (0..9)
+            .map(|i| {
+                let mut p = Pulse::default();
+                p.push_segment(crate::pulse::SegmentKind::Return, 0, 0.0, [0u16; 128]);
+                p.signal = (0..128)
+                    .map(|k| (-((k as f32 - 60.0 - i as f32) / 3.0).powi(2) / 2.0).exp())
+                    .collect();
+                p.noise.noise_v = 0.01;
+                p.qc_sample = i % 3 == 0;
+                p
+            })
+            .collect();
+        let run = |which: DecomposePulses| {
+            let mut d = DecomposeConfig {
+                pulses: which,
+                ..Default::default()
+            }
+            .build()
+            .unwrap();
+            run_stage(d.as_mut(), pulses.clone()).unwrap()
+        };
+        let all = run(DecomposePulses::All);
+        assert_eq!(all.emitted.len(), 9);
+        assert!(all.emitted.iter().all(|p| p.returns.len() == 1));
+        let sampled = run(DecomposePulses::QcSampled);
+        assert_eq!(sampled.emitted.len(), 9);
+        for (a, s) in all.emitted.iter().zip(&sampled.emitted) {
+            if s.qc_sample {
+                let fit = |p: &Pulse| -> Vec<[f32; 3]> {
+                    p.returns
+                        .iter()
+                        .map(|r| [r.position_bins, r.amplitude, r.sigma_bins])
+                        .collect()
+                };
+                assert_eq!(fit(a), fit(s), "the same returns for a marked pulse");
+            } else {
+                assert!(s.returns.is_empty());
+            }
+        }
+        // A pulse the decomposition cannot use is refused all the same.
+        let mut undenoised = pulses[1].clone();
+        undenoised.signal.clear();
+        let mut d = DecomposeConfig {
+            pulses: DecomposePulses::QcSampled,
+            ..Default::default()
+        }
+        .build()
+        .unwrap();
+        let r = run_stage(d.as_mut(), [undenoised]).unwrap();
+        assert_eq!(r.dropped.get("not_denoised"), 1);
+    }
 
     fn stage(text: &str) -> Result<StageConfig, toml::de::Error> {
         toml::from_str(text)

@@ -71,6 +71,10 @@ impl StageKind for MetricsConfig {
         "metrics"
     }
 
+    fn changes_waveform(&self) -> bool {
+        false
+    }
+
     /// Hands the run's DEM to a stage that takes its ground from it (`ground = "dem"`).
     fn prepare(&mut self, ctx: &RunContext<'_>) {
         if self.ground == GroundFrom::Dem {

@@ -48,6 +48,10 @@ pub struct RunContext<'a> {
     pub facts: &'a SourceFacts,
     /// The run's DEM, when one is configured.
     pub dem: Option<&'a Arc<Dem>>,
+    /// Whether one of the run's outputs writes the discrete returns ([`Products::returns`]):
+    /// LAS or `returns.csv`. Without one, the returns serve only the QC page's waveform viewer
+    /// (`pulse::Pulse::qc_sample`).
+    pub writes_returns: bool,
 }
 
 /// What a stage adds to the pulses that pass it: what the outputs after the chain can rely on.
@@ -122,6 +126,14 @@ pub trait StageKind: Validate + Send + Sync {
     /// What the stage adds to the pulses. Default: nothing the outputs look for.
     fn products(&self) -> Products {
         Products::default()
+    }
+
+    /// Whether the stage changes the pulse's waveform ([`crate::pulse::Pulse::signal`]), as
+    /// opposed to only reading it and adding what it finds (returns, a calibration, metrics):
+    /// the stages `fwlidar tradeoff --chain` runs and times before scoring the waveform.
+    /// Default: yes (a new kind is run unless it says otherwise).
+    fn changes_waveform(&self) -> bool {
+        true
     }
 
     /// What a note of this stage (a pulse passed on partly unprocessed) means, for the
@@ -332,6 +344,7 @@ mod tests {
             &RunContext {
                 facts: &facts,
                 dem: None,
+                writes_returns: true,
             },
         )
         .unwrap();
@@ -365,6 +378,7 @@ mod tests {
         let ctx = RunContext {
             facts: &facts,
             dem: None,
+            writes_returns: true,
         };
         let parse = |text: &str| -> Vec<StageConfig> {
             #[derive(Deserialize)]

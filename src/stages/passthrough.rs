@@ -22,6 +22,10 @@ impl StageKind for PassthroughConfig {
         "passthrough"
     }
 
+    fn changes_waveform(&self) -> bool {
+        false
+    }
+
     fn build(&self) -> Result<Box<dyn Stage>, BuildError> {
         Ok(Box::new(Passthrough))
     }
