@@ -78,9 +78,16 @@ impl Metrics {
                 })
             }
         };
-        let (mean, sd) = match stated {
-            Some(n) => (f64::from(n.mean), f64::from(n.stddev)),
-            None => self.robust_noise(),
+        let (mean, sd) = match (stated, self.config.source) {
+            (Some(n), _) => (f64::from(n.mean), f64::from(n.stddev)),
+            // The raw samples are the counts in signal units: sorted by counting.
+            (None, MetricsSource::Raw) => {
+                let (level, sigma) = self
+                    .noise
+                    .level_and_sigma_of_counts(&p.raw[range], |c| p.counts_to_volts(c));
+                (f64::from(level), f64::from(sigma))
+            }
+            (None, MetricsSource::Signal) => self.robust_noise(),
         };
         // The outgoing pulse's σ, measured once when the smoothing or the pulse's σ is taken
         // from it (raw waveforms only).

@@ -451,72 +451,15 @@ impl MetricsComputer {
             self.kernel_sigma_bins = sigma_bins;
         }
         // Edges held at the end samples: a padded copy, then one dot product per sample
-        // (contiguous, so it vectorises).
+        // (`pulse_metrics/smoothing.rs`).
         self.padded.clear();
         self.padded
             .extend(std::iter::repeat_n(f64::from(y[0]), half));
         self.padded.extend(y.iter().map(|&v| f64::from(v)));
         self.padded
             .extend(std::iter::repeat_n(f64::from(y[n - 1]), half));
-        let k = &self.kernel;
-        // Four outputs at a time (independent sums side by side), then the rest one by one;
-        // each output's sum is the same either way.
-        let mut i = 0;
-        while i + 4 <= n {
-            let sums = smoothed_four(&self.padded[i..i + 3 + k.len()], k);
-            self.smooth.extend_from_slice(&sums);
-            i += 4;
-        }
-        for i in i..n {
-            self.smooth
-                .push(smoothed_one(&self.padded[i..i + k.len()], k));
-        }
+        smooth_padded(&self.padded, &self.kernel, n, &mut self.smooth);
     }
-}
-
-/// One sample of the smoothed waveform: the dot product of `window` and the kernel `k` (of
-/// the same length) as four partial sums over the kernel's whole groups of four, added
-/// pairwise, then the kernel's last taps one by one (contiguous, so it vectorises).
-fn smoothed_one(window: &[f64], k: &[f64]) -> f64 {
-    let mut lanes = [0.0f64; 4];
-    let (wc, kc) = (window.chunks_exact(4), k.chunks_exact(4));
-    let (wr, kr) = (wc.remainder(), kc.remainder());
-    for (a, b) in wc.zip(kc) {
-        for l in 0..4 {
-            lanes[l] += a[l] * b[l];
-        }
-    }
-    let mut acc = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
-    for (a, b) in wr.iter().zip(kr) {
-        acc += a * b;
-    }
-    acc
-}
-
-/// Four consecutive samples of the smoothed waveform, each [`smoothed_one`] of the window
-/// starting at `window[o]` (`window` is `k.len() + 3` long): the four sums are independent,
-/// so interleaving them hides the latency of each one's additions.
-fn smoothed_four(window: &[f64], k: &[f64]) -> [f64; 4] {
-    let whole = k.len() / 4 * 4;
-    let mut lanes = [[0.0f64; 4]; 4];
-    for c in (0..whole).step_by(4) {
-        let kc = &k[c..c + 4];
-        for (o, lane) in lanes.iter_mut().enumerate() {
-            let a = &window[o + c..o + c + 4];
-            for l in 0..4 {
-                lane[l] += a[l] * kc[l];
-            }
-        }
-    }
-    let mut out = [0.0f64; 4];
-    for (o, lane) in lanes.iter().enumerate() {
-        let mut acc = (lane[0] + lane[1]) + (lane[2] + lane[3]);
-        for t in whole..k.len() {
-            acc += window[o + t] * k[t];
-        }
-        out[o] = acc;
-    }
-    out
 }
 
 /// Whether `w` can be measured: `Err(NoWaveform)` unless it has 4 to [`MAX_METRIC_SAMPLES`]
@@ -1138,11 +1081,13 @@ pub fn dem_crossing_ns(dem: &Dem, g: &crate::pulse::PulseGeometry, guess: f64) -
 }
 
 mod ground_fit;
+mod smoothing;
 
 pub use ground_fit::ExtGauss;
 #[cfg(test)]
 use ground_fit::erf;
 use ground_fit::{FitBounds, FitScratch, SQRT_2PI, fit_ext_gauss};
+use smoothing::smooth_padded;
 
 #[cfg(test)]
 mod tests;

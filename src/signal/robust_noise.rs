@@ -24,6 +24,9 @@ use crate::signal::denoise::{CLIP_ITERATIONS, CLIP_SIGMAS, MAD_TO_SIGMA, robust_
 /// Largest sample magnitude sorted as keys (beyond, the selection of the reference).
 const MAX_SORTED_MAGNITUDE: f32 = 1e30;
 
+/// Widest range of counts (`max − min + 1`) sorted by counting.
+const MAX_COUNT_RANGE: usize = 4096;
+
 /// Work buffers of the robust noise estimate: no allocation once they have held the longest
 /// waveform.
 #[derive(Debug, Default)]
@@ -35,6 +38,9 @@ pub struct RobustNoise {
     /// Work buffers of the reference's selection (samples not finite).
     work: Vec<f32>,
     deviations: Vec<f32>,
+    /// Histogram of the counts and the samples in signal units ([`RobustNoise::level_and_sigma_of_counts`]).
+    histogram: Vec<u32>,
+    values: Vec<f32>,
 }
 
 impl RobustNoise {
@@ -45,6 +51,8 @@ impl RobustNoise {
             sorted: Vec::with_capacity(samples),
             work: Vec::new(),
             deviations: Vec::new(),
+            histogram: Vec::with_capacity(MAX_COUNT_RANGE),
+            values: Vec::with_capacity(samples),
         }
     }
 
@@ -68,6 +76,52 @@ impl RobustNoise {
         self.sorted
             .extend(self.keys.iter().map(|&k| from_order_key(k)));
         clipped_level_and_sigma(&self.sorted)
+    }
+}
+
+impl RobustNoise {
+    /// [`RobustNoise::level_and_sigma`] of the samples `to_volts(c)` of the digitizer counts
+    /// `counts`, sorted by counting: the counts' histogram read in order, each count's value
+    /// taken once. When the values so read are in order (any non-decreasing `to_volts`, as
+    /// `offset + gain × counts` with a positive gain) they are the sorted samples; otherwise, or
+    /// for counts spanning more than 4096 values, the samples are sorted as in
+    /// [`RobustNoise::level_and_sigma`].
+    pub fn level_and_sigma_of_counts(
+        &mut self,
+        counts: &[u16],
+        to_volts: impl Fn(u16) -> f32,
+    ) -> (f32, f32) {
+        let (Some(&lo), Some(&hi)) = (counts.iter().min(), counts.iter().max()) else {
+            return (f32::NAN, f32::NAN);
+        };
+        let range = usize::from(hi - lo) + 1;
+        if range <= MAX_COUNT_RANGE {
+            self.histogram.clear();
+            self.histogram.resize(range, 0);
+            for &c in counts {
+                self.histogram[usize::from(c - lo)] += 1;
+            }
+            self.sorted.clear();
+            let mut in_order = true;
+            let mut previous = f32::NEG_INFINITY;
+            for (i, &h) in self.histogram.iter().enumerate() {
+                if h > 0 {
+                    let v = to_volts(lo + i as u16);
+                    in_order &= v.abs() <= MAX_SORTED_MAGNITUDE && previous.total_cmp(&v).is_le();
+                    previous = v;
+                    self.sorted.extend(std::iter::repeat_n(v, h as usize));
+                }
+            }
+            if in_order {
+                return clipped_level_and_sigma(&self.sorted);
+            }
+        }
+        let mut values = std::mem::take(&mut self.values);
+        values.clear();
+        values.extend(counts.iter().map(|&c| to_volts(c)));
+        let result = self.level_and_sigma(&values);
+        self.values = values;
+        result
     }
 }
 
@@ -205,7 +259,40 @@ mod tests {
         assert!(RobustNoise::default().level_and_sigma(&[]).0.is_nan());
     }
 
+    /// The samples of `counts` through `to_volts`, by counting and as `f32` samples.
+    fn check_counts(counts: &[u16], to_volts: impl Fn(u16) -> f32) -> Result<(), TestCaseError> {
+        let volts: Vec<f32> = counts.iter().map(|&c| to_volts(c)).collect();
+        let (mut work, mut dev) = (Vec::new(), Vec::new());
+        let want = robust_level_and_sigma(&volts, &mut work, &mut dev);
+        let got = RobustNoise::default().level_and_sigma_of_counts(counts, to_volts);
+        prop_assert_eq!(got.0.to_bits(), want.0.to_bits(), "level of {:?}", counts);
+        prop_assert_eq!(got.1.to_bits(), want.1.to_bits(), "σ of {:?}", counts);
+        Ok(())
+    }
+
     proptest! {
+        /// Counts with echoes through `offset + gain × counts` of either sign of gain (a
+        /// negative one is out of order: the sort's path), and a wide range.
+        #[test]
+        fn counts_by_counting_match_the_reference(
+            counts in proptest::collection::vec(0u16..60, 1..400),
+            echo_at in 0usize..400,
+            echo_len in 0usize..300,
+            echo_height in prop_oneof![0u16..500, Just(10_000u16)],
+            gain in prop_oneof![Just(1.0f32), 0.001f32..0.1, -0.1f32..-0.001, Just(0.0f32)],
+            offset in prop_oneof![-2.0f32..2.0, Just(0.0f32), Just(-0.0f32)],
+        ) {
+            let counts: Vec<u16> = counts
+                .iter()
+                .enumerate()
+                .map(|(i, &c)| {
+                    let echo = if i >= echo_at && i < echo_at + echo_len { echo_height } else { 0 };
+                    c + echo
+                })
+                .collect();
+            check_counts(&counts, |c| offset + gain * c as f32)?;
+        }
+
         /// Noise on integer counts (ties everywhere) with an echo filling part of the window,
         /// converted to volts with a gain and an offset, as the metrics see raw waveforms.
         #[test]
