@@ -16,7 +16,7 @@
 use crate::forest::pulse_metrics::{MetricsComputer, MetricsConfig, MetricsSource, WaveformInput};
 use crate::pulse::waveform_metrics::WaveformMetrics;
 use crate::pulse::{Pulse, SegmentKind, StatedNoise};
-use crate::signal::denoise::robust_level_and_sigma;
+use crate::signal::robust_noise::RobustNoise;
 
 /// `2 √(2 ln 2)`: FWHM of a Gaussian in units of σ.
 const FWHM_PER_SIGMA: f64 = 2.354_820_045;
@@ -26,9 +26,8 @@ pub struct Metrics {
     config: MetricsConfig,
     computer: MetricsComputer,
     work: Vec<f32>,
-    sorted: Vec<f32>,
-    /// Work buffer of the noise estimate.
-    deviations: Vec<f32>,
+    /// Buffers of the noise estimate.
+    noise: RobustNoise,
 }
 
 impl Metrics {
@@ -38,8 +37,7 @@ impl Metrics {
             config,
             computer: MetricsComputer::with_capacity(2048),
             work: Vec::with_capacity(2048),
-            sorted: Vec::with_capacity(2048),
-            deviations: Vec::with_capacity(2048),
+            noise: RobustNoise::with_capacity(2048),
         }
     }
 
@@ -80,23 +78,39 @@ impl Metrics {
                 })
             }
         };
-        let (mean, sd) = match stated {
-            Some(n) => (f64::from(n.mean), f64::from(n.stddev)),
-            None => self.robust_noise(),
+        let (mean, sd) = match (stated, self.config.source) {
+            (Some(n), _) => (f64::from(n.mean), f64::from(n.stddev)),
+            // The raw samples are the counts in signal units: sorted by counting.
+            (None, MetricsSource::Raw) => {
+                let (level, sigma) = self
+                    .noise
+                    .level_and_sigma_of_counts(&p.raw[range], |c| p.counts_to_volts(c));
+                (f64::from(level), f64::from(sigma))
+            }
+            (None, MetricsSource::Signal) => self.robust_noise(),
         };
+        // The outgoing pulse's σ, measured once when the smoothing or the pulse's σ is taken
+        // from it (raw waveforms only).
+        let raw = self.config.source == MetricsSource::Raw;
+        let outgoing =
+            if raw && !(self.config.smoothing_sigma_ns > 0.0 && self.config.pulse_sigma_ns > 0.0) {
+                outgoing_sigma_ns(p)
+            } else {
+                None
+            };
         let smoothing = if self.config.smoothing_sigma_ns > 0.0 {
             self.config.smoothing_sigma_ns
-        } else if self.config.source == MetricsSource::Signal {
+        } else if !raw {
             // Already low-passed (and deconvolved): smoothing by the outgoing pulse would undo
             // the deconvolution.
             0.0
         } else {
-            outgoing_sigma_ns(p).unwrap_or(MetricsConfig::FALLBACK_SMOOTHING_NS)
+            outgoing.unwrap_or(MetricsConfig::FALLBACK_SMOOTHING_NS)
         };
         let pulse_sigma = if self.config.pulse_sigma_ns > 0.0 {
             self.config.pulse_sigma_ns
-        } else if self.config.source == MetricsSource::Raw {
-            outgoing_sigma_ns(p).unwrap_or(0.0)
+        } else if raw {
+            outgoing.unwrap_or(0.0)
         } else {
             0.0
         };
@@ -117,8 +131,7 @@ impl Metrics {
     /// Noise level and σ of the waveform in `work`: the upper-clipped median and MAD (the
     /// denoise stage's robust baseline), so a return filling half the window does not raise them.
     fn robust_noise(&mut self) -> (f64, f64) {
-        let (level, sigma) =
-            robust_level_and_sigma(&self.work, &mut self.sorted, &mut self.deviations);
+        let (level, sigma) = self.noise.level_and_sigma(&self.work);
         (f64::from(level), f64::from(sigma))
     }
 }

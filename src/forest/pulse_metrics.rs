@@ -37,6 +37,7 @@
 // The 4 × 4 normal equations and the solver index rows and columns by number, as written.
 #![allow(clippy::needless_range_loop)]
 
+use std::cell::Cell;
 use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
@@ -259,6 +260,10 @@ pub struct MetricsComputer {
     canopy: Vec<f64>,
     cum: Vec<f64>,
     padded: Vec<f64>,
+    /// Work buffers of the ground echo's fit.
+    fit: FitScratch,
+    /// PAI of the FHD's layers, m²/m².
+    layers: Vec<f64>,
 }
 
 impl MetricsComputer {
@@ -273,6 +278,8 @@ impl MetricsComputer {
             canopy: Vec::with_capacity(samples * SUBBINS + 1),
             cum: Vec::with_capacity(samples * SUBBINS + 2),
             padded: Vec::with_capacity(samples + 512),
+            fit: FitScratch::default(),
+            layers: Vec::with_capacity(256),
         }
     }
 
@@ -357,7 +364,15 @@ impl MetricsComputer {
         m.energy_total = total as f32;
 
         // 5. Ground echo, ground and canopy energy, cover, gap probability and PAI.
-        let fit = fit_ground_echo(config, w, s, ground, extent.bottom, sigma_bins);
+        let fit = fit_ground_echo(
+            &mut self.fit,
+            config,
+            w,
+            s,
+            ground,
+            extent.bottom,
+            sigma_bins,
+        );
         let (rv, gaps) = partition_energy(config, &fit, total, zenith, vz_bin, m);
 
         // 6. Canopy energy profile, PAVD, FHD, crown thickness and the herbaceous layer.
@@ -394,13 +409,14 @@ impl MetricsComputer {
             &mut self.canopy,
         );
         prefix_sums(&self.canopy, &mut self.cum);
-        let above = CanopyAbove {
-            heights: &self.heights,
-            cum: &self.cum,
-            gaps,
-        };
+        let above = CanopyAbove::new(&self.heights, &self.cum, gaps);
         pavd_profile(&above, config, m);
-        m.fhd = foliage_height_diversity(&above, self.heights[0].max(0.0), config.fhd_bin_m);
+        m.fhd = foliage_height_diversity(
+            &above,
+            self.heights[0].max(0.0),
+            config.fhd_bin_m,
+            &mut self.layers,
+        );
         let crown_top_h = f64::from(m.canopy_height).max(0.0);
         m.crown_thickness_m = crown_thickness(
             &self.canopy,
@@ -435,31 +451,14 @@ impl MetricsComputer {
             self.kernel_sigma_bins = sigma_bins;
         }
         // Edges held at the end samples: a padded copy, then one dot product per sample
-        // (contiguous, so it vectorises).
+        // (`pulse_metrics/smoothing.rs`).
         self.padded.clear();
         self.padded
             .extend(std::iter::repeat_n(f64::from(y[0]), half));
         self.padded.extend(y.iter().map(|&v| f64::from(v)));
         self.padded
             .extend(std::iter::repeat_n(f64::from(y[n - 1]), half));
-        let k = &self.kernel;
-        for i in 0..n {
-            let window = &self.padded[i..i + k.len()];
-            // Four partial sums, so the compiler may use vector lanes.
-            let mut lanes = [0.0f64; 4];
-            let (wc, kc) = (window.chunks_exact(4), k.chunks_exact(4));
-            let (wr, kr) = (wc.remainder(), kc.remainder());
-            for (a, b) in wc.zip(kc) {
-                for l in 0..4 {
-                    lanes[l] += a[l] * b[l];
-                }
-            }
-            let mut acc = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
-            for (a, b) in wr.iter().zip(kr) {
-                acc += a * b;
-            }
-            self.smooth.push(acc);
-        }
+        smooth_padded(&self.padded, &self.kernel, n, &mut self.smooth);
     }
 }
 
@@ -672,6 +671,17 @@ fn energy_grid(
     start_grid
 }
 
+/// `n / 100` for RH n, n = 0…100 (the same divisions, made once).
+const RH_FRACTIONS: [f64; 101] = {
+    let mut f = [0.0; 101];
+    let mut n = 0;
+    while n <= 100 {
+        f[n] = n as f64 / 100.0;
+        n += 1;
+    }
+    f
+};
+
 /// RH0…RH100 into `rh` (m above the ground): the heights at which the `energy` of the grid
 /// (first point `start_grid` bins, `heights` in m), cumulated from the bottom, reaches n % of
 /// `total`. Returns the grid positions (bins) where 10 % and 90 % of the energy lie above.
@@ -688,13 +698,15 @@ fn relative_heights(
     let len = energy.len();
     let mut t10 = f64::NAN;
     let mut t90 = f64::NAN;
+    // The fraction below the previous grid point: the previous point's `cum / total` (0 / total
+    // before the first).
+    let mut frac = 0.0 / total;
     for j in (0..len).rev() {
-        let prev = cum;
         cum += energy[j];
-        let frac_prev = prev / total;
-        let frac = cum / total;
-        while rh_idx <= 100 && frac + 1e-12 >= rh_idx as f64 / 100.0 {
-            let target = rh_idx as f64 / 100.0;
+        let frac_prev = frac;
+        frac = cum / total;
+        while rh_idx <= 100 && frac + 1e-12 >= RH_FRACTIONS[rh_idx] {
+            let target = RH_FRACTIONS[rh_idx];
             // Interpolate between the heights of samples j+1 (at frac_prev) and j (at frac).
             let h_here = heights[j];
             let h_prev = if j + 1 < len { heights[j + 1] } else { h_here };
@@ -755,10 +767,12 @@ fn canopy_top(
 
 /// The ground echo (step 5): an extended Gaussian fitted to the raw samples above the noise
 /// mean from 1.5 smoothing σ above `ground` to the signal end `bottom` (bins), its centre held
-/// within `ground_centre_buffer_ns` of `ground`; `sigma_bins` is the smoothing σ, bins. Of
+/// within `ground_centre_buffer_ns` of `ground`; `sigma_bins` is the smoothing σ, bins,
+/// `scratch` the fit's work buffers. Of
 /// area 0 when the ground lies more than that buffer below the signal's end (a DEM ground the
 /// beam saw no echo of) or the window is too short to fit.
 fn fit_ground_echo(
+    scratch: &mut FitScratch,
     config: &MetricsConfig,
     w: &WaveformInput<'_>,
     s: &[f64],
@@ -789,13 +803,16 @@ fn fit_ground_echo(
         }
     } else {
         fit_ext_gauss(
+            scratch,
             y,
             mean,
             fit_from,
             fit_to,
             start,
-            (ground - buffer, ground + buffer),
-            (0.5, (fit_to - fit_from).max(2) as f64),
+            FitBounds {
+                centre: (ground - buffer, ground + buffer),
+                sigma: (0.5, (fit_to - fit_from).max(2) as f64),
+            },
         )
     }
 }
@@ -884,9 +901,12 @@ fn canopy_profile(
     canopy.clear();
     let mut csum = 0.0;
     for (j, &e) in energy.iter().enumerate() {
-        let xj = start_grid + j as f64 * step;
-        let g = ground.value(xj) * step;
-        let c = if heights[j] > 0.0 {
+        // At and below the ground centre the profile is 0, and where the energy is +0 it is
+        // `(0 − g).max(0) = +0` whatever the ground echo's value `g` (≥ +0 or NaN: a
+        // non-negative area and σ): the echo is evaluated only where it counts.
+        let c = if heights[j] > 0.0 && e.to_bits() != 0 {
+            let xj = start_grid + j as f64 * step;
+            let g = ground.value(xj) * step;
             (e - g).max(0.0)
         } else {
             0.0
@@ -923,17 +943,40 @@ struct CanopyAbove<'a> {
     cum: &'a [f64],
     /// The waveform's cover and PAI model.
     gaps: GapModel,
+    /// The last canopy energy's bits and its PAI: the PAVD and FHD ask for the PAI at each
+    /// boundary twice, and above the canopy for an energy of 0 again and again.
+    last: Cell<Option<(u64, f64)>>,
 }
 
-impl CanopyAbove<'_> {
+impl<'a> CanopyAbove<'a> {
+    /// The canopy above the heights `heights` (m, falling) of the profile whose prefix sums
+    /// are `cum`, with the cover and PAI model `gaps`.
+    fn new(heights: &'a [f64], cum: &'a [f64], gaps: GapModel) -> Self {
+        CanopyAbove {
+            heights,
+            cum,
+            gaps,
+            last: Cell::new(None),
+        }
+    }
+
     /// Canopy energy above height `h` (m above the ground), signal units × bins.
     fn energy(&self, h: f64) -> f64 {
         self.cum[self.heights.partition_point(|&hh| hh >= h)]
     }
 
-    /// PAI of the canopy above height `h` (m above the ground), m²/m².
+    /// PAI of the canopy above height `h` (m above the ground), m²/m² (that of the last
+    /// energy asked for when the energy is the same, bit for bit).
     fn pai(&self, h: f64) -> f64 {
-        self.gaps.pai(self.energy(h))
+        let e = self.energy(h);
+        match self.last.get() {
+            Some((bits, pai)) if bits == e.to_bits() => pai,
+            _ => {
+                let pai = self.gaps.pai(e);
+                self.last.set(Some((e.to_bits(), pai)));
+                pai
+            }
+        }
     }
 }
 
@@ -950,17 +993,24 @@ fn pavd_profile(above: &CanopyAbove<'_>, config: &MetricsConfig, m: &mut Wavefor
 }
 
 /// Foliage height diversity: the Shannon index `−Σ p ln p` of the PAI of `fbin` m layers
-/// from the ground to `top_h` m (two passes: the sum, then the entropy).
-fn foliage_height_diversity(above: &CanopyAbove<'_>, top_h: f64, fbin: f64) -> f32 {
+/// from the ground to `top_h` m (two passes: the sum, then the entropy; the layers' PAI
+/// (m²/m²) kept in `layers` between them).
+fn foliage_height_diversity(
+    above: &CanopyAbove<'_>,
+    top_h: f64,
+    fbin: f64,
+    layers: &mut Vec<f64>,
+) -> f32 {
     let nf = ((top_h / fbin).ceil() as usize).clamp(1, 4096);
     let layer = |b: usize| -> f64 {
         (above.pai(b as f64 * fbin) - above.pai((b + 1) as f64 * fbin)).max(0.0)
     };
-    let pavd_sum: f64 = (0..nf).map(layer).sum();
+    layers.clear();
+    layers.extend((0..nf).map(layer));
+    let pavd_sum: f64 = layers.iter().sum();
     let mut ent = 0.0;
     if pavd_sum > 0.0 {
-        for b in 0..nf {
-            let v = layer(b);
+        for &v in layers.iter() {
             if v > 0.0 {
                 let p = v / pavd_sum;
                 ent -= p * p.ln();
@@ -1005,8 +1055,6 @@ fn herbaceous_energy(canopy: &[f64], heights: &[f64], herb_height_m: f64) -> f64
         .sum()
 }
 
-const SQRT_2PI: f64 = 2.506_628_274_631_000_7;
-
 /// Time on the pulse's axis (ns) at which its beam crosses the DEM: the fixed point of
 /// `t = (DEM(x(t), y(t)) − z0) / dz`, from `guess`. Converges when the terrain's slope times
 /// the beam's tangent of zenith is below 1 (any slope under 75° at 15° off nadir); `None`
@@ -1032,196 +1080,14 @@ pub fn dem_crossing_ns(dem: &Dem, g: &crate::pulse::PulseGeometry, guess: f64) -
     None
 }
 
-/// An extended (skewed) Gaussian `f(x) = area / (σ √(2π)) · exp(−u²/2) · (1 + erf(γ u / √2))`,
-/// `u = (x − centre) / σ`: its integral is `area` whatever γ.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct ExtGauss {
-    /// Integral, signal units × bins.
-    pub area: f64,
-    /// Location, bins.
-    pub centre: f64,
-    /// Width σ, bins.
-    pub sigma: f64,
-    /// Skewness γ (0: a Gaussian; > 0: the tail is on the later side).
-    pub gamma: f64,
-}
+mod ground_fit;
+mod smoothing;
 
-impl ExtGauss {
-    /// Value at `x` bins.
-    pub fn value(&self, x: f64) -> f64 {
-        let u = (x - self.centre) / self.sigma;
-        self.area / (self.sigma * SQRT_2PI)
-            * (-0.5 * u * u).exp()
-            * (1.0 + erf(self.gamma * u * std::f64::consts::FRAC_1_SQRT_2))
-    }
-
-    /// This echo convolved with a unit-area Gaussian of σ `sigma_bins` (exact for the
-    /// skew-normal shape).
-    pub fn smoothed(&self, sigma_bins: f64) -> ExtGauss {
-        if sigma_bins.is_nan() || sigma_bins <= 0.0 {
-            return *self;
-        }
-        let s2 = (self.sigma * self.sigma + sigma_bins * sigma_bins).sqrt();
-        let delta = self.gamma / (1.0 + self.gamma * self.gamma).sqrt() * self.sigma / s2;
-        ExtGauss {
-            area: self.area,
-            centre: self.centre,
-            sigma: s2,
-            gamma: delta / (1.0 - delta * delta).max(1e-12).sqrt(),
-        }
-    }
-
-    /// Value and partial derivatives by (area, centre, sigma, gamma).
-    fn value_and_gradient(&self, x: f64) -> (f64, [f64; 4]) {
-        let s = self.sigma;
-        let u = (x - self.centre) / s;
-        let k = 1.0 / (s * SQRT_2PI);
-        let phi = (-0.5 * u * u).exp();
-        let e = 1.0 + erf(self.gamma * u * std::f64::consts::FRAC_1_SQRT_2);
-        let g =
-            (-0.5 * self.gamma * self.gamma * u * u).exp() * (2.0 / std::f64::consts::PI).sqrt();
-        let f = self.area * k * phi * e;
-        let df_du = self.area * k * (-u * phi * e + phi * self.gamma * g);
-        (
-            f,
-            [
-                k * phi * e,
-                -df_du / s,
-                -f / s - df_du * u / s,
-                self.area * k * phi * u * g,
-            ],
-        )
-    }
-}
-
-/// Error function, Abramowitz & Stegun 7.1.26 (absolute error below 1.5 × 10⁻⁷).
-fn erf(x: f64) -> f64 {
-    let sign = if x < 0.0 { -1.0 } else { 1.0 };
-    let x = x.abs();
-    let t = 1.0 / (1.0 + 0.327_591_1 * x);
-    let poly = t
-        * (0.254_829_592
-            + t * (-0.284_496_736
-                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
-    sign * (1.0 - poly * (-x * x).exp())
-}
-
-/// Fits an [`ExtGauss`] to `y − mean` over samples `from..=to` by bounded Levenberg-Marquardt
-/// (at most 15 steps; area ≥ 0, centre and σ within their bounds, |γ| ≤ 5). Returns the start
-/// when the window is empty.
-fn fit_ext_gauss(
-    y: &[f32],
-    mean: f64,
-    from: usize,
-    to: usize,
-    start: ExtGauss,
-    centre_bounds: (f64, f64),
-    sigma_bounds: (f64, f64),
-) -> ExtGauss {
-    if to <= from + 3 || to >= y.len() {
-        return start;
-    }
-    let clamp = |p: ExtGauss| ExtGauss {
-        area: p.area.max(0.0),
-        centre: p.centre.clamp(centre_bounds.0, centre_bounds.1),
-        sigma: p.sigma.clamp(sigma_bounds.0, sigma_bounds.1),
-        gamma: p.gamma.clamp(-5.0, 5.0),
-    };
-    let cost = |p: &ExtGauss| -> f64 {
-        (from..=to)
-            .map(|i| {
-                let r = f64::from(y[i]) - mean - p.value(i as f64);
-                r * r
-            })
-            .sum()
-    };
-    let mut p = clamp(start);
-    let mut c = cost(&p);
-    let mut lambda = 1e-3;
-    for _ in 0..15 {
-        let mut jtj = [[0.0f64; 4]; 4];
-        let mut jtr = [0.0f64; 4];
-        for i in from..=to {
-            let (f, g) = p.value_and_gradient(i as f64);
-            let r = f64::from(y[i]) - mean - f;
-            for a in 0..4 {
-                jtr[a] += g[a] * r;
-                for b in a..4 {
-                    jtj[a][b] += g[a] * g[b];
-                }
-            }
-        }
-        for a in 0..4 {
-            for b in 0..a {
-                jtj[a][b] = jtj[b][a];
-            }
-        }
-        let mut improved = false;
-        for _ in 0..8 {
-            let mut m = jtj;
-            for (a, row) in m.iter_mut().enumerate() {
-                row[a] += lambda * (jtj[a][a] + 1e-12);
-            }
-            let Some(d) = solve4(m, jtr) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let q = clamp(ExtGauss {
-                area: p.area + d[0],
-                centre: p.centre + d[1],
-                sigma: p.sigma + d[2],
-                gamma: p.gamma + d[3],
-            });
-            let cq = cost(&q);
-            if cq < c {
-                let rel = (c - cq) / c.max(1e-300);
-                p = q;
-                c = cq;
-                lambda = (lambda * 0.3).max(1e-9);
-                improved = rel > 1e-5;
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    p
-}
-
-/// Solves a 4 × 4 system by Gaussian elimination with partial pivoting; `None` if singular.
-fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
-    for col in 0..4 {
-        let mut piv = col;
-        for r in col + 1..4 {
-            if a[r][col].abs() > a[piv][col].abs() {
-                piv = r;
-            }
-        }
-        if a[piv][col].is_nan() || a[piv][col].abs() <= 1e-300 {
-            return None;
-        }
-        a.swap(col, piv);
-        b.swap(col, piv);
-        for r in col + 1..4 {
-            let f = a[r][col] / a[col][col];
-            for c in col..4 {
-                a[r][c] -= f * a[col][c];
-            }
-            b[r] -= f * b[col];
-        }
-    }
-    let mut x = [0.0; 4];
-    for r in (0..4).rev() {
-        let mut s = b[r];
-        for c in r + 1..4 {
-            s -= a[r][c] * x[c];
-        }
-        x[r] = s / a[r][r];
-    }
-    x.iter().all(|v| v.is_finite()).then_some(x)
-}
+pub use ground_fit::ExtGauss;
+#[cfg(test)]
+use ground_fit::erf;
+use ground_fit::{FitBounds, FitScratch, SQRT_2PI, fit_ext_gauss};
+use smoothing::smooth_padded;
 
 #[cfg(test)]
 mod tests;

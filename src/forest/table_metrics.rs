@@ -8,7 +8,7 @@
 //!   and `bottom_ns` are `bin × sample interval`; `gps_time` is empty and `pulse_id` is the
 //!   0-based row index (as in `--returns`).
 //! - **Noise**: for the raw row, the metrics stage's robust estimate (upper-clipped median and
-//!   1.4826 × MAD, [`robust_level_and_sigma`]); for the processed row after denoise, mean 0 and
+//!   1.4826 × MAD, [`RobustNoise`]); for the processed row after denoise, mean 0 and
 //!   σ = √(π/2) × the denoise noise level, as the stage does.
 //! - **Geometry**: from a geometry table ([`read_geometry`]) when given, one row per waveform:
 //!   the position of sample 0 and the displacement per ns, which give the vertical metres per
@@ -21,7 +21,7 @@ use crate::forest::products::{format_row, header};
 use crate::forest::pulse_metrics::{MetricsComputer, MetricsConfig, WaveformInput};
 use crate::pulse::PulseGeometry;
 use crate::pulse::waveform_metrics::{MetricsStatus, WaveformMetrics};
-use crate::signal::denoise::robust_level_and_sigma;
+use crate::signal::robust_noise::RobustNoise;
 
 /// Errors of the geometry table.
 #[derive(Debug, thiserror::Error)]
@@ -193,8 +193,7 @@ pub struct TableWaveform<'a> {
 pub struct TableMetrics {
     config: MetricsConfig,
     computer: MetricsComputer,
-    sorted: Vec<f32>,
-    deviations: Vec<f32>,
+    noise: RobustNoise,
     line: String,
     csv: String,
     by_status: [usize; 5],
@@ -207,8 +206,7 @@ impl TableMetrics {
         csv.push('\n');
         TableMetrics {
             computer: MetricsComputer::with_capacity(max_samples),
-            sorted: Vec::with_capacity(max_samples),
-            deviations: Vec::with_capacity(max_samples),
+            noise: RobustNoise::with_capacity(max_samples),
             line: String::with_capacity(4096),
             csv,
             by_status: [0; 5],
@@ -221,8 +219,7 @@ impl TableMetrics {
         let (mean, sd) = match w.noise {
             Some(n) => n,
             None => {
-                let (l, s) =
-                    robust_level_and_sigma(w.samples, &mut self.sorted, &mut self.deviations);
+                let (l, s) = self.noise.level_and_sigma(w.samples);
                 (f64::from(l), f64::from(s))
             }
         };

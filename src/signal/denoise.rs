@@ -90,10 +90,10 @@ pub const HISTOGRAM_RANGE: usize = 4096;
 
 /// Clipping threshold of the robust baseline estimate, in robust standard deviations
 /// (1.4826 × MAD).
-const CLIP_SIGMAS: f32 = 3.0;
+pub(crate) const CLIP_SIGMAS: f32 = 3.0;
 
 /// Scale from the median absolute deviation to the standard deviation of a normal distribution.
-const MAD_TO_SIGMA: f32 = 1.4826;
+pub(crate) const MAD_TO_SIGMA: f32 = 1.4826;
 
 /// Largest half-length of the FIR low-pass, taps (the filter has at most `2 × 128 + 1` taps).
 pub const MAX_FIR_HALF: usize = 128;

@@ -8,6 +8,7 @@ pub mod denoise;
 pub mod gauss_fit;
 pub mod kernel;
 pub mod peaks;
+pub mod robust_noise;
 
 pub use calibrate::{Calibrate, CalibrateConfig};
 pub use decompose::{Decompose, DecomposeBaseline, DecomposeConfig, DecomposePulses, StartValues};

@@ -133,7 +133,11 @@ fn extended_gaussian_fit_recovers_a_skewed_echo() {
         sigma: 5.0,
         gamma: 0.0,
     };
-    let fit = fit_ext_gauss(&y, 20.0, 30, 159, start, (56.0, 66.0), (0.5, 100.0));
+    let bounds = FitBounds {
+        centre: (56.0, 66.0),
+        sigma: (0.5, 100.0),
+    };
+    let fit = fit_ext_gauss(&mut FitScratch::default(), &y, 20.0, 30, 159, start, bounds);
     assert!((fit.area - 5000.0).abs() < 5.0, "{fit:?}");
     assert!(
         (fit.centre - 60.0).abs() < 0.05 && (fit.sigma - 7.0).abs() < 0.05,
