@@ -1,15 +1,21 @@
 //! End-to-end latency of the on-board daemon, frame arrival to voxel deposit, at steady pulse
 //! rates: the real `fwlidar run` fed in real time by `fwlidar simulate --live` (the survey-line
 //! scene: oscillating mirror, NovAtel INSPVAX at 100 Hz) over loopback TCP and a
-//! pseudo-terminal, with the on-board chain (denoise, Richardson-Lucy 20 iterations by the
-//! outgoing pulse, Gaussian decomposition, calibration, georeferencing, voxel tiles). The
+//! pseudo-terminal, with the on-board chain of `config/onboard.toml` (denoise, Richardson-Lucy
+//! 12 iterations from the Wiener start by the outgoing pulse with the output's noise floor,
+//! Gaussian decomposition of the QC page's pulses only (no LAS), calibration, georeferencing
+//! per span, voxel tiles). The
 //! latencies are the daemon's own HDR histogram (every pulse, 3 significant digits), read from
-//! its summary; this harness only sets the rate and prints the table for docs/performance.md.
+//! its summary; this harness only sets the rate and prints the table for docs/performance.md,
+//! with the CPU the stream player (`simulate --live --from`) itself took, in cores (its user +
+//! system time over the run's duration: on this 2-core machine what it leaves the daemon).
 //!
 //! `cargo bench --bench daemon_latency` (quiet machine; about 20 s per rate).
 //! `FWLIDAR_LATENCY_FULL_RATES=2000,5000` and `FWLIDAR_LATENCY_LIGHT_RATES=20000` pick the
 //! rates (pulses per second) of the full chain and of a light one (denoise, calibrate),
-//! `FWLIDAR_LATENCY_SECONDS=15` the length of each run. Each run's stream is simulated into a
+//! `FWLIDAR_LATENCY_SECONDS=15` the length of each run, `FWLIDAR_LATENCY_WORKERS=2` the
+//! worker count (default 0: the daemon's own choice), `FWLIDAR_LATENCY_QUEUE=65536` the queue
+//! capacity in pulses (default 8192, config/onboard.toml's). Each run's stream is simulated into a
 //! capture first and played from it in real time (`fwlidar simulate --live --from`), so the
 //! simulator's own cost does not take the daemon's cores.
 
@@ -27,7 +33,7 @@ const FULL: &str = r#"[[pipeline.stages]]
 type = "denoise"
 [[pipeline.stages]]
 type = "deconvolve"
-method = { method = "richardson_lucy", iterations = 20 }
+method = { method = "richardson_lucy", iterations = 12, floor_noise = 5.5, wiener_start = { noise_scale = 2.0, target_fwhm_ns = 4.0 } }
 kernel = "outgoing"
 missing_outgoing = "pass"
 [[pipeline.stages]]
@@ -54,12 +60,13 @@ fn config(
     let text = format!(
         r#"sensor_profile = "{root}/config/sensors/optech_altm3100ea_cao.toml"
 [pipeline]
-workers = 0
-queue_capacity = 8192
+workers = {workers}
+queue_capacity = {queue}
 input_edge = "drop_newest"
 {stages}
 [georeference]
 enabled = true
+projection = "per_span"
 [voxels]
 enabled = true
 voxel_size_m = [{voxel}, {voxel}, {voxel_z}]
@@ -74,6 +81,8 @@ qc = "127.0.0.1:{qc_port}"
 retry_ms = 50
 "#,
         root = ROOT,
+        workers = std::env::var("FWLIDAR_LATENCY_WORKERS").unwrap_or_else(|_| "0".into()),
+        queue = std::env::var("FWLIDAR_LATENCY_QUEUE").unwrap_or_else(|_| "8192".into()),
         nav = nav.display(),
         voxel = voxel_m[0],
         voxel_z = voxel_m[1],
@@ -114,6 +123,19 @@ struct Row {
     p99: f64,
     p999: f64,
     max: f64,
+    /// CPU the stream player took, cores (user + system seconds per second of its run).
+    player_cores: f64,
+    /// Pulses dropped by reason (the summary's `dropped`, compact JSON).
+    reasons: String,
+}
+
+/// User + system CPU seconds of this process's waited-for children so far.
+fn children_cpu_s() -> f64 {
+    // SAFETY: getrusage(2) fills the zeroed struct we own.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut u) };
+    let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    tv(u.ru_utime) + tv(u.ru_stime)
 }
 
 fn measure(chain: &'static str, rate: f64, seconds: f64) -> Row {
@@ -146,6 +168,8 @@ fn measure(chain: &'static str, rate: f64, seconds: f64) -> Row {
         // The truth beside the capture is not needed here (it is large at these rates).
         let _ = std::fs::remove_file(&truth);
     }
+    let cpu_before = children_cpu_s();
+    let started = std::time::Instant::now();
     let mut sim = Command::new(BIN)
         .args(["simulate", "--live", "--no-progress", "--from"])
         .arg(&capture)
@@ -185,6 +209,7 @@ fn measure(chain: &'static str, rate: f64, seconds: f64) -> Row {
         }
     }
     sim.wait().unwrap();
+    let player_cores = (children_cpu_s() - cpu_before) / started.elapsed().as_secs_f64();
     // Let the last pulses through, then stop the daemon cleanly.
     std::thread::sleep(Duration::from_secs(2));
     // SAFETY: kill(2) on our own child.
@@ -205,6 +230,8 @@ fn measure(chain: &'static str, rate: f64, seconds: f64) -> Row {
         p99: us("p99_ns"),
         p999: us("p999_ns"),
         max: us("max_ns"),
+        player_cores,
+        reasons: summary["dropped"].to_string(),
     }
 }
 
@@ -225,10 +252,10 @@ fn main() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(15.0);
     println!(
-        "| chain | pulse rate (/s) | pulses processed | dropped | p50 (µs) | p99 (µs) | p99.9 (µs) | max (µs) |"
+        "| chain | pulse rate (/s) | pulses processed | dropped | p50 (µs) | p99 (µs) | p99.9 (µs) | max (µs) | stream player (cores) | dropped by reason |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
-    let runs = rates("FWLIDAR_LATENCY_FULL_RATES", "2000,5000,8000")
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---|");
+    let runs = rates("FWLIDAR_LATENCY_FULL_RATES", "100000,200000")
         .into_iter()
         .map(|r| ("full", r))
         .chain(
@@ -239,8 +266,17 @@ fn main() {
     for (chain, rate) in runs {
         let r = measure(chain, rate, seconds);
         println!(
-            "| {} | {:.0} | {} | {} | {:.0} | {:.0} | {:.0} | {:.0} |",
-            r.chain, r.rate, r.processed, r.dropped, r.p50, r.p99, r.p999, r.max
+            "| {} | {:.0} | {} | {} | {:.0} | {:.0} | {:.0} | {:.0} | {:.2} | {} |",
+            r.chain,
+            r.rate,
+            r.processed,
+            r.dropped,
+            r.p50,
+            r.p99,
+            r.p999,
+            r.max,
+            r.player_cores,
+            r.reasons
         );
     }
 }

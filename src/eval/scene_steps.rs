@@ -275,7 +275,7 @@ fn step_methods() -> Vec<(String, Option<MethodConfig>)> {
             })),
         ),
         (
-            "rl_wiener iterations=16".into(),
+            "rl_wiener iterations=12".into(),
             Some(MethodConfig::RichardsonLucy(RlConfig::onboard())),
         ),
         (
