@@ -744,13 +744,13 @@ impl DeconvolveConfig {
         let on_board = self.kernel == KernelSource::Outgoing;
         if on_board && *c == RlConfig::onboard() {
             Some(
-                "  measured 2026-11-27 (2-core VM, survey line, every pulse): 4.0 µs mean per \
+                "measured 2026-11-27 (2-core VM, survey line, every pulse): 4.0 µs mean per \
                  pulse; with denoise, calibrate and the QC-only decomposition 155 000 pulses/s \
                  with 1 worker, 196 000 with 2 (docs/performance.md)",
             )
         } else if on_board && *c == (RlConfig { iterations: 20, ..RlConfig::default() }) {
             Some(
-                "  measured 2026-11-27 (2-core VM, survey line, every pulse): 4.7 µs mean per \
+                "measured 2026-11-27 (2-core VM, survey line, every pulse): 4.7 µs mean per \
                  pulse; ~3 % fewer pulses/s than the on-board setting (docs/performance.md)",
             )
         } else {
