@@ -1,23 +1,25 @@
 //! End-to-end latency of the on-board daemon, frame arrival to voxel deposit, at steady pulse
-//! rates: the real `fwlidar run` fed in real time by `fwlidar simulate --live` (the survey-line
-//! scene: oscillating mirror, NovAtel INSPVAX at 100 Hz) over loopback TCP and a
-//! pseudo-terminal, with the on-board chain of `config/onboard.toml` (denoise, Richardson-Lucy
-//! 12 iterations from the Wiener start by the outgoing pulse with the output's noise floor,
-//! Gaussian decomposition of the QC page's pulses only (no LAS), calibration, georeferencing
-//! per span, voxel tiles). The
-//! latencies are the daemon's own HDR histogram (every pulse, 3 significant digits), read from
-//! its summary; this harness only sets the rate and prints the table for docs/performance.md,
-//! with the CPU the stream player (`simulate --live --from`) itself took, in cores (its user +
-//! system time over the run's duration: on this 2-core machine what it leaves the daemon).
+//! rates: the real `fwlidar run` with **`config/onboard.toml` itself** (the on-board chain:
+//! denoise, Richardson-Lucy 12 iterations from the Wiener start by the outgoing pulse with the
+//! output's noise floor on the echo windows, Gaussian decomposition of the QC page's pulses
+//! only, calibration, georeferencing per span, voxel tiles, no LAS, the capture recorded and
+//! fsynced), fed in real time by `fwlidar simulate --live` (the survey-line scene: oscillating
+//! mirror, NovAtel INSPVAX at 100 Hz) over loopback TCP and a pseudo-terminal. Only what one
+//! machine needs is overridden on the command line (see [`daemon_args`]). The latencies are the
+//! daemon's own HDR histogram (every pulse, 3 significant digits), read from its summary; this
+//! harness only sets the rate and prints the table for docs/performance.md, with the CPU the
+//! stream player (`simulate --live --from`) itself took, in cores (its user + system time over
+//! the run's duration: on this 2-core machine what it leaves the daemon).
 //!
 //! `cargo bench --bench daemon_latency` (quiet machine; about 20 s per rate).
 //! `FWLIDAR_LATENCY_FULL_RATES=2000,5000` and `FWLIDAR_LATENCY_LIGHT_RATES=20000` pick the
 //! rates (pulses per second) of the full chain and of a light one (denoise, calibrate),
 //! `FWLIDAR_LATENCY_SECONDS=15` the length of each run, `FWLIDAR_LATENCY_WORKERS=2` the
-//! worker count (default 0: the daemon's own choice), `FWLIDAR_LATENCY_QUEUE=65536` the queue
-//! capacity in pulses (default 8192, config/onboard.toml's). Each run's stream is simulated into a
-//! capture first and played from it in real time (`fwlidar simulate --live --from`), so the
-//! simulator's own cost does not take the daemon's cores.
+//! worker count (default: config/onboard.toml's, 0 = the daemon's own choice),
+//! `FWLIDAR_LATENCY_QUEUE=65536` the queue capacity in pulses (default: config/onboard.toml's
+//! 8192). Each run's stream is simulated into a capture first and played from it in real time
+//! (`fwlidar simulate --live --from`), so the simulator's own cost does not take the daemon's
+//! cores.
 
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
@@ -28,68 +30,61 @@ use std::time::Duration;
 const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
 const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
-/// The stages of the full on-board chain (`config/onboard.toml`).
-const FULL: &str = r#"[[pipeline.stages]]
-type = "denoise"
-[[pipeline.stages]]
-type = "deconvolve"
-method = { method = "richardson_lucy", iterations = 12, floor_noise = 5.5, wiener_start = { noise_scale = 2.0, target_fwhm_ns = 4.0 } }
-kernel = "outgoing"
-missing_outgoing = "pass"
-[[pipeline.stages]]
-type = "decompose"
-[[pipeline.stages]]
-type = "calibrate"
-"#;
+/// The light chain, over config/onboard.toml's stages: the FFT low-pass and the calibration
+/// (the voxels get the denoised waveform).
+const LIGHT_STAGES: &str = r#"[{ type = "denoise" }, { type = "calibrate" }]"#;
 
-/// A light chain: the FFT low-pass and the calibration (the voxels get the denoised waveform).
-const LIGHT: &str = r#"[[pipeline.stages]]
-type = "denoise"
-[[pipeline.stages]]
-type = "calibrate"
-"#;
-
-fn config(
-    dir: &Path,
-    stages: &str,
+/// The daemon's command line: `config/onboard.toml` as it is, with only what a bench on one
+/// machine must change set on the command line — the frame input (the stream player's TCP
+/// port), the navigation terminal, the QC port, the survey name, shorter retry intervals, the
+/// sensor profile of the played scene (the capture's, Optech ALTM 3100EA), and the bench's
+/// worker count, queue capacity, voxel size and, for the light chain, its stages.
+fn daemon_args(
+    chain: &str,
     frames_port: u16,
     nav: &Path,
     qc_port: u16,
     voxel_m: [f64; 2],
-) -> std::path::PathBuf {
-    let text = format!(
-        r#"sensor_profile = "{root}/config/sensors/optech_altm3100ea_cao.toml"
-[pipeline]
-workers = {workers}
-queue_capacity = {queue}
-input_edge = "drop_newest"
-{stages}
-[georeference]
-enabled = true
-projection = "per_span"
-[voxels]
-enabled = true
-voxel_size_m = [{voxel}, {voxel}, {voxel_z}]
-[[navigation.serial]]
-device = "{nav}"
-baud = 115200
-reconnect_ms = 50
-[daemon]
-frames = "tcp-connect:127.0.0.1:{frames_port}"
-survey = "latency"
-qc = "127.0.0.1:{qc_port}"
-retry_ms = 50
-"#,
-        root = ROOT,
-        workers = std::env::var("FWLIDAR_LATENCY_WORKERS").unwrap_or_else(|_| "0".into()),
-        queue = std::env::var("FWLIDAR_LATENCY_QUEUE").unwrap_or_else(|_| "8192".into()),
-        nav = nav.display(),
-        voxel = voxel_m[0],
-        voxel_z = voxel_m[1],
-    );
-    let p = dir.join("latency.toml");
-    std::fs::write(&p, text).unwrap();
-    p
+    out: &Path,
+) -> Vec<String> {
+    let mut a: Vec<String> = vec![
+        "run".into(),
+        "--config".into(),
+        format!("{ROOT}/config/onboard.toml"),
+        "--out".into(),
+        out.display().to_string(),
+        "--frames".into(),
+        format!("tcp-connect:127.0.0.1:{frames_port}"),
+        "--qc".into(),
+        format!("127.0.0.1:{qc_port}"),
+        "--nav-device".into(),
+        nav.display().to_string(),
+    ];
+    let mut set = |kv: String| {
+        a.push("--set".into());
+        a.push(kv);
+    };
+    set(format!(
+        "sensor_profile=\"{ROOT}/config/sensors/optech_altm3100ea_cao.toml\""
+    ));
+    set("daemon.survey=\"latency\"".into());
+    set("daemon.retry_ms=50".into());
+    set("navigation.serial[0].reconnect_ms=50".into());
+    if let Ok(w) = std::env::var("FWLIDAR_LATENCY_WORKERS") {
+        set(format!("pipeline.workers={w}"));
+    }
+    if let Ok(q) = std::env::var("FWLIDAR_LATENCY_QUEUE") {
+        set(format!("pipeline.queue_capacity={q}"));
+    }
+    set(format!(
+        "voxels.voxel_size_m=[{h}, {h}, {v}]",
+        h = voxel_m[0],
+        v = voxel_m[1]
+    ));
+    if chain == "light" {
+        set(format!("pipeline.stages={LIGHT_STAGES}"));
+    }
+    a
 }
 
 /// Voxel size (horizontal, vertical), metres: `FWLIDAR_LATENCY_VOXEL=1.0,0.5` (default, the
@@ -191,14 +186,9 @@ fn measure(chain: &'static str, rate: f64, seconds: f64) -> Row {
                 .port();
         }
     };
-    let stages = if chain == "full" { FULL } else { LIGHT };
-    let cfg = config(dir.path(), stages, port, &nav, free_port(), voxel_m());
     let out = dir.path().join("out");
     let mut daemon = Command::new(BIN)
-        .args(["run", "--config"])
-        .arg(&cfg)
-        .arg("--out")
-        .arg(&out)
+        .args(daemon_args(chain, port, &nav, free_port(), voxel_m(), &out))
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()

@@ -8,6 +8,7 @@
 //! - [`sensor`]: the sensor profile a capture carries and the stages read their physics from;
 //! - [`facts`]: what an input states about itself;
 //! - [`atomic_file`]: output files that appear complete or not at all;
+//! - [`nap`]: short naps instead of a wake-up per item on the live input path;
 //! - [`fixed_text`]: decimal text of floats with a fixed number of decimals, fast and exactly as
 //!   `format!` writes it.
 
@@ -15,6 +16,7 @@ pub mod atomic_file;
 pub mod config_error;
 pub mod facts;
 pub mod fixed_text;
+pub mod nap;
 pub mod overrides;
 pub mod sensor;
 pub mod toml_load;

@@ -19,8 +19,10 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, Sender, bounded};
 
 use super::{FrameInput, InputState, now_ns};
+use crate::core::nap::Napper;
 use crate::source::live_frames::{
-    LiveFrameError, SequenceTracker, StreamDecoder, StreamItem, UDP_MAX_DATAGRAM, parse_datagram,
+    LiveFrameError, READ_CHUNK, SequenceTracker, StreamDecoder, StreamItem, UDP_MAX_DATAGRAM,
+    parse_datagram,
 };
 
 /// One received frame: the digitizer frame payload (header stripped, CRCs checked).
@@ -244,6 +246,12 @@ impl Reader {
         self.state.connects.fetch_add(1, Ordering::Relaxed);
         self.state.up.store(true, Ordering::Relaxed);
         let mut dec = StreamDecoder::new();
+        // After a read that drained the socket, a nap lets the next frames gather so that one
+        // read takes a batch, instead of a wake-up per TCP segment (`core::nap`); the frames of
+        // a read after a nap are stamped received when the nap began (the latency overstated
+        // by at most a nap, never understated).
+        let mut napper = Napper::new();
+        let mut napped_at: Option<Instant> = None;
         while !self.stopped() {
             let n = match dec.read_from(&mut s) {
                 Ok(0) => {
@@ -254,11 +262,12 @@ impl Reader {
                 }
                 Ok(n) => n,
                 Err(e) => {
+                    napped_at = None;
                     retryable(e)?;
                     continue;
                 }
             };
-            let received = Instant::now();
+            let received = napped_at.take().unwrap_or_else(Instant::now);
             self.state.data(n);
             loop {
                 let (seq, buf) = match dec.next_item() {
@@ -275,6 +284,11 @@ impl Reader {
                 if !self.deliver(seq, buf, received) {
                     return Ok(());
                 }
+            }
+            napper.active();
+            if n < READ_CHUNK {
+                napped_at = Some(Instant::now());
+                napper.nap();
             }
         }
         Ok(())

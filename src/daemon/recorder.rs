@@ -18,11 +18,12 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use crossbeam_channel::{Receiver, Sender, never, select};
+use crossbeam_channel::{Receiver, Sender, TryRecvError, never, select};
 
 use super::InputState;
 use super::frames::{FrameMsg, FrameReceiver};
 use crate::core::facts::SourceFacts;
+use crate::core::nap::Napper;
 use crate::format::capture_writer::CaptureWriter;
 use crate::format::frame::decode_frame;
 use crate::pipeline::ports::{NavChunk, Source, SourceError, SourceEvent};
@@ -73,6 +74,7 @@ pub struct LiveSource {
     stop: Arc<AtomicBool>,
     facts: SourceFacts,
     ended: bool,
+    napper: Napper,
 }
 
 /// What the live source reads from and records into.
@@ -117,6 +119,7 @@ impl LiveSource {
             stop,
             facts,
             ended: false,
+            napper: Napper::new(),
         }
     }
 
@@ -194,6 +197,37 @@ impl LiveSource {
         }
     }
 
+    /// One received frame: recorded, then decoded into a pulse for processing (`None`: it does
+    /// not decode; counted and logged).
+    fn frame(&mut self, msg: FrameMsg, pool: &PulsePool) -> Option<SourceEvent> {
+        self.record_frame(&msg);
+        let mut pulse = pool.take();
+        let decoded = decode_frame(&msg.payload, &mut pulse);
+        let received = msg.received;
+        let _ = self.free.try_send(msg.payload);
+        match decoded {
+            Ok(()) => {
+                pulse.arrived = received;
+                self.state.decoded.fetch_add(1, Ordering::Relaxed);
+                let full = if pulse.bits >= 16 {
+                    u16::MAX
+                } else {
+                    (1u16 << pulse.bits) - 1
+                };
+                if pulse.raw.iter().any(|&r| r >= full) {
+                    self.state.saturated.fetch_add(1, Ordering::Relaxed);
+                }
+                Some(SourceEvent::Pulse(pulse))
+            }
+            Err(e) => {
+                pool.give(pulse);
+                self.state.bad_frames.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!("recorded frame does not decode: {e}");
+                None
+            }
+        }
+    }
+
     /// At the end: stops the inputs, records what they had delivered, closes the segment.
     fn shut_down(&mut self) {
         if let Some(r) = self.receiver.take() {
@@ -239,6 +273,39 @@ impl Source for LiveSource {
                 self.ended = true;
                 return Ok(SourceEvent::End);
             }
+            // What is already there, without blocking; while the inputs are busy, an empty look
+            // naps instead of waiting to be woken by the next frame (`core::nap`).
+            match self.frames.try_recv() {
+                Ok(msg) => {
+                    self.napper.active();
+                    match self.frame(msg, pool) {
+                        Some(ev) => return Ok(ev),
+                        None => continue,
+                    }
+                }
+                Err(TryRecvError::Disconnected) => self.frames = never(),
+                Err(TryRecvError::Empty) => {}
+            }
+            match self.serial.try_recv() {
+                Ok(ev) => {
+                    self.napper.active();
+                    match self.serial_event(ev) {
+                        Some(chunk) => return Ok(SourceEvent::Nav(chunk)),
+                        None => continue,
+                    }
+                }
+                Err(TryRecvError::Disconnected) => self.serial = never(),
+                Err(TryRecvError::Empty) => {}
+            }
+            if self.napper.nap() {
+                if let Some(w) = self.writer.as_mut()
+                    && let Err(e) = w.flush_if_due()
+                {
+                    self.write_failed(e);
+                }
+                return Ok(SourceEvent::Idle);
+            }
+            // Quiet: block until something arrives (or POLL passes).
             select! {
                 recv(self.frames) -> msg => {
                     let Ok(msg) = msg else {
@@ -246,26 +313,9 @@ impl Source for LiveSource {
                         self.frames = never();
                         continue;
                     };
-                    self.record_frame(&msg);
-                    let mut pulse = pool.take();
-                    let decoded = decode_frame(&msg.payload, &mut pulse);
-                    let received = msg.received;
-                    let _ = self.free.try_send(msg.payload);
-                    match decoded {
-                        Ok(()) => {
-                            pulse.arrived = received;
-                            self.state.decoded.fetch_add(1, Ordering::Relaxed);
-                            let full = if pulse.bits >= 16 { u16::MAX } else { (1u16 << pulse.bits) - 1 };
-                            if pulse.raw.iter().any(|&r| r >= full) {
-                                self.state.saturated.fetch_add(1, Ordering::Relaxed);
-                            }
-                            return Ok(SourceEvent::Pulse(pulse));
-                        }
-                        Err(e) => {
-                            pool.give(pulse);
-                            self.state.bad_frames.fetch_add(1, Ordering::Relaxed);
-                            tracing::debug!("recorded frame does not decode: {e}");
-                        }
+                    self.napper.active();
+                    if let Some(ev) = self.frame(msg, pool) {
+                        return Ok(ev);
                     }
                 }
                 recv(self.serial) -> ev => {
@@ -273,6 +323,7 @@ impl Source for LiveSource {
                         self.serial = never();
                         continue;
                     };
+                    self.napper.active();
                     if let Some(chunk) = self.serial_event(ev) {
                         return Ok(SourceEvent::Nav(chunk));
                     }

@@ -248,8 +248,8 @@ pub struct StreamDecoder {
     frames: u64,
 }
 
-/// Room made for each [`StreamDecoder::read_from`], bytes.
-const READ_CHUNK: usize = 64 * 1024;
+/// Bytes a [`StreamDecoder::read_from`] asks the reader for at most.
+pub const READ_CHUNK: usize = 64 * 1024;
 
 impl StreamDecoder {
     /// An empty decoder.
