@@ -1,7 +1,8 @@
 //! Deconvolution of one 256-sample segment by a 16 ns FWHM Gaussian kernel at 1 ns sampling
 //! (taps to ±⌈3σ⌉ = ±21 samples: 43 taps; the group keeps its historical name `..._41_taps`
 //! so results stay comparable with earlier runs): Richardson-Lucy 20 iterations, Gold 20
-//! iterations, Wiener fused with the low-pass, with the same kernel every call (its spectrum
+//! iterations, the on-board setting (RL 12 from the Wiener start, `RlConfig::onboard`), Wiener
+//! fused with the low-pass, with the same kernel every call (its spectrum
 //! cached) and with a kernel that changes every call (per-shot kernels: spectrum computed per
 //! call). Deconvolution to a 2 ns target pulse (`Targeted`, issue 19): RL-20 by the reduced
 //! kernel with the same kernel every call (the reduction cached) and with a kernel that changes
@@ -71,6 +72,12 @@ fn bench(c: &mut Criterion) {
                 4096,
                 256,
             )),
+        ),
+        // The on-board setting (config/onboard.toml, issue 35): 12 iterations from the Wiener
+        // start by the kernel to a 4 ns target, with the output's noise floor.
+        (
+            "richardson_lucy_12_wiener_start_onboard",
+            Box::new(RichardsonLucy::new(RlConfig::onboard(), 4096, 256)),
         ),
         (
             "gold_20",
