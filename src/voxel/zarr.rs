@@ -1901,12 +1901,24 @@ impl DiskOrder {
         enc: fn(T) -> [u8; N],
     ) {
         let (b, l) = (self.block, self.levels);
-        out.reserve(self.block_voxels() * N);
-        for k in 0..l {
-            for jj in 0..b {
-                let c0 = self.row_start(blk, jj);
-                for col in c0..c0 + b {
-                    out.extend_from_slice(&enc(mem[col * l + k]));
+        let start = out.len();
+        out.resize(start + self.block_voxels() * N, 0);
+        let dst = &mut out[start..];
+        // Each column's levels are read where they lie (contiguous, `col·L + k`) and placed at
+        // `[z, y, x]` = `((k·B + jj)·B + c)·N`, a stride of one level's plane through the
+        // block: the tile writer's CPU on the sparse 7.2 km line 18.35 → 16.6 s against
+        // gathering each level's plane with a push per value (the same bytes). Writing into
+        // the spare capacity instead of zero-filling first measured the same, so it is not
+        // done.
+        let plane = b * b * N;
+        for jj in 0..b {
+            let c0 = self.row_start(blk, jj);
+            for c in 0..b {
+                let column = &mem[(c0 + c) * l..(c0 + c + 1) * l];
+                let mut at = (jj * b + c) * N;
+                for &v in column {
+                    dst[at..at + N].copy_from_slice(&enc(v));
+                    at += plane;
                 }
             }
         }
