@@ -506,6 +506,39 @@ pub(crate) mod testing {
         pub notes: Counts,
     }
 
+    /// A pulse as a digitizer frame carries it: pulse `id` at GPS time `345 600 + id · 2e-5` s,
+    /// an 8-sample outgoing segment and an `n_return`-sample return at 6.6 µs, 8-bit counts
+    /// (the live stream's and the player's tests).
+    pub fn framed_pulse(id: u64, n_return: u32) -> Pulse {
+        use super::{Segment, SegmentKind};
+        Pulse {
+            pulse_id: id,
+            gps_time: 345_600.0 + id as f64 * 2e-5,
+            scan_angle_deg: [1.5, -0.25],
+            sample_ns: 1.0,
+            gain_v_per_dn: 0.01,
+            bits: 8,
+            raw: (0..8 + n_return).map(|i| (i * 7 % 251) as u16).collect(),
+            segments: vec![
+                Segment {
+                    kind: SegmentKind::Outgoing,
+                    channel: 0,
+                    start_ns: 0.0,
+                    first: 0,
+                    len: 8,
+                },
+                Segment {
+                    kind: SegmentKind::Return,
+                    channel: 0,
+                    start_ns: 6600.0,
+                    first: 8,
+                    len: n_return,
+                },
+            ],
+            ..Pulse::default()
+        }
+    }
+
     /// Applies `method` to each pulse and sorts them by its [`Verdict`].
     pub fn apply(
         pulses: impl IntoIterator<Item = Pulse>,

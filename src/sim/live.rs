@@ -932,33 +932,11 @@ mod tests {
         assert_eq!(r.items() + r.nav_skipped, 0);
     }
 
-    /// A pulse stamped `t` s with a short return, for the TCP tests.
+    /// A framed test pulse stamped `t` s.
     fn pulse_at(id: u64, t: f64) -> crate::pulse::Pulse {
-        use crate::pulse::{Segment, SegmentKind};
         crate::pulse::Pulse {
-            pulse_id: id,
             gps_time: t,
-            sample_ns: 1.0,
-            gain_v_per_dn: 0.01,
-            bits: 8,
-            raw: (0..40u16).collect(),
-            segments: vec![
-                Segment {
-                    kind: SegmentKind::Outgoing,
-                    channel: 0,
-                    start_ns: 0.0,
-                    first: 0,
-                    len: 8,
-                },
-                Segment {
-                    kind: SegmentKind::Return,
-                    channel: 0,
-                    start_ns: 6600.0,
-                    first: 8,
-                    len: 32,
-                },
-            ],
-            ..crate::pulse::Pulse::default()
+            ..crate::pulse::testing::framed_pulse(id, 32)
         }
     }
 

@@ -433,41 +433,12 @@ impl SequenceTracker {
 mod tests {
     use super::*;
     use crate::format::frame::decode_frame;
-    use crate::pulse::{Segment, SegmentKind};
+    use crate::pulse::testing::framed_pulse;
     use proptest::prelude::*;
-
-    fn pulse(id: u64, n_return: u32) -> Pulse {
-        Pulse {
-            pulse_id: id,
-            gps_time: 345_600.0 + id as f64 * 2e-5,
-            scan_angle_deg: [1.5, -0.25],
-            sample_ns: 1.0,
-            gain_v_per_dn: 0.01,
-            bits: 8,
-            raw: (0..8 + n_return).map(|i| (i * 7 % 251) as u16).collect(),
-            segments: vec![
-                Segment {
-                    kind: SegmentKind::Outgoing,
-                    channel: 0,
-                    start_ns: 0.0,
-                    first: 0,
-                    len: 8,
-                },
-                Segment {
-                    kind: SegmentKind::Return,
-                    channel: 0,
-                    start_ns: 6600.0,
-                    first: 8,
-                    len: n_return,
-                },
-            ],
-            ..Pulse::default()
-        }
-    }
 
     fn frame_bytes(seq: u64, id: u64, n: u32) -> Vec<u8> {
         let mut out = Vec::new();
-        encode_live_frame(seq, &pulse(id, n), &mut out).unwrap();
+        encode_live_frame(seq, &framed_pulse(id, n), &mut out).unwrap();
         out
     }
 
@@ -491,7 +462,7 @@ mod tests {
 
     #[test]
     fn a_datagram_round_trips_to_the_same_pulse() {
-        let p = pulse(42, 30);
+        let p = framed_pulse(42, 30);
         let mut buf = Vec::new();
         encode_live_frame(7, &p, &mut buf).unwrap();
         let f = parse_datagram(&buf).unwrap();
@@ -504,7 +475,7 @@ mod tests {
         assert_eq!(q.segments, p.segments);
         // The buffer is reused: a second, smaller frame replaces the first.
         let cap = buf.capacity();
-        encode_live_frame(8, &pulse(43, 10), &mut buf).unwrap();
+        encode_live_frame(8, &framed_pulse(43, 10), &mut buf).unwrap();
         assert_eq!(buf.capacity(), cap);
         assert_eq!(parse_datagram(&buf).unwrap().sequence, 8);
     }
