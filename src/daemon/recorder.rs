@@ -274,18 +274,9 @@ impl Source for LiveSource {
                 return Ok(SourceEvent::End);
             }
             // What is already there, without blocking; while the inputs are busy, an empty look
-            // naps instead of waiting to be woken by the next frame (`core::nap`).
-            match self.frames.try_recv() {
-                Ok(msg) => {
-                    self.napper.active();
-                    match self.frame(msg, pool) {
-                        Some(ev) => return Ok(ev),
-                        None => continue,
-                    }
-                }
-                Err(TryRecvError::Disconnected) => self.frames = never(),
-                Err(TryRecvError::Empty) => {}
-            }
+            // naps instead of waiting to be woken by the next frame (`core::nap`). Navigation
+            // first: a frame waits for the record after it to be georeferenced, and a busy
+            // frame queue must not starve the serial ports.
             match self.serial.try_recv() {
                 Ok(ev) => {
                     self.napper.active();
@@ -295,6 +286,17 @@ impl Source for LiveSource {
                     }
                 }
                 Err(TryRecvError::Disconnected) => self.serial = never(),
+                Err(TryRecvError::Empty) => {}
+            }
+            match self.frames.try_recv() {
+                Ok(msg) => {
+                    self.napper.active();
+                    match self.frame(msg, pool) {
+                        Some(ev) => return Ok(ev),
+                        None => continue,
+                    }
+                }
+                Err(TryRecvError::Disconnected) => self.frames = never(),
                 Err(TryRecvError::Empty) => {}
             }
             if self.napper.nap() {
