@@ -442,6 +442,17 @@ impl<'a> AxisWalk<'a> {
             inv_q: self.p.inv_quantum,
             base: run.base as u32,
         };
+        if self.seq >= run.skip && first < values.len() {
+            // The levels the span's bins can reach (their level is linear in time).
+            let levels = self.levels as f64;
+            let t_first = seg.start_ns + first as f64 * self.sample_ns;
+            let t_last = seg.start_ns + (values.len() - 1) as f64 * self.sample_ns;
+            let (a, b) = (span.c0 + t_first * span.c1, span.c0 + t_last * span.c1);
+            let (lo, hi) = (a.min(b).max(0.0), a.max(b).min(levels - 1.0));
+            if lo <= hi {
+                data.prefetch_column(column_index, lo as usize, hi as usize);
+            }
+        }
         let mut counts = SpanCounts::default();
         if self.seq < run.skip {
             // Already in the store (resume): count, do not deposit.

@@ -8,9 +8,10 @@
 //! the compiler vectorises without reassociating any sum. Outputs are processed in blocks of 64
 //! kept in registers across all taps (one load and one multiply-add per tap and vector). On
 //! x86-64 CPUs with AVX-512F the same loop is compiled for 16-lane registers (blocks of 128,
-//! then 64 and 16) and chosen at run time; with AVX2 and FMA (and no AVX-512) it is
-//! compiled for 8-lane registers. Every tier performs, per output, the same fused
-//! multiply-adds in the same order, so their results are bit-identical. Without either, the
+//! then 64, the last outputs in masked registers) and chosen at run time; with AVX2 and FMA
+//! (and no AVX-512) it is compiled for 8-lane registers (blocks of 64, then 8). Every tier
+//! performs, per output, the same fused multiply-adds in the same order, so their results are
+//! bit-identical. Without either, the
 //! portable build multiplies then adds (4-wide SSE).
 //!
 //! Cost: `2 · n · m` floating-point operations per convolution or correlation.
@@ -156,11 +157,13 @@ fn block_sum_avx2<E: Epilogue>(
     epilogue: &mut E,
 ) {
     let done = blocks::<true, BLOCK, E>(xp, taps, n, base, reverse, 0, epilogue);
+    let done = blocks::<true, 8, E>(xp, taps, n, base, reverse, done, epilogue);
     tail::<true, E>(xp, taps, n, base, reverse, done, epilogue);
 }
 
 /// AVX-512: 16-lane fused multiply-adds. Blocks of 128 outputs (eight 16-lane accumulators,
-/// enough to hide the latency on two FMA ports), then of 64 and 16, then the scalar tail.
+/// enough to hide the latency on two FMA ports), then of 64, then the rest in four masked
+/// registers ([`tail_avx512`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2,fma")]
 fn block_sum_avx512<E: Epilogue>(
@@ -173,8 +176,60 @@ fn block_sum_avx512<E: Epilogue>(
 ) {
     let done = blocks::<true, BLOCK_512, E>(xp, taps, n, base, reverse, 0, epilogue);
     let done = blocks::<true, BLOCK, E>(xp, taps, n, base, reverse, done, epilogue);
-    let done = blocks::<true, 16, E>(xp, taps, n, base, reverse, done, epilogue);
-    tail::<true, E>(xp, taps, n, base, reverse, done, epilogue);
+    tail_avx512(xp, taps, n, base, reverse, done, epilogue);
+}
+
+/// The last fewer than [`BLOCK`] (64) outputs of the AVX-512 tier in four 16-lane registers at
+/// once: per tap and register one masked load (lanes past `n` are neither read nor used) and
+/// one fused multiply-add, the same operations per output as [`tail`], so the results are
+/// bit-identical to it. Four independent accumulators hide the multiply-add latency; a short
+/// echo window (tens of samples) otherwise spends most of its time in a scalar or one-register
+/// loop.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+fn tail_avx512<E: Epilogue>(
+    xp: &[f32],
+    taps: &[f32],
+    n: usize,
+    base: usize,
+    reverse: bool,
+    start: usize,
+    epilogue: &mut E,
+) {
+    use std::arch::x86_64::{
+        __m512, _mm512_fmadd_ps, _mm512_maskz_loadu_ps, _mm512_set1_ps, _mm512_setzero_ps,
+        _mm512_storeu_ps,
+    };
+    let m = n - start;
+    if m == 0 {
+        return;
+    }
+    assert!(m < BLOCK);
+    // Lanes of each register that hold an output: all 16 up to the last, which holds the rest.
+    let mask = |r: usize| -> u16 {
+        let lanes = m.saturating_sub(16 * r).min(16);
+        ((1u32 << lanes) - 1) as u16
+    };
+    let masks = [mask(0), mask(1), mask(2), mask(3)];
+    let mut acc: [__m512; 4] = [_mm512_setzero_ps(); 4];
+    for (j, &t) in taps.iter().enumerate() {
+        let o = if reverse { base - j } else { base + j } + start;
+        // The inputs of this tap: `m` floats, all inside `xp` (as `tail`'s slice).
+        let s = &xp[o..o + m];
+        let tv = _mm512_set1_ps(t);
+        for (r, a) in acc.iter_mut().enumerate() {
+            // SAFETY: the mask selects lanes 16·r .. 16·r + lanes, all inside `s`; masked-out
+            // lanes are not accessed (a register with no lane loads nothing).
+            let v = unsafe { _mm512_maskz_loadu_ps(masks[r], s.as_ptr().wrapping_add(16 * r)) };
+            *a = _mm512_fmadd_ps(tv, v, *a);
+        }
+    }
+    let mut buf = [0.0f32; BLOCK];
+    for (r, a) in acc.iter().enumerate() {
+        // SAFETY: `buf` holds 64 floats, register r goes to 16·r .. 16·r + 16.
+        unsafe { _mm512_storeu_ps(buf.as_mut_ptr().add(16 * r), *a) };
+    }
+    epilogue.store(start, &buf[..m]);
 }
 
 /// Outputs per register block (eight 8-lane vectors: enough independent accumulators to hide
@@ -282,7 +337,8 @@ mod tests {
             .map(|j| (-0.5 * ((j as f32 - 20.0) / 6.8).powi(2)).exp() * 0.06)
             .collect();
         for n in [
-            1usize, 15, 16, 17, 63, 64, 65, 100, 127, 128, 129, 200, 256, 300, 1000,
+            1usize, 5, 15, 16, 17, 31, 32, 33, 40, 47, 48, 49, 63, 64, 65, 100, 127, 128, 129, 150,
+            191, 200, 256, 300, 1000,
         ] {
             let pad = taps.len();
             let mut xp = vec![0.0f32; n + 2 * pad];

@@ -198,14 +198,39 @@ pub(crate) fn check_inputs(
     if k.taps.is_empty() || k.center >= k.taps.len() || k.taps.iter().any(|t| !t.is_finite()) {
         return Err(DeconvError::BadKernel);
     }
-    // Branch-free scan (vectorises): any non-finite sample, and the largest magnitude.
-    let (finite, max_abs) = y.iter().fold((true, 0.0f32), |(ok, mx), &v| {
-        (ok & v.is_finite(), mx.max(v.abs()))
-    });
+    let (finite, max_abs) = finite_max_abs(y);
     if !finite {
         return Err(DeconvError::NonFiniteInput);
     }
     Ok(max_abs)
+}
+
+/// Whether every sample of `y` is finite, and the largest magnitude (0 for no sample; not
+/// meaningful when a sample is not finite). A branch-free scan in 16 lanes that the compiler
+/// turns into vector compares and maxima (`f32::max`'s NaN rule kept it scalar, ~1 ns a
+/// sample); the maximum of finite values does not depend on the order of the comparisons.
+#[inline]
+fn finite_max_abs(y: &[f32]) -> (bool, f32) {
+    const LANES: usize = 16;
+    let mut mx = [0.0f32; LANES];
+    let mut ok = [true; LANES];
+    let chunks = y.chunks_exact(LANES);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for ((m, o), &v) in mx.iter_mut().zip(ok.iter_mut()).zip(c) {
+            let a = v.abs();
+            *o &= a < f32::INFINITY;
+            *m = if a > *m { a } else { *m };
+        }
+    }
+    for (&v, (m, o)) in rest.iter().zip(mx.iter_mut().zip(ok.iter_mut())) {
+        let a = v.abs();
+        *o &= a < f32::INFINITY;
+        *m = if a > *m { a } else { *m };
+    }
+    let finite = ok.iter().all(|&o| o);
+    let max_abs = mx.iter().fold(0.0f32, |m, &a| if a > m { a } else { m });
+    (finite, max_abs)
 }
 
 /// Writes `out[i] = x[i] · scale` clamped to the finite f32 range (the methods work on data

@@ -847,3 +847,26 @@ fn wiener_delivers_the_estimate_as_seen_by_its_target_pulse() {
     }
     assert_eq!(argmax(&with), 100);
 }
+
+/// The 16-lane scan of the inputs gives the scalar fold's answer: the same largest magnitude
+/// for finite samples at every length around the lane count, and "not finite" wherever one
+/// NaN or infinity sits.
+#[test]
+fn deconvolve_input_scan_matches_the_scalar_fold() {
+    let mut rng = ChaCha8Rng::seed_from_u64(35);
+    for n in [0usize, 1, 7, 15, 16, 17, 31, 32, 33, 100, 257] {
+        let y: Vec<f32> = (0..n).map(|_| rng.random_range(-3.0f32..3.0)).collect();
+        let want = y.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert_eq!(finite_max_abs(&y), (true, want), "n = {n}");
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            for at in [0, n / 2, n.saturating_sub(1)] {
+                if n == 0 {
+                    continue;
+                }
+                let mut z = y.clone();
+                z[at] = bad;
+                assert!(!finite_max_abs(&z).0, "n = {n}, {bad} at {at}");
+            }
+        }
+    }
+}
