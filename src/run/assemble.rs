@@ -30,7 +30,7 @@ pub struct Assembled {
 pub enum Workers {
     /// Replay: `0` is one per core.
     Replay(usize),
-    /// On board: `0` is one per core less one (a core for the receivers and the recorder).
+    /// On board: `0` is one per core too (see [`crate::pipeline::runner::resolve_workers`]).
     Live(usize),
 }
 
@@ -58,13 +58,9 @@ pub fn assemble(
     let chain = Chain::prepare(&config.pipeline.stages, &ctx).map_err(RunError::usage)?;
     let p = &config.pipeline;
     let workers = match workers {
-        Workers::Replay(n) => n,
-        // Live, automatic workers leave a core to the receivers and the recorder: with one
-        // worker per core a chain that falls behind takes every core and the kernel drops UDP
-        // datagrams before they are recorded (measured: 17 % of frames lost at 12.5 kHz on two
-        // cores).
-        Workers::Live(0) => crate::pipeline::runner::resolve_live_workers(),
-        Workers::Live(n) => n,
+        // 0 is resolved by the pipeline: one per core (live too, since the UDP input's large
+        // receive buffer keeps every frame when the chain takes every core).
+        Workers::Replay(n) | Workers::Live(n) => n,
     };
     let spec = chain.spec(workers, p.queue_capacity, p.input_edge);
     let sinks = outputs(&chain, &input)?;
