@@ -744,14 +744,14 @@ impl DeconvolveConfig {
         let on_board = self.kernel == KernelSource::Outgoing;
         if on_board && *c == RlConfig::onboard() {
             Some(
-                "measured 2026-11-27 (2-core VM, survey line, every pulse): 4.0 µs mean per \
-                 pulse; with denoise, calibrate and the QC-only decomposition 155 000 pulses/s \
-                 with 1 worker, 196 000 with 2 (docs/performance.md)",
+                "measured 2026-11-27 (2-core VM, survey line, every pulse): 2.5-2.8 µs mean \
+                 per pulse; with the FIR denoise, calibrate and the QC-only decomposition \
+                 ~210 000 pulses/s with 1 worker, ~249 000 with 2 (docs/performance.md)",
             )
         } else if on_board && *c == (RlConfig { iterations: 20, ..RlConfig::default() }) {
             Some(
-                "measured 2026-11-27 (2-core VM, survey line, every pulse): 4.7 µs mean per \
-                 pulse; ~3 % fewer pulses/s than the on-board setting (docs/performance.md)",
+                "measured 2026-11-27 (2-core VM, survey line, every pulse): 3.0 µs mean per \
+                 pulse; ~2-3 % fewer pulses/s than the on-board setting (docs/performance.md)",
             )
         } else {
             None
