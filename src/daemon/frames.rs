@@ -161,15 +161,41 @@ impl Reader {
         self.state.up.store(true, Ordering::Relaxed);
         tracing::info!(%addr, "receiving digitizer frames (UDP)");
         let mut buf = vec![0u8; UDP_MAX_DATAGRAM];
+        // As for TCP (`core::nap`): when the socket is drained the receiver naps instead of
+        // blocking, so that the datagrams of the next half millisecond gather in the kernel's
+        // buffer and are read back to back, instead of a wake-up per datagram (measured: 27 000
+        // context switches a second at 200 kHz). The datagrams read right after a nap are
+        // stamped received when it began (overstated by at most a nap, never understated).
+        let mut napper = Napper::new();
+        let mut napped_at: Option<Instant> = None;
         while !self.stopped() {
-            let n = match sock.recv(&mut buf) {
+            let got = if napper.quiet() {
+                sock.recv(&mut buf)
+            } else {
+                recv_now(&sock, &mut buf)
+            };
+            let n = match got {
                 Ok(n) => n,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock && !napper.quiet() => {
+                    napped_at = Some(Instant::now());
+                    napper.nap();
+                    continue;
+                }
                 Err(e) => {
+                    napped_at = None;
                     retryable(e)?;
                     continue;
                 }
             };
-            let received = Instant::now();
+            napper.active();
+            let now = Instant::now();
+            let received = match napped_at {
+                Some(t) if now.duration_since(t) <= 2 * crate::core::nap::NAP => t,
+                _ => {
+                    napped_at = None;
+                    now
+                }
+            };
             self.state.data(n);
             match parse_datagram(&buf[..n]) {
                 Ok(f) => {
@@ -313,6 +339,33 @@ impl Reader {
     fn note_skip(&self, e: LiveFrameError, what: &str) {
         self.state
             .error(format!("frame input {what}: bytes skipped: {e}"));
+    }
+}
+
+/// One datagram from `sock` if one is waiting, else `WouldBlock` at once (the socket stays in
+/// blocking mode for the reads after the input has gone quiet).
+fn recv_now(sock: &UdpSocket, buf: &mut [u8]) -> std::io::Result<usize> {
+    #[cfg(unix)]
+    {
+        use std::os::fd::AsRawFd;
+        // SAFETY: `buf` is valid for `buf.len()` bytes of writes; the descriptor is `sock`'s.
+        let n = unsafe {
+            libc::recv(
+                sock.as_raw_fd(),
+                buf.as_mut_ptr().cast(),
+                buf.len(),
+                libc::MSG_DONTWAIT,
+            )
+        };
+        if n < 0 {
+            Err(std::io::Error::last_os_error())
+        } else {
+            Ok(n as usize)
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        sock.recv(buf)
     }
 }
 
