@@ -265,7 +265,13 @@ impl VoxelTilesSink {
                 "voxel store extent centred on the first pulse"
             );
         }
-        let store = ZarrStore::create_or_open(&self.root, grid.clone(), info).map_err(store_err)?;
+        let store = ZarrStore::create_or_open_grouped(
+            &self.root,
+            grid.clone(),
+            info,
+            self.cfg.shard_group(),
+        )
+        .map_err(store_err)?;
         if store.recovered_commits > 0 || store.discarded_pending > 0 || !store.tiles().is_empty() {
             tracing::info!(
                 tiles = store.tiles().len(),
@@ -712,6 +718,72 @@ mod tests {
         let s = run(cut.path(), cfg(), flight());
         assert!(s.stats().bins_resumed > 0);
         assert_same_tiles(full.path(), cut.path());
+    }
+
+    #[test]
+    fn tiles_grouped_into_shards_hold_the_same_voxels_inline_threaded_and_resumed() {
+        let plain = tempfile::tempdir().unwrap();
+        run(plain.path(), cfg(), flight());
+        let grouped = || VoxelConfig {
+            shard_tiles: 2,
+            shard_height_chunks: 1,
+            ..cfg()
+        };
+        let inline = tempfile::tempdir().unwrap();
+        let a = run(inline.path(), grouped(), flight());
+        assert_same_tiles(plain.path(), inline.path());
+        // 60 m of line in 16 m groups: a few files per array, written as the flight left them.
+        let files = |d: &Path| store_files(d);
+        let shards = files(inline.path())
+            .into_keys()
+            .filter(|k| k.contains("sample_count/c/"))
+            .count();
+        assert!((2..=5).contains(&shards), "{shards}");
+        assert!(a.tiles().unwrap().stats().merged > 0);
+        let threaded = tempfile::tempdir().unwrap();
+        let mut b = VoxelTilesSink::create(
+            threaded.path(),
+            grouped(),
+            CrsSource::Known(Some("EPSG:32736".into())),
+            info(),
+            None,
+            None,
+        )
+        .unwrap()
+        .with_tile_writer(1);
+        for p in flight() {
+            b.write(&p).unwrap();
+        }
+        b.finish().unwrap();
+        assert_same_tiles(plain.path(), threaded.path());
+        let data = |d: &Path| {
+            files(d)
+                .into_iter()
+                .filter(|(k, _)| k.contains("_count/c/") || k.contains("intensity_"))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(data(inline.path()), data(threaded.path()));
+        // Killed after 900 pulses, then run again into the same folder.
+        let cut = tempfile::tempdir().unwrap();
+        {
+            let mut s = VoxelTilesSink::create(
+                cut.path(),
+                grouped(),
+                CrsSource::Known(Some("EPSG:32736".into())),
+                info(),
+                None,
+                None,
+            )
+            .unwrap()
+            .with_tile_writer(1);
+            for p in flight().take(900) {
+                s.write(&p).unwrap();
+            }
+        }
+        let s = run(cut.path(), grouped(), flight());
+        assert!(s.stats().bins_resumed > 0);
+        assert_same_tiles(plain.path(), cut.path());
+        assert_eq!(data(inline.path()), data(cut.path()));
     }
 
     #[test]

@@ -111,6 +111,29 @@ pub struct VoxelConfig {
     /// one. Default: one per four cores, at least one.
     #[serde(default)]
     pub writer_threads: Option<usize>,
+    /// Tiles along each side of a shard file (`G`): the height chunks of `G × G` tiles over
+    /// `shard_height_chunks` height chunks are one file per array, written when the flight has
+    /// left them, with one journal line per batch (`src/voxel/shard_group.rs`). 0 (the
+    /// default): a file per tile, height chunk and array, committed tile by tile.
+    #[serde(default)]
+    pub shard_tiles: u32,
+    /// Height chunks of a shard file (`K`) when `shard_tiles` > 0. Default 8.
+    #[serde(default = "default_shard_height_chunks")]
+    pub shard_height_chunks: u32,
+}
+
+fn default_shard_height_chunks() -> u32 {
+    8
+}
+
+impl VoxelConfig {
+    /// The grouping of tiles into shard files, if any (`shard_tiles` > 0).
+    pub fn shard_group(&self) -> Option<crate::voxel::shard_group::ShardGroup> {
+        (self.shard_tiles > 0).then_some(crate::voxel::shard_group::ShardGroup {
+            tiles: self.shard_tiles,
+            height_chunks: self.shard_height_chunks,
+        })
+    }
 }
 
 fn default_voxel_size() -> [f64; 3] {
@@ -157,6 +180,8 @@ impl Default for VoxelConfig {
             intensity_quantum: default_quantum(),
             las: false,
             writer_threads: None,
+            shard_tiles: 0,
+            shard_height_chunks: default_shard_height_chunks(),
         }
     }
 }
@@ -203,6 +228,16 @@ impl Validate for VoxelConfig {
             self.auto_extent_m.is_finite() && (1.0..=1.0e6).contains(&self.auto_extent_m),
             field(path, "auto_extent_m"),
             format!("must be in 1..=1e6 m, got {}", self.auto_extent_m),
+        );
+        v.require(
+            self.shard_tiles <= 256,
+            field(path, "shard_tiles"),
+            format!("must be in 0..=256, got {}", self.shard_tiles),
+        );
+        v.require(
+            (1..=256).contains(&self.shard_height_chunks),
+            field(path, "shard_height_chunks"),
+            format!("must be in 1..=256, got {}", self.shard_height_chunks),
         );
         v.require(
             (1..=1 << 20).contains(&self.max_open_tiles),

@@ -1,10 +1,11 @@
 //! Voxel tiles: the grid (`grid`), per-tile accumulators (`tile`), depositing pulses bin by bin
 //! (`voxelise`), the tile lifecycle (`tiles`) and the Zarr v3 store they are written to
-//! (`zarr`). The sink that drives them in a run is `crate::sink::voxel_tiles`; combining stores
+//! (`zarr`; tiles grouped into shards with a journal: `shard_group`). The sink that drives them in a run is `crate::sink::voxel_tiles`; combining stores
 //! is `merge` (`fwlidar merge`, the campaign's merge tree).
 
 pub mod grid;
 pub mod merge;
+pub mod shard_group;
 pub mod tile;
 pub mod tiles;
 pub mod voxelise;

@@ -13,7 +13,7 @@ use std::collections::HashMap;
 
 use super::grid::Grid;
 use super::tile::TileData;
-use super::zarr::{StoreError, WriteCost, ZarrStore};
+use super::zarr::{Committed, StoreError, ZarrStore};
 
 /// Counters of the lifecycle (`summary.json`: `sinks.voxels.tiles`).
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -50,21 +50,28 @@ struct Slot {
     last_seq: u64,
 }
 
-/// A tile handed to the writer thread.
-struct WriteJob {
-    tile: [i64; 2],
-    data: TileData,
-    watermark: u64,
+/// Work for a writer thread.
+enum WriteJob {
+    /// A closed tile to write.
+    Tile {
+        tile: [i64; 2],
+        data: TileData,
+        watermark: u64,
+    },
+    /// Groups of tiles to write out (the grouped layout: the flight has left them, or a tile of
+    /// them is to be read back).
+    Flush(Vec<[i64; 2]>),
 }
 
-/// What a writer thread hands back: the tile, its watermark, its buffer (for reuse), and the
-/// write's result (the tile's height chunks and the cost).
-type WriteDone = (
-    [i64; 2],
-    u64,
-    TileData,
-    Result<(Vec<u32>, WriteCost), StoreError>,
-);
+/// What a writer thread hands back.
+enum WriteDone {
+    /// A tile's buffer, for reuse (its data is encoded).
+    Buffer(TileData),
+    /// A tile made durable.
+    Committed(Committed),
+    /// A write failed: the run stops.
+    Failed(StoreError),
+}
 
 /// The writer threads: tiles closed on the sink thread are written (compressed, synced,
 /// committed) there, so that a row of tiles closing at once does not stall the deposits. Tiles
@@ -74,15 +81,18 @@ struct Writer {
     jobs: Vec<crossbeam_channel::Sender<WriteJob>>,
     done: crossbeam_channel::Receiver<WriteDone>,
     threads: Vec<std::thread::JoinHandle<()>>,
-    /// Tiles handed over and not yet reported back.
+    /// Tiles handed over and not yet durable.
     in_flight: std::collections::HashSet<[i64; 2]>,
+    /// The store's grouping of tiles into shards: tiles of one group go to one thread.
+    grouped: bool,
     /// Buffers of written tiles, for the next tile that closes.
     spare: Vec<TileData>,
 }
 
 impl Writer {
-    /// The thread writing `tile`.
-    fn of(&self, tile: [i64; 2]) -> usize {
+    /// The thread writing `tile` (`key`: the tile, or its group when grouped).
+    fn of(&self, key: [i64; 2]) -> usize {
+        let tile = key;
         let h = (tile[0] as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
             ^ (tile[1] as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
         ((h >> 32) % self.jobs.len().max(1) as u64) as usize
@@ -190,6 +200,8 @@ pub struct TileSet {
     las: Option<(std::path::PathBuf, Option<String>)>,
     /// Writes closed tiles on a thread of its own (`with_writer_thread`); `None`: here.
     writer: Option<Writer>,
+    /// Groups (the grouped layout) with tiles written since the group was last written out.
+    unflushed: std::collections::HashSet<[i64; 2]>,
 }
 
 const EMPTY_BOX: [i64; 4] = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
@@ -212,6 +224,7 @@ impl TileSet {
             idle: Vec::with_capacity(max_open + 1),
             las: None,
             writer: None,
+            unflushed: Default::default(),
         }
     }
 
@@ -237,11 +250,7 @@ impl TileSet {
                 .name(format!("tile-writer-{n}"))
                 .spawn(move || {
                     for job in jobs_rx.iter() {
-                        let r = store.write_tile(job.tile, &job.data, job.watermark);
-                        if done_tx
-                            .send((job.tile, job.watermark, job.data, r))
-                            .is_err()
-                        {
+                        if !write_job(&mut store, job, &done_tx) {
                             break;
                         }
                     }
@@ -264,9 +273,62 @@ impl TileSet {
             done: done_rx,
             threads: handles,
             in_flight: std::collections::HashSet::new(),
+            grouped: self.store.group_of([0, 0]).is_some(),
             spare: Vec::new(),
         });
         self
+    }
+
+    /// Asks for `groups` (the grouped layout) to be written out: by their writer threads, or
+    /// here.
+    fn flush_groups(&mut self, groups: Vec<[i64; 2]>) -> Result<(), StoreError> {
+        if groups.is_empty() {
+            return Ok(());
+        }
+        for g in &groups {
+            self.unflushed.remove(g);
+        }
+        let Some(w) = self.writer.as_ref() else {
+            return self.store.flush_groups(groups);
+        };
+        let mut per: Vec<Vec<[i64; 2]>> = vec![Vec::new(); w.jobs.len()];
+        for g in groups {
+            per[w.of(g)].push(g);
+        }
+        for (n, gs) in per.into_iter().enumerate() {
+            if !gs.is_empty() && w.jobs[n].send(WriteJob::Flush(gs)).is_err() {
+                return Err(writer_stopped(self.store.root()));
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes out the groups the flight has left (the grouped layout): those with tiles written
+    /// since they were last written, none of them open, none of them in `swath`.
+    fn flush_left_groups(&mut self, swath: &[i64; 4]) -> Result<(), StoreError> {
+        if self.unflushed.is_empty() {
+            return Ok(());
+        }
+        let open: std::collections::HashSet<[i64; 2]> = self
+            .open
+            .keys()
+            .filter_map(|t| self.store.group_of(*t))
+            .collect();
+        let mut left: Vec<[i64; 2]> = self
+            .unflushed
+            .iter()
+            .copied()
+            .filter(|g| {
+                let Some(b) = self.store.group_tiles(*g) else {
+                    return false;
+                };
+                let apart =
+                    b[2] < swath[0] || b[0] > swath[2] || b[3] < swath[1] || b[1] > swath[3];
+                apart && !open.contains(g)
+            })
+            .collect();
+        left.sort_unstable();
+        self.flush_groups(left)
     }
 
     /// Takes the writer's reports: commits recorded in the store, buffers kept for reuse. With
@@ -290,12 +352,16 @@ impl TileSet {
                     Err(_) => break,
                 }
             };
-            let (tile, watermark, data, r) = next;
-            w.in_flight.remove(&tile);
-            w.spare.push(data);
-            match r {
-                Ok((chunks, cost)) => self.store.note_committed(tile, watermark, chunks, cost),
-                Err(e) => {
+            match next {
+                WriteDone::Buffer(data) => w.spare.push(data),
+                WriteDone::Committed(c) => {
+                    w.in_flight.remove(&c.tile);
+                    self.store
+                        .note_committed(c.tile, c.watermark, c.chunks, c.cost);
+                }
+                WriteDone::Failed(e) => {
+                    // Nothing more will be reported for the tiles in flight: stop waiting.
+                    w.in_flight.clear();
                     if result.is_ok() {
                         result = Err(e);
                     }
@@ -369,7 +435,15 @@ impl TileSet {
                 self.stats.closed_early += 1;
             }
         }
-        // A tile whose write is under way is read back only once it is committed.
+        // A tile whose write is under way is read back only once it is committed (grouped: its
+        // group written out first).
+        let pending = self
+            .writer
+            .as_ref()
+            .is_some_and(|w| w.grouped && w.in_flight.contains(&tile));
+        if pending && let Some(g) = self.store.group_of(tile) {
+            self.flush_groups(vec![g])?;
+        }
         self.collect_writes(Some(tile), false)?;
         let s = match self.free.pop() {
             Some(s) => s,
@@ -450,20 +524,21 @@ impl TileSet {
                 };
                 let data = std::mem::replace(&mut self.slots[s].data, fresh);
                 wr.in_flight.insert(tile);
-                let sent = wr.jobs.get(wr.of(tile)).map(|j| {
-                    j.send(WriteJob {
+                let key = self.store.group_of(tile).unwrap_or(tile);
+                let sent = wr.jobs.get(wr.of(key)).map(|j| {
+                    j.send(WriteJob::Tile {
                         tile,
                         data,
                         watermark: w,
                     })
                 });
                 if !matches!(sent, Some(Ok(()))) {
-                    return Err(StoreError::Io {
-                        path: self.store.root().display().to_string(),
-                        source: std::io::Error::other("the tile writer thread has stopped"),
-                    });
+                    return Err(writer_stopped(self.store.root()));
                 }
             }
+        }
+        if let Some(g) = self.store.group_of(tile) {
+            self.unflushed.insert(g);
         }
         self.open.remove(&tile);
         self.free.push(s);
@@ -499,7 +574,8 @@ impl TileSet {
             }
         }
         self.idle = idle;
-        result
+        result?;
+        self.flush_left_groups(&swath)
     }
 
     /// Closes every open tile and fits the store's arrays to the tiles written (end of the
@@ -510,6 +586,9 @@ impl TileSet {
         for s in all {
             self.close_slot(s, next_seq)?;
         }
+        let mut groups: Vec<[i64; 2]> = self.unflushed.iter().copied().collect();
+        groups.sort_unstable();
+        self.flush_groups(groups)?;
         self.collect_writes(None, true)?;
         self.store.fit()
     }
@@ -518,6 +597,55 @@ impl TileSet {
     pub fn into_store(self) -> ZarrStore {
         self.store
     }
+}
+
+/// The error of a tile writer thread that has stopped.
+fn writer_stopped(root: &std::path::Path) -> StoreError {
+    StoreError::Io {
+        path: root.display().to_string(),
+        source: std::io::Error::other("the tile writer thread has stopped"),
+    }
+}
+
+/// Does one job on a writer thread's `store` and reports to `done`; false when nobody listens.
+fn write_job(
+    store: &mut ZarrStore,
+    job: WriteJob,
+    done: &crossbeam_channel::Sender<WriteDone>,
+) -> bool {
+    let r = match job {
+        WriteJob::Tile {
+            tile,
+            data,
+            watermark,
+        } => {
+            let r = store.write_tile(tile, &data, watermark);
+            if done.send(WriteDone::Buffer(data)).is_err() {
+                return false;
+            }
+            r.map(|(chunks, cost)| {
+                // Ungrouped, the tile is durable now; grouped, when its group is written.
+                if store.group_of(tile).is_none() {
+                    store.note_written(Committed {
+                        tile,
+                        watermark,
+                        chunks,
+                        cost,
+                    });
+                }
+            })
+        }
+        WriteJob::Flush(groups) => store.flush_groups(groups),
+    };
+    let mut reports: Vec<WriteDone> = store
+        .take_committed()
+        .into_iter()
+        .map(WriteDone::Committed)
+        .collect();
+    if let Err(e) = r {
+        reports.push(WriteDone::Failed(e));
+    }
+    reports.into_iter().all(|d| done.send(d).is_ok())
 }
 
 /// Writes the occupied voxels of a tile (at least one sample) as a LAS 1.4 point format 6 file:

@@ -56,7 +56,7 @@
 //! reach the voxeliser in order), so a rerun of the same input skips, tile by tile, what is
 //! already there, and ends with the same bits as an uninterrupted run.
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::fs::{self, File, OpenOptions};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
@@ -67,6 +67,7 @@ use flate2::write::GzEncoder;
 use serde_json::{Value, json};
 
 use super::grid::Grid;
+use super::shard_group::{Batch, Journal, JournalTile, ShardGroup};
 use super::tile::TileData;
 
 /// Names of the data arrays, in the order their chunks are written.
@@ -443,6 +444,9 @@ pub enum Layout {
         codec: Codec,
         /// The index ends with its CRC-32C (Zarr's `crc32c` index codec).
         index_crc: bool,
+        /// Tiles grouped into one shard per array, each tile's height chunk an inner shard of
+        /// it (`shard_group`); `None`: a shard per tile and height chunk.
+        group: Option<ShardGroup>,
     },
 }
 
@@ -459,6 +463,66 @@ impl Layout {
             inner: gcd(grid.tile_columns.max(1), INNER_COLUMNS),
             codec: Codec::WRITE,
             index_crc: false,
+            group: None,
+        }
+    }
+
+    /// The layout this version writes on `grid` with tiles grouped by `group` (`None`, or a
+    /// group of one tile and one height chunk: a shard per tile and height chunk).
+    pub fn grouped(grid: &Grid, group: Option<ShardGroup>) -> Layout {
+        let group = group.filter(|g| g.tiles > 0 && g.height_chunks > 0);
+        match Layout::for_grid(grid) {
+            Layout::Sharded {
+                inner,
+                codec,
+                index_crc,
+                ..
+            } => Layout::Sharded {
+                inner,
+                codec,
+                index_crc,
+                group,
+            },
+            plain => plain,
+        }
+    }
+
+    /// The grouping of tiles into shards, if any.
+    pub fn group(self) -> Option<ShardGroup> {
+        match self {
+            Layout::Sharded { group, .. } => group,
+            Layout::Plain(_) => None,
+        }
+    }
+
+    /// The layout of one tile's height chunk (the grouping left out).
+    fn tile_shard(self) -> Layout {
+        match self {
+            Layout::Sharded {
+                inner,
+                codec,
+                index_crc,
+                ..
+            } => Layout::Sharded {
+                inner,
+                codec,
+                index_crc,
+                group: None,
+            },
+            plain => plain,
+        }
+    }
+
+    /// The data arrays' chunk shape `[z, y, x]` (a shard's).
+    fn chunk_shape(self, grid: &Grid) -> [u64; 3] {
+        let (h, t) = (grid.chunk_levels() as u64, grid.tile_columns as u64);
+        match self.group() {
+            Some(g) => [
+                h * g.height_chunks as u64,
+                t * g.tiles as u64,
+                t * g.tiles as u64,
+            ],
+            None => [h, t, t],
         }
     }
 
@@ -486,17 +550,31 @@ impl Layout {
                 inner,
                 codec,
                 index_crc,
+                group,
             } => {
                 let mut index = vec![bytes.clone()];
                 if index_crc {
                     index.push(json!({"name": "crc32c"}));
                 }
-                json!([{
+                let tile_shard = json!({
                     "name": "sharding_indexed",
                     "configuration": {
                         "chunk_shape": [grid.chunk_levels(), inner, inner],
                         "codecs": [bytes, codec.meta()],
                         "index_codecs": index,
+                        "index_location": "end",
+                    }
+                });
+                if group.is_none() {
+                    return json!([tile_shard]);
+                }
+                let t = grid.tile_columns;
+                json!([{
+                    "name": "sharding_indexed",
+                    "configuration": {
+                        "chunk_shape": [grid.chunk_levels(), t, t],
+                        "codecs": [tile_shard],
+                        "index_codecs": [bytes],
                         "index_location": "end",
                     }
                 }])
@@ -522,6 +600,79 @@ impl Layout {
         let cfg = shard
             .get("configuration")
             .ok_or("sharding_indexed: no `configuration`")?;
+        let nested = cfg.get("codecs").and_then(Value::as_array).and_then(|c| {
+            c.iter()
+                .find(|c| c.get("name").and_then(Value::as_str) == Some("sharding_indexed"))
+        });
+        let Some(tile_shard) = nested else {
+            let (inner, codec, index_crc) = Self::of_shard(cfg, grid)?;
+            return Ok(Layout::Sharded {
+                inner,
+                codec,
+                index_crc,
+                group: None,
+            });
+        };
+        // Tiles grouped: the array's chunk is the group, the outer shard's inner chunk a tile's
+        // height chunk, itself a shard.
+        let (h, t) = (grid.chunk_levels() as u64, grid.tile_columns as u64);
+        let shape_of = |c: Option<&Value>| -> Vec<u64> {
+            c.and_then(Value::as_array)
+                .map(|a| a.iter().filter_map(Value::as_u64).collect())
+                .unwrap_or_default()
+        };
+        let outer = shape_of(cfg.get("chunk_shape"));
+        if outer != [h, t, t] {
+            return Err(format!(
+                "sharding_indexed.chunk_shape {outer:?}: not a tile's height chunk [{h}, {t}, {t}]"
+            ));
+        }
+        let names: Vec<&str> = cfg
+            .get("index_codecs")
+            .and_then(Value::as_array)
+            .map(|a| {
+                a.iter()
+                    .filter_map(|c| c.get("name").and_then(Value::as_str))
+                    .collect()
+            })
+            .unwrap_or_default();
+        if names != ["bytes"] || cfg.get("index_location").and_then(Value::as_str) != Some("end") {
+            return Err(format!(
+                "sharding_indexed.index_codecs {names:?}: the grouped layout's index is `bytes` at \
+                 the end"
+            ));
+        }
+        let grid_shape = shape_of(
+            v.get("chunk_grid")
+                .and_then(|g| g.get("configuration"))
+                .and_then(|c| c.get("chunk_shape")),
+        );
+        let group = match grid_shape[..] {
+            [z, y, x] if y == x && z > 0 && y > 0 && z % h == 0 && y % t == 0 => ShardGroup {
+                tiles: u32::try_from(y / t).map_err(|_| "chunk_grid too large")?,
+                height_chunks: u32::try_from(z / h).map_err(|_| "chunk_grid too large")?,
+            },
+            _ => {
+                return Err(format!(
+                    "chunk_grid.chunk_shape {grid_shape:?}: not whole tiles' height chunks"
+                ));
+            }
+        };
+        let inner_cfg = tile_shard
+            .get("configuration")
+            .ok_or("sharding_indexed.codecs.sharding_indexed: no `configuration`")?;
+        let (inner, codec, index_crc) = Self::of_shard(inner_cfg, grid)?;
+        Ok(Layout::Sharded {
+            inner,
+            codec,
+            index_crc,
+            group: Some(group),
+        })
+    }
+
+    /// The inner chunk width, codec and index checksum of a tile's height-chunk shard, from its
+    /// `sharding_indexed` configuration `cfg`.
+    fn of_shard(cfg: &Value, grid: &Grid) -> Result<(u32, Codec, bool), String> {
         let shape: Vec<u64> = cfg
             .get("chunk_shape")
             .and_then(Value::as_array)
@@ -579,11 +730,7 @@ impl Layout {
                 "sharding_indexed.index_location {location:?}: only \"end\" is read"
             ));
         }
-        Ok(Layout::Sharded {
-            inner: inner as u32,
-            codec,
-            index_crc,
-        })
+        Ok((inner as u32, codec, index_crc))
     }
 }
 
@@ -625,7 +772,48 @@ pub struct ZarrStore {
     /// Each tile made durable when written (the commit protocol); off for a store that is
     /// written whole and renamed into place when complete ([`ZarrStore::unsynced`]).
     durable: bool,
+    /// Tiles grouped into shards: per group `[gx, gy]`, the shards being assembled.
+    groups: HashMap<[i64; 2], GroupBuffer>,
+    /// Bytes the groups being assembled hold.
+    buffered_bytes: usize,
+    /// Past this many buffered bytes every group is written.
+    pub buffer_budget: usize,
+    /// The journal of the grouped layout, shared with the [`tile_writer`](Self::tile_writer)
+    /// handles.
+    journal: Option<Journal>,
+    /// Keep what each group write committed for [`take_committed`](Self::take_committed) (a
+    /// writer thread's handle).
+    reports: bool,
+    /// Tiles made durable since [`take_committed`](Self::take_committed).
+    committed: Vec<Committed>,
 }
+
+/// A group of tiles being assembled into its shards (the grouped layout).
+#[derive(Default)]
+struct GroupBuffer {
+    /// Each tile's height-chunk shard by `(array, group height, place)`.
+    places: BTreeMap<(usize, u32, usize), Vec<u8>>,
+    /// The tiles written into it: watermark, height chunks, the encoding's cost.
+    tiles: BTreeMap<[i64; 2], (u64, Vec<u32>, WriteCost)>,
+    /// Bytes of `places`.
+    bytes: usize,
+}
+
+/// A tile made durable by a writer handle, as [`ZarrStore::note_committed`] takes it.
+#[derive(Clone, Debug)]
+pub struct Committed {
+    /// The tile.
+    pub tile: [i64; 2],
+    /// Its watermark.
+    pub watermark: u64,
+    /// Its height chunks.
+    pub chunks: Vec<u32>,
+    /// What writing it cost (a group's files and stored bytes on its first tile).
+    pub cost: WriteCost,
+}
+
+/// Bytes of tiles buffered before every group is written, when nothing else says (256 MiB).
+const BUFFER_BUDGET: usize = 256 << 20;
 
 fn dtype(name: &str) -> (&'static str, Value) {
     match name {
@@ -728,6 +916,12 @@ impl ZarrStore {
             recovered_commits: 0,
             discarded_pending: 0,
             durable: true,
+            groups: HashMap::new(),
+            buffered_bytes: 0,
+            buffer_budget: BUFFER_BUDGET,
+            journal: None,
+            reports: false,
+            committed: Vec::new(),
         }
     }
 
@@ -766,6 +960,17 @@ impl ZarrStore {
     /// uncommitted chunks removed. Another grid or run is refused without changing anything.
     /// Either way the arrays span the grid's whole extent until [`fit`](Self::fit).
     pub fn create_or_open(root: &Path, grid: Grid, info: StoreInfo) -> Result<Self, StoreError> {
+        Self::create_or_open_grouped(root, grid, info, None)
+    }
+
+    /// [`create_or_open`](Self::create_or_open), a new store grouping tiles into shards by
+    /// `group` (`shard_group`); a store reopened keeps its own layout.
+    pub fn create_or_open_grouped(
+        root: &Path,
+        grid: Grid,
+        info: StoreInfo,
+        group: Option<ShardGroup>,
+    ) -> Result<Self, StoreError> {
         let meta = root.join("zarr.json");
         if meta.exists() {
             let mut s = ZarrStore::open(root)?;
@@ -804,8 +1009,12 @@ impl ZarrStore {
             });
         }
         let span = Span::extent(&grid);
-        let s = ZarrStore::at(root, grid, info, span);
+        let mut s = ZarrStore::at(root, grid, info, span);
+        s.layout = Layout::grouped(&s.grid, group);
         s.write_metadata()?;
+        if s.layout.group().is_some() {
+            s.journal = Some(Journal::new(s.group_journal_path(), 1));
+        }
         Ok(s)
     }
 
@@ -887,6 +1096,11 @@ impl ZarrStore {
         self.root.join("fwlidar_state").join("relayout")
     }
 
+    /// The journal of the grouped layout (`shard_group`).
+    fn group_journal_path(&self) -> PathBuf {
+        self.root.join("fwlidar_state").join("journal")
+    }
+
     fn record_path(&self, tile: [i64; 2]) -> PathBuf {
         self.state_dir().join(format!("{}_{}", tile[0], tile[1]))
     }
@@ -894,6 +1108,10 @@ impl ZarrStore {
     /// Path of height chunk `kc` of a tile's chunks of `array` under the current span; an
     /// error naming the store when the span does not hold it.
     pub fn chunk_path(&self, array: &str, tile: [i64; 2], kc: u32) -> Result<PathBuf, StoreError> {
+        if let Some(g) = self.layout.group() {
+            let p = g.place(self.grid.tile_min, tile, kc);
+            return self.shard_path(array, p.group, p.gz);
+        }
         let place = self
             .span
             .chunk_of(tile)
@@ -918,6 +1136,87 @@ impl ZarrStore {
             .join(lev.to_string())
             .join(row.to_string())
             .join(col.to_string()))
+    }
+
+    /// Path of the shard of `array` holding group `group` at group height `gz` (the grouped
+    /// layout) under the current span, whose tiles and height chunks start at a group's.
+    fn shard_path(&self, array: &str, group: [i64; 2], gz: u32) -> Result<PathBuf, StoreError> {
+        let g = self.layout.group().unwrap_or(ShardGroup {
+            tiles: 1,
+            height_chunks: 1,
+        });
+        let (n, k) = (g.tiles.max(1) as i64, g.height_chunks.max(1));
+        let sp = &self.span;
+        let first = |a: usize| (sp.tile_min[a] - self.grid.tile_min[a]).div_euclid(n);
+        let count = |a: usize| (sp.tiles[a] as i64 + n - 1) / n;
+        let (z0, z1) = (
+            sp.level_chunk_min / k,
+            (sp.level_chunk_min + sp.level_chunks).div_ceil(k),
+        );
+        let (col, row) = (group[0] - first(0), group[1] - first(1));
+        if !(0..count(0)).contains(&col) || !(0..count(1)).contains(&row) || !(z0..z1).contains(&gz)
+        {
+            return Err(invalid(
+                &self.root,
+                format!(
+                    "shard group {group:?} at height {gz} lies outside the arrays (tiles {:?} + \
+                     {:?}, height chunks {} + {})",
+                    sp.tile_min, sp.tiles, sp.level_chunk_min, sp.level_chunks
+                ),
+            ));
+        }
+        Ok(self
+            .root
+            .join(array)
+            .join("c")
+            .join((gz - z0).to_string())
+            .join(row.to_string())
+            .join(col.to_string()))
+    }
+
+    /// The chunk files the tiles in the store occupy, each `([x, y], z)`: a tile and a height
+    /// chunk, or (grouped) a group and a group height.
+    fn units(&self) -> BTreeSet<([i64; 2], u32)> {
+        let g = self.layout.group();
+        self.records
+            .iter()
+            .flat_map(|(t, (_, c))| c.iter().map(move |k| (*t, *k)))
+            .map(|(t, k)| match g {
+                Some(g) => {
+                    let p = g.place(self.grid.tile_min, t, k);
+                    (p.group, p.gz)
+                }
+                None => (t, k),
+            })
+            .collect()
+    }
+
+    /// Path of a unit of [`units`](Self::units) of `array` under the current span.
+    fn unit_path(&self, array: &str, xy: [i64; 2], z: u32) -> Result<PathBuf, StoreError> {
+        match self.layout.group() {
+            Some(_) => self.shard_path(array, xy, z),
+            None => self.chunk_path(array, xy, z),
+        }
+    }
+
+    /// `span` widened down to whole groups (the grouped layout), so that each shard of the
+    /// arrays is one group.
+    fn aligned(&self, mut span: Span) -> Span {
+        let Some(g) = self.layout.group() else {
+            return span;
+        };
+        if span.tiles.contains(&0) {
+            return span;
+        }
+        for a in 0..2 {
+            let off = (span.tile_min[a] - self.grid.tile_min[a]).rem_euclid(g.tiles.max(1) as i64);
+            span.tile_min[a] -= off;
+            span.tiles[a] += off as u32;
+        }
+        let off = span.level_chunk_min % g.height_chunks.max(1);
+        span.level_chunk_min -= off;
+        span.level_chunks += off;
+        span
     }
 
     fn pending_path(&self, array: &str, tile: [i64; 2], kc: u32) -> Result<PathBuf, StoreError> {
@@ -994,6 +1293,9 @@ impl ZarrStore {
                 self.records.insert(tile, (rec.watermark, rec.chunks));
             }
         }
+        if self.layout.group().is_some() {
+            self.recover_journal()?;
+        }
         // Pending chunks no record committed: an interrupted first step; the old chunk stays.
         for a in ARRAYS {
             let base = self.root.join(a).join("c");
@@ -1015,14 +1317,82 @@ impl ZarrStore {
         Ok(())
     }
 
+    /// The grouped layout's part of opening: the tiles from the journal (a torn last line cut
+    /// off), the renames of committed batches that were cut short completed.
+    fn recover_journal(&mut self) -> Result<(), StoreError> {
+        let path = self.group_journal_path();
+        let (batches, torn) =
+            Journal::read(&path).map_err(|what| invalid(&path, format!("journal: {what}")))?;
+        if let Some(len) = torn {
+            let f = OpenOptions::new()
+                .write(true)
+                .open(&path)
+                .map_err(io(&path))?;
+            f.set_len(len).map_err(io(&path))?;
+            f.sync_all().map_err(io(&path))?;
+        }
+        for b in &batches {
+            for shard in &b.shards {
+                let to = self.root.join(shard);
+                let mut from = to.clone().into_os_string();
+                from.push(format!(".pending.{}", b.seq));
+                let from = PathBuf::from(from);
+                if from.exists() {
+                    fs::rename(&from, &to).map_err(io(&to))?;
+                    self.recovered_commits += 1;
+                }
+            }
+        }
+        self.records = super::shard_group::latest_tiles(&batches)
+            .into_iter()
+            .collect();
+        let next = batches.iter().map(|b| b.seq + 1).max().unwrap_or(1);
+        self.journal = Some(Journal::new(path, next));
+        Ok(())
+    }
+
+    /// Rewrites the journal as one batch holding every tile (nothing pending: after
+    /// [`flush_all`](Self::flush_all)).
+    fn compact_journal(&mut self) -> Result<(), StoreError> {
+        let path = self.group_journal_path();
+        let journal = self
+            .journal
+            .get_or_insert_with(|| Journal::new(path.clone(), 1));
+        let batch = Batch {
+            seq: journal.next_seq(),
+            shards: Vec::new(),
+            tiles: self
+                .tiles()
+                .into_iter()
+                .map(|t| {
+                    let (watermark, chunks) = self.records[&t].clone();
+                    JournalTile {
+                        tile: t,
+                        watermark,
+                        chunks,
+                    }
+                })
+                .collect(),
+        };
+        if self.durable {
+            write_atomic(&path, &batch.line())
+        } else {
+            fs::write(&path, batch.line()).map_err(io(&path))
+        }
+    }
+
     /// Shrinks the arrays to the bounding box of the tiles in the store (the end of a run or a
     /// merge): what a reader sees of a finished store. Writing again needs
     /// [`create_or_open`](Self::create_or_open), which puts the arrays back on the extent.
     pub fn fit(&mut self) -> Result<(), StoreError> {
-        let span = Span::around(
+        if self.layout.group().is_some() {
+            self.flush_all()?;
+            self.compact_journal()?;
+        }
+        let span = self.aligned(Span::around(
             &self.grid,
             self.records.iter().map(|(t, (_, c))| (*t, c.as_slice())),
-        );
+        ));
         self.relayout(span)
     }
 
@@ -1063,15 +1433,9 @@ impl ZarrStore {
             // The metadata still names the old span: every chunk still at its old key goes to
             // staging, then the old chunk trees (nothing else is in them) are removed.
             fs::create_dir_all(&staging).map_err(io(&staging))?;
-            let mut tiles: Vec<([i64; 2], u32)> = self
-                .records
-                .iter()
-                .flat_map(|(t, (_, c))| c.iter().map(move |k| (*t, *k)))
-                .collect();
-            tiles.sort_unstable();
-            for (t, kc) in tiles {
+            for (t, kc) in self.units() {
                 for a in ARRAYS {
-                    let from = self.chunk_path(a, t, kc)?;
+                    let from = self.unit_path(a, t, kc)?;
                     let to = staging.join(format!("{a}.{}_{}_{kc}", t[0], t[1]));
                     match fs::rename(&from, &to) {
                         Ok(()) => {
@@ -1099,25 +1463,21 @@ impl ZarrStore {
         self.span = target;
         self.write_metadata()?;
         if staging.exists() {
+            let units = self.units();
             for entry in fs::read_dir(&staging).map_err(io(&staging))? {
                 let entry = entry.map_err(io(&staging))?;
                 let from = entry.path();
                 let name = entry.file_name().to_string_lossy().to_string();
                 let place = name.split_once('.').and_then(|(a, t)| {
-                    let (tile, kc) = Self::parse_staged_name(t)?;
+                    let (xy, z) = Self::parse_staged_name(t)?;
                     let a = ARRAYS.iter().find(|x| **x == a)?;
-                    let held = self
-                        .records
-                        .get(&tile)
-                        .is_some_and(|(_, c)| c.contains(&kc));
-                    (held && self.span.contains(tile) && self.span.level_of(kc).is_some())
-                        .then_some((a, tile, kc))
+                    let to = self.unit_path(a, xy, z).ok()?;
+                    units.contains(&(xy, z)).then_some(to)
                 });
-                let Some((a, tile, kc)) = place else {
+                let Some(to) = place else {
                     fs::remove_file(&from).map_err(io(&from))?;
                     continue;
                 };
-                let to = self.chunk_path(a, tile, kc)?;
                 let dir = to.parent().unwrap_or(&self.root).to_path_buf();
                 if !touched.contains(&dir) {
                     fs::create_dir_all(&dir).map_err(io(&dir))?;
@@ -1157,6 +1517,13 @@ impl ZarrStore {
     /// has no such tile (`into` is then cleared).
     pub fn read_tile(&mut self, tile: [i64; 2], into: &mut TileData) -> Result<bool, StoreError> {
         into.clear();
+        if let Some(g) = self.layout.group() {
+            // A tile of a group still being assembled: its shards written first.
+            let key = g.group_of(self.grid.tile_min, tile);
+            if self.groups.contains_key(&key) {
+                self.flush_groups(vec![key])?;
+            }
+        }
         let Some((_, chunks)) = self.records.get(&tile) else {
             return Ok(false);
         };
@@ -1171,7 +1538,16 @@ impl ZarrStore {
             }
             for a in ARRAYS {
                 let path = self.chunk_path(a, tile, kc)?;
-                if !path.exists() {
+                if let Some(g) = self.layout.group() {
+                    let slot = g.place(self.grid.tile_min, tile, kc).slot;
+                    let mut shard = std::mem::take(&mut self.shard);
+                    let found = super::shard_group::read_place(&path, g.slots(), slot, &mut shard)
+                        .map_err(|what| invalid(&path, what));
+                    self.shard = shard;
+                    if !found? {
+                        continue; // all fill value
+                    }
+                } else if !path.exists() {
                     continue; // all fill value
                 }
                 self.read_chunk(&path, a, order, into.chunk_mut(kc as usize))?;
@@ -1181,7 +1557,8 @@ impl ZarrStore {
     }
 
     /// Reads the chunk file `path` of array `a` into `c`, by the store's layout: a shard's
-    /// inner chunks (absent ones stay fill value), or one compressed chunk.
+    /// inner chunks (absent ones stay fill value), or one compressed chunk; grouped, the tile's
+    /// height-chunk shard already read into `self.shard`.
     fn read_chunk(
         &mut self,
         path: &Path,
@@ -1215,11 +1592,16 @@ impl ZarrStore {
                 fill(&self.raw, 0);
             }
             Layout::Sharded {
-                codec, index_crc, ..
+                codec,
+                index_crc,
+                group,
+                ..
             } => {
-                let mut f = File::open(path).map_err(io(path))?;
-                self.shard.clear();
-                f.read_to_end(&mut self.shard).map_err(io(path))?;
+                if group.is_none() {
+                    let mut f = File::open(path).map_err(io(path))?;
+                    self.shard.clear();
+                    f.read_to_end(&mut self.shard).map_err(io(path))?;
+                }
                 let index_len = blocks * 16 + if index_crc { 4 } else { 0 };
                 let Some(data_len) = self.shard.len().checked_sub(index_len) else {
                     return Err(bad(format!(
@@ -1271,10 +1653,211 @@ impl ZarrStore {
     /// [`write_tile`](Self::write_tile) exactly as this one would; this one learns of each commit
     /// through [`note_committed`](Self::note_committed). Its own records are not consulted.
     /// The span must not change while it writes (it does not: a run's span is the extent).
-    pub fn tile_writer(&self) -> ZarrStore {
+    pub fn tile_writer(&mut self) -> ZarrStore {
         let mut w = ZarrStore::at(&self.root, self.grid.clone(), self.info.clone(), self.span);
         w.layout = self.layout;
+        w.durable = self.durable;
+        w.buffer_budget = self.buffer_budget;
+        if self.layout.group().is_some() {
+            // Grouped: the writer merges a group's shards with what the store holds, so it knows
+            // the tiles; a group is only ever written by one writer.
+            w.records = self.records.clone();
+            let path = self.group_journal_path();
+            w.journal = Some(
+                self.journal
+                    .get_or_insert_with(|| Journal::new(path, 1))
+                    .clone(),
+            );
+            w.reports = true;
+        }
         w
+    }
+
+    /// Adds a tile this handle wrote to what [`take_committed`](Self::take_committed) returns.
+    pub fn note_written(&mut self, c: Committed) {
+        self.committed.push(c);
+    }
+
+    /// The tiles this (writer) handle made durable since the last call, with their costs.
+    pub fn take_committed(&mut self) -> Vec<Committed> {
+        std::mem::take(&mut self.committed)
+    }
+
+    /// The group of tiles `tile` is written with (the grouped layout), if any.
+    pub fn group_of(&self, tile: [i64; 2]) -> Option<[i64; 2]> {
+        self.layout
+            .group()
+            .map(|g| g.group_of(self.grid.tile_min, tile))
+    }
+
+    /// The tiles of group `group`, `[tx0, ty0, tx1, ty1]` inclusive (the grouped layout).
+    pub fn group_tiles(&self, group: [i64; 2]) -> Option<[i64; 4]> {
+        self.layout
+            .group()
+            .map(|g| g.tiles_of(self.grid.tile_min, group))
+    }
+
+    /// The groups being assembled (the grouped layout; written by
+    /// [`flush_groups`](Self::flush_groups)).
+    pub fn buffered_groups(&self) -> Vec<[i64; 2]> {
+        let mut g: Vec<_> = self.groups.keys().copied().collect();
+        g.sort_unstable();
+        g
+    }
+
+    /// Writes every group being assembled (the grouped layout; nothing otherwise).
+    pub fn flush_all(&mut self) -> Result<(), StoreError> {
+        let all = self.buffered_groups();
+        self.flush_groups(all)
+    }
+
+    /// Writes the shards of `groups` (those being assembled) as one batch: each shard the
+    /// group's new tiles over what the store holds, written pending and synced, the batch's
+    /// journal line appended and synced (the commit point), the shards renamed into place
+    /// (`shard_group`).
+    pub fn flush_groups(&mut self, mut groups: Vec<[i64; 2]>) -> Result<(), StoreError> {
+        let Some(g) = self.layout.group() else {
+            return Ok(());
+        };
+        groups.sort_unstable();
+        groups.dedup();
+        groups.retain(|k| self.groups.contains_key(k));
+        if groups.is_empty() {
+            return Ok(());
+        }
+        let path = self.group_journal_path();
+        let journal = self
+            .journal
+            .get_or_insert_with(|| Journal::new(path, 1))
+            .clone();
+        let seq = journal.next_seq();
+        let (mut pending, mut batch) = (
+            Vec::new(),
+            Batch {
+                seq,
+                shards: Vec::new(),
+                tiles: Vec::new(),
+            },
+        );
+        let mut reports = Vec::new();
+        let mut dirs = BTreeSet::new();
+        let mut out = Vec::new();
+        for key in groups {
+            let Some(buf) = self.groups.remove(&key) else {
+                continue;
+            };
+            self.buffered_bytes = self.buffered_bytes.saturating_sub(buf.bytes);
+            let heights: BTreeSet<u32> = buf.places.keys().map(|k| k.1).collect();
+            let (mut files, mut stored) = (0u64, 0u64);
+            for (ai, a) in ARRAYS.iter().enumerate() {
+                for &gz in &heights {
+                    let path = self.shard_path(a, key, gz)?;
+                    let old = match fs::read(&path) {
+                        Ok(b) => Some(b),
+                        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+                        Err(e) => return Err(io(&path)(e)),
+                    };
+                    super::shard_group::assemble(
+                        old.as_deref(),
+                        g.slots(),
+                        |slot| buf.places.get(&(ai, gz, slot)).map(Vec::as_slice),
+                        &mut out,
+                    )
+                    .map_err(|what| invalid(&path, what))?;
+                    let mut p = path.clone().into_os_string();
+                    p.push(format!(".pending.{seq}"));
+                    let p = PathBuf::from(p);
+                    let dir = path.parent().unwrap_or(&self.root).to_path_buf();
+                    if dirs.insert(dir.clone()) {
+                        fs::create_dir_all(&dir).map_err(io(&dir))?;
+                    }
+                    let mut f = File::create(&p).map_err(io(&p))?;
+                    f.write_all(&out).map_err(io(&p))?;
+                    files += 1;
+                    stored += out.len() as u64;
+                    let rel = path.strip_prefix(&self.root).unwrap_or(&path);
+                    batch.shards.push(rel.to_string_lossy().replace('\\', "/"));
+                    pending.push((f, p, path));
+                }
+            }
+            for (i, (tile, (watermark, chunks, mut cost))) in buf.tiles.into_iter().enumerate() {
+                if i == 0 {
+                    (cost.chunks, cost.stored_bytes) = (files, stored);
+                }
+                batch.tiles.push(JournalTile {
+                    tile,
+                    watermark,
+                    chunks: chunks.clone(),
+                });
+                reports.push(Committed {
+                    tile,
+                    watermark,
+                    chunks,
+                    cost,
+                });
+            }
+        }
+        if self.durable && !syncfs(&self.root) {
+            for (f, path, _) in &pending {
+                f.sync_all().map_err(io(path))?;
+            }
+        }
+        journal
+            .append(&batch, self.durable)
+            .map_err(io(journal.path()))?;
+        for (f, p, c) in pending {
+            drop(f);
+            fs::rename(&p, &c).map_err(io(&c))?;
+        }
+        for r in reports {
+            self.tiles_written += 1;
+            self.chunks_written += r.cost.chunks;
+            self.inner_chunks_written += r.cost.inner_chunks;
+            self.bytes_written += r.cost.raw_bytes;
+            self.bytes_stored += r.cost.stored_bytes;
+            if self.reports {
+                self.committed.push(r);
+            }
+        }
+        Ok(())
+    }
+
+    /// Puts a tile's height-chunk shard of array `ai` into its group's buffer.
+    fn buffer_place(&mut self, tile: [i64; 2], kc: u32, ai: usize, bytes: Vec<u8>) {
+        let Some(g) = self.layout.group() else {
+            return;
+        };
+        let p = g.place(self.grid.tile_min, tile, kc);
+        let buf = self.groups.entry(p.group).or_default();
+        buf.bytes += bytes.len();
+        self.buffered_bytes += bytes.len();
+        if let Some(old) = buf.places.insert((ai, p.gz, p.slot), bytes) {
+            buf.bytes -= old.len();
+            self.buffered_bytes -= old.len();
+        }
+    }
+
+    /// Records a tile put into its group's buffer; past the budget, every group is written.
+    fn buffer_tile(
+        &mut self,
+        tile: [i64; 2],
+        watermark: u64,
+        chunks: Vec<u32>,
+        cost: WriteCost,
+    ) -> Result<(), StoreError> {
+        let Some(key) = self.group_of(tile) else {
+            return Ok(());
+        };
+        self.groups
+            .entry(key)
+            .or_default()
+            .tiles
+            .insert(tile, (watermark, chunks.clone(), cost));
+        self.records.insert(tile, (watermark, chunks));
+        if self.buffered_bytes > self.buffer_budget {
+            self.flush_all()?;
+        }
+        Ok(())
     }
 
     /// Records a tile committed by a [`tile_writer`](Self::tile_writer) handle, with what its
@@ -1329,6 +1912,23 @@ impl ZarrStore {
         }
         let order = DiskOrder::of(&self.grid, self.layout);
         let mut cost = WriteCost::default();
+        if self.layout.group().is_some() {
+            for &kc in &chunks {
+                let Some(c) = data.chunk(kc as usize) else {
+                    continue; // held by the store already, not in memory: unchanged
+                };
+                order.occupied(c, &mut self.blocks);
+                for (ai, a) in ARRAYS.iter().enumerate() {
+                    self.encode_chunk(c, a, order, &mut cost)
+                        .map_err(io(&self.root))?;
+                    let bytes = self.shard.clone();
+                    self.buffer_place(tile, kc, ai, bytes);
+                }
+            }
+            cost.stored_bytes = 0; // counted when the group is written
+            self.buffer_tile(tile, watermark, chunks.clone(), cost)?;
+            return Ok((chunks, cost));
+        }
         let mut dirs = BTreeSet::new();
         let mut pending = Vec::with_capacity(chunks.len() * ARRAYS.len());
         for &kc in &chunks {
@@ -1371,7 +1971,10 @@ impl ZarrStore {
         tile: [i64; 2],
         watermark: u64,
     ) -> Result<bool, StoreError> {
-        let same_shape = src.layout == self.layout
+        // A tile's height-chunk shard is the same bytes grouped or not; a grouped source is
+        // copied only into a grouped store (its files are groups).
+        let same_shape = src.layout.tile_shard() == self.layout.tile_shard()
+            && (src.layout.group().is_none() || self.layout.group().is_some())
             && src.grid.tile_columns == self.grid.tile_columns
             && src.grid.chunk_levels == self.grid.chunk_levels
             && src.grid.levels == self.grid.levels;
@@ -1382,6 +1985,9 @@ impl ZarrStore {
             return Ok(false);
         }
         let chunks = chunks.clone();
+        if self.layout.group().is_some() {
+            return self.copy_tile_grouped(src, tile, chunks, watermark);
+        }
         let mut cost = WriteCost::default();
         let mut dirs = BTreeSet::new();
         let mut pending = Vec::with_capacity(chunks.len() * ARRAYS.len());
@@ -1406,6 +2012,45 @@ impl ZarrStore {
             }
         }
         self.commit(tile, pending, chunks, watermark, cost)?;
+        Ok(true)
+    }
+
+    /// [`copy_tile`](Self::copy_tile) into a grouped store: each height chunk's shard, read
+    /// where `src` keeps it (its own file, or its place in a group's shard), into the group.
+    fn copy_tile_grouped(
+        &mut self,
+        src: &ZarrStore,
+        tile: [i64; 2],
+        chunks: Vec<u32>,
+        watermark: u64,
+    ) -> Result<bool, StoreError> {
+        let mut cost = WriteCost::default();
+        let mut bytes = Vec::new();
+        for &kc in &chunks {
+            for (ai, a) in ARRAYS.iter().enumerate() {
+                let from = src.chunk_path(a, tile, kc)?;
+                let found = match src.layout.group() {
+                    Some(g) => {
+                        let slot = g.place(src.grid.tile_min, tile, kc).slot;
+                        super::shard_group::read_place(&from, g.slots(), slot, &mut bytes)
+                            .map_err(|what| invalid(&from, what))?
+                    }
+                    None => match fs::read(&from) {
+                        Ok(b) => {
+                            bytes = b;
+                            true
+                        }
+                        Err(e) if e.kind() == std::io::ErrorKind::NotFound => false,
+                        Err(e) => return Err(io(&from)(e)),
+                    },
+                };
+                if found {
+                    self.buffer_place(tile, kc, ai, std::mem::take(&mut bytes));
+                }
+            }
+        }
+        cost.chunks = 0;
+        self.buffer_tile(tile, watermark, chunks, cost)?;
         Ok(true)
     }
 
@@ -1555,7 +2200,6 @@ impl ZarrStore {
         nodes: &mut serde_json::Map<String, Value>,
     ) -> Result<(), StoreError> {
         let g = &self.grid;
-        let t = g.tile_columns as u64;
         for a in ARRAYS {
             let (dt, fill) = dtype(a);
             let meta = self.write_array_meta(
@@ -1563,7 +2207,7 @@ impl ZarrStore {
                 json!(shape),
                 dt,
                 fill,
-                json!([g.chunk_levels(), t, t]),
+                json!(self.layout.chunk_shape(g)),
                 json!(["z", "y", "x"]),
                 self.data_array_attrs(a),
             )?;
@@ -1972,7 +2616,10 @@ fn remove_pending(dir: &Path) -> Result<u64, StoreError> {
         let p = entry.path();
         if entry.file_type().map_err(io(&p))?.is_dir() {
             n += remove_pending(&p)?;
-        } else if p.extension().is_some_and(|e| e == "pending") {
+        } else if p.extension().is_some_and(|e| e == "pending")
+            || p.file_name()
+                .is_some_and(|n| n.to_string_lossy().contains(".pending."))
+        {
             fs::remove_file(&p).map_err(io(&p))?;
             n += 1;
         }
@@ -2184,6 +2831,7 @@ mod tests {
         assert_eq!(
             Layout::for_grid(&g),
             Layout::Sharded {
+                group: None,
                 inner: 8,
                 codec: Codec::Zstd(1),
                 index_crc: false
@@ -2361,6 +3009,152 @@ mod tests {
             data.push(d);
         }
         (s, data)
+    }
+
+    const GROUP: ShardGroup = ShardGroup {
+        tiles: 4,
+        height_chunks: 1,
+    };
+
+    /// A grouped store on [`wide_grid`] with `WRITTEN` and a tile sharing `[1, -1]`'s group.
+    fn grouped_store(root: &Path) -> (ZarrStore, Vec<([i64; 2], TileData)>) {
+        let g = wide_grid();
+        let n = g.tile_voxels();
+        let mut s = ZarrStore::create_or_open_grouped(root, g, info("a"), Some(GROUP)).unwrap();
+        let mut data = Vec::new();
+        for (i, t) in WRITTEN.iter().chain(&[[0, -2]]).enumerate() {
+            let d = sample(n, i as u32 + 1);
+            s.write_tile(*t, &d, 10 + i as u64).unwrap();
+            data.push((*t, d));
+        }
+        (s, data)
+    }
+
+    fn assert_grouped_holds(s: &mut ZarrStore, data: &[([i64; 2], TileData)]) {
+        let mut got = TileData::for_grid(s.grid());
+        for (t, d) in data {
+            assert!(s.read_tile(*t, &mut got).unwrap(), "{t:?}");
+            assert_same(&got, d);
+        }
+        assert_eq!(s.tiles().len(), data.len());
+    }
+
+    #[test]
+    fn grouped_tiles_share_a_file_per_array_and_read_back_identically_after_reopening() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("voxels.zarr");
+        let (mut s, data) = grouped_store(&root);
+        // Nothing of the data on disk until a group is written out.
+        assert!(
+            !files(&root)
+                .keys()
+                .any(|k| k.starts_with("sample_count/c/"))
+        );
+        assert_grouped_holds(&mut s, &data); // reading writes the tile's group first
+        s.fit().unwrap();
+        let shards: Vec<String> = files(&root)
+            .into_keys()
+            .filter(|k| k.starts_with("sample_count/c/"))
+            .collect();
+        // [-3, 2], [2, 2] and {[1, -1], [0, -2]}: three groups of 4 x 4 tiles.
+        assert_eq!(shards.len(), 3, "{shards:?}");
+        assert!(
+            !files(&root)
+                .keys()
+                .any(|k| k.contains("fwlidar_state/tiles"))
+        );
+        let mut again = ZarrStore::open(&root).unwrap();
+        assert_eq!(again.layout.group(), Some(GROUP));
+        assert_grouped_holds(&mut again, &data);
+        for (t, _) in &data {
+            assert_eq!(again.tile_chunks(*t), s.tile_chunks(*t));
+        }
+        // The arrays start at a group's first tile.
+        let sp = *again.span();
+        assert_eq!((sp.tile_min[0] - again.grid.tile_min[0]) % 4, 0);
+        assert_eq!((sp.tile_min[1] - again.grid.tile_min[1]) % 4, 0);
+        // Reopened to write (the extent), a tile written again merges into its group's shard.
+        let g = wide_grid();
+        let mut w = ZarrStore::create_or_open_grouped(&root, g, info("a"), None).unwrap();
+        let extra = sample(w.grid.tile_voxels(), 9);
+        w.write_tile([1, -2], &extra, 99).unwrap();
+        w.fit().unwrap();
+        let mut more = data.clone();
+        more.push(([1, -2], extra));
+        let mut last = ZarrStore::open(&root).unwrap();
+        assert_grouped_holds(&mut last, &more);
+        assert_eq!(last.watermark([1, -2]), Some(99));
+    }
+
+    #[test]
+    fn a_grouped_store_finishes_committed_batches_and_drops_uncommitted_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("voxels.zarr");
+        let (mut s, data) = grouped_store(&root);
+        s.flush_all().unwrap();
+        // A committed batch whose renames were cut short: its shard back to pending.
+        let journal = root.join("fwlidar_state/journal");
+        let (batches, _) = Journal::read(&journal).unwrap();
+        let last = batches.last().unwrap();
+        let shard = root.join(&last.shards[0]);
+        let pending = PathBuf::from(format!("{}.pending.{}", shard.display(), last.seq));
+        fs::rename(&shard, &pending).unwrap();
+        // A batch never committed, and a journal line torn by the crash.
+        let stray = PathBuf::from(format!("{}.pending.{}", shard.display(), last.seq + 5));
+        fs::write(&stray, b"half a shard").unwrap();
+        let good_len = fs::metadata(&journal).unwrap().len();
+        let mut f = OpenOptions::new().append(true).open(&journal).unwrap();
+        f.write_all(b"{\"seq\": 99, \"sha").unwrap();
+        drop(f);
+        drop(s);
+        let mut again = ZarrStore::open(&root).unwrap();
+        assert_eq!(again.recovered_commits, 1);
+        assert_eq!(again.discarded_pending, 1);
+        assert!(shard.exists() && !pending.exists() && !stray.exists());
+        assert_eq!(fs::metadata(&journal).unwrap().len(), good_len);
+        assert_grouped_holds(&mut again, &data);
+        // A damaged line before the last is refused, naming the journal.
+        let mut text = fs::read(&journal).unwrap();
+        text[2] ^= 0x20;
+        fs::write(&journal, &text).unwrap();
+        let e = ZarrStore::open(&root).err().unwrap().to_string();
+        assert!(e.contains("journal") && e.contains("line 1"), "{e}");
+    }
+
+    #[test]
+    fn a_merge_copies_tiles_between_layouts_without_decoding() {
+        let dir = tempfile::tempdir().unwrap();
+        let (mut plain, data) = {
+            let (s, d) = live_store(&dir.path().join("plain.zarr"));
+            (s, d)
+        };
+        plain.fit().unwrap();
+        let src = ZarrStore::open(&dir.path().join("plain.zarr")).unwrap();
+        let g = wide_grid();
+        let root = dir.path().join("grouped.zarr");
+        let mut dst = ZarrStore::create_or_open_grouped(&root, g, info(""), Some(GROUP)).unwrap();
+        for t in WRITTEN {
+            assert!(dst.copy_tile(&src, t, 0).unwrap());
+        }
+        dst.fit().unwrap();
+        let mut back = ZarrStore::open(&root).unwrap();
+        let pairs: Vec<([i64; 2], TileData)> = WRITTEN.iter().copied().zip(data).collect();
+        assert_grouped_holds(&mut back, &pairs);
+        // And back from the grouped store into another grouped one.
+        let root2 = dir.path().join("again.zarr");
+        let mut dst2 =
+            ZarrStore::create_or_open_grouped(&root2, wide_grid(), info(""), Some(GROUP)).unwrap();
+        for t in WRITTEN {
+            assert!(dst2.copy_tile(&back, t, 0).unwrap());
+        }
+        dst2.fit().unwrap();
+        let shard = |r: &Path| {
+            files(r)
+                .into_iter()
+                .filter(|(k, _)| ARRAYS.iter().any(|a| k.starts_with(&format!("{a}/c/"))))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(shard(&root), shard(&root2));
     }
 
     fn assert_holds_written(s: &mut ZarrStore, data: &[TileData]) {
