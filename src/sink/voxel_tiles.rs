@@ -269,7 +269,7 @@ impl VoxelTilesSink {
             &self.root,
             grid.clone(),
             info,
-            self.cfg.shard_group(),
+            self.cfg.layout_choice(),
         )
         .map_err(store_err)?;
         if store.recovered_commits > 0 || store.discarded_pending > 0 || !store.tiles().is_empty() {

@@ -115,10 +115,13 @@ pub struct VoxelConfig {
     /// `shard_height_chunks` height chunks are one file per array, written when the flight has
     /// left them, with one journal line per batch (`src/voxel/shard_group.rs`). 0 (the
     /// default): a file per tile, height chunk and array, committed tile by tile.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "is_zero")]
     pub shard_tiles: u32,
     /// Height chunks of a shard file (`K`) when `shard_tiles` > 0. Default 8.
-    #[serde(default = "default_shard_height_chunks")]
+    #[serde(
+        default = "default_shard_height_chunks",
+        skip_serializing_if = "is_default_shard_height"
+    )]
     pub shard_height_chunks: u32,
 }
 
@@ -126,13 +129,29 @@ fn default_shard_height_chunks() -> u32 {
     8
 }
 
+// The grouping keys are left out of the recorded configuration at their defaults, so that a
+// store's metadata (and run key) is what versions before them wrote.
+fn is_zero(v: &u32) -> bool {
+    *v == 0
+}
+
+fn is_default_shard_height(v: &u32) -> bool {
+    *v == default_shard_height_chunks()
+}
+
 impl VoxelConfig {
-    /// The grouping of tiles into shard files, if any (`shard_tiles` > 0).
-    pub fn shard_group(&self) -> Option<crate::voxel::shard_group::ShardGroup> {
-        (self.shard_tiles > 0).then_some(crate::voxel::shard_group::ShardGroup {
-            tiles: self.shard_tiles,
-            height_chunks: self.shard_height_chunks,
-        })
+    /// How a new store is laid out: tiles grouped into shard files (`shard_tiles` > 0) or
+    /// not; inner chunks of `INNER_COLUMNS` (narrower ones were measured: on the sparse 7.2 km
+    /// line 4 columns a side doubled the store for no speed, 1 column multiplied it by 20 —
+    /// each inner chunk costs an index entry and a zstd frame; docs/performance.md).
+    pub fn layout_choice(&self) -> crate::voxel::shard_group::LayoutChoice {
+        crate::voxel::shard_group::LayoutChoice {
+            group: (self.shard_tiles > 0).then_some(crate::voxel::shard_group::ShardGroup {
+                tiles: self.shard_tiles,
+                height_chunks: self.shard_height_chunks,
+            }),
+            inner_columns: crate::voxel::shard_group::INNER_COLUMNS,
+        }
     }
 }
 
@@ -239,6 +258,7 @@ impl Validate for VoxelConfig {
             field(path, "shard_height_chunks"),
             format!("must be in 1..=256, got {}", self.shard_height_chunks),
         );
+
         v.require(
             (1..=1 << 20).contains(&self.max_open_tiles),
             field(path, "max_open_tiles"),

@@ -39,6 +39,41 @@ pub struct ShardGroup {
     pub height_chunks: u32,
 }
 
+/// Columns along each side of a shard's inner chunk (of the tile's `T`; the largest divisor of
+/// `T` not above this when 8 does not divide it). Chosen by measurement (docs/performance.md):
+/// 8 × 8 columns × `H` levels is 16 KB of `u32`, large enough for zstd and small enough that a
+/// sparse flight line's tile chunk encodes only the few blocks its pulses touched.
+pub const INNER_COLUMNS: u32 = 8;
+
+/// How a new store is laid out (a store reopened keeps its own layout).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LayoutChoice {
+    /// Tiles grouped into shard files (`[voxels] shard_tiles`), or a file per tile and height
+    /// chunk.
+    pub group: Option<ShardGroup>,
+    /// Columns along each side of an inner chunk (`[voxels] inner_columns`; the largest divisor
+    /// of the tile's columns not above it is taken).
+    pub inner_columns: u32,
+}
+
+impl Default for LayoutChoice {
+    fn default() -> Self {
+        LayoutChoice {
+            group: None,
+            inner_columns: INNER_COLUMNS,
+        }
+    }
+}
+
+impl From<Option<ShardGroup>> for LayoutChoice {
+    fn from(group: Option<ShardGroup>) -> Self {
+        LayoutChoice {
+            group,
+            ..LayoutChoice::default()
+        }
+    }
+}
+
 /// A tile's height chunk inside its group: the group `[gx, gy]` (counted from the grid's first
 /// tile), the group's height `gz` (counted from the bottom height chunk) and the place in the
 /// shard (C order `[z, y, x]`).

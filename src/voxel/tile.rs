@@ -14,8 +14,11 @@
 //! contiguous). Offsets across the tile ([`VoxelIndex`](super::grid::VoxelIndex)) are
 //! `col·L + k`.
 
-/// The accumulators of one height chunk of a tile, each `T² · H` long in `col·H + kk` order.
-#[derive(Clone, Debug, PartialEq)]
+/// The accumulators of one height chunk of a tile, each `T² · H` long in `col·H + kk` order,
+/// with the columns written since the chunk was last cleared marked: a column not marked holds
+/// only fill values (0, NaN), so clearing, finding the occupied blocks and encoding skip it
+/// (a sparse flight line touches a few columns of a tile; the store's bytes do not change).
+#[derive(Clone, Debug)]
 pub struct Chunk {
     /// Sum of deposited intensity, in quanta of the grid's `intensity_quantum`.
     pub sum_q: Vec<i64>,
@@ -25,23 +28,101 @@ pub struct Chunk {
     pub max: Vec<f32>,
     /// Pulses whose beam passed through the voxel (counted once per pulse).
     pub pulses: Vec<u32>,
+    /// Bit `col` set: column `col` was written (see [`mark`](Self::mark)).
+    touched: Vec<u64>,
+    /// Levels per column, `H`.
+    height: usize,
+}
+
+impl PartialEq for Chunk {
+    fn eq(&self, other: &Self) -> bool {
+        // The values; which columns were written is bookkeeping.
+        self.sum_q == other.sum_q
+            && self.samples == other.samples
+            && self.pulses == other.pulses
+            && self.max.len() == other.max.len()
+            && self
+                .max
+                .iter()
+                .zip(&other.max)
+                .all(|(a, b)| a == b || (a.is_nan() && b.is_nan()))
+    }
 }
 
 impl Chunk {
-    fn new(voxels: usize) -> Chunk {
+    fn new(columns: usize, height: usize) -> Chunk {
+        let voxels = columns * height;
         Chunk {
             sum_q: vec![0; voxels],
             samples: vec![0; voxels],
             max: vec![f32::NAN; voxels],
             pulses: vec![0; voxels],
+            touched: vec![0; columns.div_ceil(64)],
+            height,
         }
     }
 
+    /// Marks column `col` as written. Whoever writes a column's values through the public
+    /// fields marks it (the deposit, a read from the store, a merge); a column written and
+    /// not marked would be skipped by [`clear`](Self::clear) and by the store's encoder.
+    #[inline]
+    pub fn mark(&mut self, col: usize) {
+        if let Some(w) = self.touched.get_mut(col >> 6) {
+            *w |= 1 << (col & 63);
+        }
+    }
+
+    /// Marks columns `cols` as written.
+    pub fn mark_range(&mut self, cols: std::ops::Range<usize>) {
+        for col in cols {
+            self.mark(col);
+        }
+    }
+
+    /// Whether column `col` was written since the chunk was last cleared.
+    #[inline]
+    pub fn is_touched(&self, col: usize) -> bool {
+        self.touched
+            .get(col >> 6)
+            .is_some_and(|w| w >> (col & 63) & 1 == 1)
+    }
+
+    /// Whether any of columns `cols` was written.
+    pub fn any_touched(&self, cols: std::ops::Range<usize>) -> bool {
+        cols.into_iter().any(|c| self.is_touched(c))
+    }
+
+    /// The columns written, ascending.
+    pub fn touched_columns(&self) -> impl Iterator<Item = usize> + '_ {
+        self.touched.iter().enumerate().flat_map(|(w, &bits)| {
+            let mut b = bits;
+            std::iter::from_fn(move || {
+                (b != 0).then(|| {
+                    let i = b.trailing_zeros() as usize;
+                    b &= b - 1;
+                    w * 64 + i
+                })
+            })
+        })
+    }
+
+    /// Back to fill values: only the columns written are reset.
     fn clear(&mut self) {
-        self.sum_q.fill(0);
-        self.samples.fill(0);
-        self.max.fill(f32::NAN);
-        self.pulses.fill(0);
+        let h = self.height;
+        for w in 0..self.touched.len() {
+            let mut b = std::mem::take(&mut self.touched[w]);
+            while b != 0 {
+                let col = w * 64 + b.trailing_zeros() as usize;
+                b &= b - 1;
+                let r = col * h..(col + 1) * h;
+                if r.end <= self.sum_q.len() {
+                    self.sum_q[r.clone()].fill(0);
+                    self.samples[r.clone()].fill(0);
+                    self.max[r.clone()].fill(f32::NAN);
+                    self.pulses[r].fill(0);
+                }
+            }
+        }
     }
 
     /// Voxels held.
@@ -54,26 +135,42 @@ impl Chunk {
         self.sum_q.is_empty()
     }
 
-    /// Adds `other` (same size): sums and counts add, maxima take the larger.
+    /// Adds `other` (same size): sums and counts add, maxima take the larger (the columns
+    /// `other` wrote; the others hold fill values, which change nothing).
     pub fn merge(&mut self, other: &Chunk) {
-        for (a, b) in self.sum_q.iter_mut().zip(&other.sum_q) {
-            *a = a.saturating_add(*b);
-        }
-        for (a, b) in self.samples.iter_mut().zip(&other.samples) {
-            *a = a.saturating_add(*b);
-        }
-        for (a, b) in self.max.iter_mut().zip(&other.max) {
-            // f32::max returns the other operand when one is NaN.
-            *a = a.max(*b);
-        }
-        for (a, b) in self.pulses.iter_mut().zip(&other.pulses) {
-            *a = a.saturating_add(*b);
+        let h = self.height;
+        for col in other.touched_columns() {
+            let r = col * h..(col + 1) * h;
+            if r.end > self.sum_q.len() || r.end > other.sum_q.len() {
+                continue;
+            }
+            self.mark(col);
+            for (a, b) in self.sum_q[r.clone()]
+                .iter_mut()
+                .zip(&other.sum_q[r.clone()])
+            {
+                *a = a.saturating_add(*b);
+            }
+            for (a, b) in self.samples[r.clone()]
+                .iter_mut()
+                .zip(&other.samples[r.clone()])
+            {
+                *a = a.saturating_add(*b);
+            }
+            for (a, b) in self.max[r.clone()].iter_mut().zip(&other.max[r.clone()]) {
+                // f32::max returns the other operand when one is NaN.
+                *a = a.max(*b);
+            }
+            for (a, b) in self.pulses[r.clone()].iter_mut().zip(&other.pulses[r]) {
+                *a = a.saturating_add(*b);
+            }
         }
     }
 
-    /// Whether nothing was deposited in it.
+    /// Whether nothing was deposited in it (no column written: a written column holds a
+    /// sample or a pass).
     pub fn is_blank(&self) -> bool {
-        self.samples.iter().all(|s| *s == 0) && self.pulses.iter().all(|p| *p == 0)
+        self.touched.iter().all(|w| *w == 0)
     }
 }
 
@@ -244,8 +341,11 @@ impl TileData {
 
     #[cold]
     fn alloc(&mut self, kc: usize) {
-        let n = self.columns << self.shift;
-        let c = self.pool.pop().unwrap_or_else(|| Box::new(Chunk::new(n)));
+        let h = 1usize << self.shift;
+        let c = self
+            .pool
+            .pop()
+            .unwrap_or_else(|| Box::new(Chunk::new(self.columns, h)));
         self.chunks[kc] = Some(c);
         self.present.push(kc as u32);
     }
@@ -295,7 +395,9 @@ impl TileData {
     #[inline]
     pub fn deposit(&mut self, offset: usize, value_q: i64, value: f32) {
         let (kc, i) = self.locate(offset);
+        let shift = self.shift;
         let c = self.chunk_mut(kc);
+        c.mark(i >> shift);
         c.sum_q[i] = c.sum_q[i].saturating_add(value_q);
         c.samples[i] = c.samples[i].saturating_add(1);
         c.max[i] = c.max[i].max(value);
@@ -305,7 +407,9 @@ impl TileData {
     #[inline]
     pub fn pass(&mut self, offset: usize) {
         let (kc, i) = self.locate(offset);
+        let shift = self.shift;
         let c = self.chunk_mut(kc);
+        c.mark(i >> shift);
         c.pulses[i] = c.pulses[i].saturating_add(1);
     }
 

@@ -729,6 +729,7 @@ impl Span<'_> {
                     b = e;
                     continue;
                 }
+                chunk.mark(col_base / h);
                 // This column's `h` levels of the chunk, stated once so that the mask below
                 // bounds every index.
                 let range = col_base..col_base + h;

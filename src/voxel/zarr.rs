@@ -68,6 +68,7 @@ use serde_json::{Value, json};
 
 use super::grid::Grid;
 use super::shard_group::{Batch, Journal, JournalTile, ShardGroup};
+pub use super::shard_group::{INNER_COLUMNS, LayoutChoice};
 use super::tile::TileData;
 
 /// Names of the data arrays, in the order their chunks are written.
@@ -421,12 +422,6 @@ impl Codec {
     }
 }
 
-/// Columns along each side of a shard's inner chunk (of the tile's `T`; the largest divisor of
-/// `T` not above this when 8 does not divide it). Chosen by measurement (docs/performance.md):
-/// 8 × 8 columns × `H` levels is 16 KB of `u32`, large enough for zstd and small enough that a
-/// sparse flight line's tile chunk encodes only the few blocks its pulses touched.
-pub const INNER_COLUMNS: u32 = 8;
-
 /// How the data arrays' chunks are stored.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Layout {
@@ -467,16 +462,16 @@ impl Layout {
         }
     }
 
-    /// The layout this version writes on `grid` with tiles grouped by `group` (`None`, or a
-    /// group of one tile and one height chunk: a shard per tile and height chunk).
-    pub fn grouped(grid: &Grid, group: Option<ShardGroup>) -> Layout {
-        let group = group.filter(|g| g.tiles > 0 && g.height_chunks > 0);
+    /// The layout this version writes on `grid` as `choice` says: tiles grouped or not, inner
+    /// chunks of the largest divisor of `T` not above `choice.inner_columns` columns a side.
+    pub fn chosen(grid: &Grid, choice: LayoutChoice) -> Layout {
+        let group = choice.group.filter(|g| g.tiles > 0 && g.height_chunks > 0);
+        let t = grid.tile_columns.max(1);
+        let want = choice.inner_columns.clamp(1, t);
+        let inner = (1..=want).rev().find(|b| t.is_multiple_of(*b)).unwrap_or(1);
         match Layout::for_grid(grid) {
             Layout::Sharded {
-                inner,
-                codec,
-                index_crc,
-                ..
+                codec, index_crc, ..
             } => Layout::Sharded {
                 inner,
                 codec,
@@ -963,14 +958,16 @@ impl ZarrStore {
         Self::create_or_open_grouped(root, grid, info, None)
     }
 
-    /// [`create_or_open`](Self::create_or_open), a new store grouping tiles into shards by
-    /// `group` (`shard_group`); a store reopened keeps its own layout.
+    /// [`create_or_open`](Self::create_or_open), a new store laid out as `choice` says (tiles
+    /// grouped into shards, `shard_group`; the inner chunks' width); a store reopened keeps its
+    /// own layout.
     pub fn create_or_open_grouped(
         root: &Path,
         grid: Grid,
         info: StoreInfo,
-        group: Option<ShardGroup>,
+        choice: impl Into<LayoutChoice>,
     ) -> Result<Self, StoreError> {
+        let choice = choice.into();
         let meta = root.join("zarr.json");
         if meta.exists() {
             let mut s = ZarrStore::open(root)?;
@@ -1010,7 +1007,7 @@ impl ZarrStore {
         }
         let span = Span::extent(&grid);
         let mut s = ZarrStore::at(root, grid, info, span);
-        s.layout = Layout::grouped(&s.grid, group);
+        s.layout = Layout::chosen(&s.grid, choice);
         s.write_metadata()?;
         if s.layout.group().is_some() {
             s.journal = Some(Journal::new(s.group_journal_path(), 1));
@@ -1570,11 +1567,17 @@ impl ZarrStore {
         let expect = order.block_voxels() * width;
         let blocks = order.blocks() * order.blocks();
         let bad = |what: String| invalid(path, what);
-        let mut fill = |raw: &[u8], blk: usize| match a {
-            "intensity_sum" => order.read(raw, blk, &mut c.sum_q, i64::from_le_bytes),
-            "sample_count" => order.read(raw, blk, &mut c.samples, u32::from_le_bytes),
-            "pulse_count" => order.read(raw, blk, &mut c.pulses, u32::from_le_bytes),
-            _ => order.read(raw, blk, &mut c.max, f32::from_le_bytes),
+        let mut fill = |raw: &[u8], blk: usize| {
+            match a {
+                "intensity_sum" => order.read(raw, blk, &mut c.sum_q, i64::from_le_bytes),
+                "sample_count" => order.read(raw, blk, &mut c.samples, u32::from_le_bytes),
+                "pulse_count" => order.read(raw, blk, &mut c.pulses, u32::from_le_bytes),
+                _ => order.read(raw, blk, &mut c.max, f32::from_le_bytes),
+            }
+            for jj in 0..order.block {
+                let r = order.row_start(blk, jj);
+                c.mark_range(r..r + order.block);
+            }
         };
         match self.layout {
             Layout::Plain(codec) => {
@@ -2120,10 +2123,14 @@ impl ZarrStore {
             }
             self.raw.clear();
             match a {
-                "intensity_sum" => order.write(&c.sum_q, blk, &mut self.raw, i64::to_le_bytes),
-                "sample_count" => order.write(&c.samples, blk, &mut self.raw, u32::to_le_bytes),
-                "pulse_count" => order.write(&c.pulses, blk, &mut self.raw, u32::to_le_bytes),
-                _ => order.write(&c.max, blk, &mut self.raw, f32::to_le_bytes),
+                "intensity_sum" => {
+                    order.write(c, &c.sum_q, 0, blk, &mut self.raw, i64::to_le_bytes)
+                }
+                "sample_count" => {
+                    order.write(c, &c.samples, 0, blk, &mut self.raw, u32::to_le_bytes)
+                }
+                "pulse_count" => order.write(c, &c.pulses, 0, blk, &mut self.raw, u32::to_le_bytes),
+                _ => order.write(c, &c.max, f32::NAN, blk, &mut self.raw, f32::to_le_bytes),
             }
             let codec = self.layout.codec();
             match self.layout {
@@ -2521,25 +2528,27 @@ impl DiskOrder {
     }
 
     /// Marks in `out` (one entry per block) the blocks of `c` where a sample or a pass landed:
-    /// the blocks to encode, the same for all four arrays.
+    /// the blocks to encode, the same for all four arrays. A column holds one exactly when it
+    /// was written (`Chunk::mark`), so the columns' marks say it without reading the values.
     fn occupied(self, c: &super::tile::Chunk, out: &mut Vec<bool>) {
-        let (b, h) = (self.block, self.levels);
+        let b = self.block;
         out.clear();
         out.extend((0..self.blocks() * self.blocks()).map(|blk| {
             (0..b).any(|jj| {
-                let r = self.row_start(blk, jj) * h..(self.row_start(blk, jj) + b) * h;
-                let s = c.samples.get(r.clone()).unwrap_or(&[]);
-                let p = c.pulses.get(r).unwrap_or(&[]);
-                // OR-reduced (vectorises) rather than a search that stops early.
-                s.iter().fold(0, |a, x| a | x) | p.iter().fold(0, |a, x| a | x) != 0
+                let r = self.row_start(blk, jj);
+                c.any_touched(r..r + b)
             })
         }));
     }
 
-    /// Appends block `blk` of `mem` to `out` in `[z, y, x]` order, little endian.
+    /// Appends block `blk` of `mem` (an array of chunk `c`, whose unwritten columns hold
+    /// `fill`) to `out` in `[z, y, x]` order, little endian. Unwritten columns are not read:
+    /// the block starts as `fill` and only the written columns are placed.
     fn write<T: Copy, const N: usize>(
         self,
+        c: &super::tile::Chunk,
         mem: &[T],
+        fill: T,
         blk: usize,
         out: &mut Vec<u8>,
         enc: fn(T) -> [u8; N],
@@ -2548,6 +2557,12 @@ impl DiskOrder {
         let start = out.len();
         out.resize(start + self.block_voxels() * N, 0);
         let dst = &mut out[start..];
+        let f = enc(fill);
+        if f != [0; N] {
+            for v in dst.chunks_exact_mut(N) {
+                v.copy_from_slice(&f);
+            }
+        }
         // Each column's levels are read where they lie (contiguous, `col·L + k`) and placed at
         // `[z, y, x]` = `((k·B + jj)·B + c)·N`, a stride of one level's plane through the
         // block: the tile writer's CPU on the sparse 7.2 km line 18.35 → 16.6 s against
@@ -2557,9 +2572,12 @@ impl DiskOrder {
         let plane = b * b * N;
         for jj in 0..b {
             let c0 = self.row_start(blk, jj);
-            for c in 0..b {
-                let column = &mem[(c0 + c) * l..(c0 + c + 1) * l];
-                let mut at = (jj * b + c) * N;
+            for i in 0..b {
+                if !c.is_touched(c0 + i) {
+                    continue;
+                }
+                let column = &mem[(c0 + i) * l..(c0 + i + 1) * l];
+                let mut at = (jj * b + i) * N;
                 for &v in column {
                     dst[at..at + N].copy_from_slice(&enc(v));
                     at += plane;
