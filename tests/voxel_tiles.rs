@@ -834,23 +834,26 @@ fn voxels_of(s: &mut ZarrStore) -> Vec<[f64; 7]> {
         );
         for kc in d.present() {
             let c = d.chunk(kc as usize).unwrap();
-            for idx in 0..c.len() {
-                let (col, k) = (idx / h, kc as usize * h + idx % h);
-                if k < l && (c.samples[idx] > 0 || c.pulses[idx] > 0) {
-                    let max = if c.max[idx].is_nan() {
-                        -1.0
-                    } else {
-                        c.max[idx] as f64
-                    };
-                    out.push([
-                        (k - span.level_chunk_min as usize * h) as f64,
-                        (oy + col / t) as f64,
-                        (ox + col % t) as f64,
-                        c.sum_q[idx] as f64,
-                        c.samples[idx] as f64,
-                        max,
-                        c.pulses[idx] as f64,
-                    ]);
+            for col in 0..c.columns() {
+                let Some(v) = c.column(col) else { continue };
+                for kk in 0..h {
+                    let k = kc as usize * h + kk;
+                    if k < l && (v.samples[kk] > 0 || v.pulses[kk] > 0) {
+                        let max = if v.max[kk].is_nan() {
+                            -1.0
+                        } else {
+                            v.max[kk] as f64
+                        };
+                        out.push([
+                            (k - span.level_chunk_min as usize * h) as f64,
+                            (oy + col / t) as f64,
+                            (ox + col % t) as f64,
+                            v.sum_q[kk] as f64,
+                            v.samples[kk] as f64,
+                            max,
+                            v.pulses[kk] as f64,
+                        ]);
+                    }
                 }
             }
         }

@@ -457,16 +457,15 @@ fn accumulate_tile(
     for j in 0..side {
         for i in 0..side {
             let col = (j * side + i) as usize;
-            let r = col * levels_per_chunk..(col + 1) * levels_per_chunk;
             // The column's bins and pulses.
             let mut any = false;
             let mut pulses = 0u32;
             for &kc in &present {
-                if let Some(c) = data.chunk(kc as usize) {
-                    if c.samples[r.clone()].iter().any(|&s| s > 0) {
+                if let Some(c) = data.chunk(kc as usize).and_then(|c| c.column(col)) {
+                    if c.samples.iter().any(|&s| s > 0) {
                         any = true;
                     }
-                    pulses = pulses.max(c.pulses[r.clone()].iter().copied().max().unwrap_or(0));
+                    pulses = pulses.max(c.pulses.iter().copied().max().unwrap_or(0));
                 }
             }
             if !any {
@@ -479,10 +478,10 @@ fn accumulate_tile(
                 let acc = p.pending.entry(key).or_default();
                 acc.pulses += u64::from(pulses);
                 for &kc in &present {
-                    let Some(c) = data.chunk(kc as usize) else {
+                    let Some(c) = data.chunk(kc as usize).and_then(|c| c.column(col)) else {
                         continue;
                     };
-                    if c.samples[r.clone()].iter().all(|&s| s == 0) {
+                    if c.samples.iter().all(|&s| s == 0) {
                         continue;
                     }
                     let (e, s) = acc
@@ -492,7 +491,7 @@ fn accumulate_tile(
                     for ((e, s), (q, k)) in e
                         .iter_mut()
                         .zip(s.iter_mut())
-                        .zip(c.sum_q[r.clone()].iter().zip(&c.samples[r.clone()]))
+                        .zip(c.sum_q.iter().zip(c.samples))
                     {
                         *e = e.saturating_add(*q);
                         *s = s.saturating_add(*k);

@@ -669,9 +669,9 @@ pub fn tile_las(
     let q = grid.intensity_quantum;
     // (column, level, mean, max, samples, pulses) of every voxel holding a sample.
     let mut voxels = Vec::new();
-    data.for_each_sampled(|col, k, c, o| {
-        let mean = c.sum_q[o] as f64 * q / c.samples[o] as f64;
-        voxels.push((col, k, mean, c.max[o], c.samples[o], c.pulses[o]));
+    data.for_each_sampled(|col, k, v| {
+        let mean = v.sum_q as f64 * q / v.samples as f64;
+        voxels.push((col, k, mean, v.max, v.samples, v.pulses));
     });
     let top = voxels.iter().map(|x| x.2).fold(0.0f64, f64::max);
     let points = voxels.into_iter().map(move |(col, k, m, mx, n, p)| {

@@ -665,7 +665,6 @@ impl Span<'_> {
         let shift = data.chunk_shift();
         let h = 1usize << shift;
         let mask = (h - 1) as u32;
-        let col_base = column * h;
         let levels_f = levels as f64;
         let mut prev = *prev_off;
         // Two passes over blocks of bins: the arithmetic without branches (level, calibrated
@@ -723,22 +722,15 @@ impl Span<'_> {
                     e += 1;
                 }
                 let chunk = data.chunk_mut(kc as usize);
-                if col_base + h > chunk.sum_q.len() {
+                if column >= chunk.columns() {
                     // Not reached: a column of the tile is below T².
                     counts.outside_heights += (e - b) as u64;
                     b = e;
                     continue;
                 }
-                chunk.mark(col_base / h);
-                // This column's `h` levels of the chunk, stated once so that the mask below
-                // bounds every index.
-                let range = col_base..col_base + h;
-                let (sum_q, samples, max, pulses) = (
-                    &mut chunk.sum_q[range.clone()],
-                    &mut chunk.samples[range.clone()],
-                    &mut chunk.max[range.clone()],
-                    &mut chunk.pulses[range],
-                );
+                // This column's `h` levels of the chunk (the mask below bounds every index).
+                let c = chunk.column_mut(column);
+                let (sum_q, samples, max, pulses) = (c.sum_q, c.samples, c.max, c.pulses);
                 for ((&k, &q), &value) in ks[b..e].iter().zip(&qs[b..e]).zip(&vs[b..e]) {
                     let i = (k & mask) as usize & (h - 1);
                     // Plain adds: 2^63 quanta or 2^32 samples in one voxel are out of reach;

@@ -1567,17 +1567,11 @@ impl ZarrStore {
         let expect = order.block_voxels() * width;
         let blocks = order.blocks() * order.blocks();
         let bad = |what: String| invalid(path, what);
-        let mut fill = |raw: &[u8], blk: usize| {
-            match a {
-                "intensity_sum" => order.read(raw, blk, &mut c.sum_q, i64::from_le_bytes),
-                "sample_count" => order.read(raw, blk, &mut c.samples, u32::from_le_bytes),
-                "pulse_count" => order.read(raw, blk, &mut c.pulses, u32::from_le_bytes),
-                _ => order.read(raw, blk, &mut c.max, f32::from_le_bytes),
-            }
-            for jj in 0..order.block {
-                let r = order.row_start(blk, jj);
-                c.mark_range(r..r + order.block);
-            }
+        let mut fill = |raw: &[u8], blk: usize| match a {
+            "intensity_sum" => order.read(raw, blk, c, |v| v.sum_q, i64::from_le_bytes),
+            "sample_count" => order.read(raw, blk, c, |v| v.samples, u32::from_le_bytes),
+            "pulse_count" => order.read(raw, blk, c, |v| v.pulses, u32::from_le_bytes),
+            _ => order.read(raw, blk, c, |v| v.max, f32::from_le_bytes),
         };
         match self.layout {
             Layout::Plain(codec) => {
@@ -2124,13 +2118,15 @@ impl ZarrStore {
             self.raw.clear();
             match a {
                 "intensity_sum" => {
-                    order.write(c, &c.sum_q, 0, blk, &mut self.raw, i64::to_le_bytes)
+                    order.write(c, |v| v.sum_q, 0, blk, &mut self.raw, i64::to_le_bytes)
                 }
                 "sample_count" => {
-                    order.write(c, &c.samples, 0, blk, &mut self.raw, u32::to_le_bytes)
+                    order.write(c, |v| v.samples, 0, blk, &mut self.raw, u32::to_le_bytes)
                 }
-                "pulse_count" => order.write(c, &c.pulses, 0, blk, &mut self.raw, u32::to_le_bytes),
-                _ => order.write(c, &c.max, f32::NAN, blk, &mut self.raw, f32::to_le_bytes),
+                "pulse_count" => {
+                    order.write(c, |v| v.pulses, 0, blk, &mut self.raw, u32::to_le_bytes)
+                }
+                _ => order.write(c, |v| v.max, f32::NAN, blk, &mut self.raw, f32::to_le_bytes),
             }
             let codec = self.layout.codec();
             match self.layout {
@@ -2547,7 +2543,7 @@ impl DiskOrder {
     fn write<T: Copy, const N: usize>(
         self,
         c: &super::tile::Chunk,
-        mem: &[T],
+        pick: for<'a> fn(super::tile::Column<'a>) -> &'a [T],
         fill: T,
         blk: usize,
         out: &mut Vec<u8>,
@@ -2573,10 +2569,10 @@ impl DiskOrder {
         for jj in 0..b {
             let c0 = self.row_start(blk, jj);
             for i in 0..b {
-                if !c.is_touched(c0 + i) {
+                let Some(column) = c.column(c0 + i).map(pick) else {
                     continue;
-                }
-                let column = &mem[(c0 + i) * l..(c0 + i + 1) * l];
+                };
+                let column = &column[..l.min(column.len())];
                 let mut at = (jj * b + i) * N;
                 for &v in column {
                     dst[at..at + N].copy_from_slice(&enc(v));
@@ -2586,22 +2582,27 @@ impl DiskOrder {
         }
     }
 
-    /// Fills block `blk` of `mem` from `[z, y, x]`-order bytes `raw` (of the block's length).
+    /// Fills one array (`pick`) of block `blk` of chunk `c` from `[z, y, x]`-order bytes `raw`
+    /// (of the block's length); every column of the block is then written.
     fn read<T: Copy, const N: usize>(
         self,
         raw: &[u8],
         blk: usize,
-        mem: &mut [T],
+        c: &mut super::tile::Chunk,
+        pick: for<'a> fn(super::tile::ColumnMut<'a>) -> &'a mut [T],
         dec: fn([u8; N]) -> T,
     ) {
         let (b, l) = (self.block, self.levels);
-        let mut it = raw.chunks_exact(N);
-        for k in 0..l {
-            for jj in 0..b {
-                let c0 = self.row_start(blk, jj);
-                for col in c0..c0 + b {
-                    let Some(bytes) = it.next() else { return };
-                    if let (Some(d), Ok(bytes)) = (mem.get_mut(col * l + k), bytes.try_into()) {
+        for jj in 0..b {
+            let c0 = self.row_start(blk, jj);
+            for i in 0..b {
+                if c0 + i >= c.columns() {
+                    continue;
+                }
+                let dst = pick(c.column_mut(c0 + i));
+                for (k, d) in dst.iter_mut().enumerate().take(l) {
+                    let at = ((k * b + jj) * b + i) * N;
+                    if let Some(bytes) = raw.get(at..at + N).and_then(|x| x.try_into().ok()) {
                         *d = dec(bytes);
                     }
                 }
