@@ -139,7 +139,9 @@ pub fn merge_stores(
         std::fs::remove_dir_all(&tmp)
             .map_err(|e| format!("cannot clear {}: {e}", tmp.display()))?;
     }
-    let mut result = ZarrStore::create_or_open(&tmp, grid.clone(), info)
+    // Laid out as the first input is (tiles grouped into shards or not), so that tiles copy.
+    let layout = opened[0].layout_choice();
+    let mut result = ZarrStore::create_or_open_grouped(&tmp, grid.clone(), info, layout)
         .map_err(|e| e.to_string())?
         .unsynced();
     let (mut acc, mut part) = (TileData::for_grid(&grid), TileData::for_grid(&grid));
@@ -189,4 +191,89 @@ pub fn merge_stores(
         tile_columns: grid.tile_columns,
         levels: grid.levels,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::voxel::grid::{Grid, VoxelConfig};
+    use crate::voxel::shard_group::ShardGroup;
+
+    fn grid() -> Grid {
+        Grid::new(
+            &VoxelConfig {
+                extent_m: Some([-32.0, -32.0, 32.0, 32.0]),
+                z_range_m: [0.0, 0.6],
+                tile_columns: 8,
+                ..VoxelConfig::default()
+            },
+            [0.0, 0.0],
+        )
+    }
+
+    fn tile(seed: usize) -> TileData {
+        let g = grid();
+        let mut t = TileData::for_grid(&g);
+        for i in (seed..g.tile_voxels()).step_by(7) {
+            t.deposit(i, i as i64 * 3 + 1, i as f32);
+            t.pass(i);
+        }
+        t
+    }
+
+    #[test]
+    fn stores_of_grouped_tiles_merge_into_a_grouped_store_exactly() {
+        let dir = tempfile::tempdir().unwrap();
+        let group = ShardGroup {
+            tiles: 4,
+            height_chunks: 1,
+        };
+        let info = |k: &str| StoreInfo {
+            crs_wkt: None,
+            epsg: Some(32736),
+            intensity_units: "V".into(),
+            run_key: k.into(),
+            configuration: String::new(),
+        };
+        // Two lines: [0, 0] in both, [1, 0] and [-3, 2] in one each.
+        let mut paths = Vec::new();
+        for (n, tiles) in [
+            vec![([0, 0], 1), ([1, 0], 2)],
+            vec![([0, 0], 3), ([-3, 2], 4)],
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let p = dir.path().join(format!("line{n}.zarr"));
+            let mut s =
+                ZarrStore::create_or_open_grouped(&p, grid(), info("l"), Some(group)).unwrap();
+            for (t, seed) in tiles {
+                s.write_tile(t, &tile(seed), 5).unwrap();
+            }
+            s.fit().unwrap();
+            paths.push(p);
+        }
+        let out = dir.path().join("mosaic.zarr");
+        let sum = merge_stores(&paths, &out, &MergeMeta::FromInputs, |_, _| {}).unwrap();
+        assert_eq!(
+            (sum.tiles, sum.tiles_from_several, sum.tiles_copied),
+            (3, 1, 2)
+        );
+        let mut m = ZarrStore::open(&out).unwrap();
+        assert_eq!(m.layout_choice().group, Some(group));
+        let mut got = TileData::for_grid(&grid());
+        let mut both = tile(1);
+        both.merge(&tile(3));
+        for (t, want) in [([0, 0], both), ([1, 0], tile(2)), ([-3, 2], tile(4))] {
+            assert!(m.read_tile(t, &mut got).unwrap());
+            let (a, b) = (got.dense(), want.dense());
+            assert_eq!(
+                (a.sum_q, a.samples, a.pulses),
+                (b.sum_q, b.samples, b.pulses),
+                "{t:?}"
+            );
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&a.max), bits(&b.max), "{t:?}");
+        }
+    }
 }

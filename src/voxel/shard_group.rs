@@ -51,8 +51,8 @@ pub struct LayoutChoice {
     /// Tiles grouped into shard files (`[voxels] shard_tiles`), or a file per tile and height
     /// chunk.
     pub group: Option<ShardGroup>,
-    /// Columns along each side of an inner chunk (`[voxels] inner_columns`; the largest divisor
-    /// of the tile's columns not above it is taken).
+    /// Columns along each side of an inner chunk (its greatest common divisor with the tile's
+    /// columns is taken).
     pub inner_columns: u32,
 }
 

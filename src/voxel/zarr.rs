@@ -463,12 +463,11 @@ impl Layout {
     }
 
     /// The layout this version writes on `grid` as `choice` says: tiles grouped or not, inner
-    /// chunks of the largest divisor of `T` not above `choice.inner_columns` columns a side.
+    /// chunks of `gcd(T, choice.inner_columns)` columns a side (as [`for_grid`](Self::for_grid)
+    /// with the default choice).
     pub fn chosen(grid: &Grid, choice: LayoutChoice) -> Layout {
         let group = choice.group.filter(|g| g.tiles > 0 && g.height_chunks > 0);
-        let t = grid.tile_columns.max(1);
-        let want = choice.inner_columns.clamp(1, t);
-        let inner = (1..=want).rev().find(|b| t.is_multiple_of(*b)).unwrap_or(1);
+        let inner = gcd(grid.tile_columns.max(1), choice.inner_columns.max(1));
         match Layout::for_grid(grid) {
             Layout::Sharded {
                 codec, index_crc, ..
@@ -1673,6 +1672,18 @@ impl ZarrStore {
     /// Adds a tile this handle wrote to what [`take_committed`](Self::take_committed) returns.
     pub fn note_written(&mut self, c: Committed) {
         self.committed.push(c);
+    }
+
+    /// How the store is laid out, as a new store would be asked to be (`merge` writes its
+    /// result as its first input is).
+    pub fn layout_choice(&self) -> LayoutChoice {
+        LayoutChoice {
+            group: self.layout.group(),
+            inner_columns: match self.layout {
+                Layout::Sharded { inner, .. } => inner,
+                Layout::Plain(_) => INNER_COLUMNS,
+            },
+        }
     }
 
     /// The tiles this (writer) handle made durable since the last call, with their costs.
