@@ -509,8 +509,9 @@ mod tests {
         }
     }
 
-    fn run(dir: &Path, cfg: VoxelConfig, pulses: impl Iterator<Item = Pulse>) -> VoxelTilesSink {
-        let mut s = VoxelTilesSink::create(
+    /// A sink writing into `dir` (EPSG:32736, no DEM).
+    fn sink(dir: &Path, cfg: VoxelConfig) -> VoxelTilesSink {
+        VoxelTilesSink::create(
             dir,
             cfg,
             CrsSource::Known(Some("EPSG:32736".into())),
@@ -518,7 +519,11 @@ mod tests {
             None,
             None,
         )
-        .unwrap();
+        .unwrap()
+    }
+
+    fn run(dir: &Path, cfg: VoxelConfig, pulses: impl Iterator<Item = Pulse>) -> VoxelTilesSink {
+        let mut s = sink(dir, cfg);
         for p in pulses {
             s.write(&p).unwrap();
         }
@@ -645,16 +650,7 @@ mod tests {
         let inline = tempfile::tempdir().unwrap();
         let a = run(inline.path(), cfg(), flight());
         let threaded = tempfile::tempdir().unwrap();
-        let mut b = VoxelTilesSink::create(
-            threaded.path(),
-            cfg(),
-            CrsSource::Known(Some("EPSG:32736".into())),
-            info(),
-            None,
-            None,
-        )
-        .unwrap()
-        .with_tile_writer(1);
+        let mut b = sink(threaded.path(), cfg()).with_tile_writer(1);
         for p in flight() {
             b.write(&p).unwrap();
         }
@@ -741,16 +737,7 @@ mod tests {
         assert!((2..=5).contains(&shards), "{shards}");
         assert!(a.tiles().unwrap().stats().merged > 0);
         let threaded = tempfile::tempdir().unwrap();
-        let mut b = VoxelTilesSink::create(
-            threaded.path(),
-            grouped(),
-            CrsSource::Known(Some("EPSG:32736".into())),
-            info(),
-            None,
-            None,
-        )
-        .unwrap()
-        .with_tile_writer(1);
+        let mut b = sink(threaded.path(), grouped()).with_tile_writer(1);
         for p in flight() {
             b.write(&p).unwrap();
         }
@@ -766,16 +753,7 @@ mod tests {
         // Killed after 900 pulses, then run again into the same folder.
         let cut = tempfile::tempdir().unwrap();
         {
-            let mut s = VoxelTilesSink::create(
-                cut.path(),
-                grouped(),
-                CrsSource::Known(Some("EPSG:32736".into())),
-                info(),
-                None,
-                None,
-            )
-            .unwrap()
-            .with_tile_writer(1);
+            let mut s = sink(cut.path(), grouped()).with_tile_writer(1);
             for p in flight().take(900) {
                 s.write(&p).unwrap();
             }

@@ -445,6 +445,22 @@ pub enum Layout {
     },
 }
 
+/// A chunk shape from metadata (empty when absent or not a list of integers).
+fn shape_of(v: Option<&Value>) -> Vec<u64> {
+    v.and_then(Value::as_array)
+        .map(|a| a.iter().filter_map(Value::as_u64).collect())
+        .unwrap_or_default()
+}
+
+/// The names of a `sharding_indexed` configuration's index codecs, if it lists them.
+fn index_codec_names(cfg: &Value) -> Option<Vec<&str>> {
+    cfg.get("index_codecs").and_then(Value::as_array).map(|a| {
+        a.iter()
+            .filter_map(|c| c.get("name").and_then(Value::as_str))
+            .collect()
+    })
+}
+
 /// Greatest common divisor (both positive).
 fn gcd(a: u32, b: u32) -> u32 {
     if b == 0 { a } else { gcd(b, a % b) }
@@ -610,26 +626,13 @@ impl Layout {
         // Tiles grouped: the array's chunk is the group, the outer shard's inner chunk a tile's
         // height chunk, itself a shard.
         let (h, t) = (grid.chunk_levels() as u64, grid.tile_columns as u64);
-        let shape_of = |c: Option<&Value>| -> Vec<u64> {
-            c.and_then(Value::as_array)
-                .map(|a| a.iter().filter_map(Value::as_u64).collect())
-                .unwrap_or_default()
-        };
         let outer = shape_of(cfg.get("chunk_shape"));
         if outer != [h, t, t] {
             return Err(format!(
                 "sharding_indexed.chunk_shape {outer:?}: not a tile's height chunk [{h}, {t}, {t}]"
             ));
         }
-        let names: Vec<&str> = cfg
-            .get("index_codecs")
-            .and_then(Value::as_array)
-            .map(|a| {
-                a.iter()
-                    .filter_map(|c| c.get("name").and_then(Value::as_str))
-                    .collect()
-            })
-            .unwrap_or_default();
+        let names = index_codec_names(cfg).unwrap_or_default();
         if names != ["bytes"] || cfg.get("index_location").and_then(Value::as_str) != Some("end") {
             return Err(format!(
                 "sharding_indexed.index_codecs {names:?}: the grouped layout's index is `bytes` at \
@@ -667,11 +670,7 @@ impl Layout {
     /// The inner chunk width, codec and index checksum of a tile's height-chunk shard, from its
     /// `sharding_indexed` configuration `cfg`.
     fn of_shard(cfg: &Value, grid: &Grid) -> Result<(u32, Codec, bool), String> {
-        let shape: Vec<u64> = cfg
-            .get("chunk_shape")
-            .and_then(Value::as_array)
-            .map(|a| a.iter().filter_map(Value::as_u64).collect())
-            .unwrap_or_default();
+        let shape = shape_of(cfg.get("chunk_shape"));
         let t = grid.tile_columns as u64;
         let inner = match shape[..] {
             [h, a, b]
@@ -688,15 +687,7 @@ impl Layout {
         };
         let codec = Codec::of_meta(cfg)
             .ok_or("sharding_indexed.codecs: neither zstd nor gzip".to_string())?;
-        let names: Vec<&str> = cfg
-            .get("index_codecs")
-            .and_then(Value::as_array)
-            .map(|a| {
-                a.iter()
-                    .filter_map(|c| c.get("name").and_then(Value::as_str))
-                    .collect()
-            })
-            .unwrap_or_else(|| vec!["bytes", "crc32c"]);
+        let names = index_codec_names(cfg).unwrap_or_else(|| vec!["bytes", "crc32c"]);
         let endian = cfg
             .get("index_codecs")
             .and_then(Value::as_array)
