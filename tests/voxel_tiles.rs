@@ -113,20 +113,24 @@ fn the_readme_replay_opens_in_xarray_and_sums_without_a_warning() {
     assert!(deposited > 0);
     assert_eq!(got["sum"].as_u64(), Some(deposited), "{got}");
     // The tiles written: the store's records, on the grid anchored at the CRS origin.
-    let records: Vec<[i64; 2]> = std::fs::read_dir(store.join("fwlidar_state/tiles"))
-        .unwrap()
-        .map(|e| {
-            let n = e.unwrap().file_name().to_string_lossy().to_string();
-            let (a, b) = n.split_once('_').unwrap();
-            [a.parse().unwrap(), b.parse().unwrap()]
-        })
-        .collect();
+    let records: Vec<[i64; 2]> = common::committed_tiles(&store).into_keys().collect();
     assert_eq!(
         records.len() as u64,
         vox["tiles"]["in_store"].as_u64().unwrap()
     );
-    let lo = |a: usize| records.iter().map(|t| t[a]).min().unwrap();
+    let low = |a: usize| records.iter().map(|t| t[a]).min().unwrap();
     let hi = |a: usize| records.iter().map(|t| t[a]).max().unwrap();
+    assert!(
+        (hi(0) - low(0) + 1) * (hi(1) - low(1) + 1) <= 4,
+        "a small store: {records:?}"
+    );
+    // The arrays start at the corner of the group of tiles (the default: 16 × 16 tiles a shard
+    // file, counted from the grid's first tile) that holds the south-west tile.
+    let opened = ZarrStore::open(&store).unwrap();
+    let group = opened.layout_choice().group.map_or(1, |g| g.tiles as i64);
+    assert_eq!(group, 16, "the default layout groups tiles");
+    let first = opened.grid().tile_min;
+    let lo = |a: usize| low(a) - (low(a) - first[a]).rem_euclid(group);
     let (nx, ny) = ((hi(0) - lo(0) + 1) as u64, (hi(1) - lo(1) + 1) as u64);
     // The fitted height: from the lowest to the highest height chunk written.
     let levels = vox["arrays"]["shape"][0].as_u64().unwrap();
@@ -136,7 +140,6 @@ fn the_readme_replay_opens_in_xarray_and_sums_without_a_warning() {
         serde_json::json!([levels, ny * 32, nx * 32]),
         "{got}"
     );
-    assert!(nx * ny <= 4, "a small store: {nx} × {ny} tiles");
     // Coordinates: the voxel centres of those tiles (16 m tiles of 0.5 m voxels).
     let xs: Vec<f64> = serde_json::from_value(got["x"].clone()).unwrap();
     let ys: Vec<f64> = serde_json::from_value(got["y"].clone()).unwrap();
@@ -252,6 +255,11 @@ fn replay_writes_tiles_that_xarray_reads_with_the_right_values() {
 /// A run configuration: denoise + Richardson-Lucy (slow enough to be killed mid-run), small
 /// tiles that close soon after the flight leaves them.
 fn crash_config(dir: &Path) -> PathBuf {
+    crash_config_with(dir, "")
+}
+
+/// `crash_config` with `voxels` lines added (e.g. the store's layout).
+fn crash_config_with(dir: &Path, voxels: &str) -> PathBuf {
     let p = dir.join("crash.toml");
     std::fs::write(
         &p,
@@ -276,7 +284,9 @@ z_range_m = [-5.0, 30.0]
 tile_columns = 4
 close_after_s = 0.02
 max_open_tiles = 8
-"#,
+"#
+        .to_string()
+            + voxels,
     )
     .unwrap();
     p
@@ -320,9 +330,23 @@ fn store_files(root: &Path) -> BTreeMap<String, Vec<u8>> {
 
 #[test]
 fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
+    // A file per tile, committed tile by tile.
+    kill_9_then_rerun("shard_tiles = 0\n", 20);
+}
+
+#[test]
+fn kill_9_during_a_replay_of_grouped_tiles_then_rerun_equals_an_uninterrupted_run() {
+    // Tiles grouped into shard files of 2 × 2 tiles (so that groups are written while the run
+    // goes on), committed by journal lines.
+    kill_9_then_rerun("shard_tiles = 2\nshard_height_chunks = 1\n", 3);
+}
+
+/// Replays a line whole, then again killed (SIGKILL) once four tiles are committed, then
+/// reruns the killed one: the store must be the whole run's, byte for byte.
+fn kill_9_then_rerun(layout: &str, min_files: usize) {
     let dir = tempfile::tempdir().unwrap();
     let cap = simulate(dir.path(), 20_000, 7, "line.fwcap");
-    let cfg = crash_config(dir.path());
+    let cfg = crash_config_with(dir.path(), layout);
     let whole = dir.path().join("whole");
     let o = replay(&cap, &whole, Some(&cfg));
     assert!(o.status.success(), "{}", text(&o.stderr));
@@ -341,18 +365,9 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    let records = cut.join("voxels.zarr/fwlidar_state/tiles");
     let t0 = Instant::now();
-    let committed = || {
-        std::fs::read_dir(&records).map_or(0, |d| {
-            d.filter(|e| {
-                e.as_ref()
-                    .is_ok_and(|e| !e.file_name().to_string_lossy().ends_with(".partial"))
-            })
-            .count()
-        })
-    };
-    // Four tile records: at most one of them can be in the middle of its commit.
+    let committed = || common::committed_tiles(&cut.join("voxels.zarr")).len();
+    // Four tiles committed: at most one batch of them can be in the middle of its commit.
     while committed() < 4 {
         assert!(t0.elapsed() < Duration::from_secs(60), "no tile closed");
         if child.try_wait().unwrap().is_some() {
@@ -391,7 +406,7 @@ fn kill_9_during_a_replay_then_rerun_equals_an_uninterrupted_run() {
         store_files(&cut.join("voxels.zarr")),
     );
     let chunks = a.keys().filter(|k| k.contains("/c/0/")).count();
-    assert!(chunks > 20, "{chunks} chunk files");
+    assert!(chunks > min_files, "{chunks} chunk files");
     assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
     for (k, v) in &a {
         assert!(b[k] == *v, "{k} differs after kill -9 and rerun");
@@ -968,4 +983,46 @@ fn a_sparse_store_holds_only_the_inner_chunks_with_data_and_old_stores_still_rea
     assert!(!meta.contains("sharding_indexed"), "{meta}");
     let mut old = ZarrStore::open(&root).unwrap();
     assert_eq!(voxels_of(&mut old), rust);
+}
+
+/// A real GEDI L1B granule (the fixture: 32 shots of 2 beams) in the default layout, tiles
+/// grouped into shard files, holds the same voxels tile by tile as the layout of a file per
+/// tile, in a tenth of the files, and zarr-python reads every tile where the arrays say.
+#[test]
+fn a_gedi_granule_replays_into_grouped_shard_files_that_zarr_python_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let granule = common::fixture("waveform/gedi/GEDI01_B_O01964_beams0001_1011.h5");
+    let run = |name: &str, layout: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec![
+            "replay",
+            granule.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--no-progress",
+        ];
+        args.extend_from_slice(layout);
+        let o = fwlidar(&args);
+        assert!(o.status.success(), "{}", text(&o.stderr));
+        let files = store_files(&out.join("voxels.zarr"))
+            .keys()
+            .filter(|k| k.contains("/c/"))
+            .count();
+        let deposited = summary_of(&out)["sinks"]["voxels"]["deposits"]["bins_deposited"]
+            .as_u64()
+            .unwrap();
+        (check_fitted(&out.join("voxels.zarr")), files, deposited)
+    };
+    let (grouped, grouped_files, deposited) = run("grouped", &[]);
+    let (per_tile, per_tile_files, _) = run("per_tile", &["--set", "voxels.shard_tiles=0"]);
+    assert!(deposited > 0);
+    assert_eq!(grouped["samples"].as_u64(), Some(deposited), "{grouped}");
+    assert!(grouped["tiles"].as_u64().unwrap() > 10, "{grouped}");
+    // Tile by tile the same samples; the arrays of the grouped store start at a group's corner.
+    assert_eq!(grouped["per_tile"], per_tile["per_tile"]);
+    assert_eq!(grouped["pulses"], per_tile["pulses"]);
+    assert!(
+        grouped_files * 10 <= per_tile_files,
+        "{grouped_files} shard files against {per_tile_files}"
+    );
 }

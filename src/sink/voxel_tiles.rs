@@ -293,7 +293,8 @@ impl VoxelTilesSink {
             },
         });
         let wkt = store.info().crs_wkt.clone();
-        let mut tiles = TileSet::new(store, self.cfg.max_open_tiles, self.cfg.close_after_s);
+        let mut tiles = TileSet::new(store, self.cfg.max_open_tiles, self.cfg.close_after_s)
+            .with_memory_budget((self.cfg.max_open_mib as usize).saturating_mul(1 << 20));
         if self.writer_queue > 0 {
             tiles = tiles.with_writer_threads(self.writer_queue, self.cfg.writer_threads());
         }
@@ -810,6 +811,42 @@ mod tests {
     }
 
     #[test]
+    fn a_memory_budget_closes_tiles_early_and_keeps_every_deposit() {
+        // 8 m tiles of 128 × 128 columns (a tile's column map alone is 64 KiB a height chunk):
+        // two passes over all 64 tiles, row by row, nothing closing by time or count; a
+        // budget of 1 MiB holds about 16 of them.
+        let wide = |max_open_mib| VoxelConfig {
+            voxel_size_m: [0.0625, 0.0625, 0.3],
+            tile_columns: 128,
+            max_open_tiles: 64,
+            max_open_mib,
+            close_after_s: 1e6,
+            ..cfg()
+        };
+        let passes = || {
+            (0..2 * 64 * 4).map(|i: u64| {
+                let tile = i % 64;
+                let (tx, ty) = ((tile % 8) as f64, (tile / 8) as f64);
+                let k = (i / 64) as f64;
+                pulse(i, i as f64 * 0.001, tx * 8.0 + 1.0 + k, ty * 8.0 + 1.0 + k)
+            })
+        };
+        let tight = tempfile::tempdir().unwrap();
+        let roomy = tempfile::tempdir().unwrap();
+        let s1 = run(tight.path(), wide(1), passes());
+        let s2 = run(roomy.path(), wide(1024), passes());
+        let (st, all) = (s1.tiles().unwrap().stats(), s2.tiles().unwrap().stats());
+        assert!(st.closed_over_budget > 0 && st.merged > 0, "{st:?}");
+        assert_eq!(st.closed_early, st.closed_over_budget, "{st:?}");
+        assert!(st.peak_open < 32, "{st:?}");
+        assert!(st.peak_open_bytes < 2 << 20, "{st:?}");
+        assert_eq!((all.closed_early, all.peak_open), (0, 64), "{all:?}");
+        assert!(all.peak_open_bytes > 3 << 20, "{all:?}");
+        assert_eq!(s1.stats().bins_deposited, s2.stats().bins_deposited);
+        assert_same_tiles(tight.path(), roomy.path());
+    }
+
+    #[test]
     fn calibrated_pulses_deposit_each_bin_times_its_own_factor() {
         let dir = tempfile::tempdir().unwrap();
         let mut p = pulse(0, 0.0, 3.2, 2.7);
@@ -863,7 +900,8 @@ mod tests {
         assert_eq!(s.stats().bins_deposited, 40);
     }
 
-    /// Every file of a store except the tile records (watermarks depend on when tiles closed).
+    /// Every file of a store except the tile records (a file per tile, or the journal of grouped
+    /// tiles: watermarks depend on when tiles closed).
     fn store_files(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
         fn walk(base: &Path, d: &Path, out: &mut std::collections::BTreeMap<String, Vec<u8>>) {
             for e in std::fs::read_dir(d).unwrap() {
@@ -871,7 +909,8 @@ mod tests {
                 let rel = p.strip_prefix(base).unwrap().display().to_string();
                 if p.is_dir() {
                     walk(base, &p, out);
-                } else if !rel.starts_with("fwlidar_state/tiles/") {
+                } else if !rel.starts_with("fwlidar_state/tiles/") && rel != "fwlidar_state/journal"
+                {
                     out.insert(rel, std::fs::read(&p).unwrap());
                 }
             }
@@ -884,6 +923,17 @@ mod tests {
 
     #[test]
     fn a_continued_store_grows_beyond_its_fitted_arrays_and_ends_as_one_run() {
+        // x 30..39 m, y 35 m: tiles (3..=4, 4) of 8 m; a file per tile fits them exactly, 16 × 16
+        // tiles grouped into shard files widen the span down to the group's corner, (0, 0).
+        let per_tile = VoxelConfig {
+            shard_tiles: 0,
+            ..cfg()
+        };
+        continued_store_grows(per_tile, ([3, 4], [2, 1]), 16);
+        continued_store_grows(cfg(), ([0, 0], [5, 5]), 40);
+    }
+
+    fn continued_store_grows(cfg: VoxelConfig, first_span: ([i64; 2], [u32; 2]), columns: u64) {
         // The daemon's survey across a restart: a first run over the middle of the extent, a
         // second (continuing the store and the pulse numbers, writing on a writer thread) that
         // flies south-west and north-east of it.
@@ -903,7 +953,7 @@ mod tests {
         let continuing = |pulses: &mut dyn Iterator<Item = Pulse>| {
             let mut s = VoxelTilesSink::create(
                 survey.path(),
-                cfg(),
+                cfg.clone(),
                 CrsSource::Known(Some("EPSG:32736".into())),
                 info(),
                 None,
@@ -920,23 +970,26 @@ mod tests {
         };
         let s = continuing(&mut first());
         let span = *s.tiles().unwrap().store().span();
-        // x 30..39 m, y 35 m: tiles (3..=4, 4) of 8 m.
         assert_eq!(
             (span.tile_min, span.tiles, span.fitted),
-            ([3, 4], [2, 1], true)
+            (first_span.0, first_span.1, true)
         );
         assert_eq!(
             serde_json::to_value(s.report()).unwrap()["arrays"]["shape"],
-            serde_json::json!([20, 8, 16])
+            serde_json::json!([20, 8 * first_span.1[1], columns])
         );
         let s = continuing(&mut second());
         let span = *s.tiles().unwrap().store().span();
         assert_eq!((span.tile_min, span.tiles), ([0, 0], [8, 8]));
         // The same store, bit for bit, as one run of every pulse.
         let once = tempfile::tempdir().unwrap();
-        let one = run(once.path(), cfg(), first().chain(second()));
+        let one = run(once.path(), cfg, first().chain(second()));
         assert_eq!(one.tiles().unwrap().store().span(), &span);
         assert_same_tiles(once.path(), survey.path());
-        assert_eq!(store_files(once.path()), store_files(survey.path()));
+        let (a, b) = (store_files(once.path()), store_files(survey.path()));
+        assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
+        for (k, v) in &a {
+            assert!(b[k] == *v, "{k} differs");
+        }
     }
 }

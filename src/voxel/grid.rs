@@ -88,6 +88,16 @@ pub struct VoxelConfig {
     /// and `close_after_s` too (`src/sink/metrics_rasters.rs`).
     #[serde(default = "default_max_open")]
     pub max_open_tiles: usize,
+    /// Memory the open tiles may take, MiB (2^20 bytes): a tile costs the columns deposited
+    /// in (4 arrays × the height chunk's levels per column written), so a sparse line's tile
+    /// of a few pulses costs a few pulses' columns. Past it (checked when a tile opens and every
+    /// 256 pulses), the tiles deposited least recently are closed early until the rest fit.
+    /// Default 1024.
+    #[serde(
+        default = "default_max_open_mib",
+        skip_serializing_if = "is_default_max_open_mib"
+    )]
+    pub max_open_mib: u64,
     /// A tile closes when no bin has been deposited in it for this long (pulse time, seconds)
     /// and it lies outside the current swath. Default 2.
     #[serde(default = "default_close_after")]
@@ -113,9 +123,13 @@ pub struct VoxelConfig {
     pub writer_threads: Option<usize>,
     /// Tiles along each side of a shard file (`G`): the height chunks of `G × G` tiles over
     /// `shard_height_chunks` height chunks are one file per array, written when the flight has
-    /// left them, with one journal line per batch (`src/voxel/shard_group.rs`). 0 (the
-    /// default): a file per tile, height chunk and array, committed tile by tile.
-    #[serde(default, skip_serializing_if = "is_zero")]
+    /// left them, with one journal line per batch (`src/voxel/shard_group.rs`). Default 16;
+    /// 0: a file per tile, height chunk and array, committed tile by tile (the layout before
+    /// issue 36).
+    #[serde(
+        default = "default_shard_tiles",
+        skip_serializing_if = "is_default_shard_tiles"
+    )]
     pub shard_tiles: u32,
     /// Height chunks of a shard file (`K`) when `shard_tiles` > 0. Default 8.
     #[serde(
@@ -125,14 +139,18 @@ pub struct VoxelConfig {
     pub shard_height_chunks: u32,
 }
 
+fn default_shard_tiles() -> u32 {
+    16
+}
+
 fn default_shard_height_chunks() -> u32 {
     8
 }
 
 // The grouping keys are left out of the recorded configuration at their defaults, so that a
 // store's metadata (and run key) is what versions before them wrote.
-fn is_zero(v: &u32) -> bool {
-    *v == 0
+fn is_default_shard_tiles(v: &u32) -> bool {
+    *v == default_shard_tiles()
 }
 
 fn is_default_shard_height(v: &u32) -> bool {
@@ -173,6 +191,14 @@ fn default_auto_extent() -> f64 {
 fn default_max_open() -> usize {
     64
 }
+fn default_max_open_mib() -> u64 {
+    1024
+}
+// Left out of the recorded configuration at its default, so that a store's run key is what
+// versions before it wrote.
+fn is_default_max_open_mib(v: &u64) -> bool {
+    *v == default_max_open_mib()
+}
 fn default_close_after() -> f64 {
     2.0
 }
@@ -193,13 +219,14 @@ impl Default for VoxelConfig {
             extent_m: None,
             auto_extent_m: default_auto_extent(),
             max_open_tiles: default_max_open(),
+            max_open_mib: default_max_open_mib(),
             close_after_s: default_close_after(),
             footprint: false,
             beam_divergence_mrad: None,
             intensity_quantum: default_quantum(),
             las: false,
             writer_threads: None,
-            shard_tiles: 0,
+            shard_tiles: default_shard_tiles(),
             shard_height_chunks: default_shard_height_chunks(),
         }
     }
@@ -263,6 +290,11 @@ impl Validate for VoxelConfig {
             (1..=1 << 20).contains(&self.max_open_tiles),
             field(path, "max_open_tiles"),
             format!("must be in 1..=1048576, got {}", self.max_open_tiles),
+        );
+        v.require(
+            (1..=1 << 24).contains(&self.max_open_mib),
+            field(path, "max_open_mib"),
+            format!("must be in 1..=16777216 (MiB), got {}", self.max_open_mib),
         );
         v.require(
             self.close_after_s.is_finite() && (0.0..=3600.0).contains(&self.close_after_s),
@@ -770,6 +802,8 @@ mod tests {
             voxel_size_m: [0.5, 0.0, 0.15],
             z_range_m: [5.0, 1.0],
             tile_columns: 4096,
+            max_open_mib: 0,
+            shard_tiles: 300,
             ..VoxelConfig::default()
         };
         let mut v = Validator::default();
@@ -777,5 +811,10 @@ mod tests {
         let text = format!("{v:?}");
         assert!(text.contains("voxels.voxel_size_m[1]"), "{text}");
         assert!(text.contains("voxels.z_range_m"), "{text}");
+        assert!(text.contains("voxels.max_open_mib"), "{text}");
+        assert!(text.contains("voxels.shard_tiles"), "{text}");
+        let mut v = Validator::default();
+        VoxelConfig::default().validate("voxels", &mut v);
+        assert!(!format!("{v:?}").contains("max_open_mib"));
     }
 }

@@ -19,7 +19,8 @@
 //! journal (the latest line naming a tile holds its watermark and height chunks), renames the
 //! pending shards of committed batches whose renames were cut short, and deletes the pending
 //! shards of batches never committed; a torn last line (a crash while appending) is cut off.
-//! When a run ends the journal is rewritten as one line holding every tile.
+//! When a run ends the journal is rewritten as one line holding every tile, numbered 0 (batches
+//! count from 1), so that a finished store's bytes do not depend on how many batches wrote it.
 
 use std::collections::BTreeMap;
 use std::fs::{File, OpenOptions};

@@ -251,6 +251,15 @@ impl Chunk {
             + self.cols.capacity() * 4
     }
 
+    /// Bytes the written columns and the column map use (lengths, not capacities: the same
+    /// for the same deposits whatever memory was reused).
+    pub fn used_bytes(&self) -> usize {
+        self.sum_q.len() * 8
+            + (self.samples.len() + self.max.len() + self.pulses.len()) * 4
+            + self.slots.len() * 4
+            + self.cols.len() * 4
+    }
+
     /// Adds `other` (same shape): sums and counts add, maxima take the larger (the columns
     /// `other` wrote; the others hold fill values, which change nothing).
     pub fn merge(&mut self, other: &Chunk) {
@@ -549,6 +558,16 @@ impl TileData {
             .filter_map(|&kc| self.chunk(kc as usize))
             .chain(self.pool.iter().map(|c| &**c))
             .map(Chunk::bytes)
+            .sum()
+    }
+
+    /// Bytes the height chunks deposited in use ([`Chunk::used_bytes`]; the memory budget of
+    /// open tiles counts this, so that which tiles close early does not depend on reuse).
+    pub fn used_bytes(&self) -> usize {
+        self.present
+            .iter()
+            .filter_map(|&kc| self.chunk(kc as usize))
+            .map(Chunk::used_bytes)
             .sum()
     }
 

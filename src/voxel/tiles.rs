@@ -5,8 +5,10 @@
 //! A tile closes when no bin has been deposited in it for `close_after_s` of pulse time **and**
 //! it lies outside the current swath (the bounding box of everything deposited during the last
 //! `close_after_s` to `2·close_after_s`). When `max_open_tiles` are open and another is
-//! needed, the one deposited least recently closes early (counted `closed_early`): memory stays
-//! bounded by `max_open_tiles` tiles whatever the flight's length. The rule alone is
+//! needed, the one deposited least recently closes early (counted `closed_early`), and so do
+//! tiles while the open ones' columns take more than `max_open_mib` (checked when a tile opens
+//! and every 256 pulses; `closed_over_budget`): memory stays bounded whatever the flight's
+//! length. The rule alone is
 //! [`CloseRule`], which the metrics rasters' tiles follow too (`src/sink/metrics_rasters.rs`).
 
 use std::collections::HashMap;
@@ -22,8 +24,11 @@ pub struct TileStats {
     pub opened: u64,
     /// Tiles written and freed.
     pub closed: u64,
-    /// Of those, closed because `max_open_tiles` were open.
+    /// Of those, closed because `max_open_tiles` were open or their memory passed
+    /// `max_open_mib`.
     pub closed_early: u64,
+    /// Of the tiles closed early, those closed for the memory budget (`max_open_mib`).
+    pub closed_over_budget: u64,
     /// Tiles opened that were already in the store and merged with it.
     pub merged: u64,
     /// Most tiles open at once.
@@ -33,6 +38,9 @@ pub struct TileStats {
     pub chunk_bytes: usize,
     /// Most height chunks allocated at once over the open tiles.
     pub peak_chunks: usize,
+    /// Most memory the open tiles' columns took at once, bytes (measured when a tile opens or
+    /// closes).
+    pub peak_open_bytes: usize,
     /// Tile writer threads.
     pub writers: usize,
     /// Tile LAS files written (`[voxels] las`).
@@ -192,6 +200,10 @@ pub struct TileSet {
     free: Vec<usize>,
     open: HashMap<[i64; 2], usize>,
     max_open: usize,
+    /// Memory the open tiles' columns may take, bytes (checked when a tile opens and every
+    /// `BUDGET_CHECK_PULSES` pulses).
+    budget_bytes: usize,
+    since_budget_check: u32,
     rule: CloseRule,
     stats: TileStats,
     /// Reused list of the slots to close.
@@ -206,6 +218,10 @@ pub struct TileSet {
 
 const EMPTY_BOX: [i64; 4] = [i64::MAX, i64::MAX, i64::MIN, i64::MIN];
 
+/// Pulses between two checks of the open tiles' memory against the budget (besides the check
+/// when a tile opens): a pulse adds at most a few columns, ~20 bytes a level each.
+const BUDGET_CHECK_PULSES: u32 = 256;
+
 impl TileSet {
     /// Tiles over `store`.
     pub fn new(store: ZarrStore, max_open: usize, close_after_s: f64) -> TileSet {
@@ -216,6 +232,8 @@ impl TileSet {
             free: Vec::new(),
             open: HashMap::with_capacity(max_open + 1),
             max_open: max_open.max(1),
+            budget_bytes: usize::MAX,
+            since_budget_check: 0,
             rule: CloseRule::new(close_after_s),
             stats: TileStats {
                 chunk_bytes,
@@ -226,6 +244,55 @@ impl TileSet {
             writer: None,
             unflushed: Default::default(),
         }
+    }
+
+    /// Bounds the memory of the open tiles (their written columns, `Chunk::used_bytes`) to
+    /// `bytes`: when a tile opens (and every `BUDGET_CHECK_PULSES` pulses) and the open ones
+    /// take more, the tiles deposited least recently are closed early until they fit (never
+    /// one the current pulse touched).
+    pub fn with_memory_budget(mut self, bytes: usize) -> Self {
+        self.budget_bytes = bytes.max(1);
+        self
+    }
+
+    /// Memory the open tiles' columns use, bytes (`TileData::used_bytes`).
+    fn open_bytes(&self) -> usize {
+        self.open
+            .values()
+            .map(|&s| self.slots[s].data.used_bytes())
+            .sum()
+    }
+
+    /// Closes the tiles deposited least recently (not one the pulse `seq` touched) while the
+    /// open tiles take more than the memory budget.
+    fn keep_to_budget(&mut self, seq: u64) -> Result<(), StoreError> {
+        if self.budget_bytes == usize::MAX {
+            return Ok(());
+        }
+        let mut bytes = self.open_bytes();
+        self.stats.peak_open_bytes = self.stats.peak_open_bytes.max(bytes);
+        while bytes > self.budget_bytes
+            && let Some(oldest) = self.least_recent(seq)
+        {
+            bytes -= self.slots[oldest].data.used_bytes();
+            self.close_slot(oldest, seq)?;
+            self.stats.closed_early += 1;
+            self.stats.closed_over_budget += 1;
+        }
+        Ok(())
+    }
+
+    /// The open tile deposited least recently among those the pulse `seq` has not touched.
+    fn least_recent(&self, seq: u64) -> Option<usize> {
+        self.open
+            .values()
+            .copied()
+            .filter(|s| self.slots[*s].last_seq < seq)
+            .min_by(|a, b| {
+                self.slots[*a]
+                    .last_deposit_s
+                    .total_cmp(&self.slots[*b].last_deposit_s)
+            })
     }
 
     /// Writes closed tiles on a thread of its own, at most `queue` waiting (then closing waits
@@ -416,25 +483,16 @@ impl TileSet {
             self.slots[s].last_seq = seq;
             return Ok((s, self.slots[s].skip_below));
         }
-        if self.open.len() >= self.max_open {
-            // The tile deposited least recently, among those the current pulse has not touched:
-            // its watermark must not split a pulse, and the caller may hold the slots of this
-            // pulse's tiles. When every open tile is this pulse's, the bound gives way by one.
-            let oldest = self
-                .open
-                .values()
-                .copied()
-                .filter(|s| self.slots[*s].last_seq < seq)
-                .min_by(|a, b| {
-                    self.slots[*a]
-                        .last_deposit_s
-                        .total_cmp(&self.slots[*b].last_deposit_s)
-                });
-            if let Some(oldest) = oldest {
-                self.close_slot(oldest, seq)?;
-                self.stats.closed_early += 1;
-            }
+        // The tile deposited least recently, among those the current pulse has not touched:
+        // its watermark must not split a pulse, and the caller may hold the slots of this
+        // pulse's tiles. When every open tile is this pulse's, the bounds give way.
+        if self.open.len() >= self.max_open
+            && let Some(oldest) = self.least_recent(seq)
+        {
+            self.close_slot(oldest, seq)?;
+            self.stats.closed_early += 1;
         }
+        self.keep_to_budget(seq)?;
         // A tile whose write is under way is read back only once it is committed (grouped: its
         // group written out first).
         let pending = self
@@ -498,6 +556,7 @@ impl TileSet {
             .map(|s| self.slots[*s].data.present_count())
             .sum();
         self.stats.peak_chunks = self.stats.peak_chunks.max(chunks);
+        self.stats.peak_open_bytes = self.stats.peak_open_bytes.max(self.open_bytes());
         if self.writer.is_none() {
             self.store.write_tile(tile, &slot.data, w)?;
         }
@@ -550,6 +609,13 @@ impl TileSet {
     /// (`seq`, everything before it deposited). Cheap when called per pulse: the open tiles are
     /// examined at most eight times per `close_after_s`.
     pub fn close_idle(&mut self, seq: u64, now_s: f64) -> Result<(), StoreError> {
+        // Open tiles grow between openings: the memory budget is checked every
+        // `BUDGET_CHECK_PULSES` pulses too (a sum over the open tiles' height chunks).
+        self.since_budget_check += 1;
+        if self.since_budget_check >= BUDGET_CHECK_PULSES {
+            self.since_budget_check = 0;
+            self.keep_to_budget(seq)?;
+        }
         let Some(swath) = self.rule.due(now_s) else {
             return Ok(());
         };

@@ -1342,11 +1342,10 @@ impl ZarrStore {
     /// [`flush_all`](Self::flush_all)).
     fn compact_journal(&mut self) -> Result<(), StoreError> {
         let path = self.group_journal_path();
-        let journal = self
-            .journal
-            .get_or_insert_with(|| Journal::new(path.clone(), 1));
+        // Numbered 0 (real batches count from 1): a finished store's journal does not depend on
+        // how many batches wrote it, so a run resumed after kill -9 ends with the same bytes.
         let batch = Batch {
-            seq: journal.next_seq(),
+            seq: 0,
             shards: Vec::new(),
             tiles: self
                 .tiles()

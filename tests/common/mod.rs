@@ -1,6 +1,7 @@
 //! Helpers shared by the integration tests: the real binary, and the real-data fixtures.
 #![allow(dead_code)]
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -221,9 +222,70 @@ pub fn sequential_replay(dir: &Path, run_toml: &Path, out: &Path) -> PathBuf {
     out.join("voxels.zarr")
 }
 
+/// The tiles a voxel store has committed, with their watermarks and height chunks, read
+/// without opening the store (a run may be writing it): its tile records (a file per tile) or
+/// its journal (tiles grouped into shard files; a torn last line is not committed, and a
+/// batch counts once its shards are renamed into place, as readers see them).
+pub fn committed_tiles(store: &Path) -> BTreeMap<[i64; 2], (u64, Vec<u32>)> {
+    let mut out = BTreeMap::new();
+    if let Ok(dir) = std::fs::read_dir(store.join("fwlidar_state/tiles")) {
+        for e in dir.flatten() {
+            let name = e.file_name().to_string_lossy().to_string();
+            let Some((x, y)) = name.split_once('_') else {
+                continue;
+            };
+            let (Ok(x), Ok(y)) = (x.parse(), y.parse()) else {
+                continue; // `TX_TY.partial`: being written
+            };
+            let Ok(v) = serde_json::from_slice::<serde_json::Value>(
+                &std::fs::read(e.path()).unwrap_or_default(),
+            ) else {
+                continue;
+            };
+            if v["pending"].as_bool() == Some(true) {
+                continue;
+            }
+            let chunks = v["chunks"].as_array().map_or(vec![0], |c| {
+                c.iter().map(|k| k.as_u64().unwrap() as u32).collect()
+            });
+            out.insert([x, y], (v["watermark"].as_u64().unwrap_or(0), chunks));
+        }
+    }
+    let journal = store.join("fwlidar_state/journal");
+    if let Ok((batches, _torn)) = fwlidar::voxel::shard_group::Journal::read(&journal) {
+        for b in &batches {
+            // A batch whose shards are not all renamed into place yet is not readable yet.
+            let renamed = b
+                .shards
+                .iter()
+                .all(|s| !store.join(format!("{s}.pending.{}", b.seq)).exists());
+            for t in &b.tiles {
+                if renamed {
+                    out.insert(t.tile, (t.watermark, t.chunks.clone()));
+                } else {
+                    out.remove(&t.tile);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// The tiles a store's journal holds (tiles grouped into shard files) with their height
+/// chunks, without their watermarks.
+fn journal_tiles(journal: &Path) -> Vec<([i64; 2], Vec<u32>)> {
+    let (batches, torn) = fwlidar::voxel::shard_group::Journal::read(journal).unwrap();
+    assert_eq!(torn, None, "{}", journal.display());
+    fwlidar::voxel::shard_group::latest_tiles(&batches)
+        .into_iter()
+        .map(|(tile, (_, chunks))| (tile, chunks))
+        .collect()
+}
+
 /// Asserts that the store `mosaic` is the store `replayed` byte for byte, metadata included,
-/// apart from the tiles' resume records, whose watermarks say when each tile closed (a merged
-/// store's are 0); those must list the same tiles and height chunks.
+/// apart from the tiles' resume records (a record per tile, or the journal when tiles are
+/// grouped into shard files), whose watermarks say when each tile closed (a merged store's are
+/// 0); those must list the same tiles and height chunks.
 pub fn assert_same_store_but_watermarks(mosaic: &Path, replayed: &Path) {
     let (m, r) = (file_tree(mosaic), file_tree(replayed));
     let names = |t: &[(PathBuf, Vec<u8>)]| t.iter().map(|f| f.0.clone()).collect::<Vec<_>>();
@@ -231,7 +293,11 @@ pub fn assert_same_store_but_watermarks(mosaic: &Path, replayed: &Path) {
     assert!(m.len() > 10);
     let records = Path::new("fwlidar_state/tiles");
     for ((p, mine), (_, theirs)) in m.iter().zip(&r) {
-        if p.starts_with(records) {
+        if p == Path::new("fwlidar_state/journal") {
+            let tiles = journal_tiles(&mosaic.join(p));
+            assert!(!tiles.is_empty(), "{}", mosaic.display());
+            assert_eq!(tiles, journal_tiles(&replayed.join(p)), "{}", p.display());
+        } else if p.starts_with(records) {
             let chunks = |b: &[u8]| {
                 serde_json::from_slice::<serde_json::Value>(b).unwrap()["chunks"].clone()
             };

@@ -107,14 +107,24 @@ z_canopy = z[z >= 7.5][np.argmax(high)]
 assert abs(z_ground - 0.27) < 0.5, z_ground
 assert abs(z_canopy - 15.27) < 0.5, z_canopy
 
-# zarr-python directly: shard = tile (its columns over one height chunk), inner chunks of
-# 8 x 8 columns (or fewer: a divisor of the tile's columns).
+# zarr-python directly: a shard file per tile (its columns over one height chunk) or per group of
+# tiles (G x G tiles over K height chunks, whose inner chunk is a tile's height chunk, itself a
+# shard: `[voxels] shard_tiles`, the default); the innermost chunks are 8 x 8 columns (or fewer: a
+# divisor of the tile's columns).
 g = zarr.open_group(f"{out}/voxels.zarr", mode="r")
 a = g["sample_count"]
+t = ds.attrs["tile_columns"]
+levels = ds.attrs["fwlidar"]["grid"]["chunk_levels"]
 assert a.shards is not None, a.metadata.codecs
-assert a.shards[1] == a.shards[2] == ds.attrs["tile_columns"], a.shards
-assert a.chunks[1] == a.chunks[2] and a.shards[1] % a.chunks[1] == 0, a.chunks
-assert a.chunks[1] == min(8, ds.attrs["tile_columns"]) or 8 % a.chunks[1] == 0, a.chunks
+assert a.shards[1] == a.shards[2] and a.shards[1] % t == 0, a.shards
+if a.shards[1] == t and a.shards[0] == levels:
+    inner = a.chunks
+else:
+    assert a.chunks == (levels, t, t) and a.shards[0] % levels == 0, (a.shards, a.chunks)
+    (nested,) = a.metadata.codecs[0].codecs
+    inner = nested.chunk_shape
+assert inner[0] == levels and inner[1] == inner[2] and t % inner[1] == 0, inner
+assert inner[1] == min(8, t) or 8 % inner[1] == 0, inner
 print(
     json.dumps(
         {
