@@ -209,11 +209,11 @@ impl Chunk {
         self.slots.get(col).is_some_and(|s| *s != NONE)
     }
 
-    /// Whether any of columns `cols` was written.
-    pub fn any_touched(&self, cols: std::ops::Range<usize>) -> bool {
+    /// How many of columns `cols` were written (0 for a range outside the chunk).
+    pub fn touched_in(&self, cols: std::ops::Range<usize>) -> u32 {
         self.slots
             .get(cols)
-            .is_some_and(|s| s.iter().any(|s| *s != NONE))
+            .map_or(0, |s| s.iter().filter(|s| **s != NONE).count() as u32)
     }
 
     /// The columns written, in the order they were first written.

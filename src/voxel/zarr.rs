@@ -351,19 +351,27 @@ impl Codec {
         Ok(())
     }
 
-    /// Compresses `raw` into `out` (cleared), zstd with the context `zc` (made on first use and
-    /// reused: an inner chunk is small, a fresh context each would cost more than the data).
+    /// Compresses `raw` into `out` (cleared), zstd with a context of `zc` (made on first use
+    /// and reused: an inner chunk is small, a fresh context each would cost more than the
+    /// data). A block of at most [`SPARSE_BLOCK_COLUMNS`] written columns (`written`) is
+    /// compressed with its literals stored raw (see [`BlockCompressors`]).
     fn encode_block(
         self,
-        zc: &mut Option<zstd::bulk::Compressor<'static>>,
+        zc: &mut BlockCompressors,
+        written: u32,
         raw: &[u8],
         out: &mut Vec<u8>,
     ) -> std::io::Result<()> {
         match self {
             Codec::Zstd(level) => {
-                let c = match zc {
+                let (slot, level) = if written <= SPARSE_BLOCK_COLUMNS {
+                    (&mut zc.raw_literals, RAW_LITERALS_LEVEL)
+                } else {
+                    (&mut zc.entropy, level)
+                };
+                let c = match slot {
                     Some(c) => c,
-                    None => zc.insert(zstd::bulk::Compressor::new(level)?),
+                    None => slot.insert(zstd::bulk::Compressor::new(level)?),
                 };
                 out.clear();
                 out.reserve(zstd::zstd_safe::compress_bound(raw.len()));
@@ -757,6 +765,25 @@ impl Layout {
     }
 }
 
+/// Inner chunks of at most this many written columns (of 64) are compressed with their
+/// literals stored raw: building a Huffman table per chunk costs the same whatever the chunk
+/// holds, and a few columns' values gain a few bytes from it. Measured on the sparse 7.2 km
+/// line and the dense survey line (docs/performance.md, "Raw literals for sparse inner
+/// chunks").
+const SPARSE_BLOCK_COLUMNS: u32 = 8;
+
+/// zstd's level −1: level 1's fast match finder with literals left uncompressed (zstd turns
+/// literal compression off at negative levels), a standard zstd frame any reader decodes.
+const RAW_LITERALS_LEVEL: i32 = -1;
+
+/// The store's reused zstd compression contexts: one at the codec's level, one for sparse
+/// inner chunks at [`RAW_LITERALS_LEVEL`].
+#[derive(Default)]
+struct BlockCompressors {
+    entropy: Option<zstd::bulk::Compressor<'static>>,
+    raw_literals: Option<zstd::bulk::Compressor<'static>>,
+}
+
 /// An open store.
 pub struct ZarrStore {
     root: PathBuf,
@@ -767,10 +794,11 @@ pub struct ZarrStore {
     packed: Vec<u8>,
     /// One shard as it is assembled or read.
     shard: Vec<u8>,
-    /// Per block of a height chunk: whether it holds anything (the four arrays together).
-    blocks: Vec<bool>,
+    /// Per block of a height chunk: its written columns (0: nothing to store; the four
+    /// arrays together).
+    blocks: Vec<u32>,
     /// Reused zstd contexts.
-    zc: Option<zstd::bulk::Compressor<'static>>,
+    zc: BlockCompressors,
     zd: Option<zstd::bulk::Decompressor<'static>>,
     /// The tiles the data arrays span.
     span: Span,
@@ -928,7 +956,7 @@ impl ZarrStore {
             packed: Vec::new(),
             shard: Vec::new(),
             blocks: Vec::new(),
-            zc: None,
+            zc: BlockCompressors::default(),
             zd: None,
             records: Default::default(),
             tiles_written: 0,
@@ -1974,7 +2002,7 @@ impl ZarrStore {
             match self.layout {
                 Layout::Plain(_) => {
                     self.blocks.clear();
-                    self.blocks.push(true);
+                    self.blocks.push(order.side as u32 * order.side as u32);
                 }
                 Layout::Sharded { .. } => order.occupied(c, &mut self.blocks),
             }
@@ -2150,7 +2178,8 @@ impl ZarrStore {
         self.shard.clear();
         let mut index = Vec::new();
         for blk in 0..self.blocks.len() {
-            if !self.blocks[blk] {
+            let written = self.blocks[blk];
+            if written == 0 {
                 index.push((u64::MAX, u64::MAX));
                 continue;
             }
@@ -2171,7 +2200,7 @@ impl ZarrStore {
             match self.layout {
                 Layout::Plain(_) => codec.encode(&self.raw, &mut self.packed)?,
                 Layout::Sharded { .. } => {
-                    codec.encode_block(&mut self.zc, &self.raw, &mut self.packed)?
+                    codec.encode_block(&mut self.zc, written, &self.raw, &mut self.packed)?
                 }
             }
             index.push((self.shard.len() as u64, self.packed.len() as u64));
@@ -2584,17 +2613,20 @@ impl DiskOrder {
         (bj * self.block + jj) * self.side + bi * self.block
     }
 
-    /// Marks in `out` (one entry per block) the blocks of `c` where a sample or a pass landed:
-    /// the blocks to encode, the same for all four arrays. A column holds one exactly when it
-    /// was written (`Chunk::mark`), so the columns' marks say it without reading the values.
-    fn occupied(self, c: &super::tile::Chunk, out: &mut Vec<bool>) {
+    /// Counts in `out` (one entry per block) the columns of each block of `c` where a sample
+    /// or a pass landed: the blocks to encode (count > 0), the same for all four arrays. A
+    /// column holds one exactly when it was written (`Chunk::mark`), so the columns' marks say
+    /// it without reading the values.
+    fn occupied(self, c: &super::tile::Chunk, out: &mut Vec<u32>) {
         let b = self.block;
         out.clear();
         out.extend((0..self.blocks() * self.blocks()).map(|blk| {
-            (0..b).any(|jj| {
-                let r = self.row_start(blk, jj);
-                c.any_touched(r..r + b)
-            })
+            (0..b)
+                .map(|jj| {
+                    let r = self.row_start(blk, jj);
+                    c.touched_in(r..r + b)
+                })
+                .sum::<u32>()
         }));
     }
 
