@@ -209,11 +209,23 @@ impl Chunk {
         self.slots.get(col).is_some_and(|s| *s != NONE)
     }
 
-    /// How many of columns `cols` were written (0 for a range outside the chunk).
-    pub fn touched_in(&self, cols: std::ops::Range<usize>) -> u32 {
-        self.slots
-            .get(cols)
-            .map_or(0, |s| s.iter().filter(|s| **s != NONE).count() as u32)
+    /// How many of columns `cols` hold a sample or a pass at some level (0 for a range outside
+    /// the chunk). A column deposited in always does; one read back from the store may be all
+    /// fill, and is not counted: the count follows the values, not how they got here.
+    pub fn live_in(&self, cols: std::ops::Range<usize>) -> u32 {
+        let Some(slots) = self.slots.get(cols) else {
+            return 0;
+        };
+        let h = self.height;
+        slots
+            .iter()
+            .filter(|s| **s != NONE)
+            .filter(|s| {
+                let r = **s as usize * h..(**s as usize + 1) * h;
+                self.samples[r.clone()].iter().any(|n| *n != 0)
+                    || self.pulses[r].iter().any(|n| *n != 0)
+            })
+            .count() as u32
     }
 
     /// The columns written, in the order they were first written.

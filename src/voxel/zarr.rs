@@ -2678,9 +2678,8 @@ impl DiskOrder {
     }
 
     /// Counts in `out` (one entry per block) the columns of each block of `c` where a sample
-    /// or a pass landed: the blocks to encode (count > 0), the same for all four arrays. A
-    /// column holds one exactly when it was written (`Chunk::mark`), so the columns' marks say
-    /// it without reading the values.
+    /// or a pass landed: the blocks to encode (count > 0), the same for all four arrays. Only
+    /// the columns written (or read back) are looked at (`Chunk::live_in`).
     fn occupied(self, c: &super::tile::Chunk, out: &mut Vec<u32>) {
         let b = self.block;
         out.clear();
@@ -2688,7 +2687,7 @@ impl DiskOrder {
             (0..b)
                 .map(|jj| {
                     let r = self.row_start(blk, jj);
-                    c.touched_in(r..r + b)
+                    c.live_in(r..r + b)
                 })
                 .sum::<u32>()
         }));
