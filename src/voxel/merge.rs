@@ -127,9 +127,16 @@ pub fn merge_stores(
         run_key,
         configuration,
     };
-    let mut tiles: Vec<[i64; 2]> = opened.iter().flat_map(|s| s.tiles()).collect();
-    tiles.sort();
-    tiles.dedup();
+    // Every tile of the result with its height chunks: the arrays are created on their
+    // bounding box, so that nothing moves when the result is fitted.
+    let mut chunks: std::collections::BTreeMap<[i64; 2], Vec<u32>> = Default::default();
+    for s in &opened {
+        for t in s.tiles() {
+            let c = chunks.entry(t).or_default();
+            c.extend_from_slice(s.tile_chunks(t).unwrap_or_default());
+        }
+    }
+    let tiles: Vec<[i64; 2]> = chunks.keys().copied().collect();
     // Written whole into `<out>.partial` (a killed merge's is cleared), without a sync per
     // tile, then synced once and renamed: `out` is complete or absent.
     let mut tmp = out.as_os_str().to_owned();
@@ -141,7 +148,8 @@ pub fn merge_stores(
     }
     // Laid out as the first input is (tiles grouped into shards or not), so that tiles copy.
     let layout = opened[0].layout_choice();
-    let mut result = ZarrStore::create_or_open_grouped(&tmp, grid.clone(), info, layout)
+    let on_tiles = chunks.iter().map(|(t, c)| (*t, c.as_slice()));
+    let mut result = ZarrStore::create_on_tiles(&tmp, grid.clone(), info, layout, on_tiles)
         .map_err(|e| e.to_string())?
         .unsynced();
     let (mut acc, mut part) = (TileData::for_grid(&grid), TileData::for_grid(&grid));

@@ -1073,9 +1073,46 @@ impl ZarrStore {
                 what: "the folder exists, is not empty and is not a voxel store".into(),
             });
         }
-        let span = Span::extent(&grid);
-        let mut s = ZarrStore::at(root, grid, info, span);
+        ZarrStore::create_new(root, grid, info, choice, None)
+    }
+
+    /// Creates a store whose arrays span, from the start, the bounding box of `tiles` (each
+    /// with its height chunks; aligned to shard groups as [`fit`](Self::fit) would): a merge
+    /// knows every tile it will write before it writes one, so its `fit` at the end moves
+    /// nothing and a new store's extent-wide coordinates are never written. `root` must not
+    /// exist or be empty. Writing a tile outside the span is refused.
+    pub fn create_on_tiles<'a>(
+        root: &Path,
+        grid: Grid,
+        info: StoreInfo,
+        choice: impl Into<LayoutChoice>,
+        tiles: impl IntoIterator<Item = ([i64; 2], &'a [u32])>,
+    ) -> Result<Self, StoreError> {
+        if fs::read_dir(root).is_ok_and(|mut d| d.next().is_some()) {
+            return Err(StoreError::Mismatch {
+                path: root.display().to_string(),
+                what: "the folder exists and is not empty".into(),
+            });
+        }
+        let span = Span::around(&grid, tiles);
+        ZarrStore::create_new(root, grid, info, choice.into(), Some(span))
+    }
+
+    /// Creates a new store in `root` (checked to be absent or empty) on `span` (aligned to
+    /// the layout's groups), or on the whole extent.
+    fn create_new(
+        root: &Path,
+        grid: Grid,
+        info: StoreInfo,
+        choice: LayoutChoice,
+        span: Option<Span>,
+    ) -> Result<Self, StoreError> {
+        let extent = Span::extent(&grid);
+        let mut s = ZarrStore::at(root, grid, info, extent);
         s.layout = Layout::chosen(&s.grid, choice);
+        if let Some(span) = span {
+            s.span = s.aligned(span);
+        }
         s.write_metadata()?;
         if s.layout.group().is_some() {
             s.journal = Some(Journal::new(s.group_journal_path(), 1));
@@ -2577,7 +2614,7 @@ fn write_coordinate_chunk(
     }
     let mut packed = Vec::new();
     codec.encode(&raw, &mut packed).map_err(io(&path))?;
-    fs::create_dir_all(path.parent().unwrap_or(&root)).map_err(io(&path))?;
+    fs::create_dir_all(path.parent().unwrap_or(root)).map_err(io(&path))?;
     write_atomic(&path, &packed)
 }
 
@@ -3399,6 +3436,43 @@ mod tests {
                 .collect::<Vec<_>>()
         };
         assert_eq!(shard(&root), shard(&root2));
+    }
+
+    #[test]
+    fn a_store_created_on_its_tiles_ends_as_one_created_on_the_extent_and_fitted() {
+        let dir = tempfile::tempdir().unwrap();
+        let (want, fitted_span, chunks) = {
+            let root = dir.path().join("want.zarr");
+            let (mut s, _) = live_store(&root);
+            let chunks: Vec<([i64; 2], Vec<u32>)> = WRITTEN
+                .iter()
+                .map(|t| (*t, s.tile_chunks(*t).unwrap().to_vec()))
+                .collect();
+            s.fit().unwrap();
+            (files(&root), *s.span(), chunks)
+        };
+        let root = dir.path().join("on_tiles.zarr");
+        let g = wide_grid();
+        let n = g.tile_voxels();
+        let on = chunks.iter().map(|(t, c)| (*t, c.as_slice()));
+        let mut s = ZarrStore::create_on_tiles(&root, g, info("a"), None, on).unwrap();
+        // The arrays take their final span at once; the coordinates are the span's.
+        assert!(s.span().same_tiles(&fitted_span), "{:?}", s.span());
+        let x = json_of(&root.join("x/zarr.json"));
+        assert_eq!(x["shape"], json!([fitted_span.tiles[0] * 8]));
+        for (i, t) in WRITTEN.iter().enumerate() {
+            s.write_tile(*t, &sample(n, i as u32 + 1), 10 + i as u64)
+                .unwrap();
+        }
+        let e = s.write_tile([3, -3], &sample(n, 9), 20).unwrap_err();
+        assert!(e.to_string().contains("outside the arrays"), "{e}");
+        s.fit().unwrap();
+        drop(s);
+        assert_eq!(files(&root), want);
+        // Only into an absent or empty folder.
+        let again = ZarrStore::create_on_tiles(&root, wide_grid(), info("a"), None, []);
+        let e = again.err().expect("a second store in the same folder");
+        assert!(e.to_string().contains("not empty"), "{e}");
     }
 
     fn assert_holds_written(s: &mut ZarrStore, data: &[TileData]) {
