@@ -1,0 +1,93 @@
+//! The noise-model benchmark of issue 37 (`tests/python/noise_models.py`): held-out waveforms
+//! (8 ns system pulse, 1 ns samples, a canopy of 2–4 scatterers, a ground echo and one close
+//! pair at 0.75 FWHM per row, truth drawn with a 2 ns pulse) under six noise models — white
+//! Gaussian, uniform with a non-zero mean, Poisson shot noise, baseline drift, 8-bit
+//! quantisation, saturation — scored as RMSE / raw and close pairs resolved, with
+//! scikit-image's RL-200 and scipy's NNLS in the same run. The full grid (4, 8, 16 ns pulses ×
+//! 0.5, 1, 2 ns samples) is `benches/noise_models.sh`; figures in docs/accuracy.md.
+//!
+//! Asserted is what holds on every model today, so that a change that loses it fails: the
+//! deconvolution settings of `fwlidar process` and both references beat the raw rows, and
+//! RL-200 to a 2 ns target resolves at least half of the close pairs. What does not hold yet
+//! (the issue's targets) is in docs/accuracy.md, not here.
+
+mod common;
+
+use std::process::Command;
+
+fn noise_models(dir: &std::path::Path, args: &[&str]) -> (i32, String, String) {
+    let o = Command::new(common::python())
+        .arg(std::path::Path::new(common::ROOT).join("tests/python/noise_models.py"))
+        .args(["--fwlidar", common::BIN, "--workdir"])
+        .arg(dir)
+        .args(args)
+        .output()
+        .expect("run python");
+    (
+        o.status.code().unwrap_or(-1),
+        common::text(&o.stdout),
+        common::text(&o.stderr),
+    )
+}
+
+#[test]
+fn every_noise_model_is_scored_beside_scikit_image_and_scipy_and_deconvolution_beats_raw() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("scores.json");
+    let (code, out, err) = noise_models(
+        dir.path(),
+        &[
+            "--waveforms",
+            "80",
+            "--model",
+            "all",
+            "--json",
+            json.to_str().unwrap(),
+        ],
+    );
+    println!("{out}");
+    assert_eq!(code, 0, "{out}\n{err}");
+    let scores: Vec<serde_json::Value> =
+        serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let get = |model: &str, row: &str, what: &str| -> f64 {
+        scores
+            .iter()
+            .find(|s| s["model"] == model && s["row"] == row)
+            .and_then(|s| s[what].as_f64())
+            .unwrap_or_else(|| panic!("{model} {row} {what} missing"))
+    };
+    let models = [
+        "gaussian",
+        "uniform_offset",
+        "poisson",
+        "drift",
+        "quantised",
+        "saturated",
+    ];
+    for m in models {
+        assert_eq!(get(m, "raw", "rmse_ratio"), 1.0);
+        for row in ["skimage-rl200", "scipy-nnls+2ns", "nnls-2ns", "rl200-2ns", "rl200"] {
+            let r = get(m, row, "rmse_ratio");
+            assert!(r < 1.0, "{m}: {row} RMSE / raw {r} not below the raw rows'");
+            assert!(
+                get(m, row, "pairs") > get(m, "raw", "pairs"),
+                "{m}: {row} resolves no more pairs than the raw rows"
+            );
+        }
+        let p = get(m, "rl200-2ns", "pairs");
+        assert!(p >= 0.5, "{m}: RL-200 to 2 ns resolved {p} of the pairs");
+    }
+    assert_eq!(scores.len(), models.len() * 8, "{scores:?}");
+    // The inputs of the last configuration are left for a reader to rerun.
+    for f in ["rows.npy", "kernel.npy"] {
+        assert!(dir.path().join(f).exists(), "{f}");
+    }
+}
+
+#[test]
+fn an_unknown_noise_model_is_a_usage_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let (code, _, err) = noise_models(dir.path(), &["--model", "pink"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("pink") && err.contains("gaussian"), "{err}");
+}
