@@ -456,6 +456,41 @@ impl Kernel {
     pub fn is_empty(&self) -> bool {
         self.taps.is_empty()
     }
+
+    /// Full width at half maximum of the taps, samples (linear interpolation at the two
+    /// half-maximum crossings around the largest tap; a side without a crossing counts from
+    /// half a sample beyond the end). `None` for an empty kernel or one without a positive tap.
+    pub fn fwhm_samples(&self) -> Option<f64> {
+        let (k, peak) = self
+            .taps
+            .iter()
+            .enumerate()
+            .fold((0, 0.0f32), |b, (i, &v)| if v > b.1 { (i, v) } else { b });
+        if !(peak > 0.0 && peak.is_finite()) {
+            return None;
+        }
+        let half = f64::from(peak) / 2.0;
+        let v = |i: usize| f64::from(self.taps[i]);
+        let mut l = k;
+        while l > 0 && v(l - 1) > half {
+            l -= 1;
+        }
+        let mut r = k;
+        while r + 1 < self.taps.len() && v(r + 1) > half {
+            r += 1;
+        }
+        let left = if l == 0 {
+            -0.5
+        } else {
+            (l - 1) as f64 + (half - v(l - 1)) / (v(l) - v(l - 1))
+        };
+        let right = if r + 1 >= self.taps.len() {
+            r as f64 + 0.5
+        } else {
+            r as f64 + (v(r) - half) / (v(r) - v(r + 1))
+        };
+        Some(right - left)
+    }
 }
 
 /// `out = k ⊛ x` (same length as `x`; see the module's convention). `out.len()` must equal
@@ -494,6 +529,26 @@ pub fn correlate_same(x: &[f32], k: &Kernel, out: &mut [f32]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_fwhm_of_a_sampled_gaussian_is_its_width() {
+        for (fwhm, dt) in [(8.0, 1.0), (4.0, 0.5), (16.0, 2.0), (2.5, 1.0)] {
+            let mut k = Kernel::with_capacity(256);
+            k.set_gaussian(fwhm, dt).unwrap();
+            let got = k.fwhm_samples().unwrap() * dt;
+            // Linear interpolation between samples: within a tenth of a sample of the width.
+            assert!(
+                (got - fwhm).abs() < 0.1 * dt + 0.02 * fwhm,
+                "{fwhm} at {dt}: {got}"
+            );
+        }
+        assert_eq!(Kernel::default().fwhm_samples(), None);
+        let one = Kernel {
+            taps: vec![1.0],
+            center: 0,
+        };
+        assert_eq!(one.fwhm_samples(), Some(1.0));
+    }
 
     #[test]
     fn outgoing_kernel_is_normalised_and_centred_on_its_peak() {
