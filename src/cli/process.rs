@@ -98,7 +98,9 @@ pub struct ProcessArgs {
     /// Deconvolution method.
     #[arg(long, value_enum)]
     pub method: ProcessMethod,
-    /// Iteration budget of iterative methods. When absent, the method's default — except
+    /// Iteration budget of iterative methods (for NNLS its outer iterations,
+    /// `max_iterations`: at most one non-zero sample each). When absent, the method's
+    /// default — except
     /// Richardson-Lucy and Gold with `--target-fwhm-ns`: 50 × the kernel's FWHM / the target's
     /// (20 to 1000; e.g. 200 for an 8 ns kernel to 2 ns), since a narrower target needs more
     /// iterations (docs/accuracy.md, "Deconvolution over noise models").
@@ -496,7 +498,13 @@ fn method_config(
     };
     let mut value = serde_json::json!({ "method": name });
     if let Some(n) = args.iterations.or(derived) {
-        value["iterations"] = serde_json::json!(n);
+        // NNLS's budget is its Lawson-Hanson outer iterations (at most one non-zero sample
+        // each).
+        let key = match args.method {
+            ProcessMethod::Nnls => "max_iterations",
+            _ => "iterations",
+        };
+        value[key] = serde_json::json!(n);
     }
     if let Some(tau) = args.stop_at_noise {
         if !(tau.is_finite() && tau > 0.0) {
@@ -1069,9 +1077,15 @@ mod tests {
         };
         assert_eq!(target_iterations(&nnls, &[k8.clone()]), None);
         assert_eq!(target_iterations(&target(2.0), &[]), None);
-        // And the method configuration takes them.
+        // And the method configuration takes them; NNLS's budget is `max_iterations`.
         let c = method_config(&target(2.0), Some(200)).unwrap().unwrap();
         assert!(format!("{c:?}").contains("iterations: 200"), "{c:?}");
+        let nnls100 = ProcessArgs {
+            iterations: Some(100),
+            ..nnls
+        };
+        let c = method_config(&nnls100, None).unwrap().unwrap();
+        assert!(format!("{c:?}").contains("max_iterations: 100"), "{c:?}");
     }
 
     #[test]
