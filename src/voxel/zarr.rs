@@ -2748,8 +2748,14 @@ impl DiskOrder {
         let dst = &mut out[start..];
         let f = enc(fill);
         if f != [0; N] {
-            for v in dst.chunks_exact_mut(N) {
-                v.copy_from_slice(&f);
+            // The fill value, then the filled part copied onto the rest, doubling (memcpy
+            // speed; a store per value was ~8 % of the sparse line's CPU with NaN fills).
+            dst[..N].copy_from_slice(&f);
+            let mut done = N;
+            while done < dst.len() {
+                let n = done.min(dst.len() - done);
+                dst.copy_within(..n, done);
+                done += n;
             }
         }
         // Each column's levels are read where they lie (contiguous, `col·L + k`) and placed at
