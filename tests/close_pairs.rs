@@ -15,23 +15,14 @@
 
 mod common;
 
-use std::process::Command;
-
-/// Runs the script with `args` after the fixed ones; returns (exit code, stdout, stderr).
+/// Runs the script on 200 waveforms with `args` after the fixed ones; returns (exit code,
+/// stdout, stderr).
 fn close_pairs(dir: &std::path::Path, args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(common::python())
-        .arg(std::path::Path::new(common::ROOT).join("tests/python/close_pairs.py"))
-        .args(["--fwlidar", common::BIN, "--workdir"])
-        .arg(dir)
-        .args(["--waveforms", "200"])
-        .args(args)
-        .output()
-        .expect("run python");
-    (
-        o.status.code().unwrap_or(-1),
-        common::text(&o.stdout),
-        common::text(&o.stderr),
-    )
+    let all: Vec<&str> = ["--waveforms", "200"]
+        .into_iter()
+        .chain(args.iter().copied())
+        .collect();
+    common::python_bench("close_pairs.py", dir, &all)
 }
 
 #[test]

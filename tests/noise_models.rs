@@ -14,21 +14,8 @@
 
 mod common;
 
-use std::process::Command;
-
 fn noise_models(dir: &std::path::Path, args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(common::python())
-        .arg(std::path::Path::new(common::ROOT).join("tests/python/noise_models.py"))
-        .args(["--fwlidar", common::BIN, "--workdir"])
-        .arg(dir)
-        .args(args)
-        .output()
-        .expect("run python");
-    (
-        o.status.code().unwrap_or(-1),
-        common::text(&o.stdout),
-        common::text(&o.stderr),
-    )
+    common::python_bench("noise_models.py", dir, args)
 }
 
 #[test]

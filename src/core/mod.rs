@@ -10,12 +10,14 @@
 //! - [`atomic_file`]: output files that appear complete or not at all;
 //! - [`nap`]: short naps instead of a wake-up per item on the live input path;
 //! - [`fixed_text`]: decimal text of floats with a fixed number of decimals, fast and exactly as
-//!   `format!` writes it.
+//!   `format!` writes it;
+//! - [`half_max`]: where a pulse crosses a level on both sides of its peak (every FWHM).
 
 pub mod atomic_file;
 pub mod config_error;
 pub mod facts;
 pub mod fixed_text;
+pub mod half_max;
 pub mod nap;
 pub mod overrides;
 pub mod sensor;

@@ -471,24 +471,9 @@ impl Kernel {
         }
         let half = f64::from(peak) / 2.0;
         let v = |i: usize| f64::from(self.taps[i]);
-        let mut l = k;
-        while l > 0 && v(l - 1) > half {
-            l -= 1;
-        }
-        let mut r = k;
-        while r + 1 < self.taps.len() && v(r + 1) > half {
-            r += 1;
-        }
-        let left = if l == 0 {
-            -0.5
-        } else {
-            (l - 1) as f64 + (half - v(l - 1)) / (v(l) - v(l - 1))
-        };
-        let right = if r + 1 >= self.taps.len() {
-            r as f64 + 0.5
-        } else {
-            r as f64 + (v(r) - half) / (v(r) - v(r + 1))
-        };
+        let (left, right) = crate::core::half_max::crossings(self.taps.len(), v, k, half);
+        let left = left.unwrap_or(-0.5);
+        let right = right.unwrap_or_else(|r| r as f64 + 0.5);
         Some(right - left)
     }
 }

@@ -654,21 +654,10 @@ pub fn fwhm_ns(x: &[f32]) -> Option<f64> {
     if !(half.is_finite() && f64::from(peak) > base) {
         return None;
     }
-    let v = |i: usize| f64::from(x[i]);
-    let mut l = k;
-    while l > 0 && v(l - 1) > half {
-        l -= 1;
+    match crate::core::half_max::crossings(x.len(), |i| f64::from(x[i]), k, half) {
+        (Ok(left), Ok(right)) => Some(right - left),
+        _ => None,
     }
-    let mut r = k;
-    while r + 1 < x.len() && v(r + 1) > half {
-        r += 1;
-    }
-    if l == 0 || r + 1 >= x.len() {
-        return None;
-    }
-    let left = (l - 1) as f64 + (half - v(l - 1)) / (v(l) - v(l - 1));
-    let right = r as f64 + (v(r) - half) / (v(r) - v(r + 1));
-    Some(right - left)
 }
 
 impl Source for GediSource {

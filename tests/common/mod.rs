@@ -40,6 +40,23 @@ pub fn fixture(rel: &str) -> PathBuf {
     fwlidar::fixtures::path(rel)
 }
 
+/// Runs the benchmark script `tests/python/<script>` with `--fwlidar <the test binary>
+/// --workdir <dir>` and then `args`; returns (exit code, stdout, stderr).
+pub fn python_bench(script: &str, dir: &Path, args: &[&str]) -> (i32, String, String) {
+    let o = Command::new(python())
+        .arg(Path::new(ROOT).join("tests/python").join(script))
+        .args(["--fwlidar", BIN, "--workdir"])
+        .arg(dir)
+        .args(args)
+        .output()
+        .expect("run python");
+    (
+        o.status.code().unwrap_or(-1),
+        text(&o.stdout),
+        text(&o.stderr),
+    )
+}
+
 /// The Python with the real readers of our outputs (numpy, laspy, lazrs): `$FWLIDAR_PYTHON`,
 /// else `.venv/bin/python` (made by `.ci/run`). Panics saying how to get it.
 pub fn python() -> PathBuf {
