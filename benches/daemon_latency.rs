@@ -19,7 +19,8 @@
 //! `FWLIDAR_LATENCY_QUEUE=65536` the queue capacity in pulses (default: config/onboard.toml's
 //! 8192). Each run's stream is simulated into a capture first and played from it in real time
 //! (`fwlidar simulate --live --from`), so the simulator's own cost does not take the daemon's
-//! cores.
+//! cores. `FWLIDAR_LATENCY_BIN=/path/to/fwlidar` measures another build (both the player and
+//! the daemon), to alternate two builds within one period of the machine.
 
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
@@ -27,7 +28,13 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
+const BUILT_BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
+
+/// The `fwlidar` binary to measure: `FWLIDAR_LATENCY_BIN` (another build, to compare two
+/// builds alternately in one period of this machine) or the one cargo built with this bench.
+fn bin() -> String {
+    std::env::var("FWLIDAR_LATENCY_BIN").unwrap_or_else(|_| BUILT_BIN.to_string())
+}
 const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
 /// The light chain, over config/onboard.toml's stages: the FFT low-pass and the calibration
@@ -141,7 +148,7 @@ fn measure(chain: &'static str, rate: f64, seconds: f64) -> Row {
     // (`simulate --live --from`): simulating the scene costs ~6 µs a pulse, more than two
     // cores have at 400 kHz, while playing a capture costs a frame encoding and a send.
     let capture = dir.path().join("line.fwcap");
-    let made = Command::new(BIN)
+    let made = Command::new(bin())
         .args(["simulate", "--no-progress", "--no-truth-voxels", "--scene"])
         .arg(Path::new(ROOT).join("config/scenes/survey_line.toml"))
         .args(["--pulses", &pulses.to_string()])
@@ -165,7 +172,7 @@ fn measure(chain: &'static str, rate: f64, seconds: f64) -> Row {
     }
     let cpu_before = children_cpu_s();
     let started = std::time::Instant::now();
-    let mut sim = Command::new(BIN)
+    let mut sim = Command::new(bin())
         .args(["simulate", "--live", "--no-progress", "--from"])
         .arg(&capture)
         .args(["--speed", "1"])
@@ -187,7 +194,7 @@ fn measure(chain: &'static str, rate: f64, seconds: f64) -> Row {
         }
     };
     let out = dir.path().join("out");
-    let mut daemon = Command::new(BIN)
+    let mut daemon = Command::new(bin())
         .args(daemon_args(chain, port, &nav, free_port(), voxel_m(), &out))
         .stdout(Stdio::null())
         .stderr(Stdio::null())

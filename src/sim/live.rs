@@ -19,6 +19,10 @@
 //!   the first item, divided by the speed factor (0 = as fast as possible). Deadlines are
 //!   absolute offsets from one start instant, so sleeping late never accumulates into drift: a
 //!   late item is followed by items already due, sent at once until the stream is back on time.
+//!   While paced, the playing thread's timer slack is 250 µs (`PACED_TIMER_SLACK`): its
+//!   sleeps end up to that much late, so frames leave in blocks of ~50 at 200 kHz, one wake-up
+//!   each, instead of ~10 (at 200 kHz the player's CPU went 0.24 → 0.16 of a core, and the
+//!   daemon beside it on two cores kept its p99 ≤ 41 ms instead of 55–78; docs/performance.md).
 //!
 //! The sending loop reuses one encode buffer, so it allocates nothing per pulse of its own.
 
@@ -46,6 +50,11 @@ const TCP_CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// At the end, how long to wait for the reader of a created pseudo-terminal to take the last
 /// navigation bytes before the terminal is closed (closing it discards unread bytes).
 const NAV_DRAIN_TIMEOUT: Duration = Duration::from_secs(1);
+/// Timer slack of the playing thread while paced (`prctl(PR_SET_TIMERSLACK)`): the kernel may
+/// wake a sleep up to this much after its deadline, so that the wake-ups coalesce into one per
+/// this interval or so (a digitizer's DMA block) instead of one per few frames. Well inside
+/// [`LATE_TOLERANCE`].
+const PACED_TIMER_SLACK: Duration = Duration::from_micros(250);
 /// How often [`play`] calls its progress callback.
 pub const PROGRESS_EVERY: Duration = Duration::from_secs(2);
 
@@ -717,6 +726,21 @@ fn wait_until(deadline: Instant, stop: &AtomicBool) -> bool {
     }
 }
 
+/// Sets the calling thread's timer slack (how late the kernel may end its sleeps). Best effort:
+/// on failure the default slack (50 µs) stays, which only costs more wake-ups.
+fn set_timer_slack(slack: Duration) {
+    // SAFETY: prctl(PR_SET_TIMERSLACK) takes an integer and affects only the calling thread.
+    unsafe {
+        libc::prctl(
+            libc::PR_SET_TIMERSLACK,
+            slack.as_nanos() as libc::c_ulong,
+            0 as libc::c_ulong,
+            0 as libc::c_ulong,
+            0 as libc::c_ulong,
+        );
+    }
+}
+
 /// Plays `items` in real time (see the module documentation) into the given outputs until the
 /// stream ends or `stop` is set. `progress` is called every [`PROGRESS_EVERY`] with the report
 /// so far. The clock starts at the first item.
@@ -732,6 +756,9 @@ where
     I: IntoIterator<Item = SimItem>,
 {
     let mut pacer = Pacer::new(speed);
+    if pacer.paced() {
+        set_timer_slack(PACED_TIMER_SLACK);
+    }
     let mut report = LiveReport::default();
     let mut start: Option<Instant> = None;
     let mut first_s: Option<f64> = None;
@@ -930,6 +957,27 @@ mod tests {
         let r = play(items, None, None, 0.0, &stop, &mut |_| {}).unwrap();
         assert!(r.stopped_early);
         assert_eq!(r.items() + r.nav_skipped, 0);
+    }
+
+    #[test]
+    fn paced_play_lets_the_kernel_coalesce_its_wake_ups_and_unpaced_does_not() {
+        // SAFETY: PR_GET_TIMERSLACK reads the calling thread's slack.
+        let slack = || unsafe { libc::prctl(libc::PR_GET_TIMERSLACK, 0, 0, 0, 0) } as u128;
+        let play_in_thread = |speed: f64| {
+            std::thread::spawn(move || {
+                let stop = AtomicBool::new(false);
+                let items = (0..2u64).map(|k| SimItem::Nav {
+                    receive_time_ns: k * 1_000_000,
+                    bytes: Vec::new(),
+                });
+                play(items, None, None, speed, &stop, &mut |_| {}).unwrap();
+                slack()
+            })
+            .join()
+            .unwrap()
+        };
+        assert_eq!(play_in_thread(1.0), PACED_TIMER_SLACK.as_nanos());
+        assert_eq!(play_in_thread(0.0), Duration::from_micros(50).as_nanos());
     }
 
     /// A framed test pulse stamped `t` s.
