@@ -657,7 +657,9 @@ fn energy_grid(
     heights.clear();
     let mut x = start_grid;
     while x <= extent.bottom + 1e-9 {
-        let i = (x.floor() as usize).min(n - 1);
+        // `x as usize` is `x.floor() as usize` for every `x` (truncation is the floor at and
+        // above 0; below, both saturate to 0), without a libm `floor` call per grid point.
+        let i = (x as usize).min(n - 1);
         let f = x - i as f64;
         let v = if i + 1 < n {
             s[i] * (1.0 - f) + s[i + 1] * f
@@ -946,23 +948,60 @@ struct CanopyAbove<'a> {
     /// The last canopy energy's bits and its PAI: the PAVD and FHD ask for the PAI at each
     /// boundary twice, and above the canopy for an energy of 0 again and again.
     last: Cell<Option<(u64, f64)>>,
+    /// When `heights` never rises: its first height and the grid points per metre (the grid
+    /// is even, so `(first − h) × per_m` lands within a point or two of the answer).
+    even: Option<(f64, f64)>,
 }
 
 impl<'a> CanopyAbove<'a> {
     /// The canopy above the heights `heights` (m, falling) of the profile whose prefix sums
     /// are `cum`, with the cover and PAI model `gaps`.
     fn new(heights: &'a [f64], cum: &'a [f64], gaps: GapModel) -> Self {
+        let falling = heights.windows(2).all(|w| w[0] >= w[1]);
+        let even = match (falling, heights.first(), heights.last()) {
+            (true, Some(&first), Some(&last)) if heights.len() > 1 && first > last => {
+                Some((first, (heights.len() - 1) as f64 / (first - last)))
+            }
+            _ => None,
+        };
         CanopyAbove {
             heights,
             cum,
             gaps,
             last: Cell::new(None),
+            even,
         }
     }
 
     /// Canopy energy above height `h` (m above the ground), signal units × bins.
     fn energy(&self, h: f64) -> f64 {
-        self.cum[self.heights.partition_point(|&hh| hh >= h)]
+        self.cum[self.points_at_or_above(h)]
+    }
+
+    /// How many grid points lie at or above `h` m: `heights.partition_point(|hh| hh ≥ h)`.
+    /// On a grid that never rises the boundary is unique, so it is found by stepping from a
+    /// guess on the even grid (one or two steps instead of a binary search); otherwise by
+    /// the binary search itself.
+    fn points_at_or_above(&self, h: f64) -> usize {
+        let Some((first, per_m)) = self.even else {
+            return self.heights.partition_point(|&hh| hh >= h);
+        };
+        let len = self.heights.len();
+        // A float-to-int cast saturates (NaN to 0): any guess in 0..=len is a start.
+        let mut i = (((first - h) * per_m) as usize).min(len);
+        // `!(heights[i − 1] ≥ h)`, NaN included.
+        while i > 0
+            && !matches!(
+                self.heights[i - 1].partial_cmp(&h),
+                Some(std::cmp::Ordering::Greater | std::cmp::Ordering::Equal)
+            )
+        {
+            i -= 1;
+        }
+        while i < len && self.heights[i] >= h {
+            i += 1;
+        }
+        i
     }
 
     /// PAI of the canopy above height `h` (m above the ground), m²/m² (that of the last

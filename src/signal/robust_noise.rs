@@ -91,9 +91,16 @@ impl RobustNoise {
         counts: &[u16],
         to_volts: impl Fn(u16) -> f32,
     ) -> (f32, f32) {
-        let (Some(&lo), Some(&hi)) = (counts.iter().min(), counts.iter().max()) else {
+        if counts.is_empty() {
             return (f32::NAN, f32::NAN);
-        };
+        }
+        // One pass of plain `min`/`max` (vectorised; the iterator's `min()` and `max()` were
+        // two scalar passes).
+        let (mut lo, mut hi) = (u16::MAX, u16::MIN);
+        for &c in counts {
+            lo = lo.min(c);
+            hi = hi.max(c);
+        }
         let range = usize::from(hi - lo) + 1;
         if range <= MAX_COUNT_RANGE {
             self.histogram.clear();

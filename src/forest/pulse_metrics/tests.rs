@@ -152,6 +152,50 @@ fn extended_gaussian_fit_recovers_a_skewed_echo() {
     assert!((erf(0.5) - 0.520_499_877_8).abs() < 2e-7);
 }
 
+/// The canopy above a height is found by stepping from a guess on a grid that never rises,
+/// and by binary search on any other: both are `partition_point`'s answer.
+#[test]
+fn points_above_a_height_are_the_partition_point() {
+    use rand::{RngExt, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let gaps = GapModel::new(&MetricsConfig::default(), 1.0, 1.0, 0.0);
+    for case in 0..400 {
+        let len = rng.random_range(1..700usize);
+        let (ground, vz) = (rng.random_range(0.0..300.0), rng.random_range(0.01..0.3));
+        let mut x: f64 = rng.random_range(0.0..50.0);
+        let mut heights: Vec<f64> = (0..len)
+            .map(|_| {
+                let h = (ground - x) * vz;
+                x += 0.25;
+                h
+            })
+            .collect();
+        if case % 5 == 0 && len > 2 {
+            // Not falling everywhere (and a repeated height): the binary search's answer.
+            heights.swap(0, len / 2);
+            heights[1] = heights[2];
+        }
+        let cum = vec![0.0; len + 1];
+        let above = CanopyAbove::new(&heights, &cum, gaps);
+        let (lo, hi) = (
+            heights[len - 1].min(heights[0]),
+            heights[len - 1].max(heights[0]),
+        );
+        let mut probes: Vec<f64> = (0..60)
+            .map(|_| rng.random_range(lo - 5.0..hi + 5.0))
+            .collect();
+        probes.extend(heights.iter().take(20).copied());
+        probes.extend([f64::NAN, f64::INFINITY, f64::NEG_INFINITY, 0.0, -0.0]);
+        for h in probes {
+            assert_eq!(
+                above.points_at_or_above(h),
+                heights.partition_point(|&hh| hh >= h),
+                "case {case}, h {h}"
+            );
+        }
+    }
+}
+
 /// The fixture's 32 GEDI shots: our RH against L2A's `rh`, our cover, PAI and FHD against L2B.
 /// Prints the table of docs/accuracy.md ("GEDI"); run with `--nocapture` to see it.
 #[test]
