@@ -21,8 +21,9 @@
 //!   late item is followed by items already due, sent at once until the stream is back on time.
 //!   While paced, the playing thread's timer slack is 250 µs (`PACED_TIMER_SLACK`): its
 //!   sleeps end up to that much late, so frames leave in blocks of ~50 at 200 kHz, one wake-up
-//!   each, instead of ~10 (at 200 kHz the player's CPU went 0.24 → 0.16 of a core, and the
-//!   daemon beside it on two cores kept its p99 ≤ 41 ms instead of 55–78; docs/performance.md).
+//!   each, instead of ~20 (at 200 kHz the player's CPU went 0.24 → 0.16 of a core, and the
+//!   daemon beside it on two cores had a p99 of 35–41 ms against 55–78 ms in alternating runs;
+//!   docs/performance.md).
 //!
 //! The sending loop reuses one encode buffer, so it allocates nothing per pulse of its own.
 
