@@ -782,6 +782,9 @@ const RAW_LITERALS_LEVEL: i32 = -1;
 struct BlockCompressors {
     entropy: Option<zstd::bulk::Compressor<'static>>,
     raw_literals: Option<zstd::bulk::Compressor<'static>>,
+    /// A sparse block's frame made from its runs of values, without the library (see
+    /// [`super::fill_frame`]).
+    fill: super::fill_frame::FillFrame,
 }
 
 /// Coordinate arrays of more values than this (together) are compressed and written on a
@@ -811,6 +814,8 @@ pub struct ZarrStore {
     /// the store is dropped.
     coordinates: Option<std::thread::JoinHandle<Result<(), StoreError>>>,
     zd: Option<zstd::bulk::Decompressor<'static>>,
+    /// Other stores' shard files open while their tiles are copied in (a merge's inputs).
+    sources: super::shard_group::OpenShards,
     /// The tiles the data arrays span.
     span: Span,
     /// How chunks are laid out and compressed.
@@ -883,6 +888,11 @@ fn dtype(name: &str) -> (&'static str, Value) {
         "sample_count" | "pulse_count" => ("uint32", json!(0)),
         _ => ("float32", json!("NaN")),
     }
+}
+
+/// Bytes of one value of data array `name`.
+fn value_bytes(name: &str) -> usize {
+    if name == "intensity_sum" { 8 } else { 4 }
 }
 
 fn write_file_synced(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
@@ -970,6 +980,7 @@ impl ZarrStore {
             zc: BlockCompressors::default(),
             coordinates: None,
             zd: None,
+            sources: Default::default(),
             records: Default::default(),
             tiles_written: 0,
             chunks_written: 0,
@@ -2145,7 +2156,8 @@ impl ZarrStore {
                 let found = match src.layout.group() {
                     Some(g) => {
                         let slot = g.place(src.grid.tile_min, tile, kc).slot;
-                        super::shard_group::read_place(&from, g.slots(), slot, &mut bytes)
+                        self.sources
+                            .read_place(&from, g.slots(), slot, &mut bytes)
                             .map_err(|what| invalid(&from, what))?
                     }
                     None => match fs::read(&from) {
@@ -2232,6 +2244,13 @@ impl ZarrStore {
                 index.push((u64::MAX, u64::MAX));
                 continue;
             }
+            if self.fill_frame(c, a, order, blk, written) {
+                index.push((self.shard.len() as u64, self.packed.len() as u64));
+                self.shard.extend_from_slice(&self.packed);
+                cost.raw_bytes += (order.block_voxels() * value_bytes(a)) as u64;
+                cost.inner_chunks += 1;
+                continue;
+            }
             self.raw.clear();
             match a {
                 "intensity_sum" => {
@@ -2270,6 +2289,38 @@ impl ZarrStore {
         }
         cost.stored_bytes += self.shard.len() as u64;
         Ok(())
+    }
+
+    /// Encodes array `a` of block `blk` of height chunk `c` into `self.packed` as a frame made
+    /// from its runs of values ([`super::fill_frame`]) when that applies: a sparse block
+    /// (at most [`SPARSE_BLOCK_COLUMNS`] written columns) of the sharded, column-ordered
+    /// layout under zstd. `false`: compress the arranged bytes instead.
+    fn fill_frame(
+        &mut self,
+        c: &super::tile::Chunk,
+        a: &str,
+        order: DiskOrder,
+        blk: usize,
+        written: u32,
+    ) -> bool {
+        let sparse_zstd = matches!(
+            self.layout,
+            Layout::Sharded {
+                codec: Codec::Zstd(_),
+                ..
+            }
+        );
+        if !sparse_zstd || !order.transposed || written > SPARSE_BLOCK_COLUMNS {
+            return false;
+        }
+        let f = &mut self.zc.fill;
+        match a {
+            "intensity_sum" => order.runs(c, |v| v.sum_q, 0, blk, f, i64::to_le_bytes),
+            "sample_count" => order.runs(c, |v| v.samples, 0, blk, f, u32::to_le_bytes),
+            "pulse_count" => order.runs(c, |v| v.pulses, 0, blk, f, u32::to_le_bytes),
+            _ => order.runs(c, |v| v.max, f32::NAN, blk, f, f32::to_le_bytes),
+        }
+        f.finish(&mut self.packed)
     }
 
     /// Rewrites the metadata documents (arrays, coordinates, then the root group with the
@@ -2778,6 +2829,38 @@ impl DiskOrder {
                     dst[at..at + N].copy_from_slice(&enc(v));
                     at += step;
                 }
+            }
+        }
+    }
+
+    /// Gives block `blk` of `mem` (an array of chunk `c`, whose unwritten columns hold `fill`)
+    /// to `frame` as runs of values, in the column order of the transposed layout (as
+    /// [`write`](Self::write) places them): an unwritten column is one run of `fill`.
+    fn runs<T: Copy, const N: usize>(
+        self,
+        c: &super::tile::Chunk,
+        pick: for<'a> fn(super::tile::Column<'a>) -> &'a [T],
+        fill: T,
+        blk: usize,
+        frame: &mut super::fill_frame::FillFrame,
+        enc: fn(T) -> [u8; N],
+    ) {
+        debug_assert!(self.transposed);
+        let (b, l) = (self.block, self.levels);
+        let f = enc(fill);
+        frame.begin(N);
+        for jj in 0..b {
+            let c0 = self.row_start(blk, jj);
+            for i in 0..b {
+                let Some(column) = c.column(c0 + i).map(pick) else {
+                    frame.push_run(f, l);
+                    continue;
+                };
+                let column = &column[..l.min(column.len())];
+                for &v in column {
+                    frame.push(enc(v));
+                }
+                frame.push_run(f, l - column.len());
             }
         }
     }
