@@ -37,7 +37,7 @@ negatives clipped, the sampled system pulse as PSF); ``scipy-nnls+2ns`` (``scipy
 per row against the system pulse's convolution matrix, on the baseline-corrected rows, the
 spikes then drawn with the 2 ns pulse); and each ``--run LABEL=ARGS`` (``fwlidar process
 --input rows.npy --kernel kernel.npy --sample-ns S --out OUT.npy --no-progress ARGS``; without
-``--run``, the issue's table of settings).
+``--run``, the issue's table of settings and ``rl20-2ns``, RL 20 to the 2 ns target).
 
 Scores (per row group, pooled over rows):
 
@@ -74,6 +74,8 @@ DEFAULT_RUNS = (
     "nnls-2ns=--method nnls --target-fwhm-ns 2",
     "rl200-2ns=--method rl --iterations 200 --target-fwhm-ns 2",
     "rl-2ns=--method rl --target-fwhm-ns 2",
+    # A fixed small count: what the noise-aware stop must never end worse than.
+    "rl20-2ns=--method rl --iterations 20 --target-fwhm-ns 2",
     "rl200-2ns-stop1=--method rl --iterations 200 --target-fwhm-ns 2 --stop-at-noise 1",
     "rl200=--method rl --iterations 200",
 )
