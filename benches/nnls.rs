@@ -74,6 +74,7 @@ fn nnls(c: &mut Criterion) {
         NnlsConfig {
             max_iterations: 50,
             tolerance: 0.0,
+            ..Default::default()
         },
         256,
         64,
@@ -133,6 +134,7 @@ fn nnls_cap(c: &mut Criterion) {
         NnlsConfig {
             max_iterations: 50,
             tolerance: 0.0,
+            ..Default::default()
         },
         256,
         64,
@@ -149,5 +151,89 @@ fn nnls_cap(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, nnls, nnls_cap);
+/// `fwlidar process --method nnls`'s setting (budget 128, the noise-weighted refit) on rows of
+/// the noise-model benchmark's shape: an 8 ns Gaussian pulse at 1 ns (29 taps), 256 samples,
+/// a ground echo, three canopy echoes and a close pair 6 ns apart; white noise (σ = 0.03 of the
+/// peak: no refit), shot noise (variance ∝ signal, 200 photo-electrons at the peak: the refit
+/// runs) and the same row clipped at 0.6 of its peak (9 samples left out).
+fn nnls_process(c: &mut Criterion) {
+    let sigma = 8.0 / 2.354_82f64;
+    let taps: Vec<f32> = (-14..=14)
+        .map(|i| (-0.5 * (i as f64 / sigma).powi(2)).exp() as f32)
+        .collect();
+    let sum: f32 = taps.iter().sum();
+    let taps: Vec<f32> = taps.iter().map(|t| t / sum).collect();
+    let mut k = Kernel::with_capacity(taps.len());
+    k.set_from_taps(&taps, 14, taps.len()).expect("kernel");
+    let echoes = [
+        (62.0, 0.4),
+        (68.0, 0.35),
+        (101.0, 0.2),
+        (140.0, 0.3),
+        (222.0, 0.9),
+    ];
+    let clean: Vec<f64> = (0..256)
+        .map(|i| {
+            echoes
+                .iter()
+                .map(|&(c, a)| a * (-0.5 * ((i as f64 - c) / sigma).powi(2)).exp())
+                .sum()
+        })
+        .collect();
+    let peak = clean.iter().fold(0.0f64, |a, &v| a.max(v));
+    let mut state = 0x853c_49e6_748f_ea9bu64;
+    let mut gauss = move || {
+        let mut u = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let (u1, u2) = (u(), u());
+        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+    };
+    let white: Vec<f32> = clean
+        .iter()
+        .map(|&v| (v + 0.03 * peak * gauss()) as f32)
+        .collect();
+    let gain = 200.0 / peak;
+    let shot: Vec<f32> = clean
+        .iter()
+        .map(|&v| (v + ((v * gain + 2.0).sqrt() * gauss()) / gain) as f32)
+        .collect();
+    let clipped: Vec<f32> = white.iter().map(|&v| v.min((0.6 * peak) as f32)).collect();
+    let mut excluded = Vec::new();
+    let flagged = fwlidar::signal::drift::flag_saturated(&clipped, &mut excluded);
+    waveforms::dump_f32("nnls_process_kernel_f32", &k.taps);
+    waveforms::dump_f32("nnls_process_white_f32", &white);
+    waveforms::dump_f32("nnls_process_shot_f32", &shot);
+    waveforms::dump_f32("nnls_process_clipped_f32", &clipped);
+    let cfg = NnlsConfig {
+        max_iterations: 128,
+        noise_weights: true,
+        ..Default::default()
+    };
+    let mut d = Nnls::new(cfg, 256, 64);
+    let mut out = vec![0.0f32; 256];
+    let none = vec![false; 256];
+    for (name, y, ex) in [
+        ("nnls_process_8ns_white", &white, &none),
+        ("nnls_process_8ns_shot", &shot, &none),
+        ("nnls_process_8ns_clipped", &clipped, &excluded),
+    ] {
+        let stats = d
+            .run_excluding(y, &k, 0.0, 1.0, ex, &mut out)
+            .expect("nnls");
+        println!("{name}: {stats:?} ({flagged} clipped samples in the clipped row)");
+        c.bench_function(name, |b| {
+            b.iter(|| {
+                d.run_excluding(black_box(y), &k, 0.0, 1.0, ex, &mut out)
+                    .expect("nnls");
+                black_box(&out);
+            })
+        });
+    }
+}
+
+criterion_group!(benches, nnls, nnls_cap, nnls_process);
 criterion_main!(benches);

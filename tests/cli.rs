@@ -685,7 +685,12 @@ max_iterations = 25
     let m3 = 3u64;
     let gold = 2 * n * m3 + 2 * (30 * (4 * n * m3 + 6 * n) + 2 * n * m3 + 6 * n);
     let k = 60u64;
-    let nnls = m * m + m + 2 * n * m + n + 60 * (2 * k * (2 * m - 1) + n + 11 * k * k + 18 * k);
+    let plain = m * m + m + 2 * n * m + n + 60 * (2 * k * (2 * m - 1) + n + 11 * k * k + 18 * k);
+    // A row with clipped samples takes the weighted path (Gram rows from the taps, dual from
+    // the residual), so the stated worst case is the larger of the two.
+    let outer_w = 2 * k * m + 2 * n * m + 5 * n + 3 * m * (k + 1) + 3 * k * k + 5 * k;
+    let weighted = m * m + 2 * m + 2 * n * m + 4 * n + 60 * (outer_w + 8 * k * k + 13 * k);
+    let nnls = plain.max(weighted);
     // Wiener: L = 360 = 2³·3²·5, the first even 2·3·5-smooth length >= n + m = 340.
     let l = 360f64;
     let wiener = (7.5 * l * l.log2() + 20.0 * (l / 2.0 + 1.0)) as u64;

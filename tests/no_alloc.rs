@@ -125,7 +125,8 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
     // Plain RL, and accelerated RL with the coarse-to-fine start (a coarse FWHM of 1 sample:
     // a decimation factor of ≥ 2 for any outgoing pulse at least 2 samples wide); RL stopping
     // by the noise and delivering its result as seen by a 2 ns target pulse (a reduced kernel
-    // per shot), NNLS drawn as the target pulse, and the on-board RL from a Wiener start.
+    // per shot), NNLS drawn as the target pulse (also with its noise-weighted refit), and the
+    // on-board RL from a Wiener start.
     let rl = |coarse_iterations: u32, stop_at_noise: Option<f32>| {
         MethodConfig::RichardsonLucy(RlConfig {
             iterations: 2,
@@ -141,6 +142,12 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
         max_iterations: 3,
         ..NnlsConfig::default()
     });
+    // NNLS with the noise-weighted refit (`fwlidar process`'s setting).
+    let nnls_weighted = MethodConfig::Nnls(NnlsConfig {
+        max_iterations: 20,
+        noise_weights: true,
+        ..NnlsConfig::default()
+    });
     for (max_taps, method, target_fwhm_ns) in [
         (256usize, rl(0, None), None),
         (16, rl(0, None), None),
@@ -148,6 +155,7 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
         (16, rl(3, None), None),
         (256, rl(0, Some(1.0)), Some(2.0)),
         (16, nnls, Some(2.0)),
+        (256, nnls_weighted, Some(2.0)),
         // The on-board setting: the Wiener start (its FFT plans per window length) and the
         // output's noise floor.
         (96, MethodConfig::RichardsonLucy(RlConfig::onboard()), None),

@@ -459,3 +459,69 @@ fn iterations_change_the_result_of_iterative_methods() {
         );
     }
 }
+
+/// A drifting baseline and a clipped echo through `--method nnls` with no other option: the
+/// summary names the clipped row, the drift is gone from the output (the line removed, not a
+/// level), and the clipped echo comes back at its area where `--baseline level` and a plain
+/// fit would not (a kernel of 8 ns, 1 ns samples).
+#[test]
+fn nnls_removes_a_drifting_baseline_and_leaves_clipped_samples_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, kernel) = (dir.path().join("in.npy"), dir.path().join("k.npy"));
+    let sigma = 8.0 / 2.354_82f64;
+    let pulse = |x: f64| (-0.5 * (x / sigma).powi(2)).exp();
+    let taps: Vec<f32> = (-14..=14).map(|j| pulse(j as f64) as f32).collect();
+    let sum: f32 = taps.iter().sum();
+    let taps: Vec<f32> = taps.iter().map(|t| t / sum).collect();
+    // Echo areas 2 (at 80) and 6 (at 170, its top clipped at 0.5); baseline 0.05 → 0.15.
+    let row: Vec<f32> = (0..256)
+        .map(|i| {
+            let x = i as f64;
+            let echo = 2.0 * pulse(x - 80.0) / sum as f64 + 6.0 * pulse(x - 170.0) / sum as f64;
+            let wiggle = 0.002 * ((i * 7919 % 13) as f64 - 6.0) / 6.0;
+            (0.05 + 0.1 * x / 255.0 + echo + wiggle).min(0.5) as f32
+        })
+        .collect();
+    std::fs::write(&input, encode_npy(&[row])).unwrap();
+    std::fs::write(&kernel, encode_npy(&[taps])).unwrap();
+    let run = |extra: &[&str], out: &Path| {
+        let mut args = vec![
+            "process",
+            "--input",
+            s(&input),
+            "--kernel",
+            s(&kernel),
+            "--method",
+            "nnls",
+            "--no-progress",
+            "--out",
+            s(out),
+        ];
+        args.extend_from_slice(extra);
+        let o = fwlidar(&args);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let y = read_table(out).unwrap().rows.remove(0);
+        (String::from_utf8_lossy(&o.stdout).into_owned(), y)
+    };
+    let (summary, y) = run(&[], &dir.path().join("line.npy"));
+    assert!(summary.contains("1 rows with clipped samples"), "{summary}");
+    assert!(
+        summary.contains("baseline removed (no low-pass)"),
+        "{summary}"
+    );
+    let area = |y: &[f32], r: std::ops::Range<usize>| y[r].iter().sum::<f32>();
+    // Spikes: the echoes' areas, and along the drift only the small ones of the ±0.002
+    // ripple.
+    assert!((area(&y, 70..90) - 2.0).abs() < 0.1, "{}", area(&y, 70..90));
+    assert!(
+        (area(&y, 160..180) - 6.0).abs() < 0.3,
+        "{}",
+        area(&y, 160..180)
+    );
+    let stray = area(&y, 0..60) + area(&y, 100..150) + area(&y, 195..256);
+    assert!(stray < 0.5, "{stray} {y:?}");
+    // With a level baseline the drift stays in and is fitted with spikes.
+    let (_, level) = run(&["--baseline", "level"], &dir.path().join("level.npy"));
+    let drift = area(&level, 0..60) + area(&level, 100..150) + area(&level, 195..256);
+    assert!(drift > 4.0 * stray, "level {drift}, line {stray}");
+}

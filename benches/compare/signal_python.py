@@ -206,6 +206,20 @@ def main():
         rows.append((f"NNLS, {label}", bench, "`Nnls`", "scipy `nnls`, dense matrix",
                      median_us(lambda: scipy.optimize.nnls(a, yv), repeat=7)))
 
+    # NNLS, `fwlidar process`'s setting (noise-weighted refit, clipped samples left out) against
+    # scipy's NNLS run as a user would: the whole row, to convergence.
+    ktaps = load(d, "nnls_process_kernel_f32", "<f4").astype(np.float64)
+    a = conv_matrix(ktaps, len(ktaps) // 2, 256)
+    for file, bench, label in (
+        ("nnls_process_white_f32", "nnls_process_8ns_white", "white noise"),
+        ("nnls_process_shot_f32", "nnls_process_8ns_shot", "shot noise (refit)"),
+        ("nnls_process_clipped_f32", "nnls_process_8ns_clipped", "clipped top"),
+    ):
+        yv = load(d, file, "<f4").astype(np.float64)
+        rows.append((f"NNLS as `process` runs it, 8 ns, {label}", bench,
+                     "`Nnls` (budget 128, noise weights)", "scipy `nnls`, dense matrix",
+                     median_us(lambda: scipy.optimize.nnls(a, yv), repeat=7)))
+
     # Decomposition.
     y3 = load(d, "decompose_3_echoes_f32", "<f4").astype(np.float64)
     t = np.arange(len(y3), dtype=np.float64)

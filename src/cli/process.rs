@@ -25,6 +25,7 @@ use crate::signal::decompose::{DecomposeConfig, Decomposer};
 use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::deconvolve::{Deconvolver, MethodConfig, Targeted};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
+use crate::signal::drift::{DriftBaseline, flag_saturated};
 use crate::signal::kernel::{Kernel, remove_baseline};
 
 pub use crate::signal::kernel::KERNEL_BASELINE_SAMPLES;
@@ -121,14 +122,23 @@ pub struct ProcessArgs {
     #[arg(long, default_value_t = 1.0)]
     pub sample_ns: f64,
     /// Low-pass cut-off of the denoise step, GHz (must lie below 1 / (2 × sample interval)).
-    #[arg(long, default_value_t = 0.2)]
-    pub cutoff_ghz: f64,
+    /// Default 0.2, except for NNLS: no low-pass (the fit by the kernel's pulses is the
+    /// smoothing; at a 4 ns pulse the 0.2 GHz low-pass took the close pairs NNLS resolves,
+    /// docs/accuracy.md "Deconvolution over noise models").
+    #[arg(long)]
+    pub cutoff_ghz: Option<f64>,
     /// The kernel table holds one outgoing pulse per input row (row counts must match).
     #[arg(long)]
     pub kernel_per_row: bool,
     /// Skip the denoise step (no baseline removal, no low-pass).
     #[arg(long)]
     pub no_denoise: bool,
+    /// The baseline the denoise step removes: `line` (default), a straight line fitted to the
+    /// row's lower samples (a pedestal or a drifting baseline, no pre-trigger window needed;
+    /// `src/signal/drift.rs`); `level`, the denoise step's level alone (the median of the
+    /// first samples).
+    #[arg(long, value_enum, default_value_t = BaselineModel::Line)]
+    pub baseline: BaselineModel,
     /// Trailing zeros of a row are padding, not samples (zero-padded exports such as NEON's
     /// `return.csv` and `outg.csv`): only the samples before them are processed, and the output
     /// row keeps its length with zeros in their place. Applies to kernel rows too.
@@ -165,6 +175,15 @@ pub struct ProcessArgs {
     pub no_progress: bool,
 }
 
+/// The baseline `fwlidar process` removes ahead of the denoise step's own level.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum BaselineModel {
+    /// A straight line through the row's lower samples ([`crate::signal::drift`]).
+    Line,
+    /// No line: the denoise step's level only.
+    Level,
+}
+
 /// The waveform `fwlidar process --metrics` measures.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum MetricsWaveform {
@@ -191,6 +210,9 @@ pub struct ProcessReport {
     pub wall_s: f64,
     /// Iterations derived for the target pulse (`--target-fwhm-ns` without `--iterations`).
     pub target_iterations: Option<u32>,
+    /// Rows with samples clipped at their maximum (runs of two or more), which NNLS leaves out
+    /// of its fit.
+    pub saturated_rows: usize,
 }
 
 /// Median of a non-empty slice (sorted copy).
@@ -382,6 +404,19 @@ fn load_response(
     Ok(Some(k))
 }
 
+/// Default low-pass cut-off of the denoise step, GHz (the seed's, at 1 ns sampling).
+const DEFAULT_CUTOFF_GHZ: f64 = 0.2;
+
+/// The denoise step's low-pass cut-off, GHz: `--cutoff-ghz`, else none for NNLS and
+/// [`DEFAULT_CUTOFF_GHZ`] for the other methods.
+fn low_pass_ghz(args: &ProcessArgs) -> Option<f64> {
+    match (args.cutoff_ghz, args.method) {
+        (Some(c), _) => Some(c),
+        (None, ProcessMethod::Nnls) => None,
+        (None, _) => Some(DEFAULT_CUTOFF_GHZ),
+    }
+}
+
 fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
     TableFormat::from_path(&args.input).map_err(Failure::usage)?;
     TableFormat::from_path(&args.out).map_err(Failure::usage)?;
@@ -405,17 +440,16 @@ fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
             args.sample_ns
         )));
     }
-    if !args.no_denoise {
-        if !(args.cutoff_ghz.is_finite() && args.cutoff_ghz > 0.0) {
+    if let Some(cutoff) = low_pass_ghz(args).filter(|_| !args.no_denoise) {
+        if !(cutoff.is_finite() && cutoff > 0.0) {
             return Err(Failure::usage(format!(
-                "--cutoff-ghz must be a positive frequency in GHz, got {}",
-                args.cutoff_ghz
+                "--cutoff-ghz must be a positive frequency in GHz, got {cutoff}"
             )));
         }
-        if args.cutoff_ghz * args.sample_ns >= 0.5 {
+        if cutoff * args.sample_ns >= 0.5 {
             return Err(Failure::usage(format!(
                 "--cutoff-ghz {} is not below the Nyquist frequency {} GHz of --sample-ns {}",
-                args.cutoff_ghz,
+                cutoff,
                 0.5 / args.sample_ns,
                 args.sample_ns
             )));
@@ -487,6 +521,23 @@ fn target_iterations(args: &ProcessArgs, kernels: &[Kernel]) -> Option<u32> {
     Some(n.clamp(TARGET_ITERATIONS.0 as f64, TARGET_ITERATIONS.1 as f64) as u32)
 }
 
+/// Least and largest NNLS spike budget `process` gives when `--iterations` is absent.
+const NNLS_BUDGET: (u32, u32) = (50, 256);
+
+/// The NNLS spike budget (`max_iterations`) `process` gives when `--iterations` is absent: one
+/// spike per two samples of the longest row, within [`NNLS_BUDGET`]. The Lawson-Hanson run ends
+/// by its own optimality test (KKT) long before such a budget on sparse returns; the budget of
+/// the stage's default (50) stopped it early and cost 0.02–0.05 of RMSE / raw on every noise
+/// model of docs/accuracy.md, while 128 and 256 gave identical results. `None` when it does
+/// not apply (another method, or iterations given).
+fn nnls_budget(args: &ProcessArgs, max_samples: usize) -> Option<u32> {
+    if args.iterations.is_some() || args.method != ProcessMethod::Nnls {
+        return None;
+    }
+    let half = u32::try_from(max_samples / 2).unwrap_or(u32::MAX);
+    Some(half.clamp(NNLS_BUDGET.0, NNLS_BUDGET.1))
+}
+
 /// The method configuration: built from a serde value so that the methods' own fields and
 /// defaults apply; `iterations` is only set when given (or derived: `derived`).
 fn method_config(
@@ -505,6 +556,11 @@ fn method_config(
             _ => "iterations",
         };
         value[key] = serde_json::json!(n);
+    }
+    if args.method == ProcessMethod::Nnls {
+        // The fit weighted by a noise variance estimated from the row when it follows the
+        // signal (docs/accuracy.md, "Deconvolution over noise models", third step).
+        value["noise_weights"] = serde_json::json!(true);
     }
     if let Some(tau) = args.stop_at_noise {
         if !(tau.is_finite() && tau > 0.0) {
@@ -536,7 +592,7 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         0.0
     };
     println!(
-        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
+        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
         args.input.display(),
         args.out.display(),
         report.waveforms,
@@ -546,7 +602,15 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
             Some(n) => format!(" ({n} iterations for the target pulse)"),
             None => String::new(),
         },
-        if args.no_denoise { "" } else { ", denoised" },
+        match (args.no_denoise, low_pass_ghz(&args)) {
+            (true, _) => "",
+            (false, Some(_)) => ", denoised",
+            (false, None) => ", baseline removed (no low-pass)",
+        },
+        match report.saturated_rows {
+            0 => String::new(),
+            r => format!(", {r} rows with clipped samples (left out of an NNLS fit)"),
+        },
         match &args.returns {
             Some(p) => format!(", {} returns in {}", report.returns, p.display()),
             None => String::new(),
@@ -595,6 +659,14 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         );
         method = method_config(args, Some(n))?;
     }
+    let longest = table.rows.iter().map(Vec::len).max().unwrap_or(0);
+    if let Some(n) = nnls_budget(args, longest) {
+        tracing::info!(
+            spikes = n,
+            "NNLS spike budget: half the longest row's samples (--iterations sets it)"
+        );
+        method = method_config(args, Some(n))?;
+    }
     let response = load_response(args, method.as_ref())?;
     let mut steps = RowSteps::new(args, method, kernels, response, &table, &input_name)?;
     let max_samples = steps.max_samples;
@@ -633,6 +705,7 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         metrics_s: steps.metrics_s,
         wall_s: started.elapsed().as_secs_f64(),
         target_iterations: derived,
+        saturated_rows: steps.saturated_rows,
     })
 }
 
@@ -737,6 +810,13 @@ struct RowSteps<'a> {
     fits: Vec<FittedReturn>,
     /// The current row denoised (or copied), `max_samples` values.
     work: Vec<f32>,
+    /// The baseline line fit and the current row with the line removed.
+    drift: DriftBaseline,
+    detrended: Vec<f32>,
+    /// The current row's samples clipped at its maximum.
+    excluded: Vec<bool>,
+    /// Rows with clipped samples so far.
+    saturated_rows: usize,
     /// The current row deconvolved by the response, before the kernel, `max_samples` values.
     first: Vec<f32>,
     /// Samples processed (padding excluded).
@@ -762,9 +842,10 @@ impl<'a> RowSteps<'a> {
             .map(Kernel::len)
             .max()
             .unwrap_or(0);
-        let denoise = (!args.no_denoise).then(|| {
+        let cutoff = low_pass_ghz(args).filter(|_| !args.no_denoise);
+        let denoise = cutoff.map(|cutoff_ghz| {
             Denoise::new(DenoiseConfig {
-                cutoff_ghz: args.cutoff_ghz,
+                cutoff_ghz,
                 max_samples,
                 ..Default::default()
             })
@@ -800,6 +881,10 @@ impl<'a> RowSteps<'a> {
             returns: Vec::new(),
             fits: Vec::new(),
             work: vec![0.0f32; max_samples],
+            drift: DriftBaseline::with_capacity(max_samples),
+            detrended: vec![0.0f32; max_samples],
+            excluded: Vec::with_capacity(max_samples),
+            saturated_rows: 0,
             first: vec![0.0f32; max_samples],
             samples: 0,
         })
@@ -831,7 +916,9 @@ impl<'a> RowSteps<'a> {
         }
         let row = &row[..len];
         self.samples += len;
-        let noise_v = self.denoise_row(row, at)?;
+        let clipped = flag_saturated(row, &mut self.excluded);
+        self.saturated_rows += usize::from(clipped > 0);
+        let noise_v = self.denoise_row(row, clipped > 0, at)?;
         let mut out = vec![0.0f32; full];
         self.deconvolve_row(i, &mut out[..len], noise_v, at)?;
         if let Some(j) = out.iter().position(|v| !v.is_finite()) {
@@ -848,17 +935,47 @@ impl<'a> RowSteps<'a> {
 
     /// Denoises `row` into `work` (a copy with `--no-denoise`); returns its noise level in the
     /// table's unit (the denoise step's, else from the sample differences).
-    fn denoise_row(&mut self, row: &[f32], at: &dyn Fn() -> String) -> Result<f32, Failure> {
-        let w = &mut self.work[..row.len()];
+    /// With `--baseline line`, the row's baseline line is removed first (the samples in
+    /// `excluded` take no part in its fit when `clipped`).
+    fn denoise_row(
+        &mut self,
+        row: &[f32],
+        clipped: bool,
+        at: &dyn Fn() -> String,
+    ) -> Result<f32, Failure> {
+        let n = row.len();
+        if self.args.no_denoise {
+            self.work[..n].copy_from_slice(row);
+            return Ok(noise_from_differences(row));
+        }
+        let flat = &mut self.detrended[..n];
+        if self.args.baseline == BaselineModel::Line {
+            let line = self.drift.fit(row, clipped.then_some(&self.excluded[..]));
+            for (i, (f, &v)) in flat.iter_mut().zip(row).enumerate() {
+                *f = (v as f64 - line.at(i)) as f32;
+            }
+        } else {
+            flat.copy_from_slice(row);
+        }
+        let w = &mut self.work[..n];
         Ok(match self.denoise.as_mut() {
             Some(d) => {
-                d.denoise_segment(row, self.args.sample_ns, w)
+                d.denoise_segment(&self.detrended[..n], self.args.sample_ns, w)
                     .map_err(|e| Failure::job(format!("{}: {e}", at())))?
                     .noise_v
             }
             None => {
-                w.copy_from_slice(row);
-                noise_from_differences(row)
+                // No low-pass (NNLS): the baseline removed, the noise level as the denoise
+                // step states it (a mean absolute deviation, σ √(2/π)).
+                let level = if self.args.baseline == BaselineModel::Level {
+                    median(&row[..n.min(KERNEL_BASELINE_SAMPLES)])
+                } else {
+                    0.0
+                };
+                for (o, &v) in w.iter_mut().zip(&self.detrended[..n]) {
+                    *o = v - level;
+                }
+                noise_from_differences(row) * std::f32::consts::FRAC_2_PI.sqrt()
             }
         })
     }
@@ -900,7 +1017,13 @@ impl<'a> RowSteps<'a> {
             } else {
                 &self.kernels[i]
             };
-            dec.run(input, k, noise_v, sample_ns, out).map_err(fail)?;
+            if self.excluded[..len].iter().any(|&e| e) {
+                let ex = &self.excluded[..len];
+                dec.run_excluding(input, k, noise_v, sample_ns, ex, out)
+                    .map_err(fail)?;
+            } else {
+                dec.run(input, k, noise_v, sample_ns, out).map_err(fail)?;
+            }
         }
         Ok(())
     }
@@ -1026,9 +1149,10 @@ mod tests {
             stop_at_noise: None,
             sample_ns: 1.0,
             target_fwhm_ns: None,
-            cutoff_ghz: 0.2,
+            cutoff_ghz: None,
             kernel_per_row: false,
             no_denoise: false,
+            baseline: BaselineModel::Line,
             zero_padding: false,
             skip_columns: 0,
             out: "o.csv".into(),
@@ -1110,7 +1234,7 @@ mod tests {
         assert!(method_config(&none, None).unwrap().is_none());
         assert!(
             check_args(&ProcessArgs {
-                cutoff_ghz: 0.6,
+                cutoff_ghz: Some(0.6),
                 ..base_clone(&base)
             })
             .is_err()
@@ -1139,6 +1263,7 @@ mod tests {
             cutoff_ghz: a.cutoff_ghz,
             kernel_per_row: a.kernel_per_row,
             no_denoise: a.no_denoise,
+            baseline: a.baseline,
             zero_padding: a.zero_padding,
             skip_columns: a.skip_columns,
             out: a.out.clone(),

@@ -832,17 +832,7 @@ pub fn robust_level_and_sigma(
     if deviations.len() < n {
         deviations.resize(n, 0.0);
     }
-    // The median of `v` (reorders it).
-    fn median(v: &mut [f32]) -> f32 {
-        let (len, mid) = (v.len(), v.len() / 2);
-        let (below, &mut m, _) = v.select_nth_unstable_by(mid, f32::total_cmp);
-        if len % 2 == 1 {
-            m
-        } else {
-            let lower = below.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-            0.5 * (lower + m)
-        }
-    }
+    let median = median_in_place;
     let mut kept = n;
     let mut level = median(&mut work[..kept]);
     let mut mad;
@@ -875,6 +865,19 @@ pub fn robust_level_and_sigma(
         level = median(&mut work[..kept]);
     }
     (level, MAD_TO_SIGMA * mad)
+}
+
+/// The median of `v` (non-empty; reorders it): the middle value by selection, the mean of the
+/// two middle values for an even count.
+pub(crate) fn median_in_place(v: &mut [f32]) -> f32 {
+    let (len, mid) = (v.len(), v.len() / 2);
+    let (below, &mut m, _) = v.select_nth_unstable_by(mid, f32::total_cmp);
+    if len % 2 == 1 {
+        m
+    } else {
+        let lower = below.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        0.5 * (lower + m)
+    }
 }
 
 /// The upper-clipped median of `counts` (non-empty, every count in `lo .. lo + hist.len()`)

@@ -5,6 +5,7 @@ pub mod calibrate;
 pub mod decompose;
 pub mod deconvolve;
 pub mod denoise;
+pub mod drift;
 pub mod gauss_fit;
 pub mod kernel;
 pub mod peaks;

@@ -101,6 +101,22 @@ pub trait Deconvolver: Send {
         out: &mut [f32],
     ) -> Result<MethodStats, DeconvError>;
 
+    /// As [`Deconvolver::run`], with the samples flagged in `excluded` (as long as `y`; e.g.
+    /// clipped at the digitizer's top, [`crate::signal::drift::flag_saturated`]) left out of
+    /// the fit by the methods that can (NNLS); the others run on every sample.
+    fn run_excluding(
+        &mut self,
+        y: &[f32],
+        k: &Kernel,
+        noise_v: f32,
+        sample_ns: f64,
+        excluded: &[bool],
+        out: &mut [f32],
+    ) -> Result<MethodStats, DeconvError> {
+        let _ = excluded;
+        self.run(y, k, noise_v, sample_ns, out)
+    }
+
     /// Worst-case floating-point operations for a segment of `n` samples and a kernel of `m`
     /// taps with this configuration: the fixed cost budget the configuration states.
     fn worst_case_flops(&self, n: usize, m: usize) -> u64;

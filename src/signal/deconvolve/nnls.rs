@@ -38,6 +38,19 @@
 //! `noise_v` and `sample_ns` are not used: the problem is posed in samples, and the stop rule is
 //! relative to `max|RᵀP|`.
 //!
+//! # Samples left out, and the noise-weighted fit
+//!
+//! [`Deconvolver::run_excluding`] leaves flagged samples out of the fit (weight 0; e.g. a
+//! clipped top, whose true value is unknown). [`NnlsConfig::noise_weights`] fits once, regresses
+//! the squared residuals on the fitted signal (`r² ≈ a + b · fit` by least squares over the kept
+//! samples, `a` at least `NOISE_FLOOR_SHARE` = 0.1 of the mean `r²`), and when `b · max(fit) ≥ a`
+//! (the variance at the strongest echo at least twice the floor: shot noise) fits again with
+//! every sample weighted by `a / (a + b · fit)`, the maximum-likelihood weighting of a variance
+//! that follows the signal; noise that does not follow it keeps the first fit, bit for bit. No
+//! noise model is assumed: `a` and `b` come from the segment. A weighted pass computes each
+//! Gram entry directly (O(m)) and the dual from the weighted residual (O(n·m) per outer
+//! iteration) instead of from the prefix table; the worst case states it.
+//!
 //! # Units
 //!
 //! Input `P`: volts above baseline per sample. Output `σ`: volts per sample bin of the
@@ -48,7 +61,9 @@
 //!
 //! About 15 µs median for a two-surface return (early stop after ~12 iterations) and about
 //! 140 µs when all 50 iterations run (dense canopy, no early stop); the stated worst case
-//! `worst_case_flops(256, 41)` is about 1.9 Mflop at the defaults.
+//! `worst_case_flops(256, 41)` is about 3.1 Mflop at the defaults (the weighted pass's bound; a
+//! plain pass, 1.9 Mflop). `fwlidar process`'s setting (budget 128, noise weights) is timed by
+//! the `nnls_process_*` benches (docs/performance.md).
 //!
 //! # Default tolerance: 1e-6
 //!
@@ -66,6 +81,10 @@ use serde::{Deserialize, Serialize};
 use crate::signal::deconvolve::{DeconvError, Deconvolver, MethodStats, check_inputs};
 use crate::signal::kernel::Kernel;
 
+/// Least share of the mean squared residual taken as the variance floor of the noise weights
+/// (a floor regressed near zero would weight the background without limit).
+const NOISE_FLOOR_SHARE: f64 = 0.1;
+
 /// Relative pivot below which a new column counts as dependent on the passive set.
 const DEPENDENT_PIVOT: f64 = 1e-12;
 
@@ -80,12 +99,23 @@ pub struct NnlsConfig {
     /// Relative KKT tolerance of the early stop (dimensionless, default 1e-6): the run stops
     /// when no zero sample has a dual value `(Rᵀ(P − Rσ))_i` above `tolerance · max|RᵀP|`.
     pub tolerance: f32,
+    /// Weight the fit by a noise variance estimated from the segment itself (default false):
+    /// after the first fit, the squared residuals are regressed on the fitted signal,
+    /// `var = a + b · fit`; when the variance at the strongest fitted echo is at least twice the
+    /// floor `a` (signal-dependent noise, such as photon shot noise), the fit runs again with
+    /// every sample weighted by `a / (a + b · fit)`. With noise that does not follow the signal
+    /// the second fit does not run. See "Noise-weighted fit" in the module documentation.
+    pub noise_weights: bool,
 }
 
 impl NnlsConfig {
     /// Worst-case flops for a segment of `n` samples and a kernel of `m` taps, with
-    /// `K = max_iterations`, `k = min(K, n)`:
-    /// `m² + m + 2·n·m + n + K·(2k(2m − 1) + n + 11k² + 18k)` (see the comments for the terms).
+    /// `K = max_iterations`, `k = min(K, n)`. One plain pass (every sample weighted alike):
+    /// `m² + m + 2·n·m + n + K·(2k(2m − 1) + n + 11k² + 18k)`; a weighted pass (samples left
+    /// out, or the noise weights) computes Gram entries and the dual directly:
+    /// `m² + 2m + 2·n·m + 4n + K·(2km + 2nm + 5n + 3m(k + 1) + 11k² + 18k)`. The worst case is
+    /// the weighted pass's, twice with [`NnlsConfig::noise_weights`] plus the variance
+    /// estimate (`2km + 11n`). See the comments for the terms.
     pub fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
         // Per kernel: table m² + m; b = Rᵀy: 2nm. Per outer iteration (K = max_iterations of
         // them, k ≤ min(K, n) passive samples): dual 2k(2m − 1), argmax n, Cholesky row
@@ -97,7 +127,19 @@ impl NnlsConfig {
         let k = it.min(n);
         let outer = 2 * k * (2 * m).saturating_sub(1) + n + 3 * k * k + 5 * k;
         let inner = 8 * k * k + 13 * k;
-        (m * m + m + 2 * n * m + n).saturating_add(it.saturating_mul(outer + inner))
+        let plain = (m * m + m + 2 * n * m + n).saturating_add(it.saturating_mul(outer + inner));
+        // Weighted: taps copied (m), weighted input 3n; dual from the residual: fit 2km, clear
+        // and residual 4n, correlation 2nm; each Gram entry 3m flops (k + 1 per new row).
+        let outer_w = 2 * k * m + 2 * n * m + 5 * n + 3 * m * (k + 1) + 3 * k * k + 5 * k;
+        let weighted =
+            (m * m + 2 * m + 2 * n * m + 4 * n).saturating_add(it.saturating_mul(outer_w + inner));
+        if self.noise_weights {
+            weighted
+                .saturating_mul(2)
+                .saturating_add(2 * k * m + 11 * n)
+        } else {
+            plain.max(weighted)
+        }
     }
 }
 
@@ -106,6 +148,7 @@ impl Default for NnlsConfig {
         NnlsConfig {
             max_iterations: 50,
             tolerance: 1e-6,
+            noise_weights: false,
         }
     }
 }
@@ -137,6 +180,35 @@ pub struct Nnls {
     z: Vec<f64>,
     /// Scratch vector of length `max_k`.
     tmp: Vec<f64>,
+    /// The kernel's taps in `f64`, `max_taps` (weighted Gram entries).
+    taps: Vec<f64>,
+    /// Per-sample weight of the squared residual, `max_samples` (0: left out; all 1 when
+    /// `weighted` is false).
+    wt: Vec<f64>,
+    /// The scaled segment, then `R σ` and the weighted residual, `max_samples` each.
+    ys: Vec<f64>,
+    resid: Vec<f64>,
+    /// Whether this pass weights the samples (Gram entries and dual computed directly).
+    weighted: bool,
+}
+
+/// `dst[i] += Σ_j taps[j] · src[i − c + j]` over the valid range (`dst += Rᵀ src`, `src` and
+/// `dst` of the segment's length).
+fn correlate_into(taps: &[f64], c: isize, src: &[f64], dst: &mut [f64]) {
+    let n = dst.len() as isize;
+    for (j, &t) in taps.iter().enumerate() {
+        let shift = j as isize - c;
+        let i_lo = (-shift).max(0);
+        let i_hi = (n - shift).min(n);
+        if i_hi <= i_lo {
+            continue;
+        }
+        let (i_lo, i_hi) = (i_lo as usize, i_hi as usize);
+        let ss = &src[(i_lo as isize + shift) as usize..(i_hi as isize + shift) as usize];
+        for (d, &v) in dst[i_lo..i_hi].iter_mut().zip(ss) {
+            *d += t * v;
+        }
+    }
 }
 
 const PASSIVE: u8 = 1;
@@ -206,6 +278,52 @@ impl Nnls {
             chol: vec![0.0; max_k * max_k],
             z: vec![0.0; max_k],
             tmp: vec![0.0; max_k],
+            taps: vec![0.0; max_taps],
+            wt: vec![1.0; max_samples],
+            ys: vec![0.0; max_samples],
+            resid: vec![0.0; max_samples],
+            weighted: false,
+        }
+    }
+
+    /// `G(s, t) = Σ_i wt_i R[i][s] R[i][t]`: from the prefix table when the samples are
+    /// weighted alike, else summed directly (O(m)).
+    #[inline]
+    fn gram_at(&self, g: &Geometry, s: usize, t: usize) -> f64 {
+        if !self.weighted {
+            return g.gram(&self.q, s, t);
+        }
+        let (a, b) = if s <= t { (s, t) } else { (t, s) };
+        if b - a >= g.m {
+            return 0.0;
+        }
+        // R[i][s] = taps[i − s + c]: i from b − c to a − c + m − 1, inside the segment.
+        let lo = (b as isize - g.c).max(0);
+        let hi = (a as isize - g.c + g.m as isize).min(g.n as isize);
+        let mut acc = 0.0;
+        for i in lo..hi {
+            let ta = self.taps[(i - a as isize + g.c) as usize];
+            let tb = self.taps[(i - b as isize + g.c) as usize];
+            acc += self.wt[i as usize] * ta * tb;
+        }
+        acc
+    }
+
+    /// `resid = R x` (the fit of the passive samples, scaled units), O(k·m).
+    fn fit_into_resid(&mut self, g: &Geometry) {
+        let n = g.n;
+        self.resid[..n].fill(0.0);
+        for &s in &self.passive {
+            let xs = self.x[s];
+            if xs == 0.0 {
+                continue;
+            }
+            // R[i][s] = taps[i − s + c].
+            let lo = (s as isize - g.c).max(0);
+            let hi = (s as isize - g.c + g.m as isize).min(n as isize);
+            for i in lo..hi {
+                self.resid[i as usize] += xs * self.taps[(i - s as isize + g.c) as usize];
+            }
         }
     }
 
@@ -236,7 +354,7 @@ impl Nnls {
         // Forward solve L l = G_Pj into row k.
         let mut sq = 0.0f64;
         for p in 0..k {
-            let mut v = g.gram(&self.q, self.passive[p], j);
+            let mut v = self.gram_at(g, self.passive[p], j);
             let (rows, rowk) = self.chol.split_at_mut(k * st);
             let lp = &rows[p * st..p * st + p];
             let lk = &rowk[..p];
@@ -247,7 +365,7 @@ impl Nnls {
             self.chol[k * st + p] = l;
             sq += l * l;
         }
-        let gjj = g.gram(&self.q, j, j);
+        let gjj = self.gram_at(g, j, j);
         let piv = gjj - sq;
         if piv.is_nan() || piv <= DEPENDENT_PIVOT * gjj || !piv.is_finite() {
             return false;
@@ -284,6 +402,16 @@ impl Nnls {
     /// Recomputes `w = b − G x` from the passive set (O(k·m)).
     fn update_dual(&mut self, g: &Geometry) {
         let n = g.n;
+        if self.weighted {
+            // w = Rᵀ W (y − R x), O(k·m + n·m).
+            self.fit_into_resid(g);
+            for i in 0..n {
+                self.resid[i] = self.wt[i] * (self.ys[i] - self.resid[i]);
+            }
+            self.w[..n].fill(0.0);
+            correlate_into(&self.taps[..g.m], g.c, &self.resid[..n], &mut self.w[..n]);
+            return;
+        }
         self.w[..n].copy_from_slice(&self.b[..n]);
         for &s in &self.passive {
             let xs = self.x[s];
@@ -347,21 +475,24 @@ impl Nnls {
     }
 }
 
-impl Deconvolver for Nnls {
-    fn name(&self) -> &'static str {
-        "nnls"
-    }
-
-    fn run(
+impl Nnls {
+    /// The method on `y` by `k`, the samples flagged in `excluded` left out of the fit; the
+    /// noise-weighted refit when configured.
+    fn run_masked(
         &mut self,
         y: &[f32],
         k: &Kernel,
-        _noise_v: f32,
-        _sample_ns: f64,
+        excluded: Option<&[bool]>,
         out: &mut [f32],
     ) -> Result<MethodStats, DeconvError> {
         let n = y.len();
         check_inputs(y, k, out, self.max_samples, self.max_taps)?;
+        if let Some(e) = excluded.filter(|e| e.len() != n) {
+            return Err(DeconvError::LengthMismatch {
+                input: n,
+                out: e.len(),
+            });
+        }
         out.fill(0.0);
         let peak = y.iter().fold(0.0f64, |a, &v| a.max((v as f64).abs()));
         if n == 0 || k.taps.is_empty() || peak == 0.0 || self.max_k == 0 {
@@ -375,37 +506,82 @@ impl Deconvolver for Nnls {
             stride: self.max_taps + 1,
         };
         self.prepare_kernel(k, &g);
-
-        // b = Rᵀ y (scaled): b[i] = Σ_j taps[j] y[i − c + j], as axpys over valid ranges.
-        self.b[..n].fill(0.0);
-        for (j, &t) in k.taps.iter().enumerate() {
-            let shift = j as isize - g.c; // y index = i + shift
-            let i_lo = (-shift).max(0);
-            let i_hi = (n as isize - shift).min(n as isize);
-            if i_hi <= i_lo {
-                continue;
+        self.weighted = excluded.is_some_and(|e| e.iter().any(|&b| b));
+        if self.weighted || self.config.noise_weights {
+            for (t, &v) in self.taps[..g.m].iter_mut().zip(&k.taps) {
+                *t = v as f64;
             }
-            let t = t as f64 * inv_peak;
-            let (i_lo, i_hi) = (i_lo as usize, i_hi as usize);
-            let ys = &y[(i_lo as isize + shift) as usize..(i_hi as isize + shift) as usize];
-            for (bi, &yv) in self.b[i_lo..i_hi].iter_mut().zip(ys) {
-                *bi += t * yv as f64;
+            for (d, &v) in self.ys[..n].iter_mut().zip(y) {
+                *d = v as f64 * inv_peak;
+            }
+            for (i, w) in self.wt[..n].iter_mut().enumerate() {
+                *w = if excluded.is_some_and(|e| e[i]) {
+                    0.0
+                } else {
+                    1.0
+                };
+            }
+        }
+        let mut stats = self.solve(y, k, &g, inv_peak);
+        if self.config.noise_weights && self.noise_weights(&g) {
+            self.weighted = true;
+            let second = self.solve(y, k, &g, inv_peak);
+            stats.iterations += second.iterations;
+            stats.stopped_early = second.stopped_early;
+        }
+        for (o, &v) in out.iter_mut().zip(&self.x[..n]) {
+            let v = v * peak;
+            *o = if v > 0.0 {
+                v.min(f32::MAX as f64) as f32
+            } else {
+                0.0
+            };
+        }
+        Ok(stats)
+    }
+
+    /// One Lawson-Hanson run from an empty passive set (weighted when `self.weighted`); the
+    /// solution, scaled by `inv_peak`, is left in `x`.
+    fn solve(&mut self, y: &[f32], k: &Kernel, g: &Geometry, inv_peak: f64) -> MethodStats {
+        let n = g.n;
+        if self.weighted {
+            // b = Rᵀ W y.
+            for i in 0..n {
+                self.resid[i] = self.wt[i] * self.ys[i];
+            }
+            self.b[..n].fill(0.0);
+            correlate_into(&self.taps[..g.m], g.c, &self.resid[..n], &mut self.b[..n]);
+        } else {
+            // b = Rᵀ y (scaled): b[i] = Σ_j taps[j] y[i − c + j], as axpys over valid ranges.
+            self.b[..n].fill(0.0);
+            for (j, &t) in k.taps.iter().enumerate() {
+                let shift = j as isize - g.c; // y index = i + shift
+                let i_lo = (-shift).max(0);
+                let i_hi = (n as isize - shift).min(n as isize);
+                if i_hi <= i_lo {
+                    continue;
+                }
+                let t = t as f64 * inv_peak;
+                let (i_lo, i_hi) = (i_lo as usize, i_hi as usize);
+                let ys = &y[(i_lo as isize + shift) as usize..(i_hi as isize + shift) as usize];
+                for (bi, &yv) in self.b[i_lo..i_hi].iter_mut().zip(ys) {
+                    *bi += t * yv as f64;
+                }
             }
         }
         let bmax = self.b[..n].iter().fold(0.0f64, |a, &v| a.max(v.abs()));
+        self.x[..n].fill(0.0);
+        self.passive.clear();
         if bmax.is_nan() || bmax <= 0.0 || !bmax.is_finite() {
-            return Ok(MethodStats::default());
+            return MethodStats::default();
         }
         let tol = (self.config.tolerance.max(0.0) as f64) * bmax;
-
-        self.x[..n].fill(0.0);
         self.flags[..n].fill(0);
-        self.passive.clear();
 
         let mut stats = MethodStats::default();
         let max_it = self.config.max_iterations;
         while stats.iterations < max_it {
-            self.update_dual(&g);
+            self.update_dual(g);
             // Largest dual among the free samples.
             let mut best = tol;
             let mut j_best = usize::MAX;
@@ -420,7 +596,7 @@ impl Deconvolver for Nnls {
                 break;
             }
             stats.iterations += 1;
-            if !self.chol_push(&g, j_best) {
+            if !self.chol_push(g, j_best) {
                 self.flags[j_best] |= EXCLUDED;
                 continue;
             }
@@ -473,15 +649,73 @@ impl Deconvolver for Nnls {
             }
         }
 
-        for (o, &v) in out.iter_mut().zip(&self.x[..n]) {
-            let v = v * peak;
-            *o = if v > 0.0 {
-                v.min(f32::MAX as f64) as f32
-            } else {
-                0.0
-            };
+        stats
+    }
+
+    /// The noise weights from the residual of the fit in `x` (see [`NnlsConfig::noise_weights`]):
+    /// writes them into `wt` and returns true when the variance follows the signal, else leaves
+    /// `wt` as it is and returns false.
+    fn noise_weights(&mut self, g: &Geometry) -> bool {
+        let n = g.n;
+        self.fit_into_resid(g);
+        let (mut c, mut sf, mut sff, mut sr, mut sfr, mut fmax) =
+            (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0f64);
+        for i in 0..n {
+            if self.wt[i] > 0.0 {
+                let f = self.resid[i].max(0.0);
+                let r = (self.ys[i] - self.resid[i]).powi(2);
+                c += 1.0;
+                sf += f;
+                sff += f * f;
+                sr += r;
+                sfr += f * r;
+                fmax = fmax.max(f);
+            }
         }
-        Ok(stats)
+        let det = c * sff - sf * sf;
+        if c < 3.0 || det <= 0.0 || sr <= 0.0 {
+            return false;
+        }
+        let slope = (c * sfr - sf * sr) / det;
+        let floor = ((sr - slope * sf) / c).max(NOISE_FLOOR_SHARE * sr / c);
+        if !(slope > 0.0 && slope * fmax >= floor && floor.is_finite()) {
+            return false;
+        }
+        for i in 0..n {
+            if self.wt[i] > 0.0 {
+                self.wt[i] = floor / (floor + slope * self.resid[i].max(0.0));
+            }
+        }
+        true
+    }
+}
+
+impl Deconvolver for Nnls {
+    fn name(&self) -> &'static str {
+        "nnls"
+    }
+
+    fn run(
+        &mut self,
+        y: &[f32],
+        k: &Kernel,
+        _noise_v: f32,
+        _sample_ns: f64,
+        out: &mut [f32],
+    ) -> Result<MethodStats, DeconvError> {
+        self.run_masked(y, k, None, out)
+    }
+
+    fn run_excluding(
+        &mut self,
+        y: &[f32],
+        k: &Kernel,
+        _noise_v: f32,
+        _sample_ns: f64,
+        excluded: &[bool],
+        out: &mut [f32],
+    ) -> Result<MethodStats, DeconvError> {
+        self.run_masked(y, k, Some(excluded), out)
     }
 
     fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
@@ -774,6 +1008,7 @@ mod tests {
         let cfg = NnlsConfig {
             max_iterations: 500,
             tolerance: 1e-7,
+            ..Default::default()
         };
         let out = run(cfg, &y, &k).unwrap();
         let s: Vec<f64> = out.iter().map(|&v| v as f64).collect();
@@ -821,6 +1056,7 @@ mod tests {
             let cfg = NnlsConfig {
                 max_iterations: 200,
                 tolerance: 1e-9,
+                ..Default::default()
             };
             let out = run(cfg, &y, &k).unwrap();
             let mine = objective(&y, &k, &out.iter().map(|&v| v as f64).collect::<Vec<_>>());
@@ -855,6 +1091,142 @@ mod tests {
         delta.set_from_taps(&[1.0], 0, 1).unwrap();
         let out = assert_sane(&y, &delta);
         assert!((out[30] - 5.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn weighted_gram_with_unit_weights_equals_the_prefix_table_at_every_boundary() {
+        for (fwhm, n) in [(5.0, 40usize), (9.0, 12), (3.0, 7)] {
+            let k = gaussian(fwhm);
+            let mut d = Nnls::new(NnlsConfig::default(), 64, 64);
+            let g = Geometry {
+                n,
+                m: k.taps.len(),
+                c: k.center as isize,
+                stride: d.max_taps + 1,
+            };
+            d.prepare_kernel(&k, &g);
+            for (t, &v) in d.taps.iter_mut().zip(&k.taps) {
+                *t = v as f64;
+            }
+            d.wt[..n].fill(1.0);
+            for s in 0..n {
+                for t in 0..n {
+                    d.weighted = false;
+                    let a = d.gram_at(&g, s, t);
+                    d.weighted = true;
+                    let b = d.gram_at(&g, s, t);
+                    assert!(
+                        (a - b).abs() <= 1e-12 * a.abs().max(1e-300),
+                        "{s} {t}: {a} {b}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Two echoes 40 samples apart, the stronger one's top clipped at `clip`.
+    fn clipped_pair(k: &Kernel, clip: f32) -> (Vec<f32>, Vec<bool>) {
+        let y: Vec<f32> = two_echoes(128, k, [(40, 1.0), (80, 3.0)])
+            .into_iter()
+            .map(|v| v.min(clip))
+            .collect();
+        let mut ex = Vec::new();
+        crate::signal::drift::flag_saturated(&y, &mut ex);
+        (y, ex)
+    }
+
+    #[test]
+    fn clipped_samples_left_out_recover_the_clipped_echo() {
+        let k = gaussian(8.0);
+        let peak = two_echoes(128, &k, [(80, 3.0), (40, 0.0)])
+            .into_iter()
+            .fold(0.0f32, f32::max);
+        let (y, ex) = clipped_pair(&k, 0.6 * peak);
+        assert!(ex.iter().filter(|&&e| e).count() >= 4);
+        let mut d = Nnls::new(NnlsConfig::default(), 128, 64);
+        let mut plain = vec![0.0; 128];
+        d.run(&y, &k, 0.0, 1.0, &mut plain).unwrap();
+        let mut kept = vec![0.0; 128];
+        d.run_excluding(&y, &k, 0.0, 1.0, &ex, &mut kept).unwrap();
+        let area = |o: &[f32]| o[70..90].iter().sum::<f32>();
+        // The flat top fitted as it is loses a tenth of the area or more; left out, the flanks
+        // give the echo back.
+        assert!(area(&plain) < 2.7, "plain {}", area(&plain));
+        assert!((area(&kept) - 3.0).abs() < 0.05, "kept {}", area(&kept));
+        assert!((o_sum(&kept[30..50]) - 1.0).abs() < 0.02);
+        // A mask of the wrong length is refused.
+        assert!(matches!(
+            d.run_excluding(&y, &k, 0.0, 1.0, &ex[1..], &mut kept),
+            Err(DeconvError::LengthMismatch { .. })
+        ));
+    }
+
+    fn o_sum(o: &[f32]) -> f32 {
+        o.iter().sum()
+    }
+
+    /// `y` with noise of variance `floor² + gain · signal` (Gaussian draws).
+    fn with_noise(y: &[f32], floor: f64, gain: f64, seed: u64) -> Vec<f32> {
+        let mut rng = Lcg(seed);
+        y.iter()
+            .map(|&v| {
+                // Box-Muller from two uniforms.
+                let (u1, u2) = (rng.next().max(1e-12), rng.next());
+                let z = (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos();
+                let sd = (floor * floor + gain * (v as f64).max(0.0)).sqrt();
+                (v as f64 + sd * z) as f32
+            })
+            .collect()
+    }
+
+    #[test]
+    fn noise_weights_refit_only_when_the_variance_follows_the_signal() {
+        let k = gaussian(8.0);
+        let clean = two_echoes(200, &k, [(60, 1.0), (140, 4.0)]);
+        let peak = clean.iter().fold(0.0f32, |a, &v| a.max(v)) as f64;
+        let cfg = NnlsConfig {
+            max_iterations: 120,
+            noise_weights: true,
+            ..Default::default()
+        };
+        let mut d = Nnls::new(cfg.clone(), 200, 64);
+        let mut plain = Nnls::new(
+            NnlsConfig {
+                noise_weights: false,
+                ..cfg
+            },
+            200,
+            64,
+        );
+        let (mut a, mut b) = (vec![0.0; 200], vec![0.0; 200]);
+        // White noise: no second fit, the plain result bit for bit.
+        let white = with_noise(&clean, 0.02 * peak, 0.0, 3);
+        d.run(&white, &k, 0.0, 1.0, &mut a).unwrap();
+        assert!(!d.weighted);
+        plain.run(&white, &k, 0.0, 1.0, &mut b).unwrap();
+        assert_eq!(a, b);
+        // Shot noise (variance 100 × the floor's at the peak): the weighted refit runs, and
+        // over 20 draws it fits the truth more closely than the plain fit.
+        let truth = clean.clone();
+        let err = |o: &[f32]| -> f64 {
+            let s: Vec<f64> = o.iter().map(|&v| v as f64).collect();
+            conv(&s, &k)
+                .iter()
+                .zip(&truth)
+                .map(|(f, &t)| (f - t as f64).powi(2))
+                .sum::<f64>()
+        };
+        let (mut ew, mut ep) = (0.0, 0.0);
+        for seed in 0..20 {
+            let shot = with_noise(&clean, 0.005 * peak, 0.0025 * peak, 5 + seed);
+            let s1 = d.run(&shot, &k, 0.0, 1.0, &mut a).unwrap();
+            assert!(d.weighted, "seed {seed}");
+            let s0 = plain.run(&shot, &k, 0.0, 1.0, &mut b).unwrap();
+            assert!(s1.iterations > s0.iterations);
+            ew += err(&a);
+            ep += err(&b);
+        }
+        assert!(ew < ep, "weighted {ew} plain {ep}");
     }
 
     #[test]
@@ -977,6 +1349,7 @@ mod tests {
         let loose = NnlsConfig {
             max_iterations: 50,
             tolerance: 1e-4,
+            ..Default::default()
         };
         let out = run(loose, &y, &k).unwrap();
         assert!(out[115..135].iter().sum::<f32>() > 1.7);
@@ -1030,7 +1403,13 @@ mod tests {
     fn worst_case_is_stated() {
         let d = Nnls::new(NnlsConfig::default(), 256, 41);
         let f = d.worst_case_flops(256, 41);
-        assert_eq!(f, 1_860_770);
+        // The weighted pass's bound (a run may leave samples out).
+        assert_eq!(f, 3_076_029);
+        let weighted = NnlsConfig {
+            noise_weights: true,
+            ..Default::default()
+        };
+        assert!(weighted.worst_case_flops(256, 41) > 2 * f);
         assert_eq!(d.worst_case_flops(0, 0), 0);
     }
 
@@ -1048,10 +1427,15 @@ mod tests {
             if k.set_from_taps(&taps, centre, 64).is_err() {
                 return Ok(());
             }
-            let cfg = NnlsConfig { max_iterations: iterations, tolerance: 1e-4 };
-            let mut d = Nnls::new(cfg, 300, 64);
+            let cfg = NnlsConfig { max_iterations: iterations, tolerance: 1e-4, ..Default::default() };
+            let mut d = Nnls::new(cfg.clone(), 300, 64);
             let mut out = vec![0.0f32; y.len()];
             d.run(&y, &k, 1.0, 1.0, &mut out).unwrap();
+            prop_assert!(out.iter().all(|v| v.is_finite() && *v >= 0.0));
+            // The same with the noise-weighted refit and every third sample left out.
+            let mut w = Nnls::new(NnlsConfig { noise_weights: true, ..cfg }, 300, 64);
+            let excluded: Vec<bool> = (0..y.len()).map(|i| i % 3 == 0).collect();
+            w.run_excluding(&y, &k, 1.0, 1.0, &excluded, &mut out).unwrap();
             prop_assert!(out.iter().all(|v| v.is_finite() && *v >= 0.0));
         }
     }
