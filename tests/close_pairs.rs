@@ -126,8 +126,9 @@ fn nnls_to_a_2ns_target_meets_the_issue_target_in_one_command() {
     println!("{out}");
     assert_eq!(code, 0, "{out}\n{err}");
     assert_eq!(out.matches(": ok").count(), 5, "{out}");
-    // Synthesis with the target inside the tool is the blur afterwards, to the table's
-    // three decimals.
+    // Synthesis with the target inside the tool is the blur afterwards, except that an
+    // isolated pair of adjacent spikes (one echo between two bins) is drawn as one target
+    // pulse at its centroid: never worse than blurring afterwards, on the RMSE or the pairs.
     let row = |label: &str| -> Vec<String> {
         let line = out
             .lines()
@@ -136,5 +137,8 @@ fn nnls_to_a_2ns_target_meets_the_issue_target_in_one_command() {
         line.split('|').map(|c| c.trim().to_string()).collect()
     };
     let (inside, after) = (row("nnls-2ns"), row("nnls+2ns"));
-    assert_eq!(inside[3..6], after[3..6], "{inside:?} vs {after:?}");
+    let num = |r: &[String], i: usize| -> f64 { r[i].parse().unwrap() };
+    assert!(num(&inside, 3) <= num(&after, 3), "{inside:?} vs {after:?}");
+    assert!(num(&inside, 4) >= num(&after, 4), "{inside:?} vs {after:?}");
+    assert!(num(&inside, 5) >= num(&after, 5), "{inside:?} vs {after:?}");
 }

@@ -18,16 +18,27 @@ use fwlidar::signal::{Calibrate, CalibrateConfig, Denoise, DenoiseConfig};
 struct Counting;
 static ALLOCS: AtomicU64 = AtomicU64::new(0);
 
+thread_local! {
+    /// This thread's allocations only: a single-threaded measurement is then untouched by
+    /// what the test harness allocates on its own threads meanwhile.
+    static THIS_THREAD: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
+}
+
+fn count() {
+    ALLOCS.fetch_add(1, Ordering::Relaxed);
+    let _ = THIS_THREAD.try_with(|c| c.set(c.get() + 1));
+}
+
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        count();
         unsafe { System.alloc(layout) }
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
         unsafe { System.dealloc(ptr, layout) }
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        count();
         unsafe { System.realloc(ptr, layout, new_size) }
     }
 }
@@ -264,5 +275,40 @@ fn voxel_deposits_allocate_nothing_per_pulse() {
     assert_eq!(
         small, large,
         "{small} allocations for 20 000 pulses, {large} for 200 000"
+    );
+}
+
+/// The noise-aware detector (`fwlidar process --peaks`) allocates nothing per waveform once
+/// built: the same count for 10 and for 1000 waveforms of two echoes and noise (counted on
+/// this thread: the detector runs on the caller's).
+#[test]
+fn echo_detection_allocates_nothing_per_waveform() {
+    let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    use fwlidar::signal::echo_strength::EchoDetector;
+    let taps: Vec<f32> = (-14..=14)
+        .map(|j| (-0.5 * (j as f32 / 3.4).powi(2)).exp())
+        .collect();
+    let run = |waveforms: u64| -> u64 {
+        let mut d = EchoDetector::new(256, taps.len());
+        let mut out = Vec::with_capacity(256);
+        let mut x = vec![0.0f32; 256];
+        let before = THIS_THREAD.with(|c| c.get());
+        for w in 0..waveforms {
+            for (i, v) in x.iter_mut().enumerate() {
+                let wiggle = ((i as u64 * 7919 + w * 104_729) % 97) as f32 / 97.0;
+                *v = 0.02 * wiggle;
+            }
+            x[60 + (w % 50) as usize] += 1.0;
+            x[150] += 0.4;
+            d.set_pulse(&taps);
+            d.detect(&x, 0.01, 5.0, &mut out);
+            assert!(out.len() >= 2, "both echoes");
+        }
+        THIS_THREAD.with(|c| c.get()) - before
+    };
+    let (few, many) = (run(10), run(1000));
+    assert_eq!(
+        few, many,
+        "allocations grow with waveforms: {few} vs {many}"
     );
 }

@@ -460,6 +460,15 @@ fn iterations_change_the_result_of_iterative_methods() {
     }
 }
 
+/// An 8 ns FWHM Gaussian pulse at 1 ns samples: its shape (peak 1 at 0, argument in ns) and
+/// its 29 taps (±14 ns, peak 1).
+fn gaussian_8ns() -> (impl Fn(f64) -> f64, Vec<f32>) {
+    let sigma = 8.0 / 2.354_82f64;
+    let pulse = move |x: f64| (-0.5 * (x / sigma).powi(2)).exp();
+    let taps = (-14..=14).map(|j| pulse(j as f64) as f32).collect();
+    (pulse, taps)
+}
+
 /// A drifting baseline and a clipped echo through `--method nnls` with no other option: the
 /// summary names the clipped row, the drift is gone from the output (the line removed, not a
 /// level), and the clipped echo comes back at its area where `--baseline level` and a plain
@@ -468,9 +477,7 @@ fn iterations_change_the_result_of_iterative_methods() {
 fn nnls_removes_a_drifting_baseline_and_leaves_clipped_samples_out() {
     let dir = tempfile::tempdir().unwrap();
     let (input, kernel) = (dir.path().join("in.npy"), dir.path().join("k.npy"));
-    let sigma = 8.0 / 2.354_82f64;
-    let pulse = |x: f64| (-0.5 * (x / sigma).powi(2)).exp();
-    let taps: Vec<f32> = (-14..=14).map(|j| pulse(j as f64) as f32).collect();
+    let (pulse, taps) = gaussian_8ns();
     let sum: f32 = taps.iter().sum();
     let taps: Vec<f32> = taps.iter().map(|t| t / sum).collect();
     // Echo areas 2 (at 80) and 6 (at 170, its top clipped at 0.5); baseline 0.05 → 0.15.
@@ -524,4 +531,182 @@ fn nnls_removes_a_drifting_baseline_and_leaves_clipped_samples_out() {
     let (_, level) = run(&["--baseline", "level"], &dir.path().join("level.npy"));
     let drift = area(&level, 0..60) + area(&level, 100..150) + area(&level, 195..256);
     assert!(drift > 4.0 * stray, "level {drift}, line {stray}");
+}
+
+/// `--peaks` at its default 5 σ: the noise-aware detector on RL 200's output keeps the echoes and drops most of
+/// the peaks late iterations sharpen out of the noise; with `--peak-snr 0` those come back.
+/// 40 rows of two echoes (8 ns pulse, 1 ns bins, echoes 20–60 bins apart, amplitudes 0.3–1)
+/// and uniform noise of ±3 % of the strongest echo's peak.
+#[test]
+fn peaks_keeps_the_echoes_the_data_show_and_drops_sharpened_noise() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, kernel) = (dir.path().join("in.npy"), dir.path().join("k.npy"));
+    let (pulse, taps) = gaussian_8ns();
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut uniform = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut truth = Vec::new();
+    let rows: Vec<Vec<f32>> = (0..40)
+        .map(|_| {
+            let a = 40.0 + 60.0 * uniform();
+            let b = a + 20.0 + 40.0 * uniform();
+            let (ha, hb) = (1.0, 0.3 + 0.7 * uniform());
+            truth.push([a, b]);
+            (0..200)
+                .map(|i| {
+                    let x = i as f64;
+                    let e = ha * pulse(x - a) + hb * pulse(x - b);
+                    (0.1 + e + 0.03 * (2.0 * uniform() - 1.0)) as f32
+                })
+                .collect()
+        })
+        .collect();
+    std::fs::write(&input, encode_npy(&rows)).unwrap();
+    std::fs::write(&kernel, encode_npy(&[taps])).unwrap();
+    let run = |extra: &[&str], peaks: &Path| {
+        let out = dir.path().join("out.npy");
+        let mut args = vec![
+            "process",
+            "--input",
+            s(&input),
+            "--kernel",
+            s(&kernel),
+            "--method",
+            "rl",
+            "--iterations",
+            "200",
+            "--no-progress",
+            "--out",
+            s(&out),
+            "--peaks",
+            s(peaks),
+        ];
+        args.extend_from_slice(extra);
+        let o = fwlidar(&args);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let summary = String::from_utf8_lossy(&o.stdout).into_owned();
+        let csv = std::fs::read_to_string(peaks).unwrap();
+        let mut lines = csv.lines();
+        assert_eq!(lines.next(), Some("waveform,position_bins,amplitude,snr"));
+        let echoes: Vec<(usize, f64, f64)> = lines
+            .map(|l| {
+                let c: Vec<&str> = l.split(',').collect();
+                (
+                    c[0].parse().unwrap(),
+                    c[1].parse().unwrap(),
+                    c[3].parse().unwrap(),
+                )
+            })
+            .collect();
+        (summary, echoes)
+    };
+    // (found, false) against the truth: an echo is found when a peak lies within 2 bins.
+    let score = |echoes: &[(usize, f64, f64)]| {
+        let (mut found, mut stray) = (0, 0);
+        for (r, t) in truth.iter().enumerate() {
+            let here: Vec<f64> = echoes.iter().filter(|e| e.0 == r).map(|e| e.1).collect();
+            found += t
+                .iter()
+                .filter(|&&x| here.iter().any(|p| (p - x).abs() <= 2.0))
+                .count();
+            stray += here
+                .iter()
+                .filter(|p| t.iter().all(|x| (*p - x).abs() > 2.0))
+                .count();
+        }
+        (found, stray)
+    };
+    let (summary, kept) = run(&[], &dir.path().join("p5.csv"));
+    assert!(summary.contains("echoes at >= 5 sigma"), "{summary}");
+    assert!(
+        kept.iter().all(|e| e.2 >= 5.0),
+        "every kept echo at 5 σ or more"
+    );
+    let (found, stray) = score(&kept);
+    let (_, all) = run(&["--peak-snr", "0"], &dir.path().join("p0.csv"));
+    let (found0, stray0) = score(&all);
+    println!("5 σ: {found}/80 found, {stray} stray; no test: {found0}/80, {stray0} stray");
+    assert!(
+        found >= 76,
+        "{found} of 80 echoes found at 5 σ ({stray} stray)"
+    );
+    assert!(stray <= 20, "{stray} stray peaks in 40 rows at 5 σ");
+    assert!(found0 >= found, "{found0} vs {found}");
+    assert!(
+        stray0 > 2 * stray.max(1),
+        "{stray0} stray peaks without the test, {stray} with"
+    );
+    // A negative ratio is a usage error.
+    let o = fwlidar(&[
+        "process",
+        "--input",
+        s(&input),
+        "--out",
+        s(&dir.path().join("x.npy")),
+        "--method",
+        "none",
+        "--peak-snr=-1",
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("--peak-snr"), "{}", stderr(&o));
+}
+
+/// `--peaks` on the real NEON Harvard Forest waveforms (RL by each row's outgoing pulse): every
+/// waveform has an echo the data show, the strongest one sits where the raw waveform peaks,
+/// and the 5 σ test keeps a plausible number per waveform (forest: canopy and ground) where
+/// every local maximum of the output would be many more.
+#[test]
+fn neon_peaks_find_the_main_return_of_every_waveform() {
+    let Some(fx) = fixtures() else { return };
+    let neon = fx.join("waveform/neon_harv");
+    let dir = tempfile::tempdir().unwrap();
+    let outg = neon.join("outg.csv");
+    let read = |p: &Path| -> Vec<(usize, f64, f64, f64)> {
+        let csv = std::fs::read_to_string(p).unwrap();
+        csv.lines()
+            .skip(1)
+            .map(|l| {
+                let c: Vec<f64> = l.split(',').map(|v| v.parse().unwrap()).collect();
+                (c[0] as usize, c[1], c[2], c[3])
+            })
+            .collect()
+    };
+    let mut counts = Vec::new();
+    for (name, snr) in [("p5.csv", "5"), ("p0.csv", "0")] {
+        let p = dir.path().join(name);
+        let args = [
+            "--method",
+            "rl",
+            "--kernel",
+            s(&outg),
+            "--kernel-per-row",
+            "--peaks",
+            s(&p),
+            "--peak-snr",
+            snr,
+        ];
+        neon_process(&neon, dir.path(), "rl.csv", &args);
+        counts.push(read(&p));
+    }
+    let raw = read_table(&neon.join("return.csv")).unwrap().rows;
+    let kept = &counts[0];
+    let mut near = 0;
+    for (r, row) in raw.iter().enumerate() {
+        let here: Vec<_> = kept.iter().filter(|e| e.0 == r).collect();
+        assert!(!here.is_empty(), "row {r}: no echo at 5 σ");
+        let top = here.iter().max_by(|a, b| a.2.total_cmp(&b.2)).unwrap();
+        assert!(top.3 >= 5.0);
+        near += usize::from((top.1 - argmax(row) as f64).abs() <= 3.0);
+    }
+    let (n3, n0) = (kept.len() as f64 / 500.0, counts[1].len() as f64 / 500.0);
+    println!(
+        "NEON: {n3:.2} echoes per waveform at 5 σ, {n0:.2} maxima; strongest at the raw peak in {near}/500"
+    );
+    assert!(near >= 425, "{near}/500");
+    assert!((1.0..=8.0).contains(&n3), "{n3} echoes per waveform");
+    assert!(n0 > 1.5 * n3, "{n0} maxima vs {n3} echoes");
 }

@@ -378,3 +378,90 @@ fn a_bad_chain_file_fails_naming_the_file_and_the_field_and_writes_nothing() {
     );
     assert!(!out.exists(), "nothing written");
 }
+
+/// Rows of a `tradeoff.csv`, keyed by (method, parameter, family, width), as the named
+/// column's numbers.
+fn csv_column(path: &Path, name: &str) -> HashMap<(String, String, String, String), f64> {
+    let csv = std::fs::read_to_string(path).unwrap();
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let c = header.iter().position(|h| *h == name).unwrap();
+    lines
+        .map(|l| {
+            let r: Vec<&str> = l.split(',').collect();
+            (
+                (r[0].into(), r[1].into(), r[2].into(), r[3].into()),
+                r[c].parse().unwrap(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn the_noise_aware_detector_only_removes_peaks_and_drops_what_late_iterations_sharpen() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec![
+            "tradeoff",
+            "--pulses",
+            "150",
+            "--widths-ns",
+            "8",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let o = fwlidar(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        out.join("tradeoff.csv")
+    };
+    let (floor, snr) = (run("floor", &[]), run("snr", &["--peak-snr", "5"]));
+    let md = std::fs::read_to_string(dir.path().join("snr/tradeoff.md")).unwrap();
+    assert!(
+        md.contains("≥ 5 × the received noise σ"),
+        "the header names the test"
+    );
+    let (t0, t1) = (
+        csv_column(&floor, "true_detections"),
+        csv_column(&snr, "true_detections"),
+    );
+    let (f0, f1) = (
+        csv_column(&floor, "false_detections"),
+        csv_column(&snr, "false_detections"),
+    );
+    let (r0, r1) = (csv_column(&floor, "rmse"), csv_column(&snr, "rmse"));
+    for (k, v) in &t0 {
+        assert!(
+            t1[k] <= *v && f1[k] <= f0[k],
+            "{k:?}: the test can only drop peaks"
+        );
+        assert_eq!(r1[k], r0[k], "{k:?}: the estimate itself is untouched");
+    }
+    // RL 200 on extended targets sharpens noise into peaks; the data do not show them.
+    let k = (
+        "rl".to_string(),
+        "iterations=200".to_string(),
+        "extended".to_string(),
+        "8".to_string(),
+    );
+    assert!(f1[&k] < 0.5 * f0[&k], "false {} -> {}", f0[&k], f1[&k]);
+    assert!(t1[&k] > 0.9 * t0[&k], "true {} -> {}", t0[&k], t1[&k]);
+    // A negative multiple, or the test on a scene's steps, is refused.
+    let bad = dir.path().join("bad");
+    let o = fwlidar(&["tradeoff", "--out", bad.to_str().unwrap(), "--peak-snr=-1"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("non-negative multiple"));
+    let o = fwlidar(&[
+        "tradeoff",
+        "--out",
+        bad.to_str().unwrap(),
+        "--peak-snr",
+        "2",
+        "--scene",
+        "config/scenes/tree_plot.toml",
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--peak-floor alone"));
+    assert!(!bad.exists(), "nothing written");
+}

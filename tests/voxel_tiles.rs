@@ -801,12 +801,15 @@ ds = xr.open_zarr(sys.argv[1])
 codecs = zarr.open_array(sys.argv[1] + "/sample_count").metadata.codecs
 assert type(codecs[0]).__name__ == "ShardingCodec", codecs
 assert any(type(c).__name__ == "ZstdCodec" for c in codecs[0].codecs), codecs
-n = ds.sample_count
-hits = np.argwhere(n.values > 0)
+# Read each variable once: with dask installed, open_zarr is lazy and every `.values`
+# reads the whole array again.
+n, isum, pc = (ds[v].values for v in ("sample_count", "intensity_sum", "pulse_count"))
+z, y, x = ds.z.values, ds.y.values, ds.x.values
+hits = np.argwhere(n > 0)
 out = []
 for k, j, i in hits:
-    out.append([float(ds.z[k]), float(ds.y[j]), float(ds.x[i]), int(n.values[k, j, i]),
-                float(ds.intensity_sum.values[k, j, i]), int(ds.pulse_count.values[k, j, i])])
+    out.append([float(z[k]), float(y[j]), float(x[i]), int(n[k, j, i]),
+                float(isum[k, j, i]), int(pc[k, j, i])])
 print(json.dumps(out))
 "#;
     let o = Command::new(python())

@@ -26,6 +26,7 @@ use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::deconvolve::{Deconvolver, MethodConfig, Targeted};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::drift::{DriftBaseline, flag_saturated};
+use crate::signal::echo_strength::{DetectedEcho, EchoDetector};
 use crate::signal::kernel::{Kernel, remove_baseline};
 
 pub use crate::signal::kernel::KERNEL_BASELINE_SAMPLES;
@@ -154,6 +155,16 @@ pub struct ProcessArgs {
     /// `waveform,position_bins,amplitude,sigma_bins`, waveform the 0-based row index).
     #[arg(long)]
     pub returns: Option<PathBuf>,
+    /// Also detect the echoes of every processed row and write them here (CSV:
+    /// `waveform,position_bins,amplitude,snr`, waveform the 0-based row index): the local
+    /// maxima whose echo adds at least `--peak-snr` × the row's noise σ to the received
+    /// waveform (the noise-aware detector, docs/signal.md).
+    #[arg(long)]
+    pub peaks: Option<PathBuf>,
+    /// Least signal-to-noise ratio of an echo `--peaks` keeps, multiples of the row's noise σ
+    /// (5: chosen on the tradeoff sweep at 3 % noise, checked at 1.5 and 6 %; docs/accuracy.md).
+    #[arg(long, default_value_t = 5.0)]
+    pub peak_snr: f32,
     /// Also measure the forest metrics of every row and write them here (CSV, the columns of
     /// the replay's `pulse_metrics.csv`, `docs/forest.md`): `pulse_id` is the 0-based row
     /// index, `gps_time` empty, times in ns from the row's first sample.
@@ -202,6 +213,8 @@ pub struct ProcessReport {
     pub samples: usize,
     /// Returns found (with `--returns`).
     pub returns: usize,
+    /// Echoes detected (with `--peaks`).
+    pub echoes: usize,
     /// Waveforms with forest metrics (status `ok`, with `--metrics`).
     pub metrics_ok: usize,
     /// Time spent measuring the metrics (with `--metrics`), seconds.
@@ -420,6 +433,12 @@ fn low_pass_ghz(args: &ProcessArgs) -> Option<f64> {
 fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
     TableFormat::from_path(&args.input).map_err(Failure::usage)?;
     TableFormat::from_path(&args.out).map_err(Failure::usage)?;
+    if !(args.peak_snr.is_finite() && args.peak_snr >= 0.0) {
+        return Err(Failure::usage(format!(
+            "--peak-snr must be a non-negative multiple of the noise, got {}",
+            args.peak_snr
+        )));
+    }
     if let Some(m) = &args.metrics
         && m.extension().and_then(|e| e.to_str()) != Some("csv")
     {
@@ -592,7 +611,7 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         0.0
     };
     println!(
-        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
+        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
         args.input.display(),
         args.out.display(),
         report.waveforms,
@@ -609,10 +628,22 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         },
         match report.saturated_rows {
             0 => String::new(),
-            r => format!(", {r} rows with clipped samples (left out of an NNLS fit)"),
+            r if args.method == ProcessMethod::Nnls => {
+                format!(", {r} rows with clipped samples (left out of the fit)")
+            }
+            r => format!(", {r} rows with clipped samples (only --method nnls leaves them out)"),
         },
         match &args.returns {
             Some(p) => format!(", {} returns in {}", report.returns, p.display()),
+            None => String::new(),
+        },
+        match &args.peaks {
+            Some(p) => format!(
+                ", {} echoes at >= {} sigma in {}",
+                report.echoes,
+                args.peak_snr,
+                p.display()
+            ),
             None => String::new(),
         },
         match &args.metrics {
@@ -692,6 +723,9 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
     if let Some(path) = &args.returns {
         write_returns(path, &steps.returns)?;
     }
+    if let Some(path) = &args.peaks {
+        write_echoes(path, &steps.echoes)?;
+    }
     if let (Some(path), Some(tm)) = (&args.metrics, &steps.metrics) {
         write_atomic(path, tm.csv().as_bytes())
             .map_err(|e| Failure::job(format!("{}: {e}", path.display())))?;
@@ -701,6 +735,7 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         waveforms: n,
         samples: steps.samples,
         returns: steps.returns.len(),
+        echoes: steps.echoes.len(),
         metrics_ok: steps.metrics.as_ref().map_or(0, TableMetrics::ok),
         metrics_s: steps.metrics_s,
         wall_s: started.elapsed().as_secs_f64(),
@@ -808,6 +843,13 @@ struct RowSteps<'a> {
     returns: Vec<(usize, FittedReturn)>,
     /// The returns of the current row.
     fits: Vec<FittedReturn>,
+    /// The noise-aware detector of `--peaks`, the echoes of every row so far with the row's
+    /// index, and those of the current row.
+    detector: Option<EchoDetector>,
+    echoes: Vec<(usize, DetectedEcho)>,
+    row_echoes: Vec<DetectedEcho>,
+    /// The system pulse the current row was deconvolved by (the detector's), taps.
+    pulse: Vec<f32>,
     /// The current row denoised (or copied), `max_samples` values.
     work: Vec<f32>,
     /// The baseline line fit and the current row with the line removed.
@@ -880,6 +922,13 @@ impl<'a> RowSteps<'a> {
             decomposer,
             returns: Vec::new(),
             fits: Vec::new(),
+            detector: args
+                .peaks
+                .as_ref()
+                .map(|_| EchoDetector::new(max_samples, 2 * max_taps)),
+            echoes: Vec::new(),
+            row_echoes: Vec::new(),
+            pulse: Vec::with_capacity(2 * max_taps),
             work: vec![0.0f32; max_samples],
             drift: DriftBaseline::with_capacity(max_samples),
             detrended: vec![0.0f32; max_samples],
@@ -930,6 +979,7 @@ impl<'a> RowSteps<'a> {
         }
         self.measure_row(i, row, &out[..len], noise_v);
         self.decompose_row(i, &out[..len], noise_v, at)?;
+        self.detect_row(i, row, &out[..len]);
         Ok(out)
     }
 
@@ -1077,19 +1127,88 @@ impl<'a> RowSteps<'a> {
     }
 }
 
+impl RowSteps<'_> {
+    /// With `--peaks`, detects the echoes of the processed row `i` (`out`) that the received
+    /// `row` shows at `--peak-snr` × its noise σ or more, through the pulse the row was
+    /// deconvolved by: the kernel, the response, or both convolved; a delta without
+    /// deconvolution. σ: the received row's, from its first differences
+    /// ([`DriftBaseline::difference_sigma`]: blind to a pedestal or a drift, and to echoes
+    /// wider than a few samples even when they fill the record), the estimate the tradeoff
+    /// sweep chose the default ratio with.
+    fn detect_row(&mut self, i: usize, row: &[f32], out: &[f32]) {
+        let Some(det) = self.detector.as_mut() else {
+            return;
+        };
+        let sigma = self.drift.difference_sigma(row) as f32;
+        self.pulse.clear();
+        let kernel = match self.kernels.len() {
+            0 => None,
+            1 => Some(&self.kernels[0]),
+            _ => Some(&self.kernels[i]),
+        };
+        match (self.deconvolver.is_some(), kernel, &self.response) {
+            (false, _, _) | (true, None, None) => self.pulse.push(1.0),
+            (true, Some(k), None) => self.pulse.extend_from_slice(&k.taps),
+            (true, None, Some(h)) => self.pulse.extend_from_slice(&h.taps),
+            (true, Some(k), Some(h)) => {
+                self.pulse.resize(k.taps.len() + h.taps.len() - 1, 0.0);
+                for (a, &ka) in k.taps.iter().enumerate() {
+                    for (b, &hb) in h.taps.iter().enumerate() {
+                        self.pulse[a + b] += ka * hb;
+                    }
+                }
+            }
+        }
+        det.set_pulse(&self.pulse);
+        det.detect(out, sigma, self.args.peak_snr, &mut self.row_echoes);
+        self.echoes.extend(self.row_echoes.iter().map(|e| (i, *e)));
+    }
+}
+
+/// Writes the echoes CSV of `--peaks` atomically.
+fn write_echoes(path: &Path, echoes: &[(usize, DetectedEcho)]) -> Result<(), Failure> {
+    write_rows_csv(
+        path,
+        "waveform,position_bins,amplitude,snr",
+        echoes,
+        |w, (i, e)| {
+            let p = &e.peak;
+            writeln!(w, "{i},{},{},{:.2}", p.position_bins, p.amplitude, e.snr)
+        },
+    )
+}
+
 /// Writes the returns CSV atomically.
 fn write_returns(path: &Path, returns: &[(usize, FittedReturn)]) -> Result<(), Failure> {
-    let fail = |e: &dyn std::fmt::Display| Failure::job(format!("{}: {e}", path.display()));
-    let mut file = AtomicFile::create(path).map_err(|e| fail(&e))?;
-    let w = file.writer().map_err(|e| fail(&e))?;
-    let mut body = || -> std::io::Result<()> {
-        writeln!(w, "waveform,position_bins,amplitude,sigma_bins")?;
-        for (i, r) in returns {
+    write_rows_csv(
+        path,
+        "waveform,position_bins,amplitude,sigma_bins",
+        returns,
+        |w, (i, r)| {
             writeln!(
                 w,
                 "{i},{},{},{}",
                 r.position_bins, r.amplitude, r.sigma_bins
-            )?;
+            )
+        },
+    )
+}
+
+/// Writes `header` and a line per item (`line` writes it) to `path` atomically: complete or
+/// not at all; an error names the file.
+fn write_rows_csv<T>(
+    path: &Path,
+    header: &str,
+    items: &[T],
+    line: impl Fn(&mut dyn Write, &T) -> std::io::Result<()>,
+) -> Result<(), Failure> {
+    let fail = |e: &dyn std::fmt::Display| Failure::job(format!("{}: {e}", path.display()));
+    let mut file = AtomicFile::create(path).map_err(|e| fail(&e))?;
+    let w = file.writer().map_err(|e| fail(&e))?;
+    let mut body = || -> std::io::Result<()> {
+        writeln!(w, "{header}")?;
+        for item in items {
+            line(w, item)?;
         }
         Ok(())
     };
@@ -1157,6 +1276,8 @@ mod tests {
             skip_columns: 0,
             out: "o.csv".into(),
             returns: None,
+            peaks: None,
+            peak_snr: 5.0,
             metrics: None,
             metrics_source: MetricsWaveform::Raw,
             geometry: None,
@@ -1268,6 +1389,8 @@ mod tests {
             skip_columns: a.skip_columns,
             out: a.out.clone(),
             returns: a.returns.clone(),
+            peaks: a.peaks.clone(),
+            peak_snr: a.peak_snr,
             metrics: a.metrics.clone(),
             metrics_source: a.metrics_source,
             geometry: a.geometry.clone(),

@@ -52,6 +52,11 @@ pub struct TradeoffArgs {
     /// A detected peak agrees with a truth peak within this many bins (0 = the same bin).
     #[arg(long, default_value_t = 1)]
     pub peak_tolerance_bins: usize,
+    /// The noise-aware detector: a detected peak counts only when what its echo adds to the
+    /// received waveform is at least this many times the waveform's noise σ (0 = no test, the
+    /// floor alone).
+    #[arg(long, default_value_t = 0.0)]
+    pub peak_snr: f32,
     /// Seed of the simulated truth and noise.
     #[arg(long, default_value_t = 2012)]
     pub seed: u64,
@@ -235,6 +240,14 @@ fn tempfile_dir(out: &std::path::Path) -> Result<PathBuf, Failure> {
 /// Runs the sweep and writes the three files.
 pub fn run(args: TradeoffArgs) -> Result<(), Failure> {
     if let Some(scene) = args.scene.clone() {
+        if args.peak_snr != 0.0 {
+            return Err(Failure::usage(format!(
+                "--peak-snr {} applies to the sweep; a scene's steps ({}) are scored with \
+                 --peak-floor alone",
+                args.peak_snr,
+                scene.display()
+            )));
+        }
         if args.matrix {
             return run_matrix(&args, &scene);
         }
@@ -250,6 +263,7 @@ pub fn run(args: TradeoffArgs) -> Result<(), Failure> {
         noise_fraction: args.noise,
         peak_floor: args.peak_floor,
         peak_tolerance_bins: args.peak_tolerance_bins,
+        peak_snr: args.peak_snr,
         seed: args.seed,
         ..SweepConfig::default()
     };

@@ -227,9 +227,19 @@ fn setup_section(
     let _ = writeln!(
         s,
         "- Noise: uniform in ±{} × the noise-free received peak. Truth: the cross-section \
-         convolved with a 2 ns FWHM pulse. Peaks: floor {} × the waveform's maximum, agreement \
+         convolved with a 2 ns FWHM pulse. Peaks: floor {} × the waveform's maximum{}, agreement \
          within ±{} bin(s).",
-        config.noise_fraction, config.peak_floor, config.peak_tolerance_bins
+        config.noise_fraction,
+        config.peak_floor,
+        if config.peak_snr > 0.0 {
+            format!(
+                ", echo strength in the data ≥ {} × the received noise σ (noise-aware detector)",
+                config.peak_snr
+            )
+        } else {
+            String::new()
+        },
+        config.peak_tolerance_bins
     );
     let _ = writeln!(
         s,

@@ -19,7 +19,12 @@
 //!
 //! A run of [`MIN_SATURATED_RUN`] or more consecutive samples equal to the record's maximum is
 //! read as clipped: their true value is unknown (only known to be at least the maximum), so a
-//! fit must leave them out rather than match the flat top.
+//! fit must leave them out rather than match the flat top. On a record of *counts* (whole
+//! numbers, as digitizers deliver them) two equal samples at the top are what quantisation
+//! makes of an echo whose peak falls between two bins, so there the run must be
+//! [`MIN_SATURATED_RUN_QUANTISED`] long: on the NEON Harvard
+//! Forest records (integer counts, none at the converter's top) 99 of 500 have two equal
+//! samples at their maximum, 2 have three or four.
 //!
 //! Units: the record's own (volts, counts, any signal unit); positions in samples. No
 //! allocation once the buffers have held the longest record.
@@ -34,6 +39,8 @@ pub const MAX_ROUNDS: usize = 8;
 pub const MIN_KEPT: usize = 8;
 /// Shortest run of samples at the record's maximum read as clipped.
 pub const MIN_SATURATED_RUN: usize = 2;
+/// Shortest run at the maximum read as clipped on a record of counts ([`is_counts`]).
+pub const MIN_SATURATED_RUN_QUANTISED: usize = 3;
 
 /// A straight baseline: `offset + slope × i` at sample `i` (units of the record; slope per
 /// sample).
@@ -163,11 +170,23 @@ fn line_through(y: &[f32], kept: &[bool]) -> Option<(f64, f64)> {
     Some(((sy - slope * sx) / n, slope))
 }
 
+/// True when every sample of `y` is a whole number (digitizer counts) and there is at least
+/// one: the records whose ties at the top quantisation explains.
+pub fn is_counts(y: &[f32]) -> bool {
+    !y.is_empty() && y.iter().all(|v| v.is_finite() && v.fract() == 0.0)
+}
+
 /// Flags in `excluded` (resized to `y.len()`) the samples of `y` in runs of at least
-/// [`MIN_SATURATED_RUN`] consecutive samples equal to the record's maximum; returns how many.
+/// [`MIN_SATURATED_RUN`] consecutive samples equal to the record's maximum
+/// ([`MIN_SATURATED_RUN_QUANTISED`] on a record of counts, [`is_counts`]); returns how many.
 pub fn flag_saturated(y: &[f32], excluded: &mut Vec<bool>) -> usize {
     excluded.clear();
     excluded.resize(y.len(), false);
+    let min_run = if is_counts(y) {
+        MIN_SATURATED_RUN_QUANTISED
+    } else {
+        MIN_SATURATED_RUN
+    };
     let top = y.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     let mut flagged = 0;
     let mut i = 0;
@@ -177,7 +196,7 @@ pub fn flag_saturated(y: &[f32], excluded: &mut Vec<bool>) -> usize {
             while i < y.len() && y[i] == top {
                 i += 1;
             }
-            if i - start >= MIN_SATURATED_RUN {
+            if i - start >= min_run {
                 excluded[start..i].fill(true);
                 flagged += i - start;
             }
@@ -282,10 +301,23 @@ mod tests {
         assert_eq!(flag_saturated(&[0.0, 1.0, 0.5, 0.2], &mut ex), 0);
         assert_eq!(ex, vec![false; 4]);
         assert_eq!(
+            // Not whole numbers: runs of two count.
             flag_saturated(&[0.0, 0.7, 0.7, 0.7, 0.3, 0.7, 0.7, 0.1], &mut ex),
             5
         );
         assert_eq!(ex, [false, true, true, true, false, true, true, false]);
         assert_eq!(flag_saturated(&[], &mut ex), 0);
+    }
+
+    #[test]
+    fn on_counts_two_equal_samples_at_the_top_are_not_clipping() {
+        let mut ex = Vec::new();
+        // Integer counts: a peak between two bins; then a clipped run of three.
+        let counts = [210.0f32, 260.0, 388.0, 388.0, 300.0, 220.0];
+        assert!(is_counts(&counts));
+        assert_eq!(flag_saturated(&counts, &mut ex), 0);
+        let clipped = [210.0f32, 300.0, 1023.0, 1023.0, 1023.0, 400.0, 215.0];
+        assert_eq!(flag_saturated(&clipped, &mut ex), 3);
+        assert!(!is_counts(&[0.5, 1.0]) && !is_counts(&[]) && !is_counts(&[f32::NAN]));
     }
 }

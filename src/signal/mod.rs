@@ -6,6 +6,7 @@ pub mod decompose;
 pub mod deconvolve;
 pub mod denoise;
 pub mod drift;
+pub mod echo_strength;
 pub mod gauss_fit;
 pub mod kernel;
 pub mod peaks;
