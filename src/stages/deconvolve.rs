@@ -45,6 +45,9 @@
 //!   `bad_kernel`; a support longer than `max_taps` → cut to `max_taps` around the peak and
 //!   noted `kernel_over_max_taps` (`long_kernel = "cut"`, the default; logged once) or dropped
 //!   `kernel_over_max_taps` (`"drop"`);
+//! - return samples at the digitizer's full scale (`2^bits − 1` counts: the receiver
+//!   saturated) are flagged and left out of the fit by the methods that can (NNLS,
+//!   [`Deconvolver::run_excluding`]); the pulse is noted `clipped_samples`;
 //! - each non-empty return segment is deconvolved into a scratch buffer and copied back; a
 //!   [`DeconvError`](crate::signal::deconvolve::DeconvError) drops the pulse with its
 //!   [`reason`](crate::signal::deconvolve::DeconvError::reason) (e.g. `non_finite_input`,
@@ -202,6 +205,9 @@ pub enum LongKernel {
 /// support is longer than `max_taps`.
 pub const KERNEL_OVER_MAX_TAPS: &str = "kernel_over_max_taps";
 
+/// Note of a pulse with return samples at the digitizer's full scale (the receiver saturated).
+pub const CLIPPED_SAMPLES: &str = "clipped_samples";
+
 fn default_max_samples() -> usize {
     4096
 }
@@ -276,6 +282,8 @@ pub struct Deconvolve {
     kernel: Kernel,
     /// Output of one segment, `max_samples`.
     out: Vec<f32>,
+    /// The samples of one segment at the digitizer's full scale, `max_samples`.
+    clipped: Vec<bool>,
     /// Set once the first kernel was cut to `max_taps` (logged once per stage).
     warned_cut: bool,
 }
@@ -308,6 +316,7 @@ impl Deconvolve {
         };
         Ok(Deconvolve {
             out: vec![0.0; config.max_samples],
+            clipped: Vec::with_capacity(config.max_samples),
             method,
             kernel,
             config,
@@ -387,6 +396,7 @@ impl Deconvolve {
         }
         let noise_v = pulse.noise.noise_v;
         let mut failure: Option<&'static str> = None;
+        let mut any_clipped = false;
         for si in 0..pulse.segments.len() {
             let seg = pulse.segments[si];
             if seg.kind != SegmentKind::Return || seg.len == 0 {
@@ -398,13 +408,22 @@ impl Deconvolve {
                 failure = Some("segment_too_long");
                 break;
             }
-            let result = self.method.run(
-                &pulse.signal[range.clone()],
-                &self.kernel,
-                noise_v,
-                sample_ns,
-                &mut self.out[..n],
-            );
+            let y = &pulse.signal[range.clone()];
+            let result = if flag_full_scale(&pulse.raw[range.clone()], pulse.bits, &mut self.clipped)
+            {
+                any_clipped = true;
+                self.method.run_excluding(
+                    y,
+                    &self.kernel,
+                    noise_v,
+                    sample_ns,
+                    &self.clipped,
+                    &mut self.out[..n],
+                )
+            } else {
+                self.method
+                    .run(y, &self.kernel, noise_v, sample_ns, &mut self.out[..n])
+            };
             match result {
                 Ok(_) => pulse.signal[range].copy_from_slice(&self.out[..n]),
                 Err(e) => {
@@ -416,12 +435,28 @@ impl Deconvolve {
         if let Some(reason) = failure {
             return Verdict::Drop(reason);
         }
-        if cut {
-            Verdict::noted(KERNEL_OVER_MAX_TAPS)
-        } else {
-            Verdict::DONE
+        match (cut, any_clipped) {
+            (true, true) => Verdict::Keep([Some(KERNEL_OVER_MAX_TAPS), Some(CLIPPED_SAMPLES), None]),
+            (true, false) => Verdict::noted(KERNEL_OVER_MAX_TAPS),
+            (false, true) => Verdict::noted(CLIPPED_SAMPLES),
+            (false, false) => Verdict::DONE,
         }
     }
+}
+
+/// Flags in `clipped` (resized to `raw.len()`, no allocation within its capacity) the samples
+/// of `raw` at the full scale of a `bits`-bit digitizer (`2^bits − 1` counts); true when any
+/// is. A digitizer of 0 or more than 16 bits flags nothing. Only those samples: flagging their
+/// neighbours as well (which the low-pass of the denoise stage mixes with the clipped top) was
+/// measured and is not better (docs/accuracy.md, "Saturated returns on board").
+fn flag_full_scale(raw: &[u16], bits: u8, clipped: &mut Vec<bool>) -> bool {
+    clipped.clear();
+    if bits == 0 || bits > 16 {
+        return false;
+    }
+    let top = ((1u32 << bits) - 1) as u16;
+    clipped.extend(raw.iter().map(|&c| c >= top));
+    clipped.iter().any(|&c| c)
 }
 
 impl Deconvolve {
@@ -638,6 +673,10 @@ impl StageKind for DeconvolveConfig {
     fn note_meaning(&self, note: &str) -> &'static str {
         match note {
             KERNEL_OVER_MAX_TAPS => "deconvolved with the kernel cut to max_taps",
+            CLIPPED_SAMPLES => {
+                "deconvolved with return samples at the digitizer's full scale (left out of the \
+                 fit by nnls, fitted as recorded by the other methods)"
+            }
             _ => "passed on un-deconvolved",
         }
     }
@@ -693,6 +732,22 @@ impl StageKind for DeconvolveConfig {
                  the kernel was cut to max_taps around its peak (returns stay in place, the far \
                  tail is not deconvolved); raise max_taps to keep the whole pulse (the cost \
                  grows with it)",
+            )),
+            CLIPPED_SAMPLES if matches!(self.method, MethodConfig::Nnls(_)) => Some(Advice::key(
+                at,
+                "method",
+                "returns reached the digitizer's full scale (the receiver saturated): nnls left \
+                 those samples out of its fit and recovered the echo from its flanks (most of \
+                 its energy where the clip is short, less where it is long); lower the \
+                 receiver gain to record the whole echo",
+            )),
+            CLIPPED_SAMPLES => Some(Advice::key(
+                at,
+                "method",
+                "returns reached the digitizer's full scale (the receiver saturated): this \
+                 method fits the flattened top and underestimates the echo (by half on a \
+                 strongly clipped one); method = { method = \"nnls\" } leaves those samples \
+                 out of its fit, or lower the receiver gain",
             )),
             "no_outgoing" => Some(Advice::key(
                 at,
@@ -806,6 +861,61 @@ mod tests {
             MethodConfig::Gold(GoldConfig::default()),
             MethodConfig::Wiener(WienerConfig::default()),
         ]
+    }
+
+    /// An 8-bit pulse whose strong return saturates the digitizer: counts clipped at 255 on
+    /// the top 9 samples, the signal the counts in volts (1 mV per count). Also returns the
+    /// unclipped return's area, volt-samples.
+    fn saturated_pulse(bits: u8) -> (Pulse, f32) {
+        let mut p = Pulse {
+            bits,
+            ..Default::default()
+        };
+        let outgoing = gauss(41, 20.0, 3.4, 200.0);
+        let echo: Vec<f32> = gauss(128, 60.0, 3.4, 600.0)
+            .iter()
+            .zip(gauss(128, 90.0, 3.4, 80.0))
+            .map(|(a, b)| a + b)
+            .collect();
+        let counts = |v: &[f32]| -> Vec<u16> { v.iter().map(|x| x.round().min(255.0) as u16).collect() };
+        let (co, cr) = (counts(&outgoing), counts(&echo));
+        assert_eq!(cr.iter().filter(|&&c| c == 255).count(), 9);
+        p.push_segment(SegmentKind::Outgoing, 0, -20.0, co.clone());
+        p.push_segment(SegmentKind::Return, 0, 900.0, cr.clone());
+        p.signal = co.iter().chain(&cr).map(|&c| c as f32 * 1e-3).collect();
+        p.noise.noise_v = 1e-3;
+        let area = echo.iter().map(|v| v.round() * 1e-3).sum();
+        (p, area)
+    }
+
+    #[test]
+    fn nnls_leaves_samples_at_the_digitizer_full_scale_out_and_recovers_the_echo() {
+        let mut stage = Deconvolve::new(DeconvolveConfig::with_method(MethodConfig::Nnls(
+            Default::default(),
+        )))
+        .unwrap();
+        let area_of = |p: &Pulse| p.signal_of(1).iter().sum::<f32>();
+        // Recorded by an 8-bit digitizer: 255 counts is its full scale.
+        let (clipped, truth) = saturated_pulse(8);
+        let recorded: f32 = clipped.signal_of(1).iter().sum();
+        let run = run_stage(&mut stage, [clipped]).unwrap();
+        let p = &run.emitted[0];
+        let kept = area_of(p);
+        // The same counts from a 16-bit digitizer are not at its full scale: fitted as recorded.
+        let (as_recorded, _) = saturated_pulse(16);
+        let plain = area_of(&run_stage(&mut stage, [as_recorded]).unwrap().emitted[0]);
+        println!("area: truth {truth}, recorded {recorded}, clipped left out {kept}, fitted {plain}");
+        assert!(recorded < 0.8 * truth, "the top is clipped: {recorded} of {truth}");
+        assert!(
+            (kept - truth).abs() < 0.05 * truth,
+            "full-scale samples left out: area {kept} vs {truth}"
+        );
+        assert!(plain < 0.85 * truth, "fitted as recorded: {plain} of {truth}");
+        assert!(p.signal_of(1).iter().all(|v| v.is_finite() && *v >= 0.0));
+        assert_eq!(run.notes.get(CLIPPED_SAMPLES), 1);
+        // Nothing at the full scale: no note.
+        let run = run_stage(&mut stage, [denoised_pulse()]).unwrap();
+        assert_eq!(run.notes.get(CLIPPED_SAMPLES), 0);
     }
 
     #[test]

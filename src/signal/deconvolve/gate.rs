@@ -284,27 +284,30 @@ impl Gated {
     }
 }
 
-impl Deconvolver for Gated {
-    fn name(&self) -> &'static str {
-        self.method.name()
-    }
-
-    fn run(
+impl Gated {
+    /// The method on the whole segment or on each echo window, with the flagged samples (as
+    /// long as `y`) left out where the method can.
+    fn run_with(
         &mut self,
         y: &[f32],
         k: &Kernel,
         noise_v: f32,
         sample_ns: f64,
+        excluded: Option<&[bool]>,
         out: &mut [f32],
     ) -> Result<MethodStats, DeconvError> {
         let n = y.len();
+        let excluded = excluded.filter(|e| e.len() == n);
         let whole = |s: &mut Self, out: &mut [f32]| {
             s.last = GateStats {
                 windows: 1,
                 samples: n,
                 whole: true,
             };
-            s.method.run(y, k, noise_v, sample_ns, out)
+            match excluded {
+                Some(e) => s.method.run_excluding(y, k, noise_v, sample_ns, e, out),
+                None => s.method.run(y, k, noise_v, sample_ns, out),
+            }
         };
         let threshold = match self.gate {
             Gate::On { threshold_noise } if noise_v.is_finite() && noise_v > 0.0 => {
@@ -324,9 +327,19 @@ impl Deconvolver for Gated {
         let mut stats = MethodStats::default();
         for wi in 0..self.windows.len() {
             let (a, b) = self.windows[wi];
-            let s = self
-                .method
-                .run(&y[a..b], k, noise_v, sample_ns, &mut out[a..b])?;
+            let s = match excluded {
+                Some(e) => self.method.run_excluding(
+                    &y[a..b],
+                    k,
+                    noise_v,
+                    sample_ns,
+                    &e[a..b],
+                    &mut out[a..b],
+                ),
+                None => self
+                    .method
+                    .run(&y[a..b], k, noise_v, sample_ns, &mut out[a..b]),
+            }?;
             stats.iterations = stats.iterations.max(s.iterations);
             stats.stopped_early |= s.stopped_early;
         }
@@ -336,6 +349,35 @@ impl Deconvolver for Gated {
             whole: false,
         };
         Ok(stats)
+    }
+}
+
+impl Deconvolver for Gated {
+    fn name(&self) -> &'static str {
+        self.method.name()
+    }
+
+    fn run(
+        &mut self,
+        y: &[f32],
+        k: &Kernel,
+        noise_v: f32,
+        sample_ns: f64,
+        out: &mut [f32],
+    ) -> Result<MethodStats, DeconvError> {
+        self.run_with(y, k, noise_v, sample_ns, None, out)
+    }
+
+    fn run_excluding(
+        &mut self,
+        y: &[f32],
+        k: &Kernel,
+        noise_v: f32,
+        sample_ns: f64,
+        excluded: &[bool],
+        out: &mut [f32],
+    ) -> Result<MethodStats, DeconvError> {
+        self.run_with(y, k, noise_v, sample_ns, Some(excluded), out)
     }
 
     fn worst_case_flops(&self, n: usize, m: usize) -> u64 {
