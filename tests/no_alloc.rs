@@ -312,3 +312,51 @@ fn echo_detection_allocates_nothing_per_waveform() {
         "allocations grow with waveforms: {few} vs {many}"
     );
 }
+
+/// The deconvolve stage with NNLS on pulses whose return reaches the 8-bit digitizer's full
+/// scale (the samples flagged and left out of the fit, through the gate and a 2 ns target)
+/// allocates nothing per pulse: the same count for 10 and for 1000 pulses (this thread).
+#[test]
+fn nnls_leaving_out_full_scale_samples_allocates_nothing_per_pulse() {
+    let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    use fwlidar::pulse::{Pulse, SegmentKind};
+    use fwlidar::signal::deconvolve::{MethodConfig, NnlsConfig};
+    use fwlidar::stages::deconvolve::{CLIPPED_SAMPLES, Deconvolve, DeconvolveConfig};
+    let gauss = |n: usize, c: f32, s: f32, a: f32| -> Vec<u16> {
+        (0..n)
+            .map(|i| {
+                (a * (-0.5 * ((i as f32 - c) / s).powi(2)).exp())
+                    .round()
+                    .min(255.0) as u16
+            })
+            .collect()
+    };
+    let mut pulse = Pulse {
+        bits: 8,
+        sample_ns: 1.0,
+        ..Default::default()
+    };
+    pulse.push_segment(SegmentKind::Outgoing, 0, -20.0, gauss(41, 20.0, 3.4, 200.0));
+    pulse.push_segment(SegmentKind::Return, 0, 900.0, gauss(225, 90.0, 3.4, 600.0));
+    assert!(pulse.raw.contains(&255));
+    let volts: Vec<f32> = pulse.raw.iter().map(|&c| c as f32 * 1e-3).collect();
+    pulse.signal = volts.clone();
+    pulse.noise.noise_v = 1e-3;
+    let mut stage = Deconvolve::new(DeconvolveConfig {
+        target_fwhm_ns: Some(2.0),
+        ..DeconvolveConfig::with_method(MethodConfig::Nnls(NnlsConfig::default()))
+    })
+    .unwrap();
+    let mut run = |pulses: u32| -> u64 {
+        let before = THIS_THREAD.with(|c| c.get());
+        for _ in 0..pulses {
+            pulse.signal.copy_from_slice(&volts);
+            let verdict = stage.deconvolve_pulse(&mut pulse);
+            assert_eq!(verdict, fwlidar::pulse::Verdict::noted(CLIPPED_SAMPLES));
+        }
+        THIS_THREAD.with(|c| c.get()) - before
+    };
+    let _warm = run(2);
+    let (few, many) = (run(10), run(1000));
+    assert_eq!(few, many, "allocations grow with pulses: {few} vs {many}");
+}

@@ -428,6 +428,41 @@ mod tests {
     }
 
     #[test]
+    fn excluded_samples_reach_the_method_through_the_gate() {
+        use crate::signal::deconvolve::NnlsConfig;
+        let k = kernel(8.0);
+        let mut y = record(128, &k, &[(40, 1.0), (80, 0.4)], 0.01, 3);
+        // The strong echo clipped at 0.6: its top samples flagged.
+        let excluded: Vec<bool> = y.iter().map(|&v| v >= 0.6).collect();
+        y.iter_mut().for_each(|v| *v = v.min(0.6));
+        assert!(excluded.iter().filter(|&&e| e).count() >= 3);
+        let method = MethodConfig::Nnls(NnlsConfig::default());
+        let mut direct = method.build(128, 64);
+        let mut gated = Gated::build(&method, Gate::Off, 128, 64);
+        let (mut a, mut b, mut c) = (vec![0.0; 128], vec![0.0; 128], vec![0.0; 128]);
+        direct
+            .run_excluding(&y, &k, 0.01, 1.0, &excluded, &mut a)
+            .unwrap();
+        gated
+            .run_excluding(&y, &k, 0.01, 1.0, &excluded, &mut b)
+            .unwrap();
+        assert_eq!(a, b, "the gate passes the flags on");
+        gated.run(&y, &k, 0.01, 1.0, &mut c).unwrap();
+        let (left_out, fitted): (f32, f32) = (b.iter().sum(), c.iter().sum());
+        assert!(left_out > fitted + 0.5, "{left_out} vs {fitted}");
+        // Every sample flagged, or flags of the wrong length: finite, never a panic.
+        let all = vec![true; 128];
+        gated
+            .run_excluding(&y, &k, 0.01, 1.0, &all, &mut b)
+            .unwrap();
+        assert!(b.iter().all(|v| v.is_finite()));
+        gated
+            .run_excluding(&y, &k, 0.01, 1.0, &all[..5], &mut b)
+            .unwrap();
+        assert_eq!(b, c, "flags of another length are ignored");
+    }
+
+    #[test]
     fn gate_config_parses_with_clear_errors() {
         #[derive(Deserialize, Serialize, Debug, PartialEq)]
         struct T {
