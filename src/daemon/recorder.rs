@@ -209,11 +209,7 @@ impl LiveSource {
             Ok(()) => {
                 pulse.arrived = received;
                 self.state.decoded.fetch_add(1, Ordering::Relaxed);
-                let full = if pulse.bits >= 16 {
-                    u16::MAX
-                } else {
-                    (1u16 << pulse.bits) - 1
-                };
+                let full = pulse.full_scale_dn().unwrap_or(u16::MAX);
                 if pulse.raw.iter().any(|&r| r >= full) {
                     self.state.saturated.fetch_add(1, Ordering::Relaxed);
                 }

@@ -387,6 +387,14 @@ impl Pulse {
     pub fn counts_to_volts(&self, counts: u16) -> f32 {
         self.offset_v + self.gain_v_per_dn * counts as f32
     }
+
+    /// The digitizer's full scale, counts: `2^bits − 1` (a sample there is clipped: the
+    /// receiver saturated); `None` for a bit depth outside 1..=16.
+    pub fn full_scale_dn(&self) -> Option<u16> {
+        (1..=16)
+            .contains(&self.bits)
+            .then(|| ((1u32 << self.bits) - 1) as u16)
+    }
 }
 
 /// A bounded free list of pulses shared by sources (which take) and by stages and sinks (which
@@ -449,6 +457,22 @@ mod tests {
         assert_eq!(p.raw_of(r), &[7, 8]);
         assert_eq!(p.outgoing(), Some(0));
         assert!(p.signal_of(r).is_empty());
+    }
+
+    #[test]
+    fn full_scale_follows_the_bit_depth() {
+        let at = |bits| {
+            Pulse {
+                bits,
+                ..Default::default()
+            }
+            .full_scale_dn()
+        };
+        assert_eq!(at(8), Some(255));
+        assert_eq!(at(12), Some(4095));
+        assert_eq!(at(16), Some(u16::MAX));
+        assert_eq!(at(0), None);
+        assert_eq!(at(17), None);
     }
 
     #[test]

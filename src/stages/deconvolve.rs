@@ -409,7 +409,8 @@ impl Deconvolve {
                 break;
             }
             let y = &pulse.signal[range.clone()];
-            let result = if flag_full_scale(&pulse.raw[range.clone()], pulse.bits, &mut self.clipped)
+            let full_scale = pulse.full_scale_dn();
+            let result = if flag_full_scale(&pulse.raw[range.clone()], full_scale, &mut self.clipped)
             {
                 any_clipped = true;
                 self.method.run_excluding(
@@ -445,16 +446,15 @@ impl Deconvolve {
 }
 
 /// Flags in `clipped` (resized to `raw.len()`, no allocation within its capacity) the samples
-/// of `raw` at the full scale of a `bits`-bit digitizer (`2^bits − 1` counts); true when any
-/// is. A digitizer of 0 or more than 16 bits flags nothing. Only those samples: flagging their
+/// of `raw` at the digitizer's full scale ([`Pulse::full_scale_dn`]); true when any is. No
+/// full scale (an unknown bit depth) flags nothing. Only those samples: flagging their
 /// neighbours as well (which the low-pass of the denoise stage mixes with the clipped top) was
 /// measured and is not better (docs/accuracy.md, "Saturated returns on board").
-fn flag_full_scale(raw: &[u16], bits: u8, clipped: &mut Vec<bool>) -> bool {
+fn flag_full_scale(raw: &[u16], full_scale: Option<u16>, clipped: &mut Vec<bool>) -> bool {
     clipped.clear();
-    if bits == 0 || bits > 16 {
+    let Some(top) = full_scale else {
         return false;
-    }
-    let top = ((1u32 << bits) - 1) as u16;
+    };
     clipped.extend(raw.iter().map(|&c| c >= top));
     clipped.iter().any(|&c| c)
 }
