@@ -29,13 +29,30 @@ fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
     SERIAL.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// A free TCP port on loopback.
+/// A free TCP port on loopback, for a daemon to bind a moment later. Taken below the kernel's
+/// ephemeral range (32768–60999 on Linux), where the outgoing connections of the tests (and
+/// everything else on the machine) get their ports: an ephemeral port released here could be
+/// handed to a client socket before the daemon binds it ("Address already in use", seen once
+/// in CI). Successive calls walk a range that starts at an offset of this process's id, and
+/// skip ports that cannot be bound now.
 fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    use std::sync::atomic::{AtomicU32, Ordering};
+    const LOW: u32 = 20_000;
+    const SPAN: u32 = 12_000;
+    static NEXT: AtomicU32 = AtomicU32::new(u32::MAX);
+    let _ = NEXT.compare_exchange(
+        u32::MAX,
+        (std::process::id() * 7919) % SPAN,
+        Ordering::SeqCst,
+        Ordering::SeqCst,
+    );
+    for _ in 0..SPAN {
+        let port = (LOW + NEXT.fetch_add(1, Ordering::SeqCst) % SPAN) as u16;
+        if TcpListener::bind(("127.0.0.1", port)).is_ok() {
+            return port;
+        }
+    }
+    panic!("no free port in {LOW}..{}", LOW + SPAN)
 }
 
 /// Options of a test daemon's configuration.
