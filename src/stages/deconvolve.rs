@@ -455,8 +455,12 @@ fn flag_full_scale(raw: &[u16], full_scale: Option<u16>, clipped: &mut Vec<bool>
     let Some(top) = full_scale else {
         return false;
     };
-    clipped.extend(raw.iter().map(|&c| c >= top));
-    clipped.iter().any(|&c| c)
+    let mut any = false;
+    clipped.extend(raw.iter().map(|&c| {
+        any |= c >= top;
+        c >= top
+    }));
+    any
 }
 
 impl Deconvolve {

@@ -304,10 +304,7 @@ impl Gated {
                 samples: n,
                 whole: true,
             };
-            match excluded {
-                Some(e) => s.method.run_excluding(y, k, noise_v, sample_ns, e, out),
-                None => s.method.run(y, k, noise_v, sample_ns, out),
-            }
+            super::run_flagged(s.method.as_mut(), y, k, noise_v, sample_ns, excluded, out)
         };
         let threshold = match self.gate {
             Gate::On { threshold_noise } if noise_v.is_finite() && noise_v > 0.0 => {
@@ -327,19 +324,16 @@ impl Gated {
         let mut stats = MethodStats::default();
         for wi in 0..self.windows.len() {
             let (a, b) = self.windows[wi];
-            let s = match excluded {
-                Some(e) => self.method.run_excluding(
-                    &y[a..b],
-                    k,
-                    noise_v,
-                    sample_ns,
-                    &e[a..b],
-                    &mut out[a..b],
-                ),
-                None => self
-                    .method
-                    .run(&y[a..b], k, noise_v, sample_ns, &mut out[a..b]),
-            }?;
+            let flags = excluded.map(|e| &e[a..b]);
+            let s = super::run_flagged(
+                self.method.as_mut(),
+                &y[a..b],
+                k,
+                noise_v,
+                sample_ns,
+                flags,
+                &mut out[a..b],
+            )?;
             stats.iterations = stats.iterations.max(s.iterations);
             stats.stopped_early |= s.stopped_early;
         }

@@ -184,6 +184,23 @@ impl MethodConfig {
     }
 }
 
+/// `method`'s run, with the samples flagged in `excluded` left out when given
+/// ([`Deconvolver::run_excluding`]): what the wrappers (gate, target pulse) pass on.
+pub(crate) fn run_flagged(
+    method: &mut dyn Deconvolver,
+    y: &[f32],
+    k: &Kernel,
+    noise_v: f32,
+    sample_ns: f64,
+    excluded: Option<&[bool]>,
+    out: &mut [f32],
+) -> Result<MethodStats, DeconvError> {
+    match excluded {
+        Some(e) => method.run_excluding(y, k, noise_v, sample_ns, e, out),
+        None => method.run(y, k, noise_v, sample_ns, out),
+    }
+}
+
 /// The checks every method makes before touching a segment: lengths, capacities, a usable
 /// kernel and finite input. Returns the largest absolute input value (volts) on success.
 pub(crate) fn check_inputs(

@@ -316,7 +316,15 @@ impl Targeted {
         out: &mut [f32],
     ) -> Result<MethodStats, DeconvError> {
         let Some(reducer) = self.reducer.as_mut() else {
-            return inner_run(self.inner.as_mut(), y, k, noise_v, sample_ns, excluded, out);
+            return super::run_flagged(
+                self.inner.as_mut(),
+                y,
+                k,
+                noise_v,
+                sample_ns,
+                excluded,
+                out,
+            );
         };
         if !(sample_ns.is_finite() && sample_ns > 0.0) {
             return Err(DeconvError::BadKernel);
@@ -330,7 +338,7 @@ impl Targeted {
                 });
             }
             let spikes = &mut self.spikes[..n];
-            let stats = inner_run(
+            let stats = super::run_flagged(
                 self.inner.as_mut(),
                 y,
                 k,
@@ -356,7 +364,7 @@ impl Targeted {
         let h = reducer
             .reduce(k, sample_ns)
             .map_err(|_| DeconvError::BadKernel)?;
-        inner_run(self.inner.as_mut(), y, h, noise_v, sample_ns, excluded, out)
+        super::run_flagged(self.inner.as_mut(), y, h, noise_v, sample_ns, excluded, out)
     }
 }
 
@@ -405,22 +413,6 @@ fn redraw_adjacent_pairs(spikes: &[f32], t: &Kernel, sigma: f64, out: &mut [f32]
             out[p as usize] += (area * weight(p) / sum) as f32;
         }
         i += 2;
-    }
-}
-
-/// The inner method's run, excluding samples when given.
-fn inner_run(
-    inner: &mut dyn Deconvolver,
-    y: &[f32],
-    k: &Kernel,
-    noise_v: f32,
-    sample_ns: f64,
-    excluded: Option<&[bool]>,
-    out: &mut [f32],
-) -> Result<MethodStats, DeconvError> {
-    match excluded {
-        Some(e) => inner.run_excluding(y, k, noise_v, sample_ns, e, out),
-        None => inner.run(y, k, noise_v, sample_ns, out),
     }
 }
 
