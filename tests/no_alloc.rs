@@ -159,6 +159,12 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
         noise_weights: true,
         ..NnlsConfig::default()
     });
+    // NNLS with spikes only near echoes (`fwlidar process`'s default).
+    let nnls_near = MethodConfig::Nnls(NnlsConfig {
+        max_iterations: 20,
+        support_at_noise: Some(4.0),
+        ..NnlsConfig::default()
+    });
     for (max_taps, method, target_fwhm_ns) in [
         (256usize, rl(0, None), None),
         (16, rl(0, None), None),
@@ -167,6 +173,7 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
         (256, rl(0, Some(1.0)), Some(2.0)),
         (16, nnls, Some(2.0)),
         (256, nnls_weighted, Some(2.0)),
+        (256, nnls_near, None),
         // The on-board setting: the Wiener start (its FFT plans per window length) and the
         // output's noise floor.
         (96, MethodConfig::RichardsonLucy(RlConfig::onboard()), None),

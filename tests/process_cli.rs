@@ -469,6 +469,31 @@ fn gaussian_8ns() -> (impl Fn(f64) -> f64, Vec<f32>) {
     (pulse, taps)
 }
 
+/// [`gaussian_8ns`] with its taps scaled to unit sum: the shape, the taps and the factor.
+fn unit_gaussian_8ns() -> (impl Fn(f64) -> f64, Vec<f32>, f32) {
+    let (pulse, taps) = gaussian_8ns();
+    let sum: f32 = taps.iter().sum();
+    (pulse, taps.iter().map(|t| t / sum).collect(), sum)
+}
+
+/// `fwlidar process --input IN --kernel K --method M --no-progress --out OUT EXTRA…`.
+fn process_rows(input: &Path, kernel: &Path, method: &str, extra: &[&str], out: &Path) -> Output {
+    let mut args = vec![
+        "process",
+        "--input",
+        s(input),
+        "--kernel",
+        s(kernel),
+        "--method",
+        method,
+        "--no-progress",
+        "--out",
+        s(out),
+    ];
+    args.extend_from_slice(extra);
+    fwlidar(&args)
+}
+
 /// A drifting baseline and a clipped echo through `--method nnls` with no other option: the
 /// summary names the clipped row, the drift is gone from the output (the line removed, not a
 /// level), and the clipped echo comes back at its area where `--baseline level` and a plain
@@ -477,9 +502,7 @@ fn gaussian_8ns() -> (impl Fn(f64) -> f64, Vec<f32>) {
 fn nnls_removes_a_drifting_baseline_and_leaves_clipped_samples_out() {
     let dir = tempfile::tempdir().unwrap();
     let (input, kernel) = (dir.path().join("in.npy"), dir.path().join("k.npy"));
-    let (pulse, taps) = gaussian_8ns();
-    let sum: f32 = taps.iter().sum();
-    let taps: Vec<f32> = taps.iter().map(|t| t / sum).collect();
+    let (pulse, taps, sum) = unit_gaussian_8ns();
     // Echo areas 2 (at 80) and 6 (at 170, its top clipped at 0.5); baseline 0.05 → 0.15.
     let row: Vec<f32> = (0..256)
         .map(|i| {
@@ -492,20 +515,7 @@ fn nnls_removes_a_drifting_baseline_and_leaves_clipped_samples_out() {
     std::fs::write(&input, encode_npy(&[row])).unwrap();
     std::fs::write(&kernel, encode_npy(&[taps])).unwrap();
     let run = |extra: &[&str], out: &Path| {
-        let mut args = vec![
-            "process",
-            "--input",
-            s(&input),
-            "--kernel",
-            s(&kernel),
-            "--method",
-            "nnls",
-            "--no-progress",
-            "--out",
-            s(out),
-        ];
-        args.extend_from_slice(extra);
-        let o = fwlidar(&args);
+        let o = process_rows(&input, &kernel, "nnls", extra, out);
         assert!(o.status.success(), "{}", stderr(&o));
         let y = read_table(out).unwrap().rows.remove(0);
         (String::from_utf8_lossy(&o.stdout).into_owned(), y)
@@ -709,4 +719,85 @@ fn neon_peaks_find_the_main_return_of_every_waveform() {
     assert!(near >= 425, "{near}/500");
     assert!((1.0..=8.0).contains(&n3), "{n3} echoes per waveform");
     assert!(n0 > 1.5 * n3, "{n0} maxima vs {n3} echoes");
+}
+
+/// `--method nnls` puts spikes only near echoes by default (`--support-at-noise 4`): on rows of
+/// two echoes in uniform noise, `--support-at-noise 0` (anywhere) fits the empty range with
+/// spikes, the default leaves it at zero and keeps each echo's area; the option is refused for
+/// another method and for a negative or non-finite value (exit 2, nothing written).
+#[test]
+fn nnls_spikes_only_near_echoes_by_default() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, kernel) = (dir.path().join("in.npy"), dir.path().join("k.npy"));
+    let (pulse, taps, sum) = unit_gaussian_8ns();
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut uniform = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    };
+    // Echo areas 3 (at 90) and 2 (at 150); peak about 0.35; noise ±0.01 (3 % of the peak).
+    let rows: Vec<Vec<f32>> = (0..20)
+        .map(|_| {
+            (0..256)
+                .map(|i| {
+                    let x = i as f64;
+                    let echo = (3.0 * pulse(x - 90.0) + 2.0 * pulse(x - 150.0)) / sum as f64;
+                    (echo + 0.02 * uniform()) as f32
+                })
+                .collect()
+        })
+        .collect();
+    std::fs::write(&input, encode_npy(&rows)).unwrap();
+    std::fs::write(&kernel, encode_npy(&[taps])).unwrap();
+    let run_method = |method: &str, extra: &[&str], name: &str| {
+        let out = dir.path().join(name);
+        let o = process_rows(&input, &kernel, method, extra, &out);
+        (o.status.code(), stderr(&o), out)
+    };
+    let run = |extra: &[&str], name: &str| run_method("nnls", extra, name);
+    let (code, err, out) = run(&[], "near.npy");
+    assert_eq!(code, Some(0), "{err}");
+    let near = read_table(&out).unwrap().rows;
+    let (code, err, out) = run(&["--support-at-noise", "0"], "anywhere.npy");
+    assert_eq!(code, Some(0), "{err}");
+    let anywhere = read_table(&out).unwrap().rows;
+    // Empty range: more than two kernels (29 taps) from either echo.
+    let empty = |y: &[f32]| -> usize {
+        (0..y.len())
+            .filter(|&i| !(45..=195).contains(&i) && y[i] > 0.0)
+            .count()
+    };
+    let in_noise: usize = anywhere.iter().map(|y| empty(y)).sum();
+    let kept: usize = near.iter().map(|y| empty(y)).sum();
+    assert!(
+        in_noise >= 20,
+        "spikes in the empty range without the mask: {in_noise}"
+    );
+    assert_eq!(kept, 0, "spikes in the empty range with the default");
+    for (a, b) in near.iter().zip(&anywhere) {
+        for (r, want) in [(70..110, 3.0f32), (130..170, 2.0)] {
+            let (x, y) = (a[r.clone()].iter().sum::<f32>(), b[r].iter().sum::<f32>());
+            assert!(
+                (x - want).abs() < 0.2 && (x - y).abs() < 0.05,
+                "{x} {y} {want}"
+            );
+        }
+    }
+    // Refused: another method, a negative or non-finite value; nothing written.
+    for (method, value, words) in [
+        ("rl", "4", "nnls only"),
+        ("nnls", "-1", "positive number"),
+        ("nnls", "NaN", "positive number"),
+    ] {
+        let extra = format!("--support-at-noise={value}");
+        let (code, err, out) = run_method(method, &[extra.as_str()], "refused.npy");
+        assert_eq!(code, Some(2), "{method} {value}: {err}");
+        assert!(
+            err.contains("--support-at-noise") && err.contains(words),
+            "{err}"
+        );
+        assert!(!out.exists());
+    }
 }

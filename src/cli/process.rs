@@ -119,6 +119,12 @@ pub struct ProcessArgs {
     /// iterations stay the cap. See `stop_at_noise` in docs/signal.md.
     #[arg(long)]
     pub stop_at_noise: Option<f32>,
+    /// NNLS: spikes only near echoes — a sample may hold a spike only when a sample above this
+    /// multiple of the row's noise level lies within its kernel's reach (dimensionless, > 0;
+    /// 0 = anywhere). Default with `--method nnls`: 4. See `support_at_noise` in
+    /// docs/signal.md.
+    #[arg(long)]
+    pub support_at_noise: Option<f32>,
     /// Sample interval, ns.
     #[arg(long, default_value_t = 1.0)]
     pub sample_ns: f64,
@@ -493,6 +499,12 @@ fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
             "--stop-at-noise has no meaning with --method none",
         ));
     }
+    if args.support_at_noise.is_some() && args.method != ProcessMethod::Nnls {
+        return Err(Failure::usage(format!(
+            "--support-at-noise applies to --method nnls only, not {}",
+            args.method.cli_name()
+        )));
+    }
     if args.method == ProcessMethod::None && args.iterations.is_some() {
         return Err(Failure::usage(
             "--iterations has no meaning with --method none",
@@ -540,6 +552,10 @@ fn target_iterations(args: &ProcessArgs, kernels: &[Kernel]) -> Option<u32> {
     Some(n.clamp(TARGET_ITERATIONS.0 as f64, TARGET_ITERATIONS.1 as f64) as u32)
 }
 
+/// NNLS's spikes only near echoes in `process` when `--support-at-noise` is absent (noise
+/// levels; [`crate::signal::deconvolve::NnlsConfig::support_at_noise`]).
+const PROCESS_SUPPORT_AT_NOISE: f32 = 4.0;
+
 /// Least and largest NNLS spike budget `process` gives when `--iterations` is absent.
 const NNLS_BUDGET: (u32, u32) = (50, 256);
 
@@ -580,6 +596,16 @@ fn method_config(
         // The fit weighted by a noise variance estimated from the row when it follows the
         // signal (docs/accuracy.md, "Deconvolution over noise models", third step).
         value["noise_weights"] = serde_json::json!(true);
+        // Spikes only near echoes (docs/accuracy.md, "NNLS: spikes only near echoes").
+        let tau = args.support_at_noise.unwrap_or(PROCESS_SUPPORT_AT_NOISE);
+        if tau.is_finite() && tau > 0.0 {
+            value["support_at_noise"] = serde_json::json!(tau);
+        } else if tau != 0.0 {
+            return Err(Failure::usage(format!(
+                "--support-at-noise must be 0 (off) or a positive number of noise levels, got \
+                 {tau}"
+            )));
+        }
     }
     if let Some(tau) = args.stop_at_noise {
         if !(tau.is_finite() && tau > 0.0) {
@@ -1266,6 +1292,7 @@ mod tests {
             method: ProcessMethod::Rl,
             iterations: None,
             stop_at_noise: None,
+            support_at_noise: None,
             sample_ns: 1.0,
             target_fwhm_ns: None,
             cutoff_ghz: None,
@@ -1379,6 +1406,7 @@ mod tests {
             method: a.method,
             iterations: a.iterations,
             stop_at_noise: a.stop_at_noise,
+            support_at_noise: a.support_at_noise,
             sample_ns: a.sample_ns,
             target_fwhm_ns: a.target_fwhm_ns,
             cutoff_ghz: a.cutoff_ghz,

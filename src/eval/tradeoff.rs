@@ -140,6 +140,10 @@ pub const STOP_AT_NOISE_CAP: u32 = 200;
 /// Iteration cap of accelerated RL with the stop by the noise.
 pub const STOP_AT_NOISE_ACCELERATED_CAP: u32 = 50;
 
+/// Noise multiples `τ` of NNLS's spikes only near echoes (`support_at_noise`), swept for
+/// NNLS and NNLS drawn as the 2 ns pulse at the cap of 50.
+pub const NNLS_SUPPORT_TAUS: [f32; 2] = [3.0, 4.0];
+
 /// `(coarse_iterations, iterations)` of plain RL with the coarse-to-fine start (method `rl`;
 /// the coarse grid at the default 4 samples per kernel FWHM: a factor of 3 at 16 ns, none at
 /// 4 and 8 ns).
@@ -161,7 +165,8 @@ pub const WIENER_START_ITERATIONS: [u32; 3] = [8, 12, 16];
 /// (`wiener_2ns`), NNLS at [`TARGET_NNLS_CAPS`] (`nnls_2ns`); last, RL with the
 /// coarse-to-fine start at [`COARSE_RL`] and accelerated RL to the 2 ns pulse with it at
 /// [`COARSE_TARGET_ACCELERATED`] (`rl_acc_2ns`); then RL from the on-board Wiener start at
-/// [`WIENER_START_ITERATIONS`] (`rl_wiener`). Other parameters at their defaults.
+/// [`WIENER_START_ITERATIONS`] (`rl_wiener`); last, NNLS and its 2 ns synthesis with spikes
+/// only near echoes at [`NNLS_SUPPORT_TAUS`]. Other parameters at their defaults.
 pub fn default_settings() -> Vec<Setting> {
     let plain = |method: &'static str, processing: Processing| Setting {
         method: method.into(),
@@ -307,7 +312,24 @@ pub fn default_settings() -> Vec<Setting> {
         ));
     }
     s.extend(wiener_start_settings());
+    s.extend(nnls_support_settings());
     s
+}
+
+/// NNLS and its 2 ns synthesis at the default cap with spikes only near echoes
+/// (`support_at_noise`) at [`NNLS_SUPPORT_TAUS`].
+fn nnls_support_settings() -> impl Iterator<Item = Setting> {
+    ["nnls", "nnls_2ns"].into_iter().flat_map(|method| {
+        NNLS_SUPPORT_TAUS.into_iter().map(move |tau| Setting {
+            method: method.into(),
+            parameter: format!("max_iterations=50 support_at_noise={tau}"),
+            processing: Processing::Deconvolve(MethodConfig::Nnls(NnlsConfig {
+                support_at_noise: Some(tau),
+                ..NnlsConfig::default()
+            })),
+            target_fwhm_ns: method.ends_with("_2ns").then_some(TRUTH_FWHM_NS),
+        })
+    })
 }
 
 /// The on-board setting and its neighbours (method `rl_wiener`): RL from a Wiener start to a

@@ -601,6 +601,9 @@ impl Validate for DeconvolveConfig {
                     field(&method, "tolerance"),
                     format!("must be a relative tolerance in 0..1, got {}", c.tolerance),
                 );
+                if let Some(tau) = c.support_at_noise {
+                    v.positive(tau as f64, field(&method, "support_at_noise"));
+                }
             }
         }
         if let Some(f) = self.target_fwhm_ns {
@@ -1423,7 +1426,7 @@ mod tests {
 
     #[test]
     fn stage_config_deconvolve_round_trips_and_checks() {
-        use crate::signal::deconvolve::{GoldConfig, RlConfig, WienerConfig};
+        use crate::signal::deconvolve::{GoldConfig, NnlsConfig, RlConfig, WienerConfig};
         let s = stage("type = \"deconvolve\"\nmethod = { method = \"gold\" }").unwrap();
         assert_eq!(
             s,
@@ -1529,6 +1532,16 @@ mod tests {
         }));
         Validate::validate(&bad, "s", &mut v);
         assert_eq!(v.issues().len(), 3);
+        for tau in [0.0, -1.0, f32::NAN] {
+            let mut v = Validator::new(None);
+            let bad = DeconvolveConfig::with_method(MethodConfig::Nnls(NnlsConfig {
+                support_at_noise: Some(tau),
+                ..NnlsConfig::default()
+            }));
+            Validate::validate(&bad, "s", &mut v);
+            let fields: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+            assert_eq!(fields, ["s.method.support_at_noise"], "{tau}");
+        }
         let mut v = Validator::new(None);
         Validate::validate(
             &DeconvolveConfig::with_method(MethodConfig::Wiener(WienerConfig::default())),
