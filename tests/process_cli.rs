@@ -801,3 +801,33 @@ fn nnls_spikes_only_near_echoes_by_default() {
         assert!(!out.exists());
     }
 }
+
+/// The NEON Harvard Forest rows are whole-number counts whose first differences are mostly
+/// equal: no noise level is measured in most of them, so `--support-at-noise` has nothing to
+/// apply there. The run says so (summary and a warning) instead of applying it silently to a
+/// few rows; with `--support-at-noise 0` there is nothing to say.
+#[test]
+fn neon_rows_without_a_noise_level_are_named_in_the_summary() {
+    let neon = fixtures().unwrap().join("waveform/neon_harv");
+    let dir = tempfile::tempdir().unwrap();
+    let (input, kernel) = (neon.join("return.csv"), neon.join("imp.csv"));
+    let o = process_rows(&input, &kernel, "nnls", &[], &dir.path().join("a.csv"));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let summary = String::from_utf8_lossy(&o.stdout);
+    let rows: usize = summary
+        .split("spikes anywhere in ")
+        .nth(1)
+        .and_then(|t| t.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no count of rows without a noise level: {summary}"));
+    assert!((400..=500).contains(&rows), "{rows}: {summary}");
+    assert!(
+        stderr(&o).contains("no noise level measured"),
+        "{}",
+        stderr(&o)
+    );
+    let off = ["--support-at-noise", "0"];
+    let o = process_rows(&input, &kernel, "nnls", &off, &dir.path().join("b.csv"));
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!String::from_utf8_lossy(&o.stdout).contains("spikes anywhere"));
+}

@@ -232,6 +232,11 @@ pub struct ProcessReport {
     /// Rows with samples clipped at their maximum (runs of two or more), which NNLS leaves out
     /// of its fit.
     pub saturated_rows: usize,
+    /// Rows whose noise level could not be measured (zero, e.g. whole-number counts whose first
+    /// differences are mostly equal), where NNLS's spikes only near echoes (`--support-at-noise`)
+    /// had no level to apply and spikes went anywhere; 0 when the option is off or the method
+    /// is not NNLS.
+    pub rows_without_noise_level: usize,
 }
 
 /// Median of a non-empty slice (sorted copy).
@@ -556,6 +561,12 @@ fn target_iterations(args: &ProcessArgs, kernels: &[Kernel]) -> Option<u32> {
 /// levels; [`crate::signal::deconvolve::NnlsConfig::support_at_noise`]).
 const PROCESS_SUPPORT_AT_NOISE: f32 = 4.0;
 
+/// True when NNLS puts spikes only near echoes in this run (`--method nnls`, the option not 0).
+fn support_applies(args: &ProcessArgs) -> bool {
+    args.method == ProcessMethod::Nnls
+        && args.support_at_noise.unwrap_or(PROCESS_SUPPORT_AT_NOISE) > 0.0
+}
+
 /// Least and largest NNLS spike budget `process` gives when `--iterations` is absent.
 const NNLS_BUDGET: (u32, u32) = (50, 256);
 
@@ -631,13 +642,21 @@ fn method_config(
 /// Runs `fwlidar process`.
 pub fn run(args: ProcessArgs) -> Result<(), Failure> {
     let report = process(&args)?;
+    if report.rows_without_noise_level > 0 {
+        tracing::warn!(
+            rows = report.rows_without_noise_level,
+            "no noise level measured in these rows (whole-number counts whose first differences \
+             are mostly equal): NNLS put spikes anywhere in them, --support-at-noise had \
+             nothing to apply"
+        );
+    }
     let per = if report.waveforms > 0 {
         report.wall_s * 1e6 / report.waveforms as f64
     } else {
         0.0
     };
     println!(
-        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
+        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
         args.input.display(),
         args.out.display(),
         report.waveforms,
@@ -658,6 +677,13 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
                 format!(", {r} rows with clipped samples (left out of the fit)")
             }
             r => format!(", {r} rows with clipped samples (only --method nnls leaves them out)"),
+        },
+        match report.rows_without_noise_level {
+            0 => String::new(),
+            r => format!(
+                ", spikes anywhere in {r} rows (no noise level measured, so \
+                 --support-at-noise had nothing to apply)"
+            ),
         },
         match &args.returns {
             Some(p) => format!(", {} returns in {}", report.returns, p.display()),
@@ -767,6 +793,7 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         wall_s: started.elapsed().as_secs_f64(),
         target_iterations: derived,
         saturated_rows: steps.saturated_rows,
+        rows_without_noise_level: steps.rows_without_noise_level,
     })
 }
 
@@ -885,6 +912,8 @@ struct RowSteps<'a> {
     excluded: Vec<bool>,
     /// Rows with clipped samples so far.
     saturated_rows: usize,
+    /// Rows so far where spikes only near echoes had no noise level to apply.
+    rows_without_noise_level: usize,
     /// The current row deconvolved by the response, before the kernel, `max_samples` values.
     first: Vec<f32>,
     /// Samples processed (padding excluded).
@@ -960,6 +989,7 @@ impl<'a> RowSteps<'a> {
             detrended: vec![0.0f32; max_samples],
             excluded: Vec::with_capacity(max_samples),
             saturated_rows: 0,
+            rows_without_noise_level: 0,
             first: vec![0.0f32; max_samples],
             samples: 0,
         })
@@ -994,6 +1024,9 @@ impl<'a> RowSteps<'a> {
         let clipped = flag_saturated(row, &mut self.excluded);
         self.saturated_rows += usize::from(clipped > 0);
         let noise_v = self.denoise_row(row, clipped > 0, at)?;
+        if support_applies(self.args) && !(noise_v.is_finite() && noise_v > 0.0) {
+            self.rows_without_noise_level += 1;
+        }
         let mut out = vec![0.0f32; full];
         self.deconvolve_row(i, &mut out[..len], noise_v, at)?;
         if let Some(j) = out.iter().position(|v| !v.is_finite()) {
