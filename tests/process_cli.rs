@@ -802,10 +802,13 @@ fn nnls_spikes_only_near_echoes_by_default() {
     }
 }
 
-/// The NEON Harvard Forest rows are whole-number counts whose first differences are mostly
-/// equal: no noise level is measured in most of them, so `--support-at-noise` has nothing to
-/// apply there. The run says so (summary and a warning) instead of applying it silently to a
-/// few rows; with `--support-at-noise 0` there is nothing to say.
+/// The NEON Harvard Forest rows are zero-padded to 208 samples (68 to 196 recorded). Processed
+/// as samples, the padding makes more than half of a row's first differences 0, so no noise
+/// level is measured in most rows and `--support-at-noise` has nothing to apply there: the run
+/// says so (summary and a warning) and names the padded rows with the option that removes the
+/// padding. With `--zero-padding` every row has a noise level, and the mask changes nothing:
+/// NEON's records are cut around the returns, so every recorded sample lies within a kernel
+/// of an echo (the output equals `--support-at-noise 0`'s, spike for spike).
 #[test]
 fn neon_rows_without_a_noise_level_are_named_in_the_summary() {
     let neon = fixtures().unwrap().join("waveform/neon_harv");
@@ -814,6 +817,14 @@ fn neon_rows_without_a_noise_level_are_named_in_the_summary() {
     let o = process_rows(&input, &kernel, "nnls", &[], &dir.path().join("a.csv"));
     assert!(o.status.success(), "{}", stderr(&o));
     let summary = String::from_utf8_lossy(&o.stdout);
+    let count_before = |summary: &str, text: &str| -> usize {
+        summary
+            .split(text)
+            .next()
+            .and_then(|t| t.rsplit(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no count before {text:?}: {summary}"))
+    };
     let rows: usize = summary
         .split("spikes anywhere in ")
         .nth(1)
@@ -821,13 +832,33 @@ fn neon_rows_without_a_noise_level_are_named_in_the_summary() {
         .and_then(|n| n.parse().ok())
         .unwrap_or_else(|| panic!("no count of rows without a noise level: {summary}"));
     assert!((400..=500).contains(&rows), "{rows}: {summary}");
-    assert!(
-        stderr(&o).contains("no noise level measured"),
-        "{}",
-        stderr(&o)
-    );
+    assert_eq!(count_before(&summary, " rows end in 8 or more zeros"), 500);
+    assert!(summary.contains("pass --zero-padding"), "{summary}");
+    let err = stderr(&o);
+    assert!(err.contains("no noise level measured"), "{err}");
+    assert!(err.contains("--zero-padding processes only"), "{err}");
+
     let off = ["--support-at-noise", "0"];
     let o = process_rows(&input, &kernel, "nnls", &off, &dir.path().join("b.csv"));
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(!String::from_utf8_lossy(&o.stdout).contains("spikes anywhere"));
+
+    let padded = ["--zero-padding"];
+    let (on, off) = (dir.path().join("c.csv"), dir.path().join("d.csv"));
+    let o = process_rows(&input, &kernel, "nnls", &padded, &on);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let summary = String::from_utf8_lossy(&o.stdout);
+    assert!(!summary.contains("spikes anywhere"), "{summary}");
+    assert!(!summary.contains("zeros"), "{summary}");
+    let o = process_rows(
+        &input,
+        &kernel,
+        "nnls",
+        &["--zero-padding", "--support-at-noise", "0"],
+        &off,
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (on, off) = (read_table(&on).unwrap(), read_table(&off).unwrap());
+    assert_eq!(on.rows, off.rows);
+    assert!(on.rows.iter().flatten().filter(|&&v| v > 0.0).count() > 1000);
 }

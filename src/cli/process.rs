@@ -232,12 +232,20 @@ pub struct ProcessReport {
     /// Rows with samples clipped at their maximum (runs of two or more), which NNLS leaves out
     /// of its fit.
     pub saturated_rows: usize,
-    /// Rows whose noise level could not be measured (zero, e.g. whole-number counts whose first
-    /// differences are mostly equal), where NNLS's spikes only near echoes (`--support-at-noise`)
-    /// had no level to apply and spikes went anywhere; 0 when the option is off or the method
-    /// is not NNLS.
+    /// Rows whose noise level could not be measured (zero: more than half of their first
+    /// differences are equal, as in a flat record or one whose zero padding is processed as
+    /// samples), where NNLS's spikes only near echoes (`--support-at-noise`) had no level to
+    /// apply and spikes went anywhere; 0 when the option is off or the method is not NNLS.
     pub rows_without_noise_level: usize,
+    /// Rows ending in a run of at least [`PADDING_RUN`] zeros processed as samples (without
+    /// `--zero-padding`): likely zero padding, which the baseline, the noise level and the
+    /// deconvolution then take for data.
+    pub padded_rows: usize,
 }
+
+/// Shortest run of zeros at the end of a row that the summary names as likely zero padding
+/// (samples; a recorded baseline is rarely exactly 0.0 eight times in a row).
+pub const PADDING_RUN: usize = 8;
 
 /// Median of a non-empty slice (sorted copy).
 fn median(values: &[f32]) -> f32 {
@@ -645,9 +653,17 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
     if report.rows_without_noise_level > 0 {
         tracing::warn!(
             rows = report.rows_without_noise_level,
-            "no noise level measured in these rows (whole-number counts whose first differences \
-             are mostly equal): NNLS put spikes anywhere in them, --support-at-noise had \
-             nothing to apply"
+            "no noise level measured in these rows (more than half of their first differences \
+             are equal: a flat record, or zero padding processed as samples): NNLS put spikes \
+             anywhere in them, --support-at-noise had nothing to apply"
+        );
+    }
+    if report.padded_rows > 0 {
+        tracing::warn!(
+            rows = report.padded_rows,
+            "these rows end in {PADDING_RUN} or more zeros, processed as samples: if that is \
+             zero padding, --zero-padding processes only the recorded samples (the baseline, \
+             the noise level and the deconvolution otherwise see a step down to 0)"
         );
     }
     let per = if report.waveforms > 0 {
@@ -656,7 +672,7 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         0.0
     };
     println!(
-        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
+        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
         args.input.display(),
         args.out.display(),
         report.waveforms,
@@ -683,6 +699,13 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
             r => format!(
                 ", spikes anywhere in {r} rows (no noise level measured, so \
                  --support-at-noise had nothing to apply)"
+            ),
+        },
+        match report.padded_rows {
+            0 => String::new(),
+            r => format!(
+                ", {r} rows end in {PADDING_RUN} or more zeros (if that is zero padding, \
+                 pass --zero-padding)"
             ),
         },
         match &args.returns {
@@ -794,6 +817,7 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         target_iterations: derived,
         saturated_rows: steps.saturated_rows,
         rows_without_noise_level: steps.rows_without_noise_level,
+        padded_rows: steps.padded_rows,
     })
 }
 
@@ -914,6 +938,8 @@ struct RowSteps<'a> {
     saturated_rows: usize,
     /// Rows so far where spikes only near echoes had no noise level to apply.
     rows_without_noise_level: usize,
+    /// Rows so far ending in [`PADDING_RUN`] or more zeros, processed as samples.
+    padded_rows: usize,
     /// The current row deconvolved by the response, before the kernel, `max_samples` values.
     first: Vec<f32>,
     /// Samples processed (padding excluded).
@@ -990,6 +1016,7 @@ impl<'a> RowSteps<'a> {
             excluded: Vec::with_capacity(max_samples),
             saturated_rows: 0,
             rows_without_noise_level: 0,
+            padded_rows: 0,
             first: vec![0.0f32; max_samples],
             samples: 0,
         })
@@ -1008,9 +1035,11 @@ impl<'a> RowSteps<'a> {
             )));
         }
         let full = row.len();
+        let recorded = unpadded_len(row);
         let len = if self.args.zero_padding {
-            unpadded_len(row)
+            recorded
         } else {
+            self.padded_rows += usize::from(recorded > 0 && full - recorded >= PADDING_RUN);
             full
         };
         if len == 0 {
