@@ -129,7 +129,7 @@ fn calibrate_allocates_nothing_per_pulse() {
 /// above its noise over more than 16 samples).
 #[test]
 fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
-    use fwlidar::signal::deconvolve::{MethodConfig, NnlsConfig, RlConfig};
+    use fwlidar::signal::deconvolve::{MethodConfig, NnlsConfig, NnlsOrRlConfig, RlConfig};
     use fwlidar::stages::deconvolve::DeconvolveConfig;
     use fwlidar::stages::deconvolve::{Deconvolve, KERNEL_OVER_MAX_TAPS};
     let _turn = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
@@ -137,7 +137,7 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
     // a decimation factor of ≥ 2 for any outgoing pulse at least 2 samples wide); RL stopping
     // by the noise and delivering its result as seen by a 2 ns target pulse (a reduced kernel
     // per shot), NNLS drawn as the target pulse (also with its noise-weighted refit), and the
-    // on-board RL from a Wiener start.
+    // on-board RL from a Wiener start; the per-pulse choice between NNLS and RL.
     let rl = |coarse_iterations: u32, stop_at_noise: Option<f32>| {
         MethodConfig::RichardsonLucy(RlConfig {
             iterations: 2,
@@ -165,6 +165,14 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
         support_at_noise: Some(4.0),
         ..NnlsConfig::default()
     });
+    let choice = MethodConfig::NnlsOrRl(NnlsOrRlConfig {
+        nnls: NnlsConfig {
+            max_iterations: 10,
+            support_at_noise: Some(4.0),
+            ..NnlsConfig::default()
+        },
+        ..NnlsOrRlConfig::default()
+    });
     for (max_taps, method, target_fwhm_ns) in [
         (256usize, rl(0, None), None),
         (16, rl(0, None), None),
@@ -177,6 +185,9 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
         // The on-board setting: the Wiener start (its FFT plans per window length) and the
         // output's noise floor.
         (96, MethodConfig::RichardsonLucy(RlConfig::onboard()), None),
+        // The per-pulse choice between NNLS and RL, as it is and to a 2 ns target.
+        (96, choice.clone(), None),
+        (96, choice, Some(2.0)),
     ] {
         let factory: StageFactory = Arc::new(move || {
             vec![

@@ -319,6 +319,7 @@ fn tradeoff_scores_a_scene_step_by_step() {
         "gold iterations=20",
         "wiener",
         "nnls max_iterations=100",
+        "nnls_or_rl threshold=0.5",
         "georeference",
         "voxelise (rl 20 through 2 ns; georeferenced)",
     ] {

@@ -25,7 +25,8 @@ use crate::geo::crs::OutputCrs;
 use crate::pipeline::ports::SourceEvent;
 use crate::pulse::{Pulse, PulseGeometry, SegmentKind};
 use crate::signal::deconvolve::{
-    Deconvolver, Gate, Gated, GoldConfig, MethodConfig, NnlsConfig, RlConfig, WienerConfig,
+    Deconvolver, Gate, Gated, GoldConfig, MethodConfig, NnlsConfig, NnlsOrRlConfig, RlConfig,
+    WienerConfig, choice,
 };
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::kernel::{Kernel, convolve_same, remove_baseline};
@@ -292,6 +293,10 @@ fn step_methods() -> Vec<(String, Option<MethodConfig>)> {
         (
             "nnls max_iterations=100".into(),
             Some(MethodConfig::Nnls(NnlsConfig::default())),
+        ),
+        (
+            format!("nnls_or_rl threshold={}", choice::DEFAULT_THRESHOLD),
+            Some(MethodConfig::NnlsOrRl(NnlsOrRlConfig::default())),
         ),
     ]
 }

@@ -24,8 +24,8 @@ use crate::eval::accuracy::{
 };
 use crate::eval::chain::{ChainRunner, ChainSpec};
 use crate::signal::deconvolve::{
-    DeconvError, Deconvolver, Gate, Gated, GoldConfig, MethodConfig, NnlsConfig, RlConfig,
-    Targeted, WienerConfig,
+    DeconvError, Deconvolver, Gate, Gated, GoldConfig, MethodConfig, NnlsConfig, NnlsOrRlConfig,
+    RlConfig, Targeted, WienerConfig,
 };
 use crate::signal::denoise::{Denoise, DenoiseConfig, DenoiseError};
 use crate::signal::drift::DriftBaseline;
@@ -143,6 +143,9 @@ pub const STOP_AT_NOISE_ACCELERATED_CAP: u32 = 50;
 /// Noise multiples `τ` of NNLS's spikes only near echoes (`support_at_noise`), swept for
 /// NNLS and NNLS drawn as the 2 ns pulse at the cap of 50.
 pub const NNLS_SUPPORT_TAUS: [f32; 2] = [3.0, 4.0];
+/// Thresholds of the per-pulse NNLS/RL choice swept (`nnls_or_rl_2ns`; share of NNLS's squared
+/// residual by which RL's must exceed it for NNLS to be kept).
+pub const CHOICE_THRESHOLDS: [f32; 2] = [0.3, 0.5];
 
 /// `(coarse_iterations, iterations)` of plain RL with the coarse-to-fine start (method `rl`;
 /// the coarse grid at the default 4 samples per kernel FWHM: a factor of 3 at 16 ns, none at
@@ -165,8 +168,10 @@ pub const WIENER_START_ITERATIONS: [u32; 3] = [8, 12, 16];
 /// (`wiener_2ns`), NNLS at [`TARGET_NNLS_CAPS`] (`nnls_2ns`); last, RL with the
 /// coarse-to-fine start at [`COARSE_RL`] and accelerated RL to the 2 ns pulse with it at
 /// [`COARSE_TARGET_ACCELERATED`] (`rl_acc_2ns`); then RL from the on-board Wiener start at
-/// [`WIENER_START_ITERATIONS`] (`rl_wiener`); last, NNLS and its 2 ns synthesis with spikes
-/// only near echoes at [`NNLS_SUPPORT_TAUS`]. Other parameters at their defaults.
+/// [`WIENER_START_ITERATIONS`] (`rl_wiener`); NNLS and its 2 ns synthesis with spikes
+/// only near echoes at [`NNLS_SUPPORT_TAUS`]; last, the per-pulse choice between NNLS and RL
+/// to the 2 ns pulse at [`CHOICE_THRESHOLDS`] (`nnls_or_rl_2ns`) and as it is
+/// (`nnls_or_rl`). Other parameters at their defaults.
 pub fn default_settings() -> Vec<Setting> {
     let plain = |method: &'static str, processing: Processing| Setting {
         method: method.into(),
@@ -313,7 +318,30 @@ pub fn default_settings() -> Vec<Setting> {
     }
     s.extend(wiener_start_settings());
     s.extend(nnls_support_settings());
+    s.extend(choice_settings());
     s
+}
+
+/// The per-pulse choice between NNLS and accelerated RL ([`NnlsOrRlConfig`], its defaults
+/// but the threshold): to the 2 ns truth pulse at [`CHOICE_THRESHOLDS`], and as it is at the
+/// default threshold.
+fn choice_settings() -> impl Iterator<Item = Setting> {
+    let setting = |method: &str, threshold: f32| Setting {
+        method: method.into(),
+        parameter: format!("threshold={threshold}"),
+        processing: Processing::Deconvolve(MethodConfig::NnlsOrRl(NnlsOrRlConfig {
+            threshold,
+            ..NnlsOrRlConfig::default()
+        })),
+        target_fwhm_ns: method.ends_with("_2ns").then_some(TRUTH_FWHM_NS),
+    };
+    CHOICE_THRESHOLDS
+        .into_iter()
+        .map(move |t| setting("nnls_or_rl_2ns", t))
+        .chain(std::iter::once(setting(
+            "nnls_or_rl",
+            crate::signal::deconvolve::choice::DEFAULT_THRESHOLD,
+        )))
 }
 
 /// NNLS and its 2 ns synthesis at the default cap with spikes only near echoes

@@ -68,7 +68,7 @@ use crate::signal::deconvolve::response::ResponseError;
 use crate::signal::deconvolve::richardson_lucy::MAX_COARSE_ITERATIONS;
 use crate::signal::deconvolve::response::response_from_flat_target;
 use crate::signal::deconvolve::{
-    Deconvolver, Gate, Gated, MethodConfig, RlConfig, Targeted, WienerConfig,
+    Deconvolver, Gate, Gated, MethodConfig, NnlsConfig, RlConfig, Targeted, WienerConfig,
 };
 use crate::signal::kernel::{Kernel, RecordLevels};
 
@@ -528,6 +528,58 @@ fn check_iterations(n: u32, path: String, v: &mut Validator) {
     );
 }
 
+/// Checks a Richardson-Lucy configuration at `method` (its path).
+fn check_rl(c: &RlConfig, method: &str, v: &mut Validator) {
+        check_iterations(c.iterations, field(method, "iterations"), v);
+        if let Some(tol) = c.early_stop {
+            v.positive(tol as f64, field(method, "early_stop"));
+        }
+        if let Some(tau) = c.stop_at_noise {
+            v.positive(tau as f64, field(method, "stop_at_noise"));
+        }
+        v.require(
+            c.coarse_iterations <= MAX_COARSE_ITERATIONS,
+            field(method, "coarse_iterations"),
+            format!(
+                "must be in 0..={MAX_COARSE_ITERATIONS}, got {}",
+                c.coarse_iterations
+            ),
+        );
+        v.require(
+            c.coarse_fwhm_samples.is_finite() && c.coarse_fwhm_samples >= 1.0,
+            field(method, "coarse_fwhm_samples"),
+            format!(
+                "must be a finite number of coarse samples ≥ 1, got {}",
+                c.coarse_fwhm_samples
+            ),
+        );
+        if let Some(w) = &c.wiener_start {
+            let start = field(method, "wiener_start");
+            check_wiener(w, &start, v);
+            v.require(
+                c.coarse_iterations == 0,
+                start,
+                "excludes coarse_iterations (both choose the start): keep one".to_string(),
+            );
+        }
+        if let Some(kappa) = c.floor_noise {
+            v.positive(kappa as f64, field(method, "floor_noise"));
+        }
+}
+
+/// Checks an NNLS configuration at `method` (its path).
+fn check_nnls(c: &NnlsConfig, method: &str, v: &mut Validator) {
+        check_iterations(c.max_iterations, field(method, "max_iterations"), v);
+        v.require(
+            c.tolerance.is_finite() && c.tolerance >= 0.0 && c.tolerance < 1.0,
+            field(method, "tolerance"),
+            format!("must be a relative tolerance in 0..1, got {}", c.tolerance),
+        );
+        if let Some(tau) = c.support_at_noise {
+            v.positive(tau as f64, field(method, "support_at_noise"));
+        }
+}
+
 impl Validate for DeconvolveConfig {
     fn validate(&self, path: &str, v: &mut Validator) {
         v.require(
@@ -549,41 +601,7 @@ impl Validate for DeconvolveConfig {
         let method = field(path, "method");
         match &self.method {
             MethodConfig::RichardsonLucy(c) => {
-                check_iterations(c.iterations, field(&method, "iterations"), v);
-                if let Some(tol) = c.early_stop {
-                    v.positive(tol as f64, field(&method, "early_stop"));
-                }
-                if let Some(tau) = c.stop_at_noise {
-                    v.positive(tau as f64, field(&method, "stop_at_noise"));
-                }
-                v.require(
-                    c.coarse_iterations <= MAX_COARSE_ITERATIONS,
-                    field(&method, "coarse_iterations"),
-                    format!(
-                        "must be in 0..={MAX_COARSE_ITERATIONS}, got {}",
-                        c.coarse_iterations
-                    ),
-                );
-                v.require(
-                    c.coarse_fwhm_samples.is_finite() && c.coarse_fwhm_samples >= 1.0,
-                    field(&method, "coarse_fwhm_samples"),
-                    format!(
-                        "must be a finite number of coarse samples ≥ 1, got {}",
-                        c.coarse_fwhm_samples
-                    ),
-                );
-                if let Some(w) = &c.wiener_start {
-                    let start = field(&method, "wiener_start");
-                    check_wiener(w, &start, v);
-                    v.require(
-                        c.coarse_iterations == 0,
-                        start,
-                        "excludes coarse_iterations (both choose the start): keep one".to_string(),
-                    );
-                }
-                if let Some(kappa) = c.floor_noise {
-                    v.positive(kappa as f64, field(&method, "floor_noise"));
-                }
+                check_rl(c, &method, v);
             }
             MethodConfig::Gold(c) => {
                 check_iterations(c.iterations, field(&method, "iterations"), v);
@@ -595,15 +613,19 @@ impl Validate for DeconvolveConfig {
             }
             MethodConfig::Wiener(c) => check_wiener(c, &method, v),
             MethodConfig::Nnls(c) => {
-                check_iterations(c.max_iterations, field(&method, "max_iterations"), v);
+                check_nnls(c, &method, v);
+            }
+            MethodConfig::NnlsOrRl(c) => {
+                check_nnls(&c.nnls, &field(&method, "nnls"), v);
+                check_rl(&c.rl, &field(&method, "rl"), v);
                 v.require(
-                    c.tolerance.is_finite() && c.tolerance >= 0.0 && c.tolerance < 1.0,
-                    field(&method, "tolerance"),
-                    format!("must be a relative tolerance in 0..1, got {}", c.tolerance),
+                    c.threshold.is_finite() && c.threshold >= 0.0,
+                    field(&method, "threshold"),
+                    format!(
+                        "must be a finite share of NNLS's squared residual, ≥ 0, got {}",
+                        c.threshold
+                    ),
                 );
-                if let Some(tau) = c.support_at_noise {
-                    v.positive(tau as f64, field(&method, "support_at_noise"));
-                }
             }
         }
         if let Some(f) = self.target_fwhm_ns {
@@ -838,7 +860,7 @@ fn grouped(n: u64) -> String {
 mod tests {
     use super::*;
     use crate::pipeline::testing::run_stage;
-    use crate::signal::deconvolve::{GoldConfig, RlConfig, WienerConfig};
+    use crate::signal::deconvolve::{GoldConfig, NnlsOrRlConfig, RlConfig, WienerConfig};
 
     fn gauss(n: usize, centre: f32, sigma: f32, amp: f32) -> Vec<f32> {
         (0..n)
@@ -1549,6 +1571,54 @@ mod tests {
             &mut v,
         );
         assert!(v.issues().is_empty());
+    }
+
+    /// The per-pulse choice parses from TOML with its two methods as nested tables, and each
+    /// bad value is named by its path (the two methods checked as on their own).
+    #[test]
+    fn nnls_or_rl_parses_and_each_field_is_checked() {
+        let crate::stages::StageConfig::Deconvolve(c) = stage(
+            "type = \"deconvolve\"\ntarget_fwhm_ns = 2.0\n[method]\nmethod = \"nnls_or_rl\"\n\
+             threshold = 0.4\nnnls = { max_iterations = 30 }\nrl = { iterations = 10 }",
+        )
+        .unwrap() else {
+            panic!("not a deconvolve stage")
+        };
+        let MethodConfig::NnlsOrRl(m) = &c.method else {
+            panic!("{:?}", c.method)
+        };
+        assert_eq!((m.threshold, m.nnls.max_iterations, m.rl.iterations), (0.4, 30, 10));
+        assert_eq!(m.rl.coarse_iterations, 0, "a table given replaces the defaults");
+        let mut v = Validator::new(None);
+        Validate::validate(&c, "s", &mut v);
+        assert!(v.issues().is_empty(), "{:?}", v.issues());
+        let bad = DeconvolveConfig::with_method(MethodConfig::NnlsOrRl(NnlsOrRlConfig {
+            threshold: -0.1,
+            nnls: NnlsConfig {
+                support_at_noise: Some(0.0),
+                ..NnlsConfig::default()
+            },
+            rl: RlConfig {
+                iterations: 0,
+                ..RlConfig::default()
+            },
+        }));
+        let mut v = Validator::new(None);
+        Validate::validate(&bad, "s", &mut v);
+        let fields: Vec<&str> = v.issues().iter().map(|(p, _)| p.as_str()).collect();
+        assert_eq!(
+            fields,
+            [
+                "s.method.nnls.support_at_noise",
+                "s.method.rl.iterations",
+                "s.method.threshold"
+            ]
+        );
+        let mut gated = c.clone();
+        gated.gate = Some(crate::signal::deconvolve::Gate::default());
+        let mut v = Validator::new(None);
+        Validate::validate(&gated, "s", &mut v);
+        assert_eq!(v.issues()[0].0, "s.gate", "the gate is RL's, inside the choice");
     }
 
     #[test]

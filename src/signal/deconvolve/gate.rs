@@ -378,6 +378,10 @@ impl Deconvolver for Gated {
         // The windows never cover more than the segment; the worst case is the whole segment.
         self.method.worst_case_flops(n, m) + n as u64
     }
+
+    fn take_target(&mut self, fwhm_ns: f64) -> bool {
+        self.method.take_target(fwhm_ns)
+    }
 }
 
 #[cfg(test)]

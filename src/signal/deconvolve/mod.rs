@@ -5,6 +5,7 @@
 //! Every method implements [`Deconvolver`] on plain slices (one segment at a time, volts above
 //! baseline) so the stage, `fwlidar process` and the benchmarks share the same code.
 
+pub mod choice;
 pub(crate) mod direct;
 pub mod gate;
 pub mod gold;
@@ -20,6 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::signal::kernel::Kernel;
 
+pub use choice::{NnlsOrRl, NnlsOrRlConfig};
 pub use gate::{Gate, GateError, GateStats, Gated};
 pub use gold::{Gold, GoldConfig};
 pub use nnls::{Nnls, NnlsConfig};
@@ -120,6 +122,16 @@ pub trait Deconvolver: Send {
     /// Worst-case floating-point operations for a segment of `n` samples and a kernel of `m`
     /// taps with this configuration: the fixed cost budget the configuration states.
     fn worst_case_flops(&self, n: usize, m: usize) -> u64;
+
+    /// Takes a target pulse of `fwhm_ns` (ns) to deliver results in itself, returning true; a
+    /// method that does (the per-pulse choice, whose two methods see a target differently)
+    /// is then passed through unchanged by [`Targeted`]. The default takes none (false):
+    /// [`Targeted`] reduces the kernel or draws the spikes. Called at construction, not per
+    /// pulse (it may allocate).
+    fn take_target(&mut self, fwhm_ns: f64) -> bool {
+        let _ = fwhm_ns;
+        false
+    }
 }
 
 /// The method and its settings (`method = "..."` in a `deconvolve` stage).
@@ -134,27 +146,33 @@ pub enum MethodConfig {
     Wiener(WienerConfig),
     /// Non-negative least squares on the banded Toeplitz system.
     Nnls(NnlsConfig),
+    /// NNLS or Richardson-Lucy, chosen per segment by their residuals.
+    NnlsOrRl(NnlsOrRlConfig),
 }
 
 impl MethodConfig {
-    /// Method name as in configuration (`richardson_lucy`, `gold`, `wiener`, `nnls`).
+    /// Method name as in configuration (`richardson_lucy`, `gold`, `wiener`, `nnls`,
+    /// `nnls_or_rl`).
     pub fn name(&self) -> &'static str {
         match self {
             MethodConfig::RichardsonLucy(_) => "richardson_lucy",
             MethodConfig::Gold(_) => "gold",
             MethodConfig::Wiener(_) => "wiener",
             MethodConfig::Nnls(_) => "nnls",
+            MethodConfig::NnlsOrRl(_) => "nnls_or_rl",
         }
     }
 
     /// The fixed iteration budget per segment: RL `iterations`, Gold `iterations ×
-    /// repetitions`, NNLS `max_iterations` (outer Lawson-Hanson iterations), Wiener 0 (direct).
+    /// repetitions`, NNLS `max_iterations` (outer Lawson-Hanson iterations), Wiener 0 (direct),
+    /// the per-pulse choice the sum of its two methods'.
     pub fn iteration_budget(&self) -> u64 {
         match self {
             MethodConfig::RichardsonLucy(c) => c.iterations as u64,
             MethodConfig::Gold(c) => c.iterations as u64 * c.repetitions.max(1) as u64,
             MethodConfig::Wiener(_) => 0,
             MethodConfig::Nnls(c) => c.max_iterations as u64,
+            MethodConfig::NnlsOrRl(c) => c.nnls.max_iterations as u64 + c.rl.iterations as u64,
         }
     }
 
@@ -167,6 +185,7 @@ impl MethodConfig {
             MethodConfig::Gold(c) => c.worst_case_flops(n, m),
             MethodConfig::Wiener(c) => c.worst_case_flops(n, m),
             MethodConfig::Nnls(c) => c.worst_case_flops(n, m),
+            MethodConfig::NnlsOrRl(c) => c.worst_case_flops(n, m),
         }
     }
 
@@ -180,6 +199,7 @@ impl MethodConfig {
             MethodConfig::Gold(c) => Box::new(Gold::new(c.clone(), max_samples, max_taps)),
             MethodConfig::Wiener(c) => Box::new(Wiener::new(c.clone(), max_samples, max_taps)),
             MethodConfig::Nnls(c) => Box::new(Nnls::new(c.clone(), max_samples, max_taps)),
+            MethodConfig::NnlsOrRl(c) => Box::new(NnlsOrRl::new(c.clone(), max_samples, max_taps)),
         }
     }
 }

@@ -262,6 +262,9 @@ fn variance(taps: &[f32]) -> f64 {
 /// A method delivering its result as seen by a target pulse (or as it is, without one).
 pub struct Targeted {
     inner: Box<dyn Deconvolver>,
+    /// The target pulse the inner method took itself ([`Deconvolver::take_target`]); runs
+    /// then pass through.
+    taken: Option<f64>,
     reducer: Option<KernelReducer>,
     /// NNLS: deconvolve by the kernel itself, then draw every spike as the target pulse.
     synthesis: bool,
@@ -279,8 +282,12 @@ impl Targeted {
         max_samples: usize,
         max_taps: usize,
     ) -> Self {
+        let mut inner = inner;
+        let taken = target_fwhm_ns.filter(|&f| inner.take_target(f));
+        let target_fwhm_ns = target_fwhm_ns.filter(|_| taken.is_none());
         let synthesis = inner.name() == "nnls";
         Targeted {
+            taken,
             reducer: target_fwhm_ns.map(|f| KernelReducer::new(f, max_taps)),
             spikes: if synthesis && target_fwhm_ns.is_some() {
                 vec![0.0; max_samples]
@@ -294,7 +301,15 @@ impl Targeted {
 
     /// The target pulse's FWHM, ns (`None`: results as they are).
     pub fn target_fwhm_ns(&self) -> Option<f64> {
-        self.reducer.as_ref().map(KernelReducer::fwhm_ns)
+        self.taken
+            .or_else(|| self.reducer.as_ref().map(KernelReducer::fwhm_ns))
+    }
+
+    /// NNLS's spikes of the last run of `n` samples, before they were drawn as the target pulse;
+    /// `None` when this wrapper draws none (another method, no target, or `n` too long).
+    pub fn last_spikes(&self, n: usize) -> Option<&[f32]> {
+        let drawn = self.synthesis && self.reducer.is_some();
+        self.spikes.get(..n).filter(|_| drawn)
     }
 
     /// The wrapped method, without the target (e.g. a first deconvolution by a calibrated
@@ -419,6 +434,12 @@ fn redraw_adjacent_pairs(spikes: &[f32], t: &Kernel, sigma: f64, out: &mut [f32]
 impl Deconvolver for Targeted {
     fn name(&self) -> &'static str {
         self.inner.name()
+    }
+
+    fn take_target(&mut self, fwhm_ns: f64) -> bool {
+        // Already wrapped: a second target would be applied twice.
+        let _ = fwhm_ns;
+        false
     }
 
     fn run(
