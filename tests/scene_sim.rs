@@ -379,8 +379,8 @@ fn the_experiment_matrix_runs_every_combination() {
     ]);
     assert!(o.status.success(), "{}", text(&o.stderr));
     let csv = std::fs::read_to_string(dir.path().join("scene_matrix.csv")).unwrap();
-    // 2 widths × (nadir once + 20° at two azimuths) × 9 steps.
-    assert_eq!(csv.lines().count(), 1 + 2 * 3 * 9, "{csv}");
+    // 2 widths × (nadir once + 20° at two azimuths) × 10 steps.
+    assert_eq!(csv.lines().count(), 1 + 2 * 3 * 10, "{csv}");
     let rl_sam = |w: &str, z: &str, a: &str| -> f64 {
         csv.lines()
             .find(|l| l.starts_with(&format!("{w},{z},{a},rl ")))

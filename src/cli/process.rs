@@ -23,7 +23,7 @@ use crate::format::table::{Table, TableFormat, read_table, write_table};
 use crate::pulse::{FittedReturn, PulseGeometry};
 use crate::signal::decompose::{DecomposeConfig, Decomposer};
 use crate::signal::deconvolve::response::response_from_flat_target;
-use crate::signal::deconvolve::{Deconvolver, MethodConfig, Targeted};
+use crate::signal::deconvolve::{Deconvolver, MethodConfig, NnlsOrRlConfig, Targeted};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::drift::{DriftBaseline, flag_saturated};
 use crate::signal::echo_strength::{DetectedEcho, EchoDetector};
@@ -45,6 +45,9 @@ pub enum ProcessMethod {
     Nnls,
     /// Gold.
     Gold,
+    /// NNLS or Richardson-Lucy, chosen per row by their residuals.
+    #[value(name = "nnls_or_rl")]
+    NnlsOrRl,
     /// No deconvolution (denoise only, or a plain copy with `--no-denoise`).
     None,
 }
@@ -57,6 +60,7 @@ impl ProcessMethod {
             ProcessMethod::Wiener => "wiener",
             ProcessMethod::Nnls => "nnls",
             ProcessMethod::Gold => "gold",
+            ProcessMethod::NnlsOrRl => "nnls_or_rl",
             ProcessMethod::None => "none",
         }
     }
@@ -68,6 +72,7 @@ impl ProcessMethod {
             ProcessMethod::Wiener => Some("wiener"),
             ProcessMethod::Nnls => Some("nnls"),
             ProcessMethod::Gold => Some("gold"),
+            ProcessMethod::NnlsOrRl => Some("nnls_or_rl"),
             ProcessMethod::None => None,
         }
     }
@@ -512,7 +517,9 @@ fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
             "--stop-at-noise has no meaning with --method none",
         ));
     }
-    if args.support_at_noise.is_some() && args.method != ProcessMethod::Nnls {
+    if args.support_at_noise.is_some()
+        && !matches!(args.method, ProcessMethod::Nnls | ProcessMethod::NnlsOrRl)
+    {
         return Err(Failure::usage(format!(
             "--support-at-noise applies to --method nnls only, not {}",
             args.method.cli_name()
@@ -585,7 +592,9 @@ const NNLS_BUDGET: (u32, u32) = (50, 256);
 /// model of docs/accuracy.md, while 128 and 256 gave identical results. `None` when it does
 /// not apply (another method, or iterations given).
 fn nnls_budget(args: &ProcessArgs, max_samples: usize) -> Option<u32> {
-    if args.iterations.is_some() || args.method != ProcessMethod::Nnls {
+    if args.iterations.is_some()
+        || !matches!(args.method, ProcessMethod::Nnls | ProcessMethod::NnlsOrRl)
+    {
         return None;
     }
     let half = u32::try_from(max_samples / 2).unwrap_or(u32::MAX);
@@ -602,6 +611,9 @@ fn method_config(
         return Ok(None);
     };
     let mut value = serde_json::json!({ "method": name });
+    if args.method == ProcessMethod::NnlsOrRl {
+        return choice_config(args, derived).map(Some);
+    }
     if let Some(n) = args.iterations.or(derived) {
         // NNLS's budget is its Lawson-Hanson outer iterations (at most one non-zero sample
         // each).
@@ -647,6 +659,31 @@ fn method_config(
         })
 }
 
+/// The per-pulse choice between NNLS and RL as `process` runs it: its defaults, NNLS with
+/// `process`'s spike budget (`derived`) and noise-weighted refit as for `--method nnls`; the
+/// options that set one method's budget or stop (`--iterations`, `--stop-at-noise`,
+/// `--support-at-noise`) are refused (each method keeps its own).
+fn choice_config(args: &ProcessArgs, derived: Option<u32>) -> Result<MethodConfig, Failure> {
+    for (given, option) in [
+        (args.iterations.is_some(), "--iterations"),
+        (args.stop_at_noise.is_some(), "--stop-at-noise"),
+        (args.support_at_noise.is_some(), "--support-at-noise"),
+    ] {
+        if given {
+            return Err(Failure::usage(format!(
+                "{option} is not accepted by --method nnls_or_rl: NNLS and RL keep their own \
+                 settings (a deconvolve stage's configuration sets them)"
+            )));
+        }
+    }
+    let mut config = NnlsOrRlConfig::default();
+    config.nnls.noise_weights = true;
+    if let Some(n) = derived {
+        config.nnls.max_iterations = n;
+    }
+    Ok(MethodConfig::NnlsOrRl(config))
+}
+
 /// Runs `fwlidar process`.
 pub fn run(args: ProcessArgs) -> Result<(), Failure> {
     let report = process(&args)?;
@@ -689,10 +726,13 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         },
         match report.saturated_rows {
             0 => String::new(),
-            r if args.method == ProcessMethod::Nnls => {
+            r if matches!(args.method, ProcessMethod::Nnls | ProcessMethod::NnlsOrRl) => {
                 format!(", {r} rows with clipped samples (left out of the fit)")
             }
-            r => format!(", {r} rows with clipped samples (only --method nnls leaves them out)"),
+            r => format!(
+                ", {r} rows with clipped samples (only --method nnls and nnls_or_rl leave them \
+                 out)"
+            ),
         },
         match report.rows_without_noise_level {
             0 => String::new(),
@@ -1430,6 +1470,7 @@ mod tests {
             ProcessMethod::Wiener,
             ProcessMethod::Nnls,
             ProcessMethod::Gold,
+            ProcessMethod::NnlsOrRl,
         ] {
             let args = ProcessArgs {
                 method: m,
