@@ -476,6 +476,17 @@ fn unit_gaussian_8ns() -> (impl Fn(f64) -> f64, Vec<f32>, f32) {
     (pulse, taps.iter().map(|t| t / sum).collect(), sum)
 }
 
+/// A deterministic uniform noise in [−0.5, 0.5) (xorshift64 from `seed`, non-zero).
+fn uniform_noise(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    }
+}
+
 /// `fwlidar process --input IN --kernel K --method M --no-progress --out OUT EXTRA…`.
 fn process_rows(input: &Path, kernel: &Path, method: &str, extra: &[&str], out: &Path) -> Output {
     let mut args = vec![
@@ -730,13 +741,7 @@ fn nnls_spikes_only_near_echoes_by_default() {
     let dir = tempfile::tempdir().unwrap();
     let (input, kernel) = (dir.path().join("in.npy"), dir.path().join("k.npy"));
     let (pulse, taps, sum) = unit_gaussian_8ns();
-    let mut state = 0x2545_f491_4f6c_dd1du64;
-    let mut uniform = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-    };
+    let mut uniform = uniform_noise(0x2545_f491_4f6c_dd1d);
     // Echo areas 3 (at 90) and 2 (at 150); peak about 0.35; noise ±0.01 (3 % of the peak).
     let rows: Vec<Vec<f32>> = (0..20)
         .map(|_| {
@@ -878,13 +883,7 @@ fn nnls_or_rl_keeps_the_better_method_per_row() {
     let (pulse, taps, sum) = unit_gaussian_8ns();
     let sigma2 = 2.0 / 2.354_820_045; // 2 ns truth pulse, samples
     let truth_pulse = |x: f64| (-0.5 * (x / sigma2).powi(2)).exp() / (sigma2 * 2.506_628_275);
-    let mut state = 0x9e37_79b9_7f4a_7c15u64;
-    let mut uniform = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-    };
+    let mut uniform = uniform_noise(0x9e37_79b9_7f4a_7c15);
     // Surfaces: (position, area); canopy: 30 scatterers over 40 samples, then ground.
     let hard: Vec<(f64, f64)> = vec![(100.0, 3.0), (140.0, 2.0)];
     let canopy: Vec<(f64, f64)> = (0..30)

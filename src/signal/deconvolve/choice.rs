@@ -272,6 +272,15 @@ mod tests {
         y
     }
 
+    /// `x ⊛ k` plus [`noise`] of half-range `amp`.
+    fn received(x: &[f32], k: &Kernel, amp: f32, seed: u64) -> Vec<f32> {
+        let y = blurred(x, k);
+        y.iter()
+            .zip(noise(y.len(), amp, seed))
+            .map(|(a, b)| a + b)
+            .collect()
+    }
+
     /// Two hard surfaces 6 ns apart under an 8 ns pulse: RL stopped early under-fits them, so
     /// NNLS is kept; its result is the one returned.
     #[test]
@@ -280,11 +289,7 @@ mod tests {
         let mut x = vec![0.0f32; 160];
         x[70] = 1.0;
         x[76] = 0.7;
-        let y: Vec<f32> = blurred(&x, &k)
-            .iter()
-            .zip(noise(160, 0.003, 1))
-            .map(|(a, b)| a + b)
-            .collect();
+        let y = received(&x, &k, 0.003, 1);
         let mut chooser = NnlsOrRl::new(NnlsOrRlConfig::default(), 256, 64);
         let mut out = vec![0.0; 160];
         chooser.run(&y, &k, 0.0015, 1.0, &mut out).unwrap();
@@ -306,11 +311,7 @@ mod tests {
                 0.05 * (-0.5 * t * t).exp()
             })
             .collect();
-        let y: Vec<f32> = blurred(&x, &k)
-            .iter()
-            .zip(noise(200, 0.01, 2))
-            .map(|(a, b)| a + b)
-            .collect();
+        let y = received(&x, &k, 0.01, 2);
         let mut chooser = NnlsOrRl::new(NnlsOrRlConfig::default(), 256, 64);
         let mut out = vec![0.0; 200];
         chooser.run(&y, &k, 0.005, 1.0, &mut out).unwrap();
