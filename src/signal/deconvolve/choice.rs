@@ -251,7 +251,16 @@ impl Deconvolver for NnlsOrRl {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::truth::gaussian_pulse;
+
+    /// A unit-sum Gaussian pulse of `fwhm_ns` at `sample_ns` per sample.
+    fn gaussian_pulse(
+        fwhm_ns: f64,
+        sample_ns: f64,
+    ) -> Result<Kernel, crate::signal::kernel::KernelError> {
+        let mut k = Kernel::with_capacity(64);
+        k.set_gaussian(fwhm_ns, sample_ns)?;
+        Ok(k)
+    }
 
     /// A deterministic uniform noise in ±`amp`.
     fn noise(n: usize, amp: f32, seed: u64) -> Vec<f32> {
