@@ -34,8 +34,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::signal::deconvolve::{
-    DeconvError, Deconvolver, Gate, Gated, KernelReducer, MethodConfig, MethodStats, NnlsConfig,
-    RlConfig, Targeted,
+    DeconvError, Deconvolver, Gate, Gated, MethodConfig, MethodStats, NnlsConfig, RlConfig,
+    Targeted,
 };
 use crate::signal::kernel::{Kernel, convolve_same};
 
@@ -97,8 +97,6 @@ pub struct NnlsOrRl {
     sparse: Targeted,
     /// Richardson-Lucy behind the echo-window gate (to the target pulse when one is taken).
     smooth: Targeted,
-    /// The kernel both results are blurred back by, when a target is taken.
-    reducer: Option<KernelReducer>,
     /// NNLS's result and the blurred-back fit, `max_samples` each.
     alt: Vec<f32>,
     fit: Vec<f32>,
@@ -118,7 +116,6 @@ impl NnlsOrRl {
             max_taps,
             sparse,
             smooth,
-            reducer: None,
             alt: vec![0.0; max_samples],
             fit: vec![0.0; max_samples],
             runs: 0,
@@ -169,10 +166,8 @@ impl NnlsOrRl {
         let fit = &mut self.fit[..n];
         let spikes = self.sparse.last_spikes(n).unwrap_or(&self.alt[..n]);
         let chi_nnls = squared_residual(y, spikes, k, excluded, fit);
-        let h = match self.reducer.as_mut() {
-            Some(r) => r.reduce(k, sample_ns).map_err(|_| DeconvError::BadKernel)?,
-            None => k,
-        };
+        // RL's own fit kernel: the reduced kernel its wrapper computed for this run, if any.
+        let h = self.smooth.reduced_kernel().unwrap_or(k);
         let chi_rl = squared_residual(y, out, h, excluded, fit);
         self.runs += 1;
         if chi_rl - chi_nnls > f64::from(self.config.threshold) * chi_nnls {
@@ -235,7 +230,6 @@ impl Deconvolver for NnlsOrRl {
             Self::methods(&self.config, Some(fwhm_ns), self.max_samples, self.max_taps);
         self.sparse = sparse;
         self.smooth = smooth;
-        self.reducer = Some(KernelReducer::new(fwhm_ns, self.max_taps));
         true
     }
 

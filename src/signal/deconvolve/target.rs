@@ -110,6 +110,11 @@ impl KernelReducer {
         }
     }
 
+    /// The last reduced kernel [`KernelReducer::reduce`] returned (empty before the first).
+    pub fn last_reduced(&self) -> &Kernel {
+        &self.reduced
+    }
+
     /// The target pulse's FWHM, ns.
     pub fn fwhm_ns(&self) -> f64 {
         self.fwhm_ns
@@ -310,6 +315,15 @@ impl Targeted {
     pub fn last_spikes(&self, n: usize) -> Option<&[f32]> {
         let drawn = self.synthesis && self.reducer.is_some();
         self.spikes.get(..n).filter(|_| drawn)
+    }
+
+    /// The reduced kernel the last run deconvolved by (a method deconvolving by it, with a
+    /// target); `None` otherwise.
+    pub fn reduced_kernel(&self) -> Option<&Kernel> {
+        self.reducer
+            .as_ref()
+            .filter(|_| !self.synthesis)
+            .map(KernelReducer::last_reduced)
     }
 
     /// The wrapped method, without the target (e.g. a first deconvolution by a calibrated
