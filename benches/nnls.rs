@@ -243,29 +243,33 @@ fn nnls_process(c: &mut Criterion) {
         }
     }
     // The per-pulse choice between NNLS and accelerated RL, to a 2 ns target, on the same rows
-    // (as `process --method nnls_or_rl` runs it, without its low-pass): both methods per row.
-    let choice = fwlidar::signal::deconvolve::MethodConfig::NnlsOrRl(NnlsOrRlConfig {
-        nnls: NnlsConfig {
-            max_iterations: 128,
-            noise_weights: true,
-            support_at_noise: Some(4.0),
-            ..Default::default()
-        },
-        ..NnlsOrRlConfig::default()
-    });
-    let mut d = Targeted::new(choice.build(256, 64), Some(2.0), 256, 64);
-    let mut out = vec![0.0f32; 256];
-    for (row, y, ex, noise_v) in &rows {
-        let name = format!("nnls_or_rl_2ns_8ns_{row}");
-        d.run_excluding(y, &k, *noise_v, 1.0, ex, &mut out)
-            .expect("nnls_or_rl");
-        c.bench_function(&name, |b| {
-            b.iter(|| {
-                d.run_excluding(black_box(y), &k, *noise_v, 1.0, ex, &mut out)
-                    .expect("nnls_or_rl");
-                black_box(&out);
-            })
+    // (as `process --method nnls_or_rl` runs it, without its low-pass): as configured (NNLS
+    // only where RL's residual is above the noise), and with NNLS run on every row.
+    for (label, above) in [("nnls_or_rl", 1.0), ("nnls_or_rl_always", 0.0)] {
+        let choice = fwlidar::signal::deconvolve::MethodConfig::NnlsOrRl(NnlsOrRlConfig {
+            nnls: NnlsConfig {
+                max_iterations: 128,
+                noise_weights: true,
+                support_at_noise: Some(4.0),
+                ..Default::default()
+            },
+            nnls_above_noise: above,
+            ..NnlsOrRlConfig::default()
         });
+        let mut d = Targeted::new(choice.build(256, 64), Some(2.0), 256, 64);
+        let mut out = vec![0.0f32; 256];
+        for (row, y, ex, noise_v) in &rows {
+            let name = format!("{label}_2ns_8ns_{row}");
+            d.run_excluding(y, &k, *noise_v, 1.0, ex, &mut out)
+                .expect("nnls_or_rl");
+            c.bench_function(&name, |b| {
+                b.iter(|| {
+                    d.run_excluding(black_box(y), &k, *noise_v, 1.0, ex, &mut out)
+                        .expect("nnls_or_rl");
+                    black_box(&out);
+                })
+            });
+        }
     }
 }
 

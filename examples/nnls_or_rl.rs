@@ -2,7 +2,11 @@
 //! sweep's simulated pulses, NNLS drawn as the 2 ns pulse (spikes only near echoes, τ = 4) and
 //! accelerated RL to the 2 ns pulse (13 + 33 coarse iterations) side by side; the eq. 14 RMSE
 //! of each, of the per-pulse oracle choice, and of the residual rule
-//! `F = (χ²_RL − χ²_NNLS) / (n s²) > t`, `s² = χ²_NNLS / (n − k)`.
+//! `F = (χ²_RL − χ²_NNLS) / (n s²) > t`, `s² = χ²_NNLS / (n − k)`. Also, per case, how
+//! often NNLS is the better of the two; rules tried and not adopted (docs/accuracy.md, "NNLS
+//! only where RL misfits"): running NNLS only when `χ²_RL` exceeds `c · n σ²` (σ the denoise
+//! step's noise level), an AIC-like penalty on NNLS's spike count, and choosing by how much
+//! wider the data's runs above the noise are than a single pulse's ("extendedness").
 //!
 //! `cargo run --release --example nnls_or_rl -- [PULSES_PER_CASE] [NOISE_FRACTION] [SEED]`
 //! (defaults 1000, 0.03, 2012: the sweep's).
@@ -25,6 +29,46 @@ struct Scored {
     nnls: f64,
     rl: f64,
     f: f64,
+    /// RL's squared residual over the noise floor, `χ²_RL / (n σ²)`.
+    r: f64,
+    /// NNLS's squared residual over the noise floor, `χ²_NNLS / (n σ²)`.
+    q: f64,
+    /// Nonzero spikes of NNLS.
+    k: usize,
+    /// Extendedness at 3, 4 and 6 noise levels (energy-weighted run length over a single pulse's).
+    e: [f64; 3],
+}
+
+/// Taps of `k` at or above `frac` of its peak (at least 1): the width, in samples, of a single
+/// pulse's run above a level at `frac` of its peak.
+fn kernel_width_above(k: &Kernel, frac: f64) -> f64 {
+    let peak = k.taps.iter().fold(0.0f32, |m, &v| m.max(v)) as f64;
+    let count = k.taps.iter().filter(|&&v| v as f64 >= frac * peak).count();
+    count.max(1) as f64
+}
+
+/// Energy-weighted mean over the runs of `d` above `level` of run length / single-pulse width
+/// above `level` at the run's peak (1 for isolated pulses, more for extended returns).
+fn extendedness(d: &[f32], k: &Kernel, level: f64) -> f64 {
+    let (mut num, mut den) = (0.0f64, 0.0f64);
+    let mut i = 0;
+    while i < d.len() {
+        if (d[i] as f64) <= level {
+            i += 1;
+            continue;
+        }
+        let start = i;
+        let (mut peak, mut energy) = (0.0f64, 0.0f64);
+        while i < d.len() && (d[i] as f64) > level {
+            peak = peak.max(d[i] as f64);
+            energy += d[i] as f64;
+            i += 1;
+        }
+        let ratio = (i - start) as f64 / kernel_width_above(k, level / peak);
+        num += energy * ratio;
+        den += energy;
+    }
+    if den > 0.0 { num / den } else { 0.0 }
 }
 
 /// Σ ((truth − processed) / max truth)².
@@ -98,6 +142,10 @@ fn score_case(
             nnls: squared_error(&p.truth, &drawn),
             rl: squared_error(&p.truth, &smoothed),
             f: (chi_rl - chi_nnls) / (BINS as f64 * s2.max(f64::MIN_POSITIVE)),
+            r: chi_rl / (BINS as f64 * (level as f64).powi(2)).max(f64::MIN_POSITIVE),
+            q: chi_nnls / (BINS as f64 * (level as f64).powi(2)).max(f64::MIN_POSITIVE),
+            k: nonzero,
+            e: [3.0, 4.0, 6.0].map(|t| extendedness(&d, &k, t * level as f64)),
         });
     }
 }
@@ -155,5 +203,97 @@ fn main() {
     );
     for t in THRESHOLDS {
         println!("rule F > {t}: {:.4}", pooled(&scored, |s| s.f > t));
+    }
+    let q = |v: &mut Vec<f64>, p: f64| {
+        v.sort_by(f64::total_cmp);
+        if v.is_empty() {
+            f64::NAN
+        } else {
+            v[((v.len() - 1) as f64 * p) as usize]
+        }
+    };
+    for (label, pick) in [("rule keeps NNLS", true), ("rule keeps RL", false)] {
+        let mut r: Vec<f64> = scored
+            .iter()
+            .filter(|s| (s.f > 0.5) == pick)
+            .map(|s| s.r)
+            .collect();
+        let mut qq: Vec<f64> = scored
+            .iter()
+            .filter(|s| (s.f > 0.5) == pick)
+            .map(|s| s.q)
+            .collect();
+        println!(
+            "{label}: {} pulses; chi_rl/(n s2) p05 {:.3} p25 {:.3} p50 {:.3} p95 {:.3}; chi_nnls/(n s2) p50 {:.3}",
+            r.len(),
+            q(&mut r, 0.05),
+            q(&mut r, 0.25),
+            q(&mut r, 0.5),
+            q(&mut r, 0.95),
+            q(&mut qq, 0.5)
+        );
+    }
+    for c in [0.6, 0.8, 1.0, 1.2, 1.5, 2.0, 3.0] {
+        let runs = scored.iter().filter(|s| s.r > c).count() as f64 / scored.len() as f64;
+        println!(
+            "gate chi_rl > {c} n s2 then F > 0.5: NNLS runs on {:.1} %, {:.4}",
+            100.0 * runs,
+            pooled(&scored, |s| s.r > c && s.f > 0.5)
+        );
+    }
+    for (c, name) in names.iter().enumerate() {
+        let of: Vec<&Scored> = scored.iter().filter(|s| s.case == c).collect();
+        let better = of.iter().filter(|s| s.nnls < s.rl).count() as f64 / of.len() as f64;
+        let kept = of.iter().filter(|s| s.f > 0.5).count() as f64 / of.len() as f64;
+        let mut kb: Vec<f64> = of
+            .iter()
+            .filter(|s| s.nnls < s.rl)
+            .map(|s| s.k as f64)
+            .collect();
+        let mut kw: Vec<f64> = of
+            .iter()
+            .filter(|s| s.nnls >= s.rl)
+            .map(|s| s.k as f64)
+            .collect();
+        println!(
+            "{name}: NNLS better on {:.0} %, rule keeps it on {:.0} %; k when NNLS better p25/50/75 {}/{}/{}, when RL better {}/{}/{}",
+            100.0 * better,
+            100.0 * kept,
+            q(&mut kb, 0.25),
+            q(&mut kb, 0.5),
+            q(&mut kb, 0.75),
+            q(&mut kw, 0.25),
+            q(&mut kw, 0.5),
+            q(&mut kw, 0.75)
+        );
+    }
+    for (c, name) in names.iter().enumerate() {
+        let of: Vec<&Scored> = scored.iter().filter(|s| s.case == c).collect();
+        for j in 0..3 {
+            let mut e: Vec<f64> = of.iter().map(|s| s.e[j]).collect();
+            print!(
+                "{name} E{j} p10/50/90 {:.2}/{:.2}/{:.2}; ",
+                q(&mut e, 0.1),
+                q(&mut e, 0.5),
+                q(&mut e, 0.9)
+            );
+        }
+        println!();
+    }
+    for j in 0..3 {
+        for e0 in [1.2, 1.4, 1.6, 1.8, 2.0, 2.5, 3.0] {
+            println!(
+                "E{j} < {e0} -> NNLS: {:.4} (NNLS on {:.0} %); or rule: {:.4}",
+                pooled(&scored, |s| s.e[j] < e0),
+                100.0 * scored.iter().filter(|s| s.e[j] < e0).count() as f64 / scored.len() as f64,
+                pooled(&scored, |s| s.e[j] < e0 || s.f > 0.5)
+            );
+        }
+    }
+    for a in [0.5, 1.0, 2.0, 4.0, 8.0] {
+        println!(
+            "rule (chi_rl - chi_nnls)/s2 > {a} k: {:.4}",
+            pooled(&scored, |s| (s.r - s.q) * BINS as f64 > a * s.k as f64)
+        );
     }
 }

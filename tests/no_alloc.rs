@@ -165,12 +165,14 @@ fn deconvolve_by_the_outgoing_support_allocates_nothing_per_pulse() {
         support_at_noise: Some(4.0),
         ..NnlsConfig::default()
     });
+    // NNLS run on every segment (`nnls_above_noise = 0`): the choice's longest path.
     let choice = MethodConfig::NnlsOrRl(NnlsOrRlConfig {
         nnls: NnlsConfig {
             max_iterations: 10,
             support_at_noise: Some(4.0),
             ..NnlsConfig::default()
         },
+        nnls_above_noise: 0.0,
         ..NnlsOrRlConfig::default()
     });
     for (max_taps, method, target_fwhm_ns) in [

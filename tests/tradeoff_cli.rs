@@ -117,7 +117,7 @@ fn quick_run_writes_sane_csv_markdown_and_svg() {
     let o = fwlidar(&["tradeoff", "--quick", "--out", out.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
-    assert!(err.contains("[354/354]"), "progress on stderr: {err}");
+    assert!(err.contains("[360/360]"), "progress on stderr: {err}");
 
     for f in ["tradeoff.csv", "tradeoff.md", "tradeoff.svg"] {
         assert!(out.join(f).is_file(), "{f} missing");
@@ -130,8 +130,8 @@ fn quick_run_writes_sane_csv_markdown_and_svg() {
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
     assert_eq!(header, COLUMNS);
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
-    // 59 settings × 3 widths × 2 families.
-    assert_eq!(rows.len(), 59 * 3 * 2);
+    // 60 settings × 3 widths × 2 families.
+    assert_eq!(rows.len(), 60 * 3 * 2);
     let col = |name: &str| COLUMNS.iter().position(|c| *c == name).unwrap();
     let mut rmse: HashMap<(String, String, String, String), f64> = HashMap::new();
     for r in &rows {
@@ -285,8 +285,8 @@ fn a_chain_from_a_run_configuration_is_scored_beside_the_built_in_settings() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     assert!(
-        err.contains("[360/360]"),
-        "59 settings and the chain: {err}"
+        err.contains("[366/366]"),
+        "60 settings and the chain: {err}"
     );
     assert!(
         err.contains("chain:onboard runs denoise, deconvolve"),
@@ -313,7 +313,7 @@ fn a_chain_from_a_run_configuration_is_scored_beside_the_built_in_settings() {
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
     assert_eq!(&header[..4], ["method", "parameter", "pulses", "rmse"]);
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
-    assert_eq!(rows.len(), 60);
+    assert_eq!(rows.len(), 61);
     let row = |m: &str, p: &str| {
         rows.iter()
             .find(|r| r[0] == m && r[1] == p)

@@ -170,8 +170,8 @@ pub const WIENER_START_ITERATIONS: [u32; 3] = [8, 12, 16];
 /// [`COARSE_TARGET_ACCELERATED`] (`rl_acc_2ns`); then RL from the on-board Wiener start at
 /// [`WIENER_START_ITERATIONS`] (`rl_wiener`); NNLS and its 2 ns synthesis with spikes
 /// only near echoes at [`NNLS_SUPPORT_TAUS`]; last, the per-pulse choice between NNLS and RL
-/// to the 2 ns pulse at [`CHOICE_THRESHOLDS`] (`nnls_or_rl_2ns`) and as it is
-/// (`nnls_or_rl`). Other parameters at their defaults.
+/// to the 2 ns pulse at [`CHOICE_THRESHOLDS`] (`nnls_or_rl_2ns`), at the default threshold
+/// with NNLS run on every pulse, and as it is (`nnls_or_rl`). Other parameters at their defaults.
 pub fn default_settings() -> Vec<Setting> {
     let plain = |method: &'static str, processing: Processing| Setting {
         method: method.into(),
@@ -323,25 +323,36 @@ pub fn default_settings() -> Vec<Setting> {
 }
 
 /// The per-pulse choice between NNLS and accelerated RL ([`NnlsOrRlConfig`], its defaults
-/// but the threshold): to the 2 ns truth pulse at [`CHOICE_THRESHOLDS`], and as it is at the
-/// default threshold.
+/// but the threshold): to the 2 ns truth pulse at [`CHOICE_THRESHOLDS`], the default threshold
+/// again with NNLS run on every pulse (`nnls_above_noise=0`: what the noise test saves), and
+/// as it is at the default threshold.
 fn choice_settings() -> impl Iterator<Item = Setting> {
-    let setting = |method: &str, threshold: f32| Setting {
+    use crate::signal::deconvolve::choice::DEFAULT_THRESHOLD;
+    let setting = |method: &str, threshold: f32, always: bool| Setting {
         method: method.into(),
-        parameter: format!("threshold={threshold}"),
+        parameter: if always {
+            format!("threshold={threshold} nnls_above_noise=0")
+        } else {
+            format!("threshold={threshold}")
+        },
         processing: Processing::Deconvolve(MethodConfig::NnlsOrRl(NnlsOrRlConfig {
             threshold,
+            nnls_above_noise: if always {
+                0.0
+            } else {
+                NnlsOrRlConfig::default().nnls_above_noise
+            },
             ..NnlsOrRlConfig::default()
         })),
         target_fwhm_ns: method.ends_with("_2ns").then_some(TRUTH_FWHM_NS),
     };
     CHOICE_THRESHOLDS
         .into_iter()
-        .map(move |t| setting("nnls_or_rl_2ns", t))
-        .chain(std::iter::once(setting(
-            "nnls_or_rl",
-            crate::signal::deconvolve::choice::DEFAULT_THRESHOLD,
-        )))
+        .map(move |t| setting("nnls_or_rl_2ns", t, false))
+        .chain([
+            setting("nnls_or_rl_2ns", DEFAULT_THRESHOLD, true),
+            setting("nnls_or_rl", DEFAULT_THRESHOLD, false),
+        ])
 }
 
 /// NNLS and its 2 ns synthesis at the default cap with spikes only near echoes

@@ -626,6 +626,14 @@ impl Validate for DeconvolveConfig {
                         c.threshold
                     ),
                 );
+                v.require(
+                    c.nnls_above_noise.is_finite() && c.nnls_above_noise >= 0.0,
+                    field(&method, "nnls_above_noise"),
+                    format!(
+                        "must be a finite multiple of the empty range's mean squared data, ≥ 0, got {}",
+                        c.nnls_above_noise
+                    ),
+                );
             }
         }
         if let Some(f) = self.target_fwhm_ns {
@@ -1594,6 +1602,7 @@ mod tests {
         assert!(v.issues().is_empty(), "{:?}", v.issues());
         let bad = DeconvolveConfig::with_method(MethodConfig::NnlsOrRl(NnlsOrRlConfig {
             threshold: -0.1,
+            nnls_above_noise: f32::NAN,
             nnls: NnlsConfig {
                 support_at_noise: Some(0.0),
                 ..NnlsConfig::default()
@@ -1611,7 +1620,8 @@ mod tests {
             [
                 "s.method.nnls.support_at_noise",
                 "s.method.rl.iterations",
-                "s.method.threshold"
+                "s.method.threshold",
+                "s.method.nnls_above_noise"
             ]
         );
         let mut gated = c.clone();
