@@ -618,22 +618,21 @@ impl Validate for DeconvolveConfig {
             MethodConfig::NnlsOrRl(c) => {
                 check_nnls(&c.nnls, &field(&method, "nnls"), v);
                 check_rl(&c.rl, &field(&method, "rl"), v);
-                v.require(
-                    c.threshold.is_finite() && c.threshold >= 0.0,
-                    field(&method, "threshold"),
-                    format!(
-                        "must be a finite share of NNLS's squared residual, ≥ 0, got {}",
-                        c.threshold
+                let share = [
+                    (c.threshold, "threshold", "share of NNLS's squared residual"),
+                    (
+                        c.nnls_above_noise,
+                        "nnls_above_noise",
+                        "multiple of the empty range's mean squared data",
                     ),
-                );
-                v.require(
-                    c.nnls_above_noise.is_finite() && c.nnls_above_noise >= 0.0,
-                    field(&method, "nnls_above_noise"),
-                    format!(
-                        "must be a finite multiple of the empty range's mean squared data, ≥ 0, got {}",
-                        c.nnls_above_noise
-                    ),
-                );
+                ];
+                for (value, name, what) in share {
+                    v.require(
+                        value.is_finite() && value >= 0.0,
+                        field(&method, name),
+                        format!("must be a finite {what}, ≥ 0, got {value}"),
+                    );
+                }
             }
         }
         if let Some(f) = self.target_fwhm_ns {

@@ -367,15 +367,21 @@ mod tests {
             .collect()
     }
 
-    /// Two hard surfaces 6 ns apart under an 8 ns pulse: RL stopped early under-fits them, so
-    /// NNLS is kept; its result is the one returned.
-    #[test]
-    fn keeps_nnls_on_sharp_surfaces() {
+    /// Two hard surfaces 6 ns apart under an 8 ns pulse, uniform noise of half-range 0.003.
+    fn sharp_surfaces() -> (Kernel, Vec<f32>) {
         let k = gaussian_pulse(8.0, 1.0).unwrap();
         let mut x = vec![0.0f32; 160];
         x[70] = 1.0;
         x[76] = 0.7;
         let y = received(&x, &k, 0.003, 1);
+        (k, y)
+    }
+
+    /// Two hard surfaces 6 ns apart under an 8 ns pulse: RL stopped early under-fits them, so
+    /// NNLS is kept; its result is the one returned.
+    #[test]
+    fn keeps_nnls_on_sharp_surfaces() {
+        let (k, y) = sharp_surfaces();
         let mut chooser = NnlsOrRl::new(NnlsOrRlConfig::default(), 256, 64);
         let mut out = vec![0.0; 160];
         chooser.run(&y, &k, 0.0015, 1.0, &mut out).unwrap();
@@ -442,11 +448,7 @@ mod tests {
     /// overstate the noise left below it) NNLS still runs on sharp surfaces and is kept.
     #[test]
     fn the_noise_floor_comes_from_the_empty_range() {
-        let k = gaussian_pulse(8.0, 1.0).unwrap();
-        let mut x = vec![0.0f32; 160];
-        x[70] = 1.0;
-        x[76] = 0.7;
-        let y = received(&x, &k, 0.003, 1);
+        let (k, y) = sharp_surfaces();
         let sigma = 0.003 / 3f32.sqrt();
         let mut chooser = NnlsOrRl::new(NnlsOrRlConfig::default(), 256, 64);
         let mut out = vec![0.0; 160];
@@ -478,11 +480,7 @@ mod tests {
     /// (NNLS not run), never to NNLS.
     #[test]
     fn an_overestimated_noise_level_falls_back_to_rl() {
-        let k = gaussian_pulse(8.0, 1.0).unwrap();
-        let mut x = vec![0.0f32; 160];
-        x[70] = 1.0;
-        x[76] = 0.7;
-        let y = received(&x, &k, 0.003, 1);
+        let (k, y) = sharp_surfaces();
         let mut chooser = NnlsOrRl::new(NnlsOrRlConfig::default(), 256, 64);
         let mut out = vec![0.0; 160];
         chooser.run(&y, &k, 0.5, 1.0, &mut out).unwrap();
