@@ -1,6 +1,6 @@
-//! The per-pulse choice between a sparse and a smooth prior (`method = "nnls_or_rl"`): NNLS
-//! and accelerated Richardson-Lucy both run on every segment, and the one whose fit the data
-//! favour is kept.
+//! The per-pulse choice between a sparse and a smooth prior (`method = "nnls_or_rl"`):
+//! accelerated Richardson-Lucy runs on every segment, NNLS where RL's fit misfits its echoes,
+//! and the one whose fit the data favour is kept.
 //!
 //! NNLS (non-negative spikes) is the best estimator of the tradeoff sweep on hard, discrete
 //! surfaces and the worst on extended canopy; Richardson-Lucy stopped early (a smooth
