@@ -328,30 +328,27 @@ pub fn default_settings() -> Vec<Setting> {
 /// as it is at the default threshold.
 fn choice_settings() -> impl Iterator<Item = Setting> {
     use crate::signal::deconvolve::choice::DEFAULT_THRESHOLD;
-    let setting = |method: &str, threshold: f32, always: bool| Setting {
+    let default_above = NnlsOrRlConfig::default().nnls_above_noise;
+    let setting = move |method: &str, threshold: f32, nnls_above_noise: f32| Setting {
         method: method.into(),
-        parameter: if always {
-            format!("threshold={threshold} nnls_above_noise=0")
-        } else {
+        parameter: if nnls_above_noise == default_above {
             format!("threshold={threshold}")
+        } else {
+            format!("threshold={threshold} nnls_above_noise={nnls_above_noise}")
         },
         processing: Processing::Deconvolve(MethodConfig::NnlsOrRl(NnlsOrRlConfig {
             threshold,
-            nnls_above_noise: if always {
-                0.0
-            } else {
-                NnlsOrRlConfig::default().nnls_above_noise
-            },
+            nnls_above_noise,
             ..NnlsOrRlConfig::default()
         })),
         target_fwhm_ns: method.ends_with("_2ns").then_some(TRUTH_FWHM_NS),
     };
     CHOICE_THRESHOLDS
         .into_iter()
-        .map(move |t| setting("nnls_or_rl_2ns", t, false))
+        .map(move |t| setting("nnls_or_rl_2ns", t, default_above))
         .chain([
-            setting("nnls_or_rl_2ns", DEFAULT_THRESHOLD, true),
-            setting("nnls_or_rl", DEFAULT_THRESHOLD, false),
+            setting("nnls_or_rl_2ns", DEFAULT_THRESHOLD, 0.0),
+            setting("nnls_or_rl", DEFAULT_THRESHOLD, default_above),
         ])
 }
 

@@ -28,7 +28,7 @@
 //! level squared when fewer than 16 samples are empty). The rule above could then keep NNLS only
 //! if NNLS fitted the data well below the noise, i.e. fitted the noise; so the test saves NNLS's
 //! time without changing what the rule decides (docs/accuracy.md: the tradeoff sweep's RMSE
-//! within 0.00002 of NNLS run on every pulse, a quarter to a third less time). The means are
+//! within 0.00005 of NNLS run on every pulse, 14–31 % less mean time). The means are
 //! per sample, so a long empty range does not dilute the echoes' misfit. A noise level that is
 //! not a positive finite number runs NNLS always, as does `nnls_above_noise = 0`.
 //!
