@@ -23,7 +23,9 @@ use crate::format::table::{Table, TableFormat, read_table, write_table};
 use crate::pulse::{FittedReturn, PulseGeometry};
 use crate::signal::decompose::{DecomposeConfig, Decomposer};
 use crate::signal::deconvolve::response::response_from_flat_target;
-use crate::signal::deconvolve::{Deconvolver, MethodConfig, NnlsOrRlConfig, Targeted};
+use crate::signal::deconvolve::{
+    ChoiceCounts, Deconvolver, MethodConfig, NnlsOrRlConfig, Targeted,
+};
 use crate::signal::denoise::{Denoise, DenoiseConfig};
 use crate::signal::drift::{DriftBaseline, flag_saturated};
 use crate::signal::echo_strength::{DetectedEcho, EchoDetector};
@@ -246,6 +248,9 @@ pub struct ProcessReport {
     /// `--zero-padding`): likely zero padding, which the baseline, the noise level and the
     /// deconvolution then take for data.
     pub padded_rows: usize,
+    /// With `--method nnls_or_rl`: over how many rows NNLS ran (RL misfit its echoes) and over
+    /// how many its result was kept.
+    pub choice: Option<ChoiceCounts>,
 }
 
 /// Shortest run of zeros at the end of a row that the summary names as likely zero padding
@@ -709,7 +714,7 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         0.0
     };
     println!(
-        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
+        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
         args.input.display(),
         args.out.display(),
         report.waveforms,
@@ -719,6 +724,7 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
             Some(n) => format!(" ({n} iterations for the target pulse)"),
             None => String::new(),
         },
+        report.choice.map_or_else(String::new, choice_words),
         match (args.no_denoise, low_pass_ghz(&args)) {
             (true, _) => "",
             (false, Some(_)) => ", denoised",
@@ -787,6 +793,14 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         per
     );
     Ok(())
+}
+
+/// How the per-row choice of `--method nnls_or_rl` went, for the summary line.
+fn choice_words(c: ChoiceCounts) -> String {
+    format!(
+        " (NNLS ran on {} of {} rows, where RL misfit its echoes, and was kept on {})",
+        c.second_runs, c.segments, c.second_kept
+    )
 }
 
 /// Does the work of `fwlidar process` and returns what it did (no summary line).
@@ -858,6 +872,10 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
         saturated_rows: steps.saturated_rows,
         rows_without_noise_level: steps.rows_without_noise_level,
         padded_rows: steps.padded_rows,
+        choice: steps
+            .deconvolver
+            .as_ref()
+            .and_then(Deconvolver::choice_counts),
     })
 }
 

@@ -47,8 +47,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::signal::deconvolve::{
-    DeconvError, Deconvolver, Gate, Gated, MethodConfig, MethodStats, NnlsConfig, RlConfig,
-    Targeted,
+    ChoiceCounts, DeconvError, Deconvolver, Gate, Gated, MethodConfig, MethodStats, NnlsConfig,
+    RlConfig, Targeted,
 };
 use crate::signal::kernel::{Kernel, convolve_same};
 
@@ -283,6 +283,14 @@ fn residuals(
 impl Deconvolver for NnlsOrRl {
     fn name(&self) -> &'static str {
         "nnls_or_rl"
+    }
+
+    fn choice_counts(&self) -> Option<ChoiceCounts> {
+        Some(ChoiceCounts {
+            segments: self.runs,
+            second_runs: self.nnls_runs,
+            second_kept: self.kept_nnls,
+        })
     }
 
     fn run(

@@ -382,6 +382,10 @@ impl Deconvolver for Gated {
     fn take_target(&mut self, fwhm_ns: f64) -> bool {
         self.method.take_target(fwhm_ns)
     }
+
+    fn choice_counts(&self) -> Option<super::ChoiceCounts> {
+        self.method.choice_counts()
+    }
 }
 
 #[cfg(test)]

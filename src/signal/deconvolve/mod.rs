@@ -132,6 +132,24 @@ pub trait Deconvolver: Send {
         let _ = fwhm_ns;
         false
     }
+
+    /// Of a per-pulse choice between two methods ([`NnlsOrRl`]): how often the second ran and
+    /// was kept over the segments run so far. `None` for a single method (the default); the
+    /// wrappers (gate, target pulse) pass on their method's.
+    fn choice_counts(&self) -> Option<ChoiceCounts> {
+        None
+    }
+}
+
+/// How a per-pulse choice between two methods went over the segments run so far.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ChoiceCounts {
+    /// Segments run.
+    pub segments: u64,
+    /// Segments where the second method (NNLS) ran: the first's fit misfit its echoes.
+    pub second_runs: u64,
+    /// Segments where the second method's result was kept.
+    pub second_kept: u64,
 }
 
 /// The method and its settings (`method = "..."` in a `deconvolve` stage).

@@ -491,6 +491,10 @@ impl Deconvolver for Targeted {
         };
         self.inner.worst_case_flops(n, m) + extra
     }
+
+    fn choice_counts(&self) -> Option<super::ChoiceCounts> {
+        self.inner.choice_counts()
+    }
 }
 
 #[cfg(test)]
