@@ -1025,9 +1025,9 @@ fn overload_at_twice_the_capacity_records_everything_and_counts_every_drop() {
     // pulses per second (heaptrack: the growth is the tiles' columns). Measured 2026-12-06:
     // on CI (4 527 pulses/s processed) 338 MB in the first 20 s, 458 MB in the last; here
     // (6 313/s) 212 → 406 MB over the minute, 22 MB of it in the last 20 s; with 30 iterations
-    // (20 000/s) 431 → 545 MB, 8 MB in the last 20 s. Memory kept per dropped frame would
-    // instead keep growing with the drops: so the last 20 s are checked against the 20 s
-    // before them.
+    // (20 000/s) 431 → 545 MB, 8 MB in the last 20 s; overloaded for 90 s (the whole line),
+    // it levelled at 420–427 MB from 50 s on. Memory kept per dropped frame would instead keep
+    // growing with the drops: so the last 20 s are checked against the 20 s before them.
     let n = rss.len();
     let early = *rss[..20].iter().max().unwrap();
     let mid = *rss[n - 40..n - 20].iter().max().unwrap();
