@@ -724,7 +724,9 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
             Some(n) => format!(" ({n} iterations for the target pulse)"),
             None => String::new(),
         },
-        report.choice.map_or_else(String::new, choice_words),
+        report
+            .choice
+            .map_or_else(String::new, |c| choice_words(c, report.waveforms)),
         match (args.no_denoise, low_pass_ghz(&args)) {
             (true, _) => "",
             (false, Some(_)) => ", denoised",
@@ -795,10 +797,16 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
     Ok(())
 }
 
-/// How the per-row choice of `--method nnls_or_rl` went, for the summary line.
-fn choice_words(c: ChoiceCounts) -> String {
+/// How the per-row choice of `--method nnls_or_rl` went over `rows` rows, for the summary
+/// line (with `--response` and a kernel a row is deconvolved twice, each counted).
+fn choice_words(c: ChoiceCounts, rows: usize) -> String {
+    let unit = if c.segments == rows as u64 {
+        "rows"
+    } else {
+        "deconvolutions (by the response, then by the kernel)"
+    };
     format!(
-        " (NNLS ran on {} of {} rows, where RL misfit its echoes, and was kept on {})",
+        " (NNLS ran on {} of {} {unit}, where RL misfit its echoes, and was kept on {})",
         c.second_runs, c.segments, c.second_kept
     )
 }
