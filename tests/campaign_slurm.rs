@@ -9,8 +9,8 @@
 //! task of a second submission (the killed task), sees the merge job never start, resubmits,
 //! and gets the same bytes. The daemons are stopped when the test ends, however it ends.
 //!
-//! Skipped, saying why, where the Slurm daemons are not installed (`.ci/run` installs
-//! `slurm-wlm` and `munge`) or the test does not run as root.
+//! Needs the Slurm daemons (`tests/run.sh` installs `slurm-wlm` and `munge`) and root; without
+//! them it fails, saying so.
 
 mod common;
 
@@ -40,28 +40,19 @@ impl Drop for Cluster {
     }
 }
 
-/// The full path of a Slurm or munge program (daemons live in /usr/sbin, which a user's PATH
-/// may lack).
-fn which(cmd: &str) -> Option<PathBuf> {
-    [
-        "/usr/sbin",
-        "/usr/bin",
-        "/sbin",
-        "/bin",
-        "/usr/local/sbin",
-        "/usr/local/bin",
-    ]
-    .iter()
-    .map(|d| Path::new(d).join(cmd))
-    .find(|p| p.exists())
-}
-
-fn found(cmd: &str) -> bool {
-    which(cmd).is_some()
-}
-
+/// A Slurm or munge program by its full path (daemons live in /usr/sbin, which a user's PATH
+/// may lack); a missing one fails the test, naming `tests/run.sh`.
 fn program(cmd: &str) -> Command {
-    Command::new(which(cmd).unwrap_or_else(|| PathBuf::from(cmd)))
+    let package = if cmd == "munged" {
+        "munge"
+    } else {
+        "slurm-wlm"
+    };
+    Command::new(common::tool(
+        cmd,
+        package,
+        "this check runs a one-node Slurm cluster",
+    ))
 }
 
 /// This machine's short host name (slurmd finds its node by it).
@@ -224,7 +215,7 @@ fn submit(c: &Cluster, file: &Path, extra: &[&str]) -> Vec<String> {
 
 #[test]
 fn a_campaign_on_a_one_node_slurm_gives_a_sequential_replays_bytes_even_after_a_killed_task() {
-    let missing: Vec<&str> = [
+    for cmd in [
         "munged",
         "slurmctld",
         "slurmd",
@@ -232,23 +223,20 @@ fn a_campaign_on_a_one_node_slurm_gives_a_sequential_replays_bytes_even_after_a_
         "squeue",
         "scancel",
         "sinfo",
-    ]
-    .into_iter()
-    .filter(|c| !found(c))
-    .collect();
-    if !missing.is_empty() {
-        eprintln!(
-            "SKIPPED: Slurm is not installed here ({} missing; `.ci/run` installs slurm-wlm and \
-             munge with apt-get)",
-            missing.join(", ")
-        );
-        return;
+    ] {
+        let package = if cmd == "munged" {
+            "munge"
+        } else {
+            "slurm-wlm"
+        };
+        common::tool(cmd, package, "this check runs a one-node Slurm cluster");
     }
     // SAFETY: geteuid has no preconditions.
-    if unsafe { libc::geteuid() } != 0 {
-        eprintln!("SKIPPED: the one-node Slurm of this test runs its daemons as root");
-        return;
-    }
+    assert!(
+        unsafe { libc::geteuid() } == 0,
+        "the one-node Slurm of this check runs its daemons as root: run `{}` as root",
+        common::SETUP
+    );
     let dir = tempfile::tempdir().unwrap();
     let cluster = start(&dir.path().join("slurm"));
     // Four crossing lines, as tests/campaign.rs makes them.

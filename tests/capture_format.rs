@@ -2,6 +2,8 @@
 //! damage, resync after garbage, no panics on arbitrary input, and the errors for files that are
 //! not (readable) captures.
 
+mod common;
+
 use std::io::Cursor;
 use std::path::Path;
 
@@ -493,7 +495,7 @@ fn file_round_trip_and_append_after_a_crash() {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(64))]
+    #![proptest_config(common::proptest_cases(64, "proptest-regressions/tests/capture_format.txt"))]
 
     #[test]
     fn round_trip(first in ".{0,40}", recs in prop::collection::vec(rec_strategy(), 0..40)) {

@@ -423,11 +423,13 @@ fn man_pages_render_and_are_never_written_over() {
         "fwlidar-biomass.1",
         "fwlidar-metrics.1",
         "fwlidar-trees.1",
+        "fwlidar-response.1",
+        "fwlidar-compare.1",
     ] {
         assert!(names.iter().any(|n| n == want), "{want} missing: {names:?}");
     }
     assert!(!names.iter().any(|n| n == "fwlidar-help.1"), "{names:?}");
-    assert_eq!(names.len(), 1 + 17, "{names:?}");
+    assert_eq!(names.len(), 1 + 19, "{names:?}");
 
     let main = std::fs::read_to_string(out.join("fwlidar.1")).unwrap();
     assert!(
@@ -447,12 +449,14 @@ fn man_pages_render_and_are_never_written_over() {
     assert!(replay.contains(".TH fwlidar-replay 1"), "{replay}");
     assert!(replay.contains("\\-\\-set"), "{replay}");
 
-    // Rendered by groff (what `man -l` runs) when it is installed.
-    if let Ok(r) = std::process::Command::new("groff")
-        .args(["-man", "-Tutf8", "-Wall"])
-        .arg(out.join("fwlidar.1"))
-        .output()
+    // Rendered by groff (what `man -l` runs).
     {
+        let groff = common::tool("groff", "groff-base", "groff renders our manual pages");
+        let r = std::process::Command::new(groff)
+            .args(["-man", "-Tutf8", "-Wall"])
+            .arg(out.join("fwlidar.1"))
+            .output()
+            .expect("run groff");
         assert!(r.status.success(), "{}", text(&r.stderr));
         let page = text(&r.stdout);
         // groff -Tutf8 overstrikes bold text; compare without the backspaces.
@@ -505,4 +509,105 @@ fn man_pages_render_and_are_never_written_over() {
     let o = fwlidar(&["man", "--out", other.to_str().unwrap()]);
     assert_usage_error(&o, &["fwlidar-run.1"]);
     assert_eq!(std::fs::read_dir(&other).unwrap().count(), 1);
+}
+
+/// The README's first command, as a new user runs it (stdout and stderr not a terminal): the
+/// summary names every file and folder it wrote, fits 100 columns, and stderr carries no
+/// colour codes nor a debug-formatted field.
+#[test]
+fn the_first_run_names_every_output_it_wrote_plainly() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let o = fwlidar(&[
+        "replay",
+        "replay/two_layer.fwcap",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let stdout = text(&o.stdout);
+    let written: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    for name in [
+        "returns.las",
+        "waveforms.npy",
+        "waveform_index.npy",
+        "pulse_metrics.csv",
+        "rasters",
+        "voxels.zarr",
+        "summary.json",
+    ] {
+        assert!(
+            written.iter().any(|w| w == name),
+            "{name} not written: {written:?}"
+        );
+    }
+    for name in &written {
+        let named = common::summary_output(&stdout, name)
+            .or_else(|| common::summary_output(&stdout, &format!("{name}/")))
+            .is_some()
+            || stdout.contains(&format!("{name} indexes"));
+        assert!(named, "the summary does not name {name}:\n{stdout}");
+    }
+    for line in stdout.lines() {
+        assert!(
+            line.chars().count() <= 100,
+            "a summary line over 100 columns ({}):\n{line}",
+            line.chars().count()
+        );
+    }
+    let voxels = common::summary_output(&stdout, "voxels.zarr").unwrap();
+    assert!(!voxels.contains("compressed into"), "{voxels}");
+    let err = text(&o.stderr);
+    assert!(!err.contains('\u{1b}'), "colour codes on stderr: {err:?}");
+    for info in err.lines().filter(|l| l.contains(" INFO ")) {
+        assert!(
+            !info.contains('='),
+            "an INFO line with key=value fields instead of words: {info}"
+        );
+    }
+}
+
+/// `replay` with no file, run from a folder that is not a clone: the sample is found in the
+/// source tree the program was built from (its path printed), and the help says so; the
+/// one-liners of the commands that read waveform files name GEDI L1B; `--out` states its
+/// default.
+#[test]
+fn help_matches_the_program_and_replay_finds_its_sample_from_anywhere() {
+    let elsewhere = tempfile::tempdir().unwrap();
+    let out = elsewhere.path().join("o");
+    let o = std::process::Command::new(common::BIN)
+        .args(["replay", "--no-progress", "--out"])
+        .arg(&out)
+        .current_dir(elsewhere.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let sample = Path::new(common::ROOT).join("replay/two_layer.fwcap");
+    assert!(
+        text(&o.stdout).contains(&sample.display().to_string()),
+        "{}",
+        text(&o.stdout)
+    );
+    assert!(out.join("summary.json").is_file());
+
+    let top = text(&fwlidar(&["--help"]).stdout);
+    for cmd in ["replay", "inspect", "import"] {
+        let line = top
+            .lines()
+            .find(|l| l.trim_start().starts_with(&format!("{cmd} ")))
+            .unwrap_or_else(|| panic!("no {cmd} in:\n{top}"));
+        assert!(line.contains("GEDI L1B"), "{line}");
+    }
+    let replay_help = text(&fwlidar(&["replay", "--help"]).stdout);
+    assert!(
+        replay_help.contains("replay/two_layer.fwcap"),
+        "{replay_help}"
+    );
+    assert!(
+        replay_help.contains("`out` in the embedded configuration"),
+        "{replay_help}"
+    );
 }

@@ -757,23 +757,20 @@ fn kill_9_keeps_the_capture_up_to_the_last_flush_and_a_restart_continues_the_sur
 }
 
 /// The headless browser: `$FWLIDAR_CHROMIUM`, else `chromium` or `chromium-browser` on the PATH
-/// (`.ci/run` installs Debian's chromium). Panics saying how to get it.
+/// (`tests/run.sh` installs Debian's chromium). Panics naming that command when it is missing.
 fn chromium() -> PathBuf {
     if let Some(p) = std::env::var_os("FWLIDAR_CHROMIUM") {
         return PathBuf::from(p);
     }
-    for name in ["chromium", "chromium-browser", "google-chrome"] {
-        for dir in std::env::var("PATH").unwrap_or_default().split(':') {
-            let p = Path::new(dir).join(name);
-            if p.is_file() {
-                return p;
-            }
-        }
-    }
-    panic!(
-        "this check loads the QC page in a real browser and needs chromium: run .ci/run (it \
-         installs Debian's chromium), `apt-get install chromium`, or set FWLIDAR_CHROMIUM"
-    );
+    common::find_tool("chromium-browser")
+        .or_else(|| common::find_tool("google-chrome"))
+        .unwrap_or_else(|| {
+            common::tool(
+                "chromium",
+                "chromium",
+                "this check loads the QC page in a real browser",
+            )
+        })
 }
 
 /// Loads `url` in headless chromium, lets its scripts run for `budget_ms` of virtual time, and

@@ -15,6 +15,17 @@ thread_local! {
     /// Counted on the test's own thread only: the harness's waiting thread allocates now and
     /// then on a loaded machine.
     static COUNTED: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+    /// This thread's counted allocations (the two tests run at once).
+    static MINE: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
+}
+
+fn mine() -> u64 {
+    MINE.with(|c| c.get())
+}
+
+fn count_one() {
+    ALLOCS.fetch_add(1, Ordering::Relaxed);
+    let _ = MINE.try_with(|c| c.set(c.get() + 1));
 }
 
 fn counted() -> bool {
@@ -24,7 +35,7 @@ fn counted() -> bool {
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         if counted() {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
+            count_one();
         }
         unsafe { System.alloc(layout) }
     }
@@ -33,7 +44,7 @@ unsafe impl GlobalAlloc for Counting {
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
         if counted() {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
+            count_one();
         }
         unsafe { System.realloc(ptr, layout, new_size) }
     }
@@ -109,4 +120,81 @@ fn decomposer_fits_without_allocating() {
     let allocations = ALLOCS.load(Ordering::SeqCst) - before;
     assert_eq!(allocations, 0);
     assert!(found >= 50 * 8 * 2, "{found} components");
+}
+
+/// Echoes found against a learned response allocate nothing per pulse either: the stage's
+/// finder and buffers are sized when it is built.
+#[test]
+fn echoes_against_a_learned_response_are_found_without_allocating() {
+    use fwlidar::pulse::{Pulse, SegmentKind};
+    use fwlidar::signal::decompose::{Decompose, EchoModel};
+    use fwlidar::signal::learned_response::ResponseLearner;
+    // A receiver with a tail: Gaussian core, a 5 % bump 10 samples after, a 2 % tail.
+    let response = |x: f64| {
+        (-0.5 * (x / 1.87).powi(2)).exp()
+            + 0.05 * (-0.5 * ((x - 10.0) / 1.5).powi(2)).exp()
+            + if x > 3.0 {
+                0.02 * (-(x - 3.0) / 15.0).exp()
+            } else {
+                0.0
+            }
+    };
+    let segment = |echoes: &[(f64, f64)], k: usize| -> Vec<u16> {
+        (0..96)
+            .map(|i| {
+                let s: f64 = echoes
+                    .iter()
+                    .map(|&(a, at)| a * response(i as f64 - at - 0.37 * k as f64))
+                    .sum();
+                (3.0 + s + ((i * 7919 + k) % 3) as f64 - 1.0)
+                    .round()
+                    .max(0.0) as u16
+            })
+            .collect()
+    };
+    let mut learner = ResponseLearner::new();
+    for k in 0..400 {
+        let y: Vec<f32> = segment(&[(100.0 + (k % 90) as f64, 20.0)], k % 7)
+            .iter()
+            .map(|&c| f32::from(c))
+            .collect();
+        learner.add_segment(0, 1.0, &y, 255.0);
+    }
+    let file = std::sync::Arc::new(learner.finish("test").unwrap());
+    let mut stage = Decompose::new(DecomposeConfig {
+        model: EchoModel::Response,
+        learned: Some(file),
+        ..DecomposeConfig::default()
+    });
+    let mut pulses: Vec<Pulse> = (0..8)
+        .map(|k| {
+            let mut p = Pulse {
+                bits: 8,
+                gain_v_per_dn: 1.0,
+                ..Pulse::default()
+            };
+            p.push_segment(
+                SegmentKind::Return,
+                0,
+                0.0,
+                segment(&[(150.0, 20.0), (60.0, 45.0), (40.0, 51.0)], k),
+            );
+            p.signal = p.raw.iter().map(|&c| f32::from(c)).collect();
+            p.returns.reserve(16);
+            p
+        })
+        .collect();
+    COUNTED.with(|c| c.set(true));
+    let before = mine();
+    let mut found = 0;
+    for _ in 0..50 {
+        for p in &mut pulses {
+            stage.decompose_pulse(p);
+            found += p.returns.len();
+        }
+    }
+    let allocations = mine() - before;
+    COUNTED.with(|c| c.set(false));
+    assert_eq!(allocations, 0);
+    assert_eq!(found, 50 * 8 * 3, "three echoes, their tails none");
 }

@@ -1,6 +1,6 @@
 //! The IGN LiDAR-HD DTM (GeoTIFF, Lambert-93) read by `fwlidar::geo::dem`, sampled at the
 //! ground points of the same tile's point cloud, which a real LAZ reader (laspy with lazrs, in
-//! the venv `.ci/run` makes) extracts: the residuals say whether our reader puts every pixel
+//! the venv `tests/run.sh` makes) extracts: the residuals say whether our reader puts every pixel
 //! where it belongs.
 
 mod common;

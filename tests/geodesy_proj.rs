@@ -1,6 +1,8 @@
 //! Our projections against PROJ itself: 24 reference points — both hemispheres, UTM zone edges,
 //! the equator, high latitudes, the Lambert-93 of the IGN DEM fixture, geocentric — converted by
-//! `cs2cs` (Debian's proj-bin, installed by `.ci/run`) and by `fwlidar::geo`, to 1 mm.
+//! `cs2cs` (Debian's proj-bin, installed by `tests/run.sh`) and by `fwlidar::geo`, to 1 mm.
+
+mod common;
 
 use std::io::Write;
 use std::process::{Command, Stdio};
@@ -37,15 +39,18 @@ const POINTS: &[(f64, f64, f64)] = &[
 
 /// Runs `cs2cs` from EPSG:4326 (lat lon order) to `to` on every point; (x, y, z) per point.
 fn cs2cs(to: &str, points: &[(f64, f64, f64)]) -> Vec<[f64; 3]> {
-    let mut child = Command::new("cs2cs")
+    let cs2cs = common::tool(
+        "cs2cs",
+        "proj-bin",
+        "PROJ's cs2cs is this check's reference",
+    );
+    let mut child = Command::new(cs2cs)
         .args(["-f", "%.6f", "EPSG:4326", to])
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .unwrap_or_else(|e| {
-            panic!("cs2cs (PROJ, Debian package proj-bin; .ci/run installs it) cannot run: {e}")
-        });
+        .unwrap_or_else(|e| panic!("cs2cs cannot run: {e}"));
     let mut input = String::new();
     for (lat, lon, h) in points {
         input += &format!("{lat:.9} {lon:.9} {h:.4}\n");

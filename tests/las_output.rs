@@ -3,8 +3,10 @@
 //! extra bytes, wave packet fields, the parametric line) and that the waveform bytes at each
 //! point's (offset, size) in the `.wdp` are the raw counts the pulse carried.
 //!
-//! The interpreter is `$FWLIDAR_PYTHON`, else `.venv/bin/python` (made by `.ci/run` with numpy
-//! and laspy). A missing interpreter or package fails the test, naming what is missing.
+//! The interpreter is `$FWLIDAR_PYTHON`, else `.venv/bin/python` (made by `tests/run.sh` with
+//! numpy and laspy). A missing interpreter or package fails the test, naming what is missing.
+
+mod common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -27,17 +29,7 @@ const UTM33N_WKT: &str = concat!(
 );
 
 fn python() -> PathBuf {
-    if let Ok(p) = std::env::var("FWLIDAR_PYTHON") {
-        return PathBuf::from(p);
-    }
-    let venv = Path::new(ROOT).join(".venv/bin/python");
-    assert!(
-        venv.exists(),
-        "the LAS reader check needs Python with numpy and laspy: set FWLIDAR_PYTHON or run \
-         .ci/run (it creates .venv with them); {} is missing",
-        venv.display()
-    );
-    venv
+    common::python_with(&["numpy", "laspy"])
 }
 
 /// Pulse `i`: two return segments, one to four returns given out of time order, 8- or 16-bit
@@ -112,10 +104,11 @@ fn expected_points(pulses: &[Pulse]) -> Vec<serde_json::Value> {
             let pos: Vec<f64> = (0..3)
                 .map(|a| g.anchor[a] + r.time_ns * g.direction[a])
                 .collect();
-            let intensity = (f64::from(r.amplitude) / f64::from(p.gain_v_per_dn)
+            // Counts at most the digitizer's full scale, spread over 16 bits.
+            let full_scale = f64::from((1u32 << p.bits) - 1);
+            let intensity = ((f64::from(r.amplitude) / f64::from(p.gain_v_per_dn)).min(full_scale)
                 * f64::from(1u32 << (16 - p.bits)))
-            .round()
-            .min(65535.0);
+            .round();
             points.push(json!({
                 "x": pos[0], "y": pos[1], "z": pos[2],
                 "gps_time": p.gps_time,
@@ -209,7 +202,7 @@ fn check_with_laspy(
     let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(
         !stdout.contains("MISSING PYTHON PACKAGE"),
-        "{} lacks a package the LAS check needs: {stdout}(run .ci/run or `{} -m pip install \
+        "{} lacks a package the LAS check needs: {stdout}(run tests/run.sh or `{} -m pip install \
          numpy laspy`)",
         py.display(),
         py.display()
@@ -264,7 +257,8 @@ fn replay_with_las_enabled_writes_a_valid_file_and_counts_pulses_without_geometr
     assert!(config.contains("las = true") && config.contains("enabled = false"));
     let (out, stdout) = replay_sample_with(dir.path(), &config);
     assert!(
-        stdout.contains("returns.las: 0 points (format 6)"),
+        common::summary_output(&stdout, "returns.las")
+            .is_some_and(|l| l.starts_with("0 points (format 6)")),
         "{stdout}"
     );
     let summary: serde_json::Value =
@@ -404,7 +398,11 @@ fn hyper_points_hold_every_return_sample_above_the_threshold() {
         .replace("# output_epsg = 32736", "output_epsg = 32736");
     assert!(config.contains("\nhyper_threshold_v = 10.0"));
     let (out, stdout) = replay_sample_with(dir.path(), &config);
-    assert!(stdout.contains("hyper_points.las:"), "{stdout}");
+    assert!(
+        common::summary_output(&stdout, "hyper_points.las")
+            .is_some_and(|l| l.contains("above 10.0 V")),
+        "{stdout}"
+    );
     // Expected: every value above 10 of the return segments in waveforms.csv.
     let pulses = std::fs::read_to_string(out.join("pulses.csv")).unwrap();
     let waves = std::fs::read_to_string(out.join("waveforms.csv")).unwrap();

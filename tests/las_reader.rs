@@ -6,6 +6,8 @@
 //! It is read in place, never copied into the repository; the tests fail, naming the path, when
 //! it is missing. The cross-checks parse the raw bytes here, independently of the reader.
 
+mod common;
+
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -711,7 +713,7 @@ fn damage(b: &mut Vec<u8>, muts: &[(f64, bool, u8)], cut: Option<f64>) {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 200, ..ProptestConfig::default() })]
+    #![proptest_config(common::proptest_cases(200, "proptest-regressions/tests/las_reader.txt"))]
 
     /// Random bytes changed and files cut: every pulse is read or an error is returned; never a
     /// panic, never an endless loop.

@@ -521,7 +521,7 @@ fn bytes_of(name: &str) -> &'static [u8] {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 300, ..ProptestConfig::default() })]
+    #![proptest_config(common::proptest_cases(300, "proptest-regressions/tests/laz_reader.txt"))]
 
     /// Truncated and bit-flipped LAZ bytes (flips mostly in the compressed points and the
     /// chunk table): every pulse is read or an error naming the file is returned; never a

@@ -255,8 +255,9 @@ fn an_empty_output_says_so_with_the_reason_and_the_setting() {
     assert_eq!(w[2]["count"], 1000);
     assert_eq!(w[2]["share"], 1.0);
     let stdout = text(&o.stdout);
-    assert!(
-        stdout.contains("voxels.zarr: nothing deposited (no pulse reached it)"),
+    assert_eq!(
+        common::summary_output(&stdout, "voxels.zarr"),
+        Some("nothing deposited (no pulse reached it)"),
         "{stdout}"
     );
     assert!(!stdout.contains("null"), "{stdout}");
@@ -289,11 +290,9 @@ fn a_store_with_nothing_deposited_says_why_instead_of_null_tiles() {
     let o = replay(&sample, &out, Some(&cfg));
     assert!(o.status.success(), "{}", text(&o.stderr));
     let stdout = text(&o.stdout);
-    assert!(
-        stdout.contains(
-            "voxels.zarr: nothing deposited (none of the 2000 pulses had geometry: not \
-             georeferenced)"
-        ),
+    assert_eq!(
+        common::summary_output(&stdout, "voxels.zarr"),
+        Some("nothing deposited (none of the 2000 pulses had geometry: not georeferenced)"),
         "{stdout}"
     );
     assert!(!stdout.contains("null"), "{stdout}");

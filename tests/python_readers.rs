@@ -2,35 +2,18 @@
 //! (`tests/python/read_outputs.py`): `waveforms.npy` equal to the CSV form of the same run,
 //! `returns.las` with its CRS where `returns.csv` puts the returns.
 //!
-//! The interpreter is `$FWLIDAR_PYTHON`, else `.venv/bin/python` (made by `.ci/run` with numpy, laspy, pyproj).
-//! Outside CI without either, the test says what is missing and passes; under CI (`CI` set) a
-//! missing interpreter fails the test.
+//! The interpreter is `common::python()`: a missing one fails the test, naming `tests/run.sh`.
 
-use std::path::{Path, PathBuf};
+mod common;
+
+use std::path::Path;
 use std::process::Command;
 
-const BIN: &str = env!("CARGO_BIN_EXE_fwlidar");
-const ROOT: &str = env!("CARGO_MANIFEST_DIR");
-
-fn python() -> Option<PathBuf> {
-    if let Ok(p) = std::env::var("FWLIDAR_PYTHON") {
-        return Some(PathBuf::from(p));
-    }
-    let venv = Path::new(ROOT).join(".venv/bin/python");
-    venv.exists().then_some(venv)
-}
+use common::{BIN, ROOT};
 
 #[test]
 fn numpy_reads_replay_outputs() {
-    let Some(py) = python() else {
-        let msg = "numpy reader check needs a Python with numpy: set FWLIDAR_PYTHON or run .ci/run \
-                   (it creates .venv)";
-        if std::env::var_os("CI").is_some() {
-            panic!("{msg}");
-        }
-        eprintln!("SKIPPED: {msg}");
-        return;
-    };
+    let py = common::python_with(&["numpy", "laspy", "pyproj"]);
     let dir = tempfile::tempdir().unwrap();
     // The README's main job (the embedded configuration) ...
     let out = dir.path().join("out");

@@ -1,7 +1,7 @@
 //! Our Cloud-Optimized GeoTIFFs and VRT mosaics opened by the real readers: GDAL's `gdalinfo`
 //! (Debian `gdal-bin`), rasterio (its own GDAL build) and `rio cogeo validate`'s checker
-//! (`rio_cogeo.cogeo.cog_validate`), all installed by `.ci/run`. Where a reader is missing the
-//! check says so and is skipped (the Rust-side checks still run).
+//! (`rio_cogeo.cogeo.cog_validate`), all installed by `tests/run.sh`. A missing reader fails the
+//! test, naming that command.
 
 mod common;
 
@@ -62,46 +62,14 @@ fn write_f32(path: &Path, v: &[f32]) {
     std::fs::write(path, bytes).unwrap();
 }
 
-/// `gdalinfo -json FILE`, or None (with a message) when gdalinfo is not installed.
-fn gdalinfo(path: &Path) -> Option<Value> {
-    match Command::new("gdalinfo").arg("-json").arg(path).output() {
-        Ok(o) => {
-            assert!(
-                o.status.success(),
-                "gdalinfo {} failed: {}",
-                path.display(),
-                common::text(&o.stderr)
-            );
-            Some(serde_json::from_slice(&o.stdout).expect("gdalinfo JSON"))
-        }
-        Err(_) => {
-            println!(
-                "SKIP gdalinfo checks: gdalinfo not found (Debian: apt-get install gdal-bin; \
-                 .ci/run installs it)"
-            );
-            None
-        }
-    }
+/// `gdalinfo -json FILE` (GDAL's own reader); fails the test when gdalinfo is missing or fails.
+fn gdalinfo(path: &Path) -> Value {
+    common::gdalinfo_json(path)
 }
 
-/// The Python with rasterio and rio-cogeo, or None (with a message) when it lacks them.
-fn rasterio_python() -> Option<PathBuf> {
-    let py = std::env::var_os("FWLIDAR_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(common::ROOT).join(".venv/bin/python"));
-    let ok = Command::new(&py)
-        .args(["-c", "import rasterio, rio_cogeo, numpy"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !ok {
-        println!(
-            "SKIP rasterio / rio-cogeo checks: {} cannot import rasterio, rio_cogeo and numpy \
-             (pip install rasterio rio-cogeo; .ci/run installs them)",
-            py.display()
-        );
-        return None;
-    }
-    Some(py)
+/// The Python with rasterio and rio-cogeo; fails the test naming `tests/run.sh` when it lacks them.
+fn rasterio_python() -> PathBuf {
+    common::python_with(&["rasterio", "rio_cogeo", "numpy"])
 }
 
 const PY_READ: &str = r#"
@@ -162,7 +130,8 @@ fn cog_opens_in_gdal_and_rasterio_with_the_values_written() {
     let holes = r.bands[0].iter().filter(|&&v| v == ND).count();
     assert!(holes > 9000, "{holes} nodata cells");
 
-    if let Some(info) = gdalinfo(&path) {
+    {
+        let info = gdalinfo(&path);
         println!(
             "gdalinfo: size {} geoTransform {} IMAGE_STRUCTURE {} band 1 {}",
             info["size"],
@@ -200,7 +169,8 @@ fn cog_opens_in_gdal_and_rasterio_with_the_values_written() {
         assert_eq!(ovr[1]["size"], serde_json::json!([175, 125]));
     }
 
-    if let Some(py) = rasterio_python() {
+    {
+        let py = rasterio_python();
         let exp = dir.path().join("expected.f32");
         write_f32(&exp, &r.bands[0]);
         let (ow, oh, ov) = expected_overview(&r);
@@ -329,7 +299,8 @@ fn vrt_of_four_cellgrid_tiles_mosaics_them() {
     assert!(e.to_string().contains("shifted.tif"), "{e}");
 
     for v in [&vrt, &vrt2] {
-        if let Some(info) = gdalinfo(v) {
+        {
+            let info = gdalinfo(v);
             assert_eq!(info["driverShortName"], "VRT");
             assert_eq!(info["size"], serde_json::json!([w, h]));
             let gt: Vec<f64> = serde_json::from_value(info["geoTransform"].clone()).unwrap();
@@ -340,7 +311,8 @@ fn vrt_of_four_cellgrid_tiles_mosaics_them() {
             assert_eq!(info["bands"][0]["noDataValue"], -9999.0);
         }
     }
-    if let Some(py) = rasterio_python() {
+    {
+        let py = rasterio_python();
         let exp = dir.path().join("mosaic.f32");
         let mut both = max.clone();
         both.extend_from_slice(&count);
@@ -425,18 +397,21 @@ fn the_run_s_mosaic_of_the_tiles_closed_so_far_opens_during_the_flight() {
                 sink.tile_stats()
             );
             seen_midflight = true;
-            if let Some(info) = gdalinfo(&vrt) {
+            {
+                let info = gdalinfo(&vrt);
                 assert_eq!(info["size"], serde_json::json!([200, 100]), "{info}");
                 assert_eq!(info["bands"][0]["description"], "canopy_height");
             }
             let metrics = dir.path().join("rasters/metrics.vrt");
-            if let Some(info) = gdalinfo(&metrics) {
+            {
+                let info = gdalinfo(&metrics);
                 assert_eq!(info["size"], serde_json::json!([20, 10]), "{info}");
                 let bands = info["bands"].as_array().unwrap();
                 assert_eq!(bands.len(), 11);
                 assert_eq!(bands[10]["description"], "pulse_density");
             }
-            if let Some(py) = rasterio_python() {
+            {
+                let py = rasterio_python();
                 let script = "import sys, json, numpy as np, rasterio\n\
                     with rasterio.open(sys.argv[1]) as ds:\n    \
                     a = ds.read(1)\n    v = a[a != ds.nodata]\n    \
@@ -455,7 +430,8 @@ fn the_run_s_mosaic_of_the_tiles_closed_so_far_opens_during_the_flight() {
     }
     assert!(seen_midflight);
     sink.finish().unwrap();
-    if let Some(info) = gdalinfo(&vrt) {
+    {
+        let info = gdalinfo(&vrt);
         assert_eq!(info["size"], serde_json::json!([300, 100]), "{info}");
     }
     assert!(!dir.path().join("rasters/accumulators").exists());

@@ -1,6 +1,6 @@
 //! `fwlidar metrics STORE --out DIR` (issue 20, "rasters as flown"): forest structure rasters
 //! recomputed from the voxel store a replay wrote, opened by GDAL's `gdalinfo` and rasterio
-//! (skipped with a message where missing), and checked against the scene truth and the replay's
+//! (a missing reader fails the test, naming `tests/run.sh`), and checked against the scene truth and the replay's
 //! own per-pulse rasters.
 
 mod common;
@@ -36,25 +36,18 @@ fn metrics(store: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
     common::fwlidar(&args)
 }
 
-/// Runs a Python script with the rasterio of `common::python()`; None (with a message) when
-/// that Python has no rasterio.
-fn python(script: &str, args: &[&Path]) -> Option<serde_json::Value> {
-    let py = common::python();
+/// Runs a Python script with the rasterio of `common::python()` (a missing rasterio fails the
+/// test, naming `tests/run.sh`); its JSON output.
+fn python(script: &str, args: &[&Path]) -> serde_json::Value {
+    let py = common::python_with(&["numpy", "rasterio"]);
     let o = Command::new(&py)
         .arg("-c")
         .arg(script)
         .args(args)
         .output()
         .expect("run python");
-    if !o.status.success() {
-        let err = common::text(&o.stderr);
-        if err.contains("No module named 'rasterio'") {
-            println!("SKIP rasterio checks: {} has no rasterio", py.display());
-            return None;
-        }
-        panic!("{err}");
-    }
-    Some(serde_json::from_slice(&o.stdout).unwrap())
+    assert!(o.status.success(), "{}", common::text(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap()
 }
 
 /// Median of each named band's valid cells, the CRS and the size of a raster.
@@ -92,13 +85,8 @@ fn metrics_from_the_two_layer_store_match_the_scene_and_the_per_pulse_rasters() 
     assert_eq!(report["settings_from"], "store configuration", "{report}");
     assert!(report["cells_ok"][0].as_u64().unwrap() >= 1, "{report}");
 
-    if let Ok(o) = Command::new("gdalinfo")
-        .arg("-json")
-        .arg(m.join("metrics.vrt"))
-        .output()
     {
-        assert!(o.status.success(), "{}", common::text(&o.stderr));
-        let info: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let info = common::gdalinfo_json(&m.join("metrics.vrt"));
         let wkt = info["coordinateSystem"]["wkt"].as_str().unwrap_or("");
         assert!(wkt.contains("UTM zone 36S"), "{wkt}");
         // One raster tile of 512 × 512 cells of 0.5 m.
@@ -113,16 +101,12 @@ fn metrics_from_the_two_layer_store_match_the_scene_and_the_per_pulse_rasters() 
         assert_eq!(names[..5], ["rh25", "rh50", "rh75", "rh98", "rh100"]);
         assert_eq!(names.last(), Some(&"pulse_density"));
         assert!(names.contains(&"ground_z") && names.contains(&"cover"));
-    } else {
-        println!("SKIP gdalinfo checks: gdalinfo not found (.ci/run installs gdal-bin)");
     }
 
     let store_chm = m.join("chm.vrt");
     let store_metrics = m.join("metrics.vrt");
     let pulse_metrics = out.join("rasters/metrics.vrt");
-    let Some(v) = python(BAND_MEDIANS, &[&store_chm, &store_metrics, &pulse_metrics]) else {
-        return;
-    };
+    let v = python(BAND_MEDIANS, &[&store_chm, &store_metrics, &pulse_metrics]);
     let s_chm = &v[store_chm.to_str().unwrap()];
     let s = &v[store_metrics.to_str().unwrap()];
     let p = &v[pulse_metrics.to_str().unwrap()];
@@ -213,7 +197,7 @@ store, raw, truth, m05, m10 = sys.argv[1:]
 print(json.dumps({"store": common(store, truth), "per_pulse": common(raw, truth),
                   "pulses_05": pulses(m05), "pulses_10": pulses(m10)}))
 "#;
-    let Some(v) = python(
+    let v = python(
         script,
         &[
             &m1.join("chm.vrt"),
@@ -222,9 +206,7 @@ print(json.dumps({"store": common(store, truth), "per_pulse": common(raw, truth)
             &m05.join("metrics.vrt"),
             &m10.join("metrics.vrt"),
         ],
-    ) else {
-        return;
-    };
+    );
     println!("{v}");
     let s = &v["store"];
     // Every 1 m cell of the replay's CHM has one from the store (434 on this plot).

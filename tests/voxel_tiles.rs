@@ -207,11 +207,11 @@ fn replay_writes_tiles_that_xarray_reads_with_the_right_values() {
     let o = replay(&sample(), &out, None);
     assert!(o.status.success(), "{}", text(&o.stderr));
     let stdout = text(&o.stdout);
+    let line = common::summary_output(&stdout, "voxels.zarr").unwrap_or_default();
     assert!(
-        stdout.contains("voxels.zarr: 450000 bins of 2000 pulses deposited"),
+        line.starts_with("450000 bins of 2000 pulses in 1 tile; ") && line.ends_with(" on disk"),
         "{stdout}"
     );
-    assert!(stdout.contains("tiles 1 opened, 1 closed"), "{stdout}");
     let figures = check_with_xarray(&out, "calibrated");
     assert_eq!(figures["bins"], 450000);
     // Without the calibrate stage: volts, summed exactly as waveforms.csv has them.
@@ -635,7 +635,7 @@ mod damaged_store {
     }
 
     proptest! {
-        #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+        #![proptest_config(common::proptest_cases(64, "proptest-regressions/tests/voxel_tiles.txt"))]
         /// Opening and reading a store whose files were cut, overwritten or garbled returns an
         /// error or data, never panics (the reader behind `merge` and resuming).
         #[test]
@@ -681,33 +681,7 @@ mod damaged_store {
 fn a_full_disk_stops_the_replay_with_an_error_naming_the_file() {
     let dir = tempfile::tempdir().unwrap();
     let mnt = dir.path().join("small");
-    std::fs::create_dir_all(&mnt).unwrap();
-    let m = Command::new("mount")
-        .args(["-t", "tmpfs", "-o", "size=48k", "tmpfs"])
-        .arg(&mnt)
-        .output();
-    let Ok(m) = m.as_ref().map_err(|e| e.to_string()).and_then(|o| {
-        if o.status.success() {
-            Ok(o)
-        } else {
-            Err(text(&o.stderr))
-        }
-    }) else {
-        eprintln!(
-            "SKIPPED a_full_disk_stops_the_replay_with_an_error_naming_the_file: cannot mount a \
-             48 kB tmpfs here ({:?}); CI runs as root and can",
-            m.as_ref().map(|o| text(&o.stderr)).unwrap_or_default()
-        );
-        return;
-    };
-    let _ = m;
-    struct Unmount(PathBuf);
-    impl Drop for Unmount {
-        fn drop(&mut self) {
-            let _ = Command::new("umount").arg(&self.0).output();
-        }
-    }
-    let _guard = Unmount(mnt.clone());
+    let _disk = common::Tmpfs::mount(&mnt, "48k");
     // Voxels only (the CSV outputs would fill the disk first, which is the same path).
     let cfg = dir.path().join("voxels_only.toml");
     std::fs::write(

@@ -166,7 +166,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
     }
     let input = Input::georeferenced(source, &config)?;
     let workers = Workers::Live(args.workers.unwrap_or(config.pipeline.workers));
-    let run = assemble(input, &config, workers, |chain, input| {
+    let run = assemble(input, &config, None, workers, |chain, input| {
         daemon_sinks(&config, chain, input, &out_dir, &segment_stem)
     })?;
 
@@ -228,6 +228,7 @@ pub fn run(args: RunArgs) -> Result<(), Failure> {
         &segment.display().to_string(),
         &out_dir,
         &summary_path,
+        None,
     );
     println!(
         "  recording: {} frames received, {} recorded, {} lost on the network; {} dropped from \
@@ -257,6 +258,7 @@ fn write_segment_summary(
 ) -> Result<(), String> {
     let summary = DaemonSummary {
         run: Summary {
+            response: None,
             report,
             warnings: &[],
         },

@@ -25,8 +25,8 @@ use crate::pulse::PulsePool;
 /// Arguments of `fwlidar import`.
 #[derive(Debug, clap::Args)]
 pub struct ImportArgs {
-    /// Input file: LAS (.las, waveforms internal or in a .wdp beside it), PulseWaves (.pls with
-    /// its .wvs), or a capture.
+    /// Input file: LAS or LAZ (.las/.laz, waveforms internal or in a .wdp beside it), PulseWaves
+    /// (.pls with its .wvs), a NASA GEDI Level 1B granule (.h5), or a capture.
     pub file: PathBuf,
     /// Capture file to write (must not exist: captures are never overwritten).
     #[arg(long, short)]

@@ -19,7 +19,7 @@ use crate::source::report::{InputReport, SourceReport};
 /// Arguments of `fwlidar inspect`.
 #[derive(Debug, clap::Args)]
 pub struct InspectArgs {
-    /// The capture file.
+    /// The file: a capture, LAS or LAZ (+ .wdp), PulseWaves (.pls + .wvs) or GEDI L1B (.h5).
     pub file: PathBuf,
     /// List every pulse instead of the overview.
     #[arg(long)]

@@ -6,6 +6,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 
 pub mod biomass;
 pub mod campaign;
+pub mod compare;
 pub mod completions;
 pub mod daemon;
 pub mod import;
@@ -18,6 +19,7 @@ pub mod metrics_plot;
 pub mod process;
 pub mod repair;
 pub mod replay;
+pub mod response;
 pub mod simulate;
 pub mod tradeoff;
 pub mod trees;
@@ -53,8 +55,8 @@ pub enum Command {
     /// The on-board daemon: record digitizer frames (network) and navigation (serial ports),
     /// process them live into voxel tiles, serve QC; SIGTERM stops it.
     Run(daemon::RunArgs),
-    /// Replay a recorded capture (or a LAS/LAZ / PulseWaves waveform file) through the processing
-    /// chain into an output folder.
+    /// Replay a recorded capture (or a LAS/LAZ, PulseWaves or GEDI L1B waveform file) through the
+    /// processing chain into an output folder.
     Replay(replay::ReplayArgs),
     /// Rebuild the header of a LAS 1.4 file cut off by a crash (point count, bounds, per-return
     /// counts), after copying it to FILE.bak.
@@ -63,11 +65,14 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Check configuration files (run configs, sensor profiles, scenes); report every error.
     Validate(validate::ValidateArgs),
-    /// Describe a capture, LAS/LAZ or PulseWaves file: header, record counts, damage; optionally
-    /// every pulse as JSON.
+    /// Describe a capture, LAS/LAZ, PulseWaves or GEDI L1B file: header, record counts, damage;
+    /// optionally every pulse as JSON.
     Inspect(inspect::InspectArgs),
-    /// Convert a LAS/LAZ or PulseWaves waveform file (or a capture) into a capture.
+    /// Convert a LAS/LAZ, PulseWaves or GEDI L1B waveform file (or a capture) into a capture.
     Import(import::ImportArgs),
+    /// Learn the system response (one echo of a hard target, tail included) of each channel
+    /// from waveform files' own echoes, for finding echoes against it.
+    Response(response::ResponseArgs),
     /// Denoise, deconvolve (and optionally decompose) a table of waveforms (CSV or .npy).
     Process(process::ProcessArgs),
     /// Measure what accuracy costs in time: every method and setting on simulated pulses with
@@ -91,6 +96,9 @@ pub enum Command {
     /// Reconstruct stems and first-order branches as cylinders from waveform points (a capture
     /// or a replay's hyper point cloud); score them against a simulated scene's trees.
     Trees(trees::TreesArgs),
+    /// Compare our returns (a replay's returns.las) with another processor's points of the same
+    /// pulses, e.g. the instrument maker's: echoes found, returns per pulse, offsets, intensity.
+    Compare(compare::CompareArgs),
     /// Print the shell completion script (bash, zsh, fish, elvish, powershell).
     Completions(completions::CompletionsArgs),
     /// Write the manual pages (fwlidar.1 and one per command) into a folder.
@@ -140,9 +148,12 @@ fn init_logging(format: LogFormat, verbose: u8) {
         _ => "trace",
     };
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
+    use std::io::IsTerminal;
+    // Colour only where a person reads it: not into a file, a pipe or a test's capture.
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .with_target(false);
     let _ = match format {
         LogFormat::Human => builder.try_init(),
@@ -169,6 +180,7 @@ pub fn main() -> i32 {
         Command::Inspect(a) => inspect::run(a),
         Command::Import(a) => import::run(a),
         Command::Process(a) => process::run(a),
+        Command::Response(a) => response::run(a),
         Command::Tradeoff(a) => tradeoff::run(a),
         Command::Merge(a) => merge::run(a),
         Command::Biomass(a) => biomass::run(a),
@@ -176,6 +188,7 @@ pub fn main() -> i32 {
         Command::MetricsPlot(a) => metrics_plot::run(a),
         Command::Trees(a) => trees::run(a),
         Command::Campaign(a) => campaign::run(a),
+        Command::Compare(a) => compare::run(a),
         Command::Completions(a) => completions::run(a),
         Command::Man(a) => man::run(a),
     };

@@ -14,24 +14,29 @@ use crate::pipeline::run as run_pipeline;
 use crate::pipeline::runner::LiveCounters;
 use crate::run::assemble::{Assembled, Workers, assemble};
 use crate::run::input::Input;
+use crate::run::learn::{LEARN_PULSES, ResponseReport, learn_from_file, response_report};
 use crate::run::outputs::{prepare_out_dir, replay_run_key, replay_sinks};
 use crate::run::summary::{Summary, print_summary, write_summary};
 use crate::run::warnings::{log_warnings, run_warnings};
 use crate::run::{RunControl, RunReport};
 use crate::source::shard::Shard;
+use crate::stages::decompose::wants_learned_response;
 
-/// The sample replayed when no input is named.
+/// The sample replayed when no input is named, relative to the repository's root.
 pub const DEFAULT_SAMPLE: &str = "replay/two_layer.fwcap";
 
 /// Arguments of `fwlidar replay`.
 #[derive(Debug, clap::Args)]
 pub struct ReplayArgs {
-    /// Capture file to replay (or any file `replay` reads). Several are replayed one after
-    /// another into the one output folder and voxel store, as one recording (each georeferenced
-    /// by its own navigation; they must share the sensor and the output CRS).
-    #[arg(default_value = DEFAULT_SAMPLE, num_args = 1..)]
+    /// File to replay: a capture, LAS or LAZ (+ .wdp), PulseWaves (.pls + .wvs) or GEDI L1B
+    /// (.h5). Several are replayed one after another into the one output folder and voxel
+    /// store, as one recording (each georeferenced by its own navigation; they must share the
+    /// sensor and the output CRS). Default: the sample capture `replay/two_layer.fwcap` of the
+    /// repository (looked for in the working folder, then in the source tree this program was
+    /// built from).
     pub inputs: Vec<PathBuf>,
     /// Output folder (created if missing; files in it are replaced only by complete new ones).
+    /// Default: the configuration's `[output] dir`, `out` in the embedded configuration.
     #[arg(long, short)]
     pub out: Option<PathBuf>,
     /// Run configuration file (default: the embedded `config/replay.toml`).
@@ -109,21 +114,51 @@ pub fn run(args: ReplayArgs) -> Result<(), Failure> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from(&config.output.dir));
-    let run = put_together(&args.inputs, args.shard, &out_dir, &config, args.workers)?;
+    let inputs = if args.inputs.is_empty() {
+        vec![default_sample()?]
+    } else {
+        args.inputs.clone()
+    };
+    let (run, response) = put_together(&inputs, args.shard, &out_dir, &config, args.workers)?;
     let control = RunControl::default();
     install_signal_handlers(&control)?;
-    let label = inputs_label(&args.inputs, args.shard);
+    let label = inputs_label(&inputs, args.shard);
     tracing::info!(
-        input = %label,
-        out = %out_dir.display(),
-        workers = run.spec.workers,
-        stages = ?run.spec.stage_names,
-        "replay started"
+        "replaying {label} into {} with {} workers: {}",
+        out_dir.display(),
+        run.spec.workers,
+        run.spec.stage_names.join(" → ")
     );
     let chain = run.chain.clone();
     let report = run_with_progress(run, &control, args.no_progress);
     let warnings = run_warnings(&report, &chain, &config);
-    finish(&report, &warnings, &chain, &label, &out_dir)
+    finish(
+        &report,
+        &warnings,
+        &chain,
+        &label,
+        &out_dir,
+        response.as_ref(),
+    )
+}
+
+/// The sample capture replayed when no file is named: `replay/two_layer.fwcap` in the working
+/// folder (a clone's root), else in the source tree the binary was built from; a usage error
+/// saying where it is otherwise.
+fn default_sample() -> Result<PathBuf, Failure> {
+    let here = PathBuf::from(DEFAULT_SAMPLE);
+    if here.is_file() {
+        return Ok(here);
+    }
+    let built_from = Path::new(env!("CARGO_MANIFEST_DIR")).join(DEFAULT_SAMPLE);
+    if built_from.is_file() {
+        return Ok(built_from);
+    }
+    Err(Failure::usage(format!(
+        "no file to replay was named, and the sample capture is not here: it is \
+         {DEFAULT_SAMPLE} in the fwlidar repository (run from a clone's root, or name a capture, \
+         LAS/LAZ, PulseWaves or GEDI L1B file: fwlidar replay FILE --out DIR)"
+    )))
 }
 
 /// The inputs as the summary names them: their paths, and the shard.
@@ -145,7 +180,7 @@ pub fn replay_quiet(
     config: &RunConfig,
     workers: Option<usize>,
 ) -> Result<RunReport, Failure> {
-    let run = put_together(&[input.to_path_buf()], None, out_dir, config, workers)?;
+    let (run, _) = put_together(&[input.to_path_buf()], None, out_dir, config, workers)?;
     Ok(run_pipeline(
         &run.spec,
         run.source,
@@ -157,21 +192,32 @@ pub fn replay_quiet(
 }
 
 /// What both [`run`] and [`replay_quiet`] set up: the inputs opened and georeferenced, the
-/// output folder prepared, the stages, the outputs.
+/// system response learned from the first input when the chain asks for one, the output folder
+/// prepared, the stages, the outputs; and what the response is, for the summary.
 fn put_together(
     inputs: &[PathBuf],
     shard: Option<Shard>,
     out_dir: &Path,
     config: &RunConfig,
     workers: Option<usize>,
-) -> Result<Assembled, Failure> {
+) -> Result<(Assembled, Option<ResponseReport>), Failure> {
     let input = Input::open_files(inputs, shard, config)?;
+    let (learned, not_learned) = if wants_learned_response(&config.pipeline.stages) {
+        match learn_from_file(&inputs[0], LEARN_PULSES)? {
+            Ok(f) => (Some(std::sync::Arc::new(f)), None),
+            Err(why) => (None, Some(why)),
+        }
+    } else {
+        (None, None)
+    };
     prepare_out_dir(out_dir)?;
     let key = replay_run_key(inputs, shard, config);
     let workers = Workers::Replay(workers.unwrap_or(config.pipeline.workers));
-    Ok(assemble(input, config, workers, |chain, input| {
+    let run = assemble(input, config, learned, workers, |chain, input| {
         replay_sinks(config, chain, input, &inputs[0], &key, out_dir)
-    })?)
+    })?;
+    let response = response_report(&run.chain, not_learned.as_deref());
+    Ok((run, response))
 }
 
 /// Runs the pipeline, drawing a progress bar unless `no_progress`.
@@ -215,10 +261,26 @@ fn finish(
     chain: &crate::stages::Chain,
     input: &str,
     out_dir: &Path,
+    response: Option<&ResponseReport>,
 ) -> Result<(), Failure> {
     let summary_path = out_dir.join("summary.json");
-    let summary_written = write_summary(&summary_path, &Summary { report, warnings });
-    print_summary(report, warnings, chain, input, out_dir, &summary_path);
+    let summary_written = write_summary(
+        &summary_path,
+        &Summary {
+            report,
+            warnings,
+            response,
+        },
+    );
+    print_summary(
+        report,
+        warnings,
+        chain,
+        input,
+        out_dir,
+        &summary_path,
+        response,
+    );
     log_warnings(warnings);
     if let Some(f) = &report.fatal {
         return Err(Failure::job(format!(

@@ -113,6 +113,7 @@ impl ChainSpec {
             facts: &facts,
             dem: None,
             writes_returns: false,
+            learned_response: None,
         };
         let mut kept = Vec::new();
         let mut skipped = Vec::new();

@@ -12,6 +12,7 @@
 pub mod accuracy;
 pub mod chain;
 pub mod plot;
+pub mod point_match;
 pub mod report;
 pub mod scene_steps;
 pub mod tradeoff;

@@ -42,6 +42,7 @@ pub enum Workers {
 pub fn assemble(
     input: Input,
     config: &RunConfig,
+    learned: Option<std::sync::Arc<crate::signal::learned_response::ResponseFile>>,
     workers: Workers,
     outputs: impl FnOnce(&Chain, &Input) -> Result<Vec<Box<DynSink>>, RunError>,
 ) -> Result<Assembled, RunError> {
@@ -54,6 +55,7 @@ pub fn assemble(
         facts: &facts,
         dem: input.dem.as_ref(),
         writes_returns,
+        learned_response: learned.as_ref(),
     };
     let chain = Chain::prepare(&config.pipeline.stages, &ctx).map_err(RunError::usage)?;
     let p = &config.pipeline;

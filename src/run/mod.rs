@@ -16,6 +16,7 @@
 
 pub mod assemble;
 pub mod input;
+pub mod learn;
 pub mod outputs;
 pub mod summary;
 pub mod warnings;

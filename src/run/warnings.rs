@@ -576,6 +576,7 @@ mod tests {
                 facts: &facts,
                 dem: None,
                 writes_returns: true,
+                learned_response: None,
             },
         )
         .unwrap()

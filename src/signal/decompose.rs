@@ -49,7 +49,9 @@
 use serde::{Deserialize, Serialize};
 
 use crate::pulse::{FittedReturn, Pulse, SegmentKind, Verdict};
+use crate::signal::echo_fit::{Echo, EchoFinder, EchoSettings};
 use crate::signal::gauss_fit::{Bounds, GaussFitter, Gaussian, MAX_COMPONENTS};
+use crate::signal::learned_response::ResponseFile;
 use crate::signal::peaks::{Peak, PeakFinder, PeakRule, PeakSettings};
 
 /// `√(2 ln 2)`: half width at half maximum of a Gaussian in units of σ.
@@ -135,6 +137,47 @@ pub struct DecomposeConfig {
     /// configuration without the key reads and writes as before it existed.
     #[serde(default, skip_serializing_if = "DecomposePulses::is_auto")]
     pub pulses: DecomposePulses,
+    /// What an echo is ([`EchoModel`]): `"gaussian"` (default: a free Gaussian fitted to the
+    /// processed signal), `"response"` (the system response learned from the data, shifted,
+    /// scaled and if need be stretched, on the raw counts: [`crate::signal::echo_fit`]) or
+    /// `"auto"` (the response where it is not Gaussian, Gaussians where it is). Not written
+    /// back when `"gaussian"`.
+    #[serde(default, skip_serializing_if = "EchoModel::is_gaussian")]
+    pub model: EchoModel,
+    /// A learned response file (`fwlidar response learn --out FILE`; path from the working
+    /// folder) for `model = "response"` or `"auto"`; absent: replay learns it from the input's
+    /// first pulses and freezes it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub response: Option<std::path::PathBuf>,
+    /// The response in use, resolved when the run is put together (never in a file).
+    #[serde(skip)]
+    pub learned: Option<std::sync::Arc<ResponseFile>>,
+    /// Why the response file could not be read, reported when the stage is built.
+    #[serde(skip)]
+    pub response_error: Option<String>,
+}
+
+/// What an echo is to the decomposition (`decompose.model`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EchoModel {
+    /// A free Gaussian per return, fitted to the processed signal. Default; right where the
+    /// system's pulse is Gaussian (the simulator's).
+    #[default]
+    Gaussian,
+    /// The learned system response ([`crate::signal::learned_response`]) shifted, scaled and
+    /// stretched where the data ask, fitted to the raw counts ([`crate::signal::echo_fit`]).
+    Response,
+    /// `response` when the learned response is not Gaussian, `gaussian` when it is or when none
+    /// could be learned; decided once per run.
+    Auto,
+}
+
+impl EchoModel {
+    /// Whether this is the default (not written back to TOML).
+    pub fn is_gaussian(&self) -> bool {
+        *self == EchoModel::Gaussian
+    }
 }
 
 /// Which pulses a `decompose` stage decomposes (`decompose.pulses`). The returns are read by
@@ -264,6 +307,10 @@ impl Default for DecomposeConfig {
             start_values: StartValues::HalfWidth,
             peak_rule: PeakRule::RiseAndFall,
             pulses: DecomposePulses::Auto,
+            model: EchoModel::Gaussian,
+            response: None,
+            learned: None,
+            response_error: None,
         }
     }
 }
@@ -824,6 +871,17 @@ pub struct Decompose {
     decomposer: Decomposer,
     max_samples: usize,
     scratch: Vec<FittedReturn>,
+    /// With `model = "response"`: the finder, the response, and buffers for one segment's
+    /// counts and echoes.
+    echo: Option<EchoPath>,
+}
+
+/// The decomposition against the learned response ([`EchoModel::Response`]).
+struct EchoPath {
+    finder: EchoFinder,
+    responses: std::sync::Arc<ResponseFile>,
+    counts: Vec<f32>,
+    echoes: Vec<Echo>,
 }
 
 impl Decompose {
@@ -870,13 +928,80 @@ impl Decompose {
         None
     }
 
-    /// Builds the stage with buffers for [`DecomposeConfig::max_samples`].
+    /// Builds the stage with buffers for [`DecomposeConfig::max_samples`]. With
+    /// `model = "response"` and no response resolved, the Gaussian path runs (the stage's
+    /// configuration refuses that case when it is built: [`DecomposeConfig::checked_response`]).
     pub fn new(config: DecomposeConfig) -> Self {
         let max_samples = config.max_samples;
+        let echo = match (&config.model, &config.learned) {
+            (EchoModel::Response, Some(r)) => Some(EchoPath {
+                finder: EchoFinder::new(
+                    EchoSettings {
+                        snr: config.min_snr,
+                        max_echoes: config.max_components,
+                        ..EchoSettings::default()
+                    },
+                    max_samples,
+                ),
+                responses: r.clone(),
+                counts: Vec::with_capacity(max_samples),
+                echoes: Vec::with_capacity(config.max_components),
+            }),
+            _ => None,
+        };
         Decompose {
             decomposer: Decomposer::new(config, max_samples),
             max_samples,
             scratch: Vec::with_capacity(MAX_COMPONENTS),
+            echo,
+        }
+    }
+}
+
+impl DecomposeConfig {
+    /// The response this configuration fits echoes of, or why it has none: `Ok(None)` for the
+    /// Gaussian model.
+    pub fn checked_response(&self) -> Result<Option<&ResponseFile>, String> {
+        match self.model {
+            EchoModel::Gaussian | EchoModel::Auto => Ok(None),
+            EchoModel::Response => match (&self.learned, &self.response_error) {
+                (Some(r), _) => Ok(Some(r)),
+                (None, Some(e)) => Err(e.clone()),
+                (None, None) => Err(
+                    "model = \"response\" needs a response: name a file (response = \"FILE\", \
+                     from `fwlidar response learn`) or replay the input, which learns it"
+                        .into(),
+                ),
+            },
+        }
+    }
+
+    /// Whether the run must learn a response from its input before the stage is built: the
+    /// response or automatic model, with no file named.
+    pub fn wants_learned_response(&self) -> bool {
+        self.model != EchoModel::Gaussian && self.response.is_none() && self.learned.is_none()
+    }
+
+    /// Resolves the response (the file named, else `learned` from the input) and, for
+    /// `model = "auto"`, the model: the response where it is not Gaussian. Once per run.
+    pub fn resolve_response(&mut self, learned: Option<&std::sync::Arc<ResponseFile>>) {
+        if self.model == EchoModel::Gaussian {
+            return;
+        }
+        if self.learned.is_none() {
+            match &self.response {
+                Some(path) => match ResponseFile::read(path) {
+                    Ok(r) => self.learned = Some(std::sync::Arc::new(r)),
+                    Err(e) => self.response_error = Some(e),
+                },
+                None => self.learned = learned.cloned(),
+            }
+        }
+        if self.model == EchoModel::Auto {
+            self.model = match &self.learned {
+                Some(r) if !r.is_gaussian() => EchoModel::Response,
+                _ => EchoModel::Gaussian,
+            };
         }
     }
 }
@@ -905,6 +1030,10 @@ impl Decompose {
         } else {
             0
         };
+        if let Some(echo) = &mut self.echo {
+            echo.decompose(p);
+            return Verdict::DONE;
+        }
         for (si, seg) in p.segments.iter().enumerate() {
             if seg.kind != SegmentKind::Return || seg.len == 0 {
                 continue;
@@ -938,6 +1067,94 @@ impl Decompose {
             }
         }
         Verdict::DONE
+    }
+}
+
+/// FWHM of a Gaussian in units of its σ.
+const FWHM_PER_SIGMA: f32 = 2.354_82;
+
+/// The emission's offset from the pulse's time grid, samples: the outgoing pulse's peak time
+/// (the parabola vertex through its largest raw count and the two beside it, from the pulse's
+/// t0) less the nearest whole multiple of the sample interval (−0.5..0.5; 0 without an outgoing
+/// segment). The laser fires anywhere within a sample period; ranges run from the outgoing
+/// pulse's peak to the echo's, so every echo is taken that much earlier. Where t0 is the
+/// nominal emission this is the outgoing peak's time itself (the RIEGL Q680i fixture:
+/// RiPROCESS's echo locations sit that far from the echoes' own peaks, spread uniformly over
+/// ±0.5 ns); where t0 starts the recording (LVIS) it is the sub-sample part a deconvolution by
+/// the outgoing pulse, centred on a sample, would remove.
+fn emission_offset_samples(p: &Pulse) -> f32 {
+    let Some(seg) = p
+        .segments
+        .iter()
+        .find(|s| s.kind == SegmentKind::Outgoing && s.len >= 3)
+    else {
+        return 0.0;
+    };
+    let Some(raw) = p.raw.get(seg.range()) else {
+        return 0.0;
+    };
+    let Some((i, _)) = raw.iter().enumerate().max_by_key(|&(_, &c)| c) else {
+        return 0.0;
+    };
+    if i == 0 || i + 1 >= raw.len() || p.sample_ns.is_nan() || p.sample_ns <= 0.0 {
+        return 0.0;
+    }
+    let (a, c, d) = (
+        f32::from(raw[i - 1]),
+        f32::from(raw[i]),
+        f32::from(raw[i + 1]),
+    );
+    let den = a - 2.0 * c + d;
+    let frac = if den < 0.0 {
+        (0.5 * (a - d) / den).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    };
+    let t = seg.start_ns / p.sample_ns + i as f64 + f64::from(frac);
+    (t - t.round()) as f32
+}
+
+impl EchoPath {
+    /// Fills `p.returns` with the echoes of every return segment, found against the response
+    /// of its channel in its raw counts: position at the echo's peak, amplitude in volts above
+    /// the segment's baseline (`gain × counts`; the fitted height, at most the largest sample
+    /// within a bin of the peak), `sigma_bins` the Gaussian σ of the same FWHM as
+    /// the (stretched) response, `residual` the RMS of the counts less the echoes, in volts.
+    fn decompose(&mut self, p: &mut Pulse) {
+        let gain = p.gain_v_per_dn;
+        let shift = emission_offset_samples(p);
+        for (si, seg) in p.segments.iter().enumerate() {
+            if seg.kind != SegmentKind::Return || seg.len == 0 {
+                continue;
+            }
+            let Some(response) = self.responses.for_channel(u16::from(seg.channel)) else {
+                continue;
+            };
+            self.counts.clear();
+            self.counts
+                .extend(p.raw[seg.range()].iter().map(|&c| f32::from(c)));
+            let stats = self.finder.find(&self.counts, response, &mut self.echoes);
+            for e in &self.echoes {
+                let position = e.position - shift;
+                // The echo's height, never above the received samples at it (a fit of a
+                // wider echo than the response overshoots its top).
+                let at = e.position.round().max(0.0) as usize;
+                let seen = self.counts[at.saturating_sub(1)..(at + 2).min(self.counts.len())]
+                    .iter()
+                    .copied()
+                    .fold(f32::MIN, f32::max)
+                    - stats.baseline;
+                p.returns.push(FittedReturn {
+                    segment: si as u16,
+                    position_bins: position,
+                    time_ns: seg.start_ns + f64::from(position) * p.sample_ns,
+                    amplitude: e.amplitude.min(seen.max(0.0)) * gain,
+                    sigma_bins: response.fwhm_samples * e.stretch / FWHM_PER_SIGMA,
+                    residual: stats.rms_residual * gain,
+                    backscatter: f32::NAN,
+                });
+            }
+        }
     }
 }
 

@@ -6,9 +6,11 @@ pub mod decompose;
 pub mod deconvolve;
 pub mod denoise;
 pub mod drift;
+pub mod echo_fit;
 pub mod echo_strength;
 pub mod gauss_fit;
 pub mod kernel;
+pub mod learned_response;
 pub mod peaks;
 pub mod robust_noise;
 

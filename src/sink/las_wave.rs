@@ -133,8 +133,9 @@ pub struct LasWaveReport {
     pub returns_unrepresentable: u64,
     /// Returns past the 15th of a pulse (written with return number 15).
     pub returns_beyond_15: u64,
-    /// Intensities clipped to 65535.
-    pub intensity_clipped: u64,
+    /// Returns whose amplitude lies above the digitizer's full scale (a saturated echo, or a
+    /// fit overshooting it), their intensity recorded as the full scale.
+    pub intensity_at_full_scale: u64,
     /// Waveform packets written to the `.wdp` files (format 9).
     pub packets: u64,
     /// Size of the `.wdp` files, bytes (their 60-byte headers included; format 9).
@@ -439,7 +440,9 @@ impl LasWaveSink {
         Ok((index, at, size))
     }
 
-    /// Intensity of a return of amplitude `amplitude_v`: counts normalised to 16 bits.
+    /// Intensity of a return of amplitude `amplitude_v` (`docs/formats.md`): the amplitude in
+    /// counts, at most the digitizer's full scale (`2^bits − 1`; counted when above it), times
+    /// `2^(16 − bits)`: the digitizer's range spread over 16 bits, never past it.
     fn intensity(&mut self, p: &Pulse, amplitude_v: f32) -> u16 {
         let gain = f64::from(p.gain_v_per_dn);
         let amp = f64::from(amplitude_v);
@@ -447,15 +450,14 @@ impl LasWaveSink {
             return 0;
         }
         let bits = p.bits.clamp(1, 16);
-        let v = (amp / gain * f64::from(1u32 << (16 - bits))).round();
-        if v > 65535.0 {
-            self.report.intensity_clipped += 1;
-            65535
-        } else if v > 0.0 {
-            v as u16
-        } else {
-            0
+        let full_scale = f64::from((1u32 << bits) - 1);
+        let mut counts = amp / gain;
+        if counts > full_scale {
+            self.report.intensity_at_full_scale += 1;
+            counts = full_scale;
         }
+        let v = (counts * f64::from(1u32 << (16 - bits))).round();
+        if v > 0.0 { v.min(65535.0) as u16 } else { 0 }
     }
 
     fn write_points(&mut self, p: &Pulse, g: &PulseGeometry) -> Result<u64, SinkError> {
@@ -862,7 +864,7 @@ impl PulseSink for LasWaveSink {
         self.close_file()?;
         self.remove_stale_rotated_files();
         self.finished = true;
-        tracing::info!(
+        tracing::debug!(
             points = self.report.points,
             files = self.report.files.len(),
             packets = self.report.packets,
@@ -1003,7 +1005,7 @@ mod tests {
                 pulses_without_returns: 1,
                 returns_unrepresentable: 0,
                 returns_beyond_15: 0,
-                intensity_clipped: 1,
+                intensity_at_full_scale: 1,
                 packets: 3,
                 wdp_bytes: 60 + 2 * 20 + 2 * 10 + 2 * 20,
                 descriptors: 3,

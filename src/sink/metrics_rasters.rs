@@ -479,8 +479,11 @@ impl MetricsRastersSink {
         }
         if !self.chm_written.is_empty() {
             self.written = vec![
-                format!("rasters/chm.vrt ({} tiles)", self.chm_written.len()),
-                format!("rasters/metrics.vrt ({} tiles)", self.metrics_written.len()),
+                format!("rasters/chm.vrt ({})", tiles(self.chm_written.len())),
+                format!(
+                    "rasters/metrics.vrt ({})",
+                    tiles(self.metrics_written.len())
+                ),
             ];
         }
         Ok(())
@@ -545,6 +548,15 @@ impl PulseSink for MetricsRastersSink {
             max_open_tiles: self.settings.max_open_tiles,
             tiles: self.stats.clone(),
         })
+    }
+}
+
+/// `1 tile`, `6 tiles`.
+fn tiles(n: usize) -> String {
+    if n == 1 {
+        "1 tile".into()
+    } else {
+        format!("{n} tiles")
     }
 }
 

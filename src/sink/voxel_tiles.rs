@@ -260,9 +260,11 @@ impl VoxelTilesSink {
         }
         if self.cfg.extent_m.is_none() {
             tracing::info!(
-                centre = ?first,
-                side_m = self.cfg.auto_extent_m,
-                "voxel store extent centred on the first pulse"
+                "voxel store: tiles may lie in a {} km square centred on the first pulse \
+                 ({:.1}, {:.1}); only those holding data are written",
+                self.cfg.auto_extent_m / 1e3,
+                first[0],
+                first[1]
             );
         }
         let store = ZarrStore::create_or_open_grouped(

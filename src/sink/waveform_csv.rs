@@ -21,6 +21,7 @@ pub struct WaveformCsvSink {
     pulses: AtomicFile,
     waveforms: AtomicFile,
     row: u64,
+    samples: u64,
     line: String,
 }
 
@@ -40,6 +41,7 @@ impl WaveformCsvSink {
             pulses,
             waveforms,
             row: 0,
+            samples: 0,
             line: String::with_capacity(1 << 16),
         })
     }
@@ -110,6 +112,7 @@ impl PulseSink for WaveformCsvSink {
                 .write_all(self.line.as_bytes())
                 .map_err(|source| SinkError::Io { path, source })?;
             self.row += 1;
+            self.samples += u64::from(seg.len);
         }
         Ok(())
     }
@@ -122,6 +125,13 @@ impl PulseSink for WaveformCsvSink {
     fn finish(&mut self) -> Result<(), SinkError> {
         self.pulses.commit()?;
         Ok(self.waveforms.commit()?)
+    }
+
+    fn report(&self) -> SinkReport {
+        SinkReport::Waveforms(crate::sink::WaveformsReport {
+            segments: self.row,
+            samples: self.samples,
+        })
     }
 }
 

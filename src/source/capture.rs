@@ -107,7 +107,11 @@ impl Source for CaptureSource {
                         Ok(h) => {
                             // The first one was read when the source was opened.
                             if self.header.is_none() || self.stats.headers == 1 {
-                                tracing::info!(sensor = %h.sensor.name, origin = %h.capture.origin, "capture header");
+                                tracing::info!(
+                                    "capture of the {} ({})",
+                                    h.sensor.name,
+                                    h.capture.origin
+                                );
                                 self.header = Some(h);
                             }
                         }

@@ -47,9 +47,14 @@ impl StageKind for CalibrateConfig {
     fn prepare(&mut self, ctx: &RunContext<'_>) {
         self.resolve_from_input(ctx.facts);
         tracing::info!(
-            system_constant = self.system_constant_value.unwrap_or(1.0),
-            t0_is_emission = self.t0_is_emission.unwrap_or(false),
-            "calibrate stage resolved from the input"
+            "calibrate: system constant {} (from the input's sensor unless configured); a \
+             pulse's time 0 is {}",
+            self.system_constant_value.unwrap_or(1.0),
+            if self.t0_is_emission.unwrap_or(false) {
+                "its emission"
+            } else {
+                "its first sample, not its emission"
+            }
         );
     }
 

@@ -18,7 +18,7 @@ use super::{
 use crate::core::validate::{Validate, Validator, field};
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::Pulse;
-pub use crate::signal::decompose::{DecomposeConfig, DecomposePulses};
+pub use crate::signal::decompose::{DecomposeConfig, DecomposePulses, EchoModel};
 use crate::signal::decompose::{Decompose, MAX_RUNNING_MEAN_BINS};
 use crate::signal::gauss_fit::MAX_COMPONENTS;
 
@@ -30,6 +30,17 @@ pub(crate) const MAX_REFINE_PASSES: u32 = MAX_COMPONENTS as u32;
 
 impl Validate for DecomposeConfig {
     fn validate(&self, path: &str, v: &mut Validator) {
+        if let Some(file) = &self.response {
+            v.require(
+                file.is_file(),
+                field(path, "response"),
+                format!(
+                    "no response file {} (paths are from the working folder; `fwlidar response \
+                     learn INPUT --out FILE` writes one)",
+                    file.display()
+                ),
+            );
+        }
         v.require(
             (1..=MAX_COMPONENTS).contains(&self.max_components),
             field(path, "max_components"),
@@ -131,6 +142,26 @@ impl StageKind for DecomposeConfig {
     }
 
     fn prepare(&mut self, ctx: &RunContext<'_>) {
+        let asked = self.model;
+        self.resolve_response(ctx.learned_response);
+        if asked != EchoModel::Gaussian {
+            match (&self.model, &self.learned) {
+                (EchoModel::Response, Some(r)) => tracing::info!(
+                    "decompose: echoes are found against the system response ({}), not as free \
+                     Gaussians",
+                    response_words(r)
+                ),
+                (EchoModel::Gaussian, Some(r)) => tracing::info!(
+                    "decompose: the system response is Gaussian ({}): free Gaussians are fitted",
+                    response_words(r)
+                ),
+                (EchoModel::Gaussian, None) => tracing::info!(
+                    "decompose: no system response could be learned from the input: free \
+                     Gaussians are fitted"
+                ),
+                _ => {}
+            }
+        }
         if self.pulses == DecomposePulses::Auto {
             self.pulses = if ctx.writes_returns {
                 DecomposePulses::All
@@ -138,19 +169,22 @@ impl StageKind for DecomposeConfig {
                 DecomposePulses::QcSampled
             };
             tracing::info!(
-                pulses = ?self.pulses,
-                "decompose stage: {}",
+                "{}",
                 if ctx.writes_returns {
-                    "an output writes the returns: every pulse is decomposed"
+                    "decompose: every pulse is decomposed into returns (an output writes them)"
                 } else {
-                    "no output writes the returns: only the pulses the QC waveform viewer shows \
-                     are decomposed"
+                    "decompose: only the pulses the QC waveform viewer shows are decomposed (no \
+                     output writes returns)"
                 }
             );
         }
     }
 
     fn build(&self) -> Result<Box<dyn Stage>, BuildError> {
+        self.checked_response().map_err(|message| BuildError {
+            kind: "decompose",
+            message,
+        })?;
         Ok(Box::new(Decompose::new(self.clone())))
     }
 
@@ -182,6 +216,32 @@ impl StageKind for DecomposeConfig {
             self.max_iterations, self.max_components, self.max_samples
         )]
     }
+}
+
+/// A response in a few words: its channels' widths and what it was learned from.
+fn response_words(r: &crate::signal::learned_response::ResponseFile) -> String {
+    let widths: Vec<String> = r
+        .responses
+        .iter()
+        .map(|x| {
+            format!(
+                "channel {}: FWHM {:.1} ns from {} echoes",
+                x.channel,
+                f64::from(x.fwhm_samples) * x.sample_ns,
+                x.echoes
+            )
+        })
+        .collect();
+    format!("{}; {}", widths.join(", "), r.learned_from)
+}
+
+/// Whether a run of `stages` must learn the system response from its input first: a
+/// `decompose` stage with `model = "response"` or `"auto"` and no response file.
+pub fn wants_learned_response(stages: &[crate::stages::StageConfig]) -> bool {
+    stages.iter().any(|s| match s {
+        crate::stages::StageConfig::Decompose(d) => d.wants_learned_response(),
+        _ => false,
+    })
 }
 
 impl Stage for Decompose {
@@ -221,6 +281,7 @@ mod tests {
                 facts: &facts,
                 dem: None,
                 writes_returns,
+                learned_response: None,
             });
             c.pulses
         };

@@ -52,6 +52,10 @@ pub struct RunContext<'a> {
     /// LAS or `returns.csv`. Without one, the returns serve only the QC page's waveform viewer
     /// (`pulse::Pulse::qc_sample`).
     pub writes_returns: bool,
+    /// The system response learned from the run's input before it started (replay), for the
+    /// stages that find echoes against it (`decompose` with `model = "response"` or `"auto"`
+    /// and no response file named).
+    pub learned_response: Option<&'a std::sync::Arc<crate::signal::learned_response::ResponseFile>>,
 }
 
 /// What a stage adds to the pulses that pass it: what the outputs after the chain can rely on.
@@ -345,6 +349,7 @@ mod tests {
                 facts: &facts,
                 dem: None,
                 writes_returns: true,
+                learned_response: None,
             },
         )
         .unwrap();
@@ -379,6 +384,7 @@ mod tests {
             facts: &facts,
             dem: None,
             writes_returns: true,
+            learned_response: None,
         };
         let parse = |text: &str| -> Vec<StageConfig> {
             #[derive(Deserialize)]

@@ -57,8 +57,35 @@ pub fn python_bench(script: &str, dir: &Path, args: &[&str]) -> (i32, String, St
     )
 }
 
-/// The Python with the real readers of our outputs (numpy, laspy, lazrs): `$FWLIDAR_PYTHON`,
-/// else `.venv/bin/python` (made by `.ci/run`). Panics saying how to get it.
+/// The README's test command: it installs every program and Python package the tests use
+/// (apt packages, the `.venv` of `tests/python/requirements.txt`) and then runs the suite. A
+/// test whose tool is missing fails naming it, never passes silently.
+pub const SETUP: &str = "tests/run.sh";
+
+/// The full path of the program `name` (from the Debian package `package`), looked for on the
+/// PATH and in the sbin folders (daemons live in /usr/sbin, which a user's PATH may lack).
+/// Panics saying what needs it and the command that installs it.
+pub fn tool(name: &str, package: &str, why: &str) -> PathBuf {
+    find_tool(name).unwrap_or_else(|| {
+        panic!(
+            "`{name}` (Debian package {package}) is not installed: {why}; run `{SETUP}` (the \
+             README's test command installs it and the other tools the tests use)"
+        )
+    })
+}
+
+/// The full path of `name` on the PATH or in the sbin folders, if it is there.
+pub fn find_tool(name: &str) -> Option<PathBuf> {
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    std::env::split_paths(&path)
+        .chain(["/usr/sbin", "/sbin", "/usr/local/sbin"].map(PathBuf::from))
+        .map(|d| d.join(name))
+        .find(|p| p.is_file())
+}
+
+/// The Python with the real readers of our outputs and the reference implementations
+/// (`tests/python/requirements.txt`): `$FWLIDAR_PYTHON`, else `.venv/bin/python`, as
+/// [`SETUP`] makes it. Panics naming the command when it is missing.
 pub fn python() -> PathBuf {
     if let Ok(p) = std::env::var("FWLIDAR_PYTHON") {
         return PathBuf::from(p);
@@ -66,11 +93,118 @@ pub fn python() -> PathBuf {
     let venv = Path::new(ROOT).join(".venv/bin/python");
     assert!(
         venv.exists(),
-        "this check needs Python with numpy, laspy and lazrs: set FWLIDAR_PYTHON or run .ci/run \
-         (it creates .venv with them); {} is missing",
+        "this check reads our outputs with the field's Python readers, and {} is missing: run \
+         `{SETUP}` (it creates .venv with the packages of tests/python/requirements.txt), or \
+         set FWLIDAR_PYTHON to a Python that has them",
         venv.display()
     );
     venv
+}
+
+/// [`python()`], checked to import every one of `modules`; panics naming the missing ones and
+/// the command that installs them.
+pub fn python_with(modules: &[&str]) -> PathBuf {
+    let py = python();
+    let probe = format!("import {}", modules.join(", "));
+    let o = Command::new(&py)
+        .args(["-c", &probe])
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run {}: {e}; run `{SETUP}`", py.display()));
+    assert!(
+        o.status.success(),
+        "{} cannot `{probe}`: run `{SETUP}` (it installs tests/python/requirements.txt into \
+         .venv): {}",
+        py.display(),
+        text(&o.stderr).lines().last().unwrap_or("")
+    );
+    py
+}
+
+/// `gdalinfo -json FILE`: GDAL's own reading of a raster or VRT we wrote. Panics when gdalinfo
+/// is missing (naming [`SETUP`]) or refuses the file.
+pub fn gdalinfo_json(path: &Path) -> serde_json::Value {
+    let gdal = tool(
+        "gdalinfo",
+        "gdal-bin",
+        "GDAL opens our rasters in this check",
+    );
+    let o = Command::new(gdal)
+        .arg("-json")
+        .arg(path)
+        .output()
+        .expect("run gdalinfo");
+    assert!(
+        o.status.success(),
+        "gdalinfo {} failed: {}",
+        path.display(),
+        text(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).expect("gdalinfo prints JSON")
+}
+
+/// A tmpfs mounted on a folder for one test (a small disk to fill, a read-only file system
+/// that root cannot write either); unmounted when dropped. Mounting needs root, as the README's
+/// test command runs; a machine that refuses it fails the test, saying so.
+pub struct Tmpfs(PathBuf);
+
+impl Tmpfs {
+    /// Mounts a tmpfs of `size` (mount's syntax: `48k`) on `dir`, which is made.
+    pub fn mount(dir: &Path, size: &str) -> Tmpfs {
+        std::fs::create_dir_all(dir).unwrap();
+        let o = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+            .arg(dir)
+            .output()
+            .expect("run mount");
+        assert!(
+            o.status.success(),
+            "this check mounts a {size} tmpfs on {} and needs root to (run `{SETUP}` as root): {}",
+            dir.display(),
+            text(&o.stderr)
+        );
+        Tmpfs(dir.to_path_buf())
+    }
+
+    /// Remounts it read-only: nobody, root included, may write it afterwards.
+    pub fn read_only(&self) {
+        let o = Command::new("mount")
+            .args(["-o", "remount,ro"])
+            .arg(&self.0)
+            .output()
+            .expect("run mount");
+        assert!(o.status.success(), "remount ro: {}", text(&o.stderr));
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(&self.0).output();
+    }
+}
+
+/// proptest's configuration for `cases` cases whose failures are kept in
+/// `proptest-regressions/tests/<name>.txt` (committed with the fix, as the crate's own unit
+/// tests keep theirs there), not beside the test's source: a failing run leaves nothing new in
+/// `tests/`.
+pub fn proptest_cases(cases: u32, regressions: &'static str) -> proptest::test_runner::Config {
+    proptest::test_runner::Config {
+        cases,
+        failure_persistence: Some(Box::new(
+            proptest::test_runner::FileFailurePersistence::Direct(regressions),
+        )),
+        ..proptest::test_runner::Config::default()
+    }
+}
+
+/// What a run's printed summary says of the output `name` (`returns.las`, `voxels.zarr`, ...):
+/// the text after the name on its line of the "written in DIR:" block, if the block names it.
+pub fn summary_output<'a>(stdout: &'a str, name: &str) -> Option<&'a str> {
+    stdout.lines().find_map(|l| {
+        l.strip_prefix("    ")?
+            .strip_prefix(name)
+            .filter(|rest| rest.starts_with(' '))
+            .map(str::trim)
+    })
 }
 
 /// The real RIEGL waveform LAS fixture (LAS 1.4, point format 9, packets in the `.wdp`).
