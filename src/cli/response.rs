@@ -4,12 +4,10 @@
 //! spread beside it. A `decompose` stage uses it by name (`response = "FILE"`).
 
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use crate::cli::Failure;
 use crate::core::atomic_file::write_atomic;
-use crate::pipeline::ports::SourceEvent;
-use crate::pulse::PulsePool;
 use crate::signal::learned_response::{
     GAUSSIAN_MISFIT, LearnedResponse, ResponseFile, ResponseLearner,
 };
@@ -69,7 +67,7 @@ fn learn(args: LearnArgs) -> Result<(), Failure> {
     }
     let mut learner = ResponseLearner::new();
     for input in &args.inputs {
-        read_into(&mut learner, input, args.pulses)?;
+        crate::run::learn::read_into(&mut learner, input, args.pulses)?;
     }
     let names: Vec<String> = args
         .inputs
@@ -94,26 +92,6 @@ fn learn(args: LearnArgs) -> Result<(), Failure> {
         println!("  {}", channel_line(r));
     }
     println!("  figure: {}", figure.display());
-    Ok(())
-}
-
-/// Feeds the pulses of `path` to `learner` until it has seen `max_pulses` in all.
-fn read_into(learner: &mut ResponseLearner, path: &Path, max_pulses: u64) -> Result<(), Failure> {
-    let mut source = crate::source::open_file(path).map_err(Failure::job)?;
-    let pool = PulsePool::new(4);
-    while learner.pulses() < max_pulses {
-        match source
-            .next(&pool)
-            .map_err(|e| Failure::job(format!("{}: {e}", path.display())))?
-        {
-            SourceEvent::End => break,
-            SourceEvent::Idle | SourceEvent::Nav(_) => {}
-            SourceEvent::Pulse(p) => {
-                learner.add_pulse(&p);
-                pool.give(p);
-            }
-        }
-    }
     Ok(())
 }
 

@@ -24,9 +24,25 @@ pub fn learn_from_file(
     path: &Path,
     max_pulses: u64,
 ) -> Result<Result<ResponseFile, String>, RunError> {
+    let mut learner = ResponseLearner::new();
+    read_into(&mut learner, path, max_pulses)?;
+    let from = format!(
+        "learned from the first {} pulses of {}",
+        learner.pulses(),
+        path.display()
+    );
+    Ok(learner.finish(&from).map_err(|e| e.to_string()))
+}
+
+/// Feeds the pulses of `path` to `learner` until it has seen `max_pulses` in all (the file's
+/// own reader, no georeferencing); errors name the file.
+pub fn read_into(
+    learner: &mut ResponseLearner,
+    path: &Path,
+    max_pulses: u64,
+) -> Result<(), RunError> {
     let mut source = crate::source::open_file(path).map_err(RunError::job)?;
     let pool = PulsePool::new(4);
-    let mut learner = ResponseLearner::new();
     while learner.pulses() < max_pulses {
         match source
             .next(&pool)
@@ -40,12 +56,7 @@ pub fn learn_from_file(
             }
         }
     }
-    let from = format!(
-        "learned from the first {} pulses of {}",
-        learner.pulses(),
-        path.display()
-    );
-    Ok(learner.finish(&from).map_err(|e| e.to_string()))
+    Ok(())
 }
 
 /// The response a run used, for `summary.json` (`response`) and the printed summary.
