@@ -968,3 +968,76 @@ fn nnls_or_rl_keeps_the_better_method_per_row() {
         assert!(!out.exists());
     }
 }
+
+/// `fwlidar process --input INPUT --no-progress --learn-kernel --out OUT` with `extra`.
+fn learn(input: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "process",
+        "--input",
+        s(input),
+        "--no-progress",
+        "--learn-kernel",
+        "--out",
+        s(out),
+    ];
+    args.extend_from_slice(extra);
+    fwlidar(&args)
+}
+
+/// `--learn-kernel`: the kernel learned from the rows (NEON's returns: no kernel needed), the
+/// given kernel kept and said so when the rows hold too few clean echoes, and the errors.
+#[test]
+fn learn_kernel_learns_from_the_rows_or_says_why_not() {
+    let neon = fixtures().unwrap().join("waveform/neon_harv");
+    let dir = tempfile::tempdir().unwrap();
+    let input = neon.join("return.csv");
+    let imp = neon.join("imp.csv");
+    let out = dir.path().join("out.npy");
+    // NEON's 500 returns, no kernel: learned from their single echoes.
+    let o = learn(&input, &out, &["--zero-padding", "--method", "rl"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let line = stdout(&o);
+    assert!(line.contains("kernel learned from"), "{line}");
+    assert_eq!(read_table(&out).unwrap().rows.len(), 500);
+    // Starting from NEON's calibrated response: stretched to the returns, the factor stated.
+    let o = learn(
+        &input,
+        &out,
+        &["--zero-padding", "--method", "rl", "--kernel", s(&imp)],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let line = stdout(&o);
+    assert!(line.contains("--kernel stretched"), "{line}");
+    // Three rows: too few echoes. With --kernel it is kept and said so; without, an error that
+    // names the input and the way out, nothing written.
+    let few = dir.path().join("few.csv");
+    let row: Vec<String> = (0..64)
+        .map(|i| {
+            let x = (i as f32 - 30.0) / 3.0;
+            format!("{}", 10.0 + 100.0 * (-0.5 * x * x).exp())
+        })
+        .collect();
+    std::fs::write(&few, format!("{}\n", vec![row.join(","); 3].join("\n"))).unwrap();
+    let o = learn(&few, &out, &["--method", "rl", "--kernel", s(&imp)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("--kernel kept"), "{}", stdout(&o));
+    assert!(stderr(&o).contains("learned nothing"), "{}", stderr(&o));
+    let none = dir.path().join("none.npy");
+    let o = learn(&few, &none, &["--method", "rl"]);
+    assert!(!o.status.success());
+    let e = stderr(&o);
+    assert!(
+        e.contains("few.csv") && e.contains("--learn-kernel") && e.contains("--kernel"),
+        "{e}"
+    );
+    assert!(!none.exists());
+    // Usage errors: nothing to learn for, or combined with what it replaces.
+    for extra in [
+        &["--method", "none"][..],
+        &["--method", "rl", "--response", s(&imp)][..],
+    ] {
+        let o = learn(&few, &none, extra);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {}", stderr(&o));
+        assert!(stderr(&o).contains("--learn-kernel"), "{}", stderr(&o));
+    }
+}

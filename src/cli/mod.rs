@@ -12,6 +12,7 @@ pub mod daemon;
 pub mod import;
 pub mod inspect;
 pub mod inspect_nav;
+pub mod learn_kernel;
 pub mod man;
 pub mod merge;
 pub mod metrics;

@@ -15,6 +15,7 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cli::Failure;
+use crate::cli::learn_kernel::{KernelLearning, learn_kernel};
 use crate::core::atomic_file::{AtomicFile, write_atomic};
 use crate::forest::measure::pulse_sigma_ns;
 use crate::forest::pulse_metrics::MetricsConfig;
@@ -144,6 +145,14 @@ pub struct ProcessArgs {
     /// The kernel table holds one outgoing pulse per input row (row counts must match).
     #[arg(long)]
     pub kernel_per_row: bool,
+    /// Learn the kernel from the rows themselves: their isolated, strong single echoes aligned
+    /// to a quarter of a sample and averaged (as `fwlidar response learn` does on a file), for
+    /// when the system pulse is not known to better than ~10 %. `--kernel`, when given, is the
+    /// starting point: the summary states the learned width against it, and it is used when
+    /// the rows hold too few clean single echoes (under 20). Not with `--kernel-per-row` or
+    /// `--response`.
+    #[arg(long)]
+    pub learn_kernel: bool,
     /// Skip the denoise step (no baseline removal, no low-pass).
     #[arg(long)]
     pub no_denoise: bool,
@@ -251,6 +260,8 @@ pub struct ProcessReport {
     /// With `--method nnls_or_rl`: over how many rows NNLS ran (RL misfit its echoes) and over
     /// how many its result was kept.
     pub choice: Option<ChoiceCounts>,
+    /// With `--learn-kernel`: what was learned.
+    pub learning: Option<KernelLearning>,
 }
 
 /// Shortest run of zeros at the end of a row that the summary names as likely zero padding
@@ -503,9 +514,27 @@ fn check_args(args: &ProcessArgs) -> Result<(), Failure> {
             )));
         }
     }
-    if args.method != ProcessMethod::None && args.kernel.is_none() && args.response.is_none() {
+    if args.learn_kernel {
+        if args.method == ProcessMethod::None {
+            return Err(Failure::usage(
+                "--learn-kernel needs a deconvolution --method (it learns the kernel to deconvolve by)",
+            ));
+        }
+        if args.kernel_per_row || args.response.is_some() {
+            return Err(Failure::usage(
+                "--learn-kernel learns one kernel for every row, the whole system response: it \
+                 cannot be combined with --kernel-per-row or --response",
+            ));
+        }
+    }
+    if args.method != ProcessMethod::None
+        && args.kernel.is_none()
+        && args.response.is_none()
+        && !args.learn_kernel
+    {
         return Err(Failure::usage(format!(
-            "--method {} needs --kernel (outgoing pulse or system response), --response, or both",
+            "--method {} needs --kernel (outgoing pulse or system response), --response, both, \
+             or --learn-kernel",
             args.method.cli_name()
         )));
     }
@@ -714,12 +743,16 @@ pub fn run(args: ProcessArgs) -> Result<(), Failure> {
         0.0
     };
     println!(
-        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
+        "fwlidar process  {}  ->  {}: {} waveforms, {} samples, method {}{}{}{}{}{}{}{}{}{}{}; {:.3} s, {:.1} µs per waveform",
         args.input.display(),
         args.out.display(),
         report.waveforms,
         report.samples,
         args.method.cli_name(),
+        report
+            .learning
+            .as_ref()
+            .map_or_else(String::new, KernelLearning::words),
         match report.target_iterations {
             Some(n) => format!(" ({n} iterations for the target pulse)"),
             None => String::new(),
@@ -818,7 +851,13 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
     let mut method = method_config(args, None)?;
     let input_name = args.input.display().to_string();
     let table = read_input(args, &input_name)?;
-    let kernels = load_kernels(args, table.rows.len())?;
+    let mut kernels = load_kernels(args, table.rows.len())?;
+    let mut learning = None;
+    if args.learn_kernel {
+        let (k, how) = learn_kernel(args, &table, kernels.first(), &input_name)?;
+        kernels = vec![k];
+        learning = Some(how);
+    }
     let derived = target_iterations(args, &kernels);
     if let Some(n) = derived {
         tracing::info!(
@@ -884,6 +923,7 @@ pub fn process(args: &ProcessArgs) -> Result<ProcessReport, Failure> {
             .deconvolver
             .as_ref()
             .and_then(Deconvolver::choice_counts),
+        learning,
     })
 }
 
@@ -1425,6 +1465,7 @@ mod tests {
             target_fwhm_ns: None,
             cutoff_ghz: None,
             kernel_per_row: false,
+            learn_kernel: false,
             no_denoise: false,
             baseline: BaselineModel::Line,
             zero_padding: false,
@@ -1540,6 +1581,7 @@ mod tests {
             target_fwhm_ns: a.target_fwhm_ns,
             cutoff_ghz: a.cutoff_ghz,
             kernel_per_row: a.kernel_per_row,
+            learn_kernel: false,
             no_denoise: a.no_denoise,
             baseline: a.baseline,
             zero_padding: a.zero_padding,

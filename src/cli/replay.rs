@@ -20,7 +20,7 @@ use crate::run::summary::{Summary, print_summary, write_summary};
 use crate::run::warnings::{log_warnings, run_warnings};
 use crate::run::{RunControl, RunReport};
 use crate::source::shard::Shard;
-use crate::stages::decompose::wants_learned_response;
+use crate::stages::wants_learned_response;
 
 /// The sample replayed when no input is named, relative to the repository's root.
 pub const DEFAULT_SAMPLE: &str = "replay/two_layer.fwcap";

@@ -10,6 +10,7 @@ pub mod echo_fit;
 pub mod echo_strength;
 pub mod gauss_fit;
 pub mod kernel;
+pub mod kernel_stretch;
 pub mod learned_response;
 pub mod peaks;
 pub mod robust_noise;

@@ -235,15 +235,6 @@ fn response_words(r: &crate::signal::learned_response::ResponseFile) -> String {
     format!("{}; {}", widths.join(", "), r.learned_from)
 }
 
-/// Whether a run of `stages` must learn the system response from its input first: a
-/// `decompose` stage with `model = "response"` or `"auto"` and no response file.
-pub fn wants_learned_response(stages: &[crate::stages::StageConfig]) -> bool {
-    stages.iter().any(|s| match s {
-        crate::stages::StageConfig::Decompose(d) => d.wants_learned_response(),
-        _ => false,
-    })
-}
-
 impl Stage for Decompose {
     fn name(&self) -> &'static str {
         "decompose"

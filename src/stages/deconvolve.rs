@@ -59,7 +59,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{Advice, BuildError, MAX_SEGMENT_SAMPLES, MIN_SEGMENT_SAMPLES, StageKind};
+use super::{
+    Advice, BuildError, MAX_SEGMENT_SAMPLES, MIN_SEGMENT_SAMPLES, RunContext, StageKind,
+};
 use crate::core::validate::{Validate, Validator, field};
 use crate::pipeline::stage::{Emitter, Stage, StageError};
 use crate::pulse::{Pulse, SegmentKind, Verdict};
@@ -71,6 +73,7 @@ use crate::signal::deconvolve::{
     Deconvolver, Gate, Gated, MethodConfig, NnlsConfig, RlConfig, Targeted, WienerConfig,
 };
 use crate::signal::kernel::{Kernel, RecordLevels};
+use crate::signal::learned_response::ResponseFile;
 
 /// Where the stage's kernel (system response) comes from.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
@@ -98,6 +101,15 @@ pub enum KernelSource {
         /// The outgoing pulse recorded with that return, same units and interval.
         outgoing: Vec<f32>,
     },
+    /// The system response learned from the run's own input, per digitizer channel
+    /// ([`crate::signal::learned_response`]): replay learns it from the input's first pulses
+    /// and freezes it, as for `decompose`'s `model = "response"`: `kernel = "learned"`. For
+    /// data whose outgoing pulse is not recorded (LAS waveform files) or is not the shape the
+    /// receiver sees.
+    Learned,
+    /// A learned response file (`fwlidar response learn --out FILE`; path from the working
+    /// folder), per channel: `kernel = { response = "FILE" }`.
+    Response(std::path::PathBuf),
 }
 
 impl KernelSource {
@@ -110,7 +122,7 @@ impl KernelSource {
         max_taps: usize,
     ) -> Option<Result<Kernel, String>> {
         match self {
-            KernelSource::Outgoing => None,
+            KernelSource::Outgoing | KernelSource::Learned | KernelSource::Response(_) => None,
             KernelSource::Taps { taps, center } => {
                 let mut k = Kernel::with_capacity(max_taps);
                 Some(
@@ -174,6 +186,13 @@ pub struct DeconvolveConfig {
     /// `"pass"` (passed on un-deconvolved, counted in the stage's `notes` as `no_outgoing`).
     #[serde(default)]
     pub missing_outgoing: MissingOutgoing,
+    /// With `kernel = "learned"` or `{ response = "FILE" }`: the response in use, resolved
+    /// when the run is put together (never in a file).
+    #[serde(skip)]
+    pub learned: Option<std::sync::Arc<ResponseFile>>,
+    /// Why the response file could not be read, reported when the stage is built.
+    #[serde(skip)]
+    pub learned_error: Option<String>,
 }
 
 /// What a deconvolve stage with `kernel = "outgoing"` does with a pulse without an outgoing
@@ -270,6 +289,8 @@ impl DeconvolveConfig {
             max_taps: default_max_taps(),
             missing_outgoing: MissingOutgoing::default(),
             long_kernel: LongKernel::default(),
+            learned: None,
+            learned_error: None,
         }
     }
 }
@@ -280,6 +301,9 @@ pub struct Deconvolve {
     /// The method behind the configured echo-window gate, to the target pulse if one is set.
     method: Targeted,
     kernel: Kernel,
+    /// With a learned response: one kernel per digitizer channel (the first, learned from the
+    /// most echoes, for a channel it does not know); empty otherwise.
+    channel_kernels: Vec<(u16, Kernel)>,
     /// Output of one segment, `max_samples`.
     out: Vec<f32>,
     /// The samples of one segment at the digitizer's full scale, `max_samples`.
@@ -314,7 +338,12 @@ impl Deconvolve {
                 });
             }
         };
+        let channel_kernels = learned_kernels(&config).map_err(|message| BuildError {
+            kind: "deconvolve",
+            message,
+        })?;
         Ok(Deconvolve {
+            channel_kernels,
             out: vec![0.0; config.max_samples],
             clipped: Vec::with_capacity(config.max_samples),
             method,
@@ -409,13 +438,14 @@ impl Deconvolve {
                 break;
             }
             let y = &pulse.signal[range.clone()];
+            let kernel = channel_kernel(&self.channel_kernels, &self.kernel, seg.channel);
             let full_scale = pulse.full_scale_dn();
             let result = if flag_full_scale(&pulse.raw[range.clone()], full_scale, &mut self.clipped)
             {
                 any_clipped = true;
                 self.method.run_excluding(
                     y,
-                    &self.kernel,
+                    kernel,
                     noise_v,
                     sample_ns,
                     &self.clipped,
@@ -423,7 +453,7 @@ impl Deconvolve {
                 )
             } else {
                 self.method
-                    .run(y, &self.kernel, noise_v, sample_ns, &mut self.out[..n])
+                    .run(y, kernel, noise_v, sample_ns, &mut self.out[..n])
             };
             match result {
                 Ok(_) => pulse.signal[range].copy_from_slice(&self.out[..n]),
@@ -443,6 +473,51 @@ impl Deconvolve {
             (false, false) => Verdict::DONE,
         }
     }
+}
+
+/// The kernel of digitizer `channel`: its learned one, else the first learned (the one learned
+/// from the most echoes), else `fixed` (no learned response).
+fn channel_kernel<'k>(learned: &'k [(u16, Kernel)], fixed: &'k Kernel, channel: u8) -> &'k Kernel {
+    learned
+        .iter()
+        .find(|(c, _)| *c == u16::from(channel))
+        .or_else(|| learned.first())
+        .map_or(fixed, |(_, k)| k)
+}
+
+/// The kernels of a learned response (`kernel = "learned"` or `{ response = "FILE" }`), one
+/// per channel, the one learned from the most echoes first; empty for other kernel sources.
+/// An error names what is missing or too long.
+fn learned_kernels(config: &DeconvolveConfig) -> Result<Vec<(u16, Kernel)>, String> {
+    if !matches!(
+        config.kernel,
+        KernelSource::Learned | KernelSource::Response(_)
+    ) {
+        return Ok(Vec::new());
+    }
+    let file = match (&config.learned, &config.learned_error) {
+        (Some(f), _) => f,
+        (None, Some(e)) => return Err(format!("kernel.response: {e}")),
+        (None, None) => {
+            return Err("kernel = \"learned\" needs the response learned from the input \
+                 (replay learns it from the input's first pulses; this input held too few \
+                 clean single echoes, or the run does not learn): name a file instead, kernel \
+                 = { response = \"FILE\" } from `fwlidar response learn`"
+                .into());
+        }
+    };
+    let mut responses: Vec<_> = file.responses.iter().collect();
+    responses.sort_by_key(|r| std::cmp::Reverse(r.echoes));
+    responses
+        .into_iter()
+        .map(|r| {
+            let (taps, center) = r.kernel_taps();
+            let mut k = Kernel::with_capacity(config.max_taps);
+            k.set_from_taps(&taps, center, config.max_taps)
+                .map_err(|e| format!("kernel: the learned response of channel {}: {e}", r.channel))?;
+            Ok((r.channel, k))
+        })
+        .collect()
 }
 
 /// Flags in `clipped` (resized to `raw.len()`, no allocation within its capacity) the samples
@@ -702,6 +777,38 @@ impl StageKind for DeconvolveConfig {
         "deconvolve"
     }
 
+    fn prepare(&mut self, ctx: &RunContext<'_>) {
+        if self.learned.is_some() {
+            return;
+        }
+        match &self.kernel {
+            KernelSource::Learned => self.learned = ctx.learned_response.cloned(),
+            KernelSource::Response(path) => match ResponseFile::read(path) {
+                Ok(r) => self.learned = Some(std::sync::Arc::new(r)),
+                Err(e) => self.learned_error = Some(e),
+            },
+            _ => return,
+        }
+        if let Some(r) = &self.learned {
+            let widths: Vec<String> = r
+                .responses
+                .iter()
+                .map(|x| {
+                    format!(
+                        "channel {}: FWHM {:.1} ns",
+                        x.channel,
+                        f64::from(x.fwhm_samples) * x.sample_ns
+                    )
+                })
+                .collect();
+            tracing::info!(
+                "deconvolve: by the learned system response ({}; {})",
+                widths.join(", "),
+                r.learned_from
+            );
+        }
+    }
+
     fn build(&self) -> Result<Box<dyn Stage>, BuildError> {
         Ok(Box::new(Deconvolve::new(self.clone())?))
     }
@@ -802,6 +909,10 @@ impl StageKind for DeconvolveConfig {
             KernelSource::Taps { .. } => format!("calibrated, {} taps", w.taps),
             KernelSource::FlatTarget { .. } => {
                 format!("response measured on a flat target, {} taps", w.taps)
+            }
+            KernelSource::Learned => format!("the response learned from the input, <= {} taps", w.taps),
+            KernelSource::Response(ref p) => {
+                format!("the learned response {}, <= {} taps", p.display(), w.taps)
             }
         };
         let iterations = if w.iterations == 0 {
@@ -973,6 +1084,82 @@ mod tests {
             assert!((peak.0 as i32 - 40).abs() <= 1, "{m:?}: peak at {}", peak.0);
             assert!(*peak.1 > 0.6, "{m:?}: sharpened peak {}", peak.1);
         }
+    }
+
+    /// A learned response file of one channel: a Gaussian of σ `sigma` samples on the quarter
+    /// grid, as `fwlidar response learn` writes it.
+    fn learned_file(channel: u16, sigma: f32) -> crate::signal::learned_response::ResponseFile {
+        use crate::signal::learned_response::{LearnedResponse, ResponseFile};
+        let start = -16.0f32;
+        let shape: Vec<f32> = (0..129)
+            .map(|g| {
+                let x = (start + g as f32 * 0.25) / sigma;
+                (-0.5 * x * x).exp()
+            })
+            .collect();
+        ResponseFile {
+            learned_from: "a test".into(),
+            responses: vec![LearnedResponse {
+                channel,
+                sample_ns: 1.0,
+                step_samples: 0.25,
+                start_samples: start,
+                spread: vec![0.0; shape.len()],
+                shape,
+                echoes: 100,
+                candidates: 100,
+                fwhm_samples: 2.3548 * sigma,
+                amplitude_counts: [50.0, 200.0],
+                amplitude_dependence: None,
+                gaussian_misfit: 0.0,
+                shape_noise: 0.0,
+            }],
+        }
+    }
+
+    #[test]
+    fn a_learned_response_deconvolves_pulses_without_their_outgoing_pulse() {
+        let config = DeconvolveConfig {
+            kernel: KernelSource::Learned,
+            learned: Some(std::sync::Arc::new(learned_file(3, 3.4))),
+            ..DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig::default()))
+        };
+        let mut stage = Deconvolve::new(config).unwrap();
+        // No outgoing segment, channel 0 (the file knows channel 3 only: its one response).
+        let mut p = Pulse::default();
+        p.push_segment(SegmentKind::Return, 0, 900.0, [0u16; 128]);
+        let r1 = gauss(128, 40.0, 3.4, 0.5);
+        let r2 = gauss(128, 80.0, 3.4, 0.3);
+        p.signal = r1.iter().zip(&r2).map(|(a, b)| a + b).collect();
+        p.noise.noise_v = 0.001;
+        let run = run_stage(&mut stage, [p]).unwrap();
+        assert_eq!(run.emitted.len(), 1);
+        let ret = run.emitted[0].signal_of(0);
+        let peak = ret
+            .iter()
+            .enumerate()
+            .max_by(|a, b| a.1.total_cmp(b.1))
+            .unwrap();
+        assert!((peak.0 as i32 - 40).abs() <= 1, "peak at {}", peak.0);
+        assert!(*peak.1 > 0.6, "sharpened peak {}", peak.1);
+        // Without a learned response the stage is not built, and says what to do.
+        let e = Deconvolve::new(DeconvolveConfig {
+            kernel: KernelSource::Learned,
+            ..DeconvolveConfig::with_method(MethodConfig::RichardsonLucy(RlConfig::default()))
+        })
+        .err()
+        .unwrap();
+        assert!(
+            e.message.contains("kernel = \"learned\"") && e.message.contains("response learn"),
+            "{}",
+            e.message
+        );
+        // The file form parses from TOML.
+        let c: DeconvolveConfig = toml::from_str(
+            "method = { method = \"richardson_lucy\" }\nkernel = { response = \"r.toml\" }",
+        )
+        .unwrap();
+        assert_eq!(c.kernel, KernelSource::Response("r.toml".into()));
     }
 
     #[test]

@@ -331,6 +331,19 @@ impl Chain {
     }
 }
 
+/// Whether a run of `stages` must learn the system response from its input first: a
+/// `decompose` stage with `model = "response"` or `"auto"` and no response file, or a
+/// `deconvolve` stage with `kernel = "learned"`.
+pub fn wants_learned_response(stages: &[StageConfig]) -> bool {
+    stages.iter().any(|s| match s {
+        StageConfig::Decompose(d) => d.wants_learned_response(),
+        StageConfig::Deconvolve(d) => {
+            d.kernel == deconvolve::KernelSource::Learned && d.learned.is_none()
+        }
+        _ => false,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

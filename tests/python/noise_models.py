@@ -29,7 +29,15 @@ Noise models (``--model``, or ``all``):
 - ``quantised``: a pedestal of 0.1 P, white Gaussian σ = 0.01 P, then an 8-bit digitizer
   (256 codes over [0, 1.25 (P + pedestal)]), values kept in signal units;
 - ``saturated``: a pedestal of 0.1 P, white Gaussian σ = 0.02 P, clipped at 0.1 P + 0.6 P
-  (the strongest echoes' tops cut).
+  (the strongest echoes' tops cut);
+- ``shot_8bit``: shot noise as ``poisson``, on a pedestal of 0.1 P, then the 8-bit digitizer
+  of ``quantised`` (the held-out set of issue 55).
+
+**Kernel mismatch** (``--kernel-mismatch F``, e.g. 0.1 or -0.1): the rows are drawn with a
+system pulse of (1 + F) × ``--pulse-fwhm-ns`` while the kernel given to every row (fwlidar's
+``--kernel``, scikit-image's PSF, scipy's matrix) keeps ``--pulse-fwhm-ns``: the system pulse is
+known only to 10 %. A run whose label ends in ``@true`` gets the true pulse as ``--kernel``
+instead (what the same setting reaches with the right kernel).
 
 Rows scored (in this order): ``raw``; ``skimage-rl200`` (``skimage.restoration.
 richardson_lucy``, 200 iterations, its defaults, on the rows with their baseline removed and
@@ -63,7 +71,7 @@ import sys
 
 import numpy as np
 
-MODELS = ("gaussian", "uniform_offset", "poisson", "drift", "quantised", "saturated")
+MODELS = ("gaussian", "uniform_offset", "poisson", "drift", "quantised", "saturated", "shot_8bit")
 TRUTH_FWHM_NS = 2.0
 PAIR_GAP_FWHM = 0.75
 BASELINE_NS = 30.0
@@ -123,6 +131,12 @@ def add_noise(rng, clean, model, t):
     if model == "quantised":
         pedestal = 0.1 * peak
         y = clean + pedestal + rng.normal(0.0, 0.01 * peak, n)
+        q = 1.25 * (peak + pedestal) / 255.0
+        return np.clip(np.round(y / q), 0, 255) * q
+    if model == "shot_8bit":
+        gain = 200.0 / peak
+        pedestal = 0.1 * peak
+        y = rng.poisson(clean * gain + 2.0).astype(float) / gain + pedestal
         q = 1.25 * (peak + pedestal) / 255.0
         return np.clip(np.round(y / q), 0, 255) * q
     if model == "saturated":
@@ -215,8 +229,9 @@ def scipy_nnls(received, t, k, dt):
 
 def run_fwlidar(binary, workdir, label, args, dt):
     out = os.path.join(workdir, f"out-{label}.npy")
+    kernel = "kernel_true.npy" if label.endswith("@true") else "kernel.npy"
     cmd = [binary, "process", "--input", os.path.join(workdir, "rows.npy"), "--kernel",
-           os.path.join(workdir, "kernel.npy"), "--sample-ns", str(dt), "--out", out,
+           os.path.join(workdir, kernel), "--sample-ns", str(dt), "--out", out,
            "--no-progress"] + args.split()
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0:
@@ -225,12 +240,18 @@ def run_fwlidar(binary, workdir, label, args, dt):
     return np.load(out).astype(float)
 
 
+def save_kernel(path, k):
+    padded = np.concatenate([np.zeros(KERNEL_ZEROS), k, np.zeros(KERNEL_ZEROS)])
+    np.save(path, padded[None, :].astype(np.float32))
+
+
 def one_configuration(a, model, fwhm, dt, seed):
-    t, received, truth, pairs = simulate(a.waveforms, model, fwhm, dt, a.record_ns, seed)
+    true_fwhm = fwhm * (1.0 + a.kernel_mismatch)
+    t, received, truth, pairs = simulate(a.waveforms, model, true_fwhm, dt, a.record_ns, seed)
     k = kernel_taps(fwhm, dt)
     np.save(os.path.join(a.workdir, "rows.npy"), received.astype(np.float32))
-    padded = np.concatenate([np.zeros(KERNEL_ZEROS), k, np.zeros(KERNEL_ZEROS)])
-    np.save(os.path.join(a.workdir, "kernel.npy"), padded[None, :].astype(np.float32))
+    save_kernel(os.path.join(a.workdir, "kernel.npy"), k)
+    save_kernel(os.path.join(a.workdir, "kernel_true.npy"), kernel_taps(true_fwhm, dt))
     rows = [("raw", received), ("skimage-rl200", skimage_rl(received, t, k)),
             ("scipy-nnls+2ns", scipy_nnls(received, t, k, dt))]
     for spec in a.run or DEFAULT_RUNS:
@@ -239,7 +260,8 @@ def one_configuration(a, model, fwhm, dt, seed):
     results = []
     for label, out in rows:
         r, p = score(out, received, truth, pairs, t, dt)
-        results.append({"model": model, "pulse_fwhm_ns": fwhm, "sample_ns": dt, "row": label,
+        results.append({"model": model, "pulse_fwhm_ns": fwhm, "sample_ns": dt,
+                        "kernel_mismatch": a.kernel_mismatch, "row": label,
                         "rmse_ratio": round(float(r), 4), "pairs": round(p, 4)})
     return results
 
@@ -256,11 +278,13 @@ def main():
     ap.add_argument("--sample-ns", type=float, action="append", default=[])
     ap.add_argument("--run", action="append", default=[], help="LABEL=ARGS for fwlidar process")
     ap.add_argument("--seed", type=int, default=37)
+    ap.add_argument("--kernel-mismatch", type=float, default=0.0,
+                    help="rows drawn with a pulse (1 + F) x the kernel's FWHM (e.g. 0.1)")
     ap.add_argument("--json")
     a = ap.parse_args()
     models = [m for x in (a.model or ["gaussian"]) for m in (MODELS if x == "all" else [x])]
     bad = [m for m in models if m not in MODELS]
-    if bad or a.waveforms < 1:
+    if bad or a.waveforms < 1 or not -0.5 < a.kernel_mismatch < 1.0:
         sys.stderr.write(f"unknown model(s) {bad} (known: {', '.join(MODELS)}) or no rows\n")
         sys.exit(2)
     os.makedirs(a.workdir, exist_ok=True)
@@ -270,7 +294,9 @@ def main():
             for i, model in enumerate(models):
                 res = one_configuration(a, model, fwhm, dt, a.seed + 1000 * i)
                 everything += res
-                print(f"\n### {model}, {fwhm:g} ns pulse, {dt:g} ns samples, {a.waveforms} rows\n")
+                mis = (f", true pulse {100 * a.kernel_mismatch:+g} %" if a.kernel_mismatch else "")
+                print(f"\n### {model}, {fwhm:g} ns pulse{mis}, {dt:g} ns samples, "
+                      f"{a.waveforms} rows\n")
                 print("| row | RMSE / raw | pairs resolved |\n|---|---|---|")
                 for r in res:
                     print(f"| {r['row']} | {r['rmse_ratio']:.3f} | {100 * r['pairs']:.1f} % |")
