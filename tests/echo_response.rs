@@ -365,3 +365,64 @@ fn compare_names_what_it_cannot_read() {
         text(&o.stderr)
     );
 }
+
+/// The deconvolve stage by the learned response: a LAS 1.3 waveform file records no outgoing
+/// pulse, so `kernel = "outgoing"` has nothing to deconvolve by; `kernel = "learned"` (learned
+/// from the input before the run) and `kernel = { response = FILE }` (the same response learned
+/// by `fwlidar response learn`) deconvolve every pulse, alike; a missing file is refused
+/// naming the key.
+#[test]
+fn the_deconvolve_stage_uses_the_learned_response() {
+    let dir = tempfile::tempdir().unwrap();
+    let pls = fixture("waveform/pulsewaves/las13fwf_example1.pls");
+    let learned = dir.path().join("learned");
+    let s = replay(
+        &pls,
+        &learned,
+        &[
+            "output.returns=true",
+            "pipeline.stages[1].kernel=\"learned\"",
+        ],
+    );
+    let deconvolve = &s["stages"][1];
+    assert_eq!(deconvolve["name"], "deconvolve");
+    assert_eq!(deconvolve["received"], 1000, "{deconvolve}");
+    assert_eq!(deconvolve["sent"], 1000, "{deconvolve}");
+    assert_eq!(s["pulses_out"], 1000);
+
+    let file = dir.path().join("r.toml");
+    let o = fwlidar(&[
+        "response",
+        "learn",
+        pls.to_str().unwrap(),
+        "--out",
+        file.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let named = dir.path().join("named");
+    let set = format!(
+        "pipeline.stages[1].kernel={{ response = \"{}\" }}",
+        file.display()
+    );
+    let s = replay(&pls, &named, &["output.returns=true", &set]);
+    assert_eq!(s["stages"][1]["sent"], 1000);
+    assert_eq!(
+        std::fs::read(learned.join("returns.csv")).unwrap(),
+        std::fs::read(named.join("returns.csv")).unwrap()
+    );
+
+    let o = fwlidar(&[
+        "replay",
+        pls.to_str().unwrap(),
+        "--out",
+        dir.path().join("x").to_str().unwrap(),
+        "--set",
+        "pipeline.stages[1].kernel={ response = \"nowhere.toml\" }",
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o.stderr));
+    let e = text(&o.stderr);
+    assert!(
+        e.contains("kernel.response") && e.contains("nowhere.toml"),
+        "{e}"
+    );
+}
