@@ -36,8 +36,8 @@ pub struct ShotComparison {
     pub l2b_fhd: f64,
 }
 
-/// Reads a 1-D dataset of any numeric type as f64.
-fn read_f64(file: &Hdf5File, name: &str, path: &str) -> Result<Vec<f64>, GediError> {
+/// Reads a dataset of any numeric type as f64 (an n-D one flattened, rows first).
+pub fn read_f64(file: &Hdf5File, name: &str, path: &str) -> Result<Vec<f64>, GediError> {
     let err = |reason: String| GediError::Dataset {
         file: path.to_string(),
         dataset: name.to_string(),
@@ -56,7 +56,19 @@ fn read_f64(file: &Hdf5File, name: &str, path: &str) -> Result<Vec<f64>, GediErr
     if let Ok(a) = ds.read_array::<u8>() {
         return Ok(a.iter().map(|&v| f64::from(v)).collect());
     }
-    Err(err("not a float, u64 or u8 dataset".into()))
+    if let Ok(a) = ds.read_array::<i32>() {
+        return Ok(a.iter().map(|&v| f64::from(v)).collect());
+    }
+    if let Ok(a) = ds.read_array::<u16>() {
+        return Ok(a.iter().map(|&v| f64::from(v)).collect());
+    }
+    if let Ok(a) = ds.read_array::<u32>() {
+        return Ok(a.iter().map(|&v| f64::from(v)).collect());
+    }
+    if let Ok(a) = ds.read_array::<i16>() {
+        return Ok(a.iter().map(|&v| f64::from(v)).collect());
+    }
+    Err(err("not a float, integer or u64 dataset".into()))
 }
 
 /// Measures every shot of `l1b` and pairs it with the L2A and L2B values of the same shot

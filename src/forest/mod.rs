@@ -7,6 +7,7 @@
 
 pub mod biomass;
 pub mod gedi_check;
+pub mod gedi_l2a;
 pub mod measure;
 pub mod metrics_plot;
 pub mod products;
