@@ -3,6 +3,8 @@
 //!
 //! - `metrics/gedi_shot`: the 32 real GEDI shots of the fixture (760–823 samples, 6.5 ns
 //!   smoothing), one at a time;
+//! - `gedi_l2a/shot_six_groups`: NASA's L2A algorithm (`forest::gedi_l2a`) on the same shots,
+//!   all six setting groups per shot;
 //! - `metrics/survey_line`: the survey line's mix of raw simulated pulses (1 000, every 4th of
 //!   the first 4 000 of `config/scenes/survey_line.toml`) through the stage as replay runs it;
 //! - `metrics/survey_line_dem_edge`: the same with `ground = "dem"` (each pulse given a nadir
@@ -41,7 +43,8 @@ fn tail(name: &str, mut times: Vec<u64>) {
     );
 }
 
-fn gedi(c: &mut Criterion) {
+/// The fixture's 32 GEDI shots: received waveform (counts), noise mean and σ.
+fn gedi_shots() -> Vec<(Vec<f32>, f64, f64)> {
     let g = GediL1b::open(&fwlidar::fixtures::path(
         "waveform/gedi/GEDI01_B_O01964_beams0001_1011.h5",
     ))
@@ -62,9 +65,14 @@ fn gedi(c: &mut Criterion) {
             ));
         }
     }
+    shots
+}
+
+fn gedi(c: &mut Criterion) {
+    let shots = gedi_shots();
     let config = MetricsConfig::default();
     let mut computer = MetricsComputer::with_capacity(2048);
-    let mut one = |i: usize| {
+    let one = |i: usize| {
         let (w, mean, sd) = &shots[i % shots.len()];
         computer.compute(
             &config,
@@ -81,22 +89,39 @@ fn gedi(c: &mut Criterion) {
             },
         )
     };
+    per_shot(c, "metrics/gedi_shot", shots.len(), one);
+}
+
+/// Times `one(i)` on each of `n` shots 20 times (the tail), then criterion's mean.
+fn per_shot<R>(c: &mut Criterion, name: &str, n: usize, mut one: impl FnMut(usize) -> R) {
     let mut times = Vec::new();
     for _ in 0..20 {
-        for i in 0..shots.len() {
+        for i in 0..n {
             let t0 = Instant::now();
             black_box(one(i));
             times.push(t0.elapsed().as_nanos() as u64);
         }
     }
-    tail("metrics/gedi_shot", times);
+    tail(name, times);
     let mut i = 0;
-    c.bench_function("metrics/gedi_shot", |b| {
+    c.bench_function(name, |b| {
         b.iter(|| {
             i += 1;
             black_box(one(i))
         })
     });
+}
+
+/// NASA's L2A algorithm (`src/forest/gedi_l2a.rs`) on each of the fixture's 32 shots, all six
+/// setting groups at once (what L2A computes per shot), 0.15 m per sample.
+fn gedi_l2a(c: &mut Criterion) {
+    use fwlidar::forest::gedi_l2a::{GROUPS, process_groups};
+    let shots = gedi_shots();
+    let one = |i: usize| {
+        let (w, mean, sd) = &shots[i % shots.len()];
+        process_groups(w, *mean as f32, *sd as f32, 0.15, &GROUPS)
+    };
+    per_shot(c, "gedi_l2a/shot_six_groups", shots.len(), one);
 }
 
 fn survey_line(c: &mut Criterion) {
@@ -268,5 +293,12 @@ fn csv_row(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, gedi, survey_line, survey_line_dem_edge, csv_row);
+criterion_group!(
+    benches,
+    gedi,
+    gedi_l2a,
+    survey_line,
+    survey_line_dem_edge,
+    csv_row
+);
 criterion_main!(benches);

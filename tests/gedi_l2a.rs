@@ -6,7 +6,7 @@
 use std::collections::BTreeMap;
 
 use fwlidar::forest::gedi_check::read_f64;
-use fwlidar::forest::gedi_l2a::{GROUPS, process};
+use fwlidar::forest::gedi_l2a::{GROUPS, process, process_groups};
 use fwlidar::format::gedi::GediL1b;
 use hdf5_reader::Hdf5File;
 
@@ -44,11 +44,14 @@ fn every_group_reproduces_l2a_to_the_bin() {
             let off = (s.rx_start - base) as usize;
             let w = &rx[off..off + s.rx_count as usize];
             let dz = (s.bin0[2] - s.lastbin[2]) / f64::from(s.rx_count - 1);
-            for g in &GROUPS {
+            let (mean, sd) = (s.noise_mean as f32, s.noise_stddev as f32);
+            let all = process_groups(w, mean, sd, dz, &GROUPS);
+            for (g, r) in GROUPS.iter().zip(all) {
                 let n = g.number;
                 let at = |d: &str| format!("rx_processing_a{n}/{d}");
-                let r = process(w, s.noise_mean as f32, s.noise_stddev as f32, dz, g)
-                    .unwrap_or_else(|| panic!("shot {} group {n}: no result", s.shot_number));
+                let r = r.unwrap_or_else(|| panic!("shot {} group {n}: no result", s.shot_number));
+                // One group alone gives the same as all six together.
+                assert_eq!(process(w, mean, sd, dz, g).as_ref(), Some(&r));
                 count(
                     n,
                     "front_threshold",
