@@ -7,7 +7,7 @@
 //!
 //! Locations are in samples from the first sample of the shot's received waveform (0-based), on
 //! a grid of [`SUBBIN`] samples. [`process_groups`] runs the six groups of a shot sharing their
-//! two smoothings (106 µs per fixture shot, `benches/forest.rs`). Not yet built (issue 56): the a2 group's local-energy test
+//! two smoothings (43 µs per fixture shot, `benches/forest.rs`). Not yet built (issue 56): the a2 group's local-energy test
 //! (`energy_thresh`, never deciding a case of the fixture), flag 4 (`botlocdist_limit`), the
 //! choice of `selected_algorithm`, and the L2B products.
 
@@ -197,25 +197,65 @@ fn composite_kernel(width: f64) -> (Vec<f64>, usize) {
 /// weight per sample for each of the four grid phases, so a grid point costs ~37 products
 /// (width 6.5) instead of 148 on the interpolated grid, and only the window is computed: the
 /// six groups of a fixture shot took 276 µs by [`smooth`] over the window's samples, 106 µs
-/// this way (`benches/forest.rs`, `gedi_l2a/shot_six_groups`). Within the window the values equal
+/// this way, 87 µs with the weights built once (`benches/forest.rs`,
+/// `gedi_l2a/shot_six_groups`). Within the window the values equal
 /// [`smooth`]'s to rounding (the edge padding of the record is the same; that of the first
 /// pass is not, which matters only within a kernel's reach of the record's ends).
 fn smooth_window(w: &[f32], width: f64, search: (usize, usize)) -> Vec<f64> {
     let n = w.len();
     let m = (n - 1) * PER_SAMPLE + 1;
     let mut grid = vec![0.0; m];
-    let (c, half) = composite_kernel(width);
-    let h = half as isize;
-    let per = PER_SAMPLE as isize;
-    // Sample offsets (from the grid point's sample i = q / 4) a phase's weights reach.
-    let jmin = (-h).div_euclid(per);
-    let jmax = (per - 1 + h).div_euclid(per) + 1;
-    let span = (jmax - jmin + 1) as usize;
-    let phases: Vec<Vec<f64>> = (0..per)
-        .map(|phi| {
+    let fresh;
+    let phases = match cached_phases(width) {
+        Some(p) => p,
+        None => {
+            fresh = PhaseWeights::new(width);
+            &fresh
+        }
+    };
+    let last = n as isize - 1;
+    let q0 = (search.0 * PER_SAMPLE).saturating_sub(1);
+    let q1 = (search.1 * PER_SAMPLE + 1).min(m - 1);
+    // The samples the window's grid points reach, the record's end values repeated beyond it.
+    let first = (q0 / PER_SAMPLE) as isize + phases.jmin;
+    let span = phases.weights[0].len();
+    let reach = (q1 / PER_SAMPLE) as isize + phases.jmin + span as isize;
+    let samples: Vec<f64> = (first..=reach)
+        .map(|k| f64::from(w[k.clamp(0, last) as usize]))
+        .collect();
+    for (q, out) in grid.iter_mut().enumerate().take(q1 + 1).skip(q0) {
+        let at = ((q / PER_SAMPLE) as isize + phases.jmin - first) as usize;
+        let weights = &phases.weights[q % PER_SAMPLE];
+        *out = weights
+            .iter()
+            .zip(&samples[at..at + span])
+            .map(|(a, b)| a * b)
+            .sum();
+    }
+    grid
+}
+
+/// The weight of each sample in a grid point of each phase (q mod 4), for one width: the
+/// linear interpolation and [`composite_kernel`] folded together.
+struct PhaseWeights {
+    /// Offset of the first weight from the grid point's sample (q / 4), samples.
+    jmin: isize,
+    /// Per phase, the weights of the samples from `jmin` on (all the same length).
+    weights: [Vec<f64>; PER_SAMPLE],
+}
+
+impl PhaseWeights {
+    fn new(width: f64) -> Self {
+        let (c, half) = composite_kernel(width);
+        let h = half as isize;
+        let per = PER_SAMPLE as isize;
+        let jmin = (-h).div_euclid(per);
+        let jmax = (per - 1 + h).div_euclid(per) + 1;
+        let span = (jmax - jmin + 1) as usize;
+        let weights = std::array::from_fn(|phi| {
             let mut weights = vec![0.0; span];
             for (k, ck) in c.iter().enumerate() {
-                let u = phi + k as isize - h;
+                let u = phi as isize + k as isize - h;
                 let a = u.div_euclid(per);
                 let f = u.rem_euclid(per) as f64 * SUBBIN;
                 weights[(a - jmin) as usize] += ck * (1.0 - f);
@@ -224,22 +264,22 @@ fn smooth_window(w: &[f32], width: f64, search: (usize, usize)) -> Vec<f64> {
                 }
             }
             weights
-        })
-        .collect();
-    let last = n as isize - 1;
-    let q0 = (search.0 * PER_SAMPLE).saturating_sub(1);
-    let q1 = (search.1 * PER_SAMPLE + 1).min(m - 1);
-    for (q, out) in grid.iter_mut().enumerate().take(q1 + 1).skip(q0) {
-        let i = (q / PER_SAMPLE) as isize;
-        let weights = &phases[q % PER_SAMPLE];
-        let mut v = 0.0;
-        for (j, wt) in weights.iter().enumerate() {
-            let k = (i + jmin + j as isize).clamp(0, last) as usize;
-            v += wt * f64::from(w[k]);
-        }
-        *out = v;
+        });
+        PhaseWeights { jmin, weights }
     }
-    grid
+}
+
+/// The weights of the product's two widths (6.5 and 3.5 samples), built once.
+fn cached_phases(width: f64) -> Option<&'static PhaseWeights> {
+    static WIDE: std::sync::OnceLock<PhaseWeights> = std::sync::OnceLock::new();
+    static NARROW: std::sync::OnceLock<PhaseWeights> = std::sync::OnceLock::new();
+    if width == 6.5 {
+        Some(WIDE.get_or_init(|| PhaseWeights::new(6.5)))
+    } else if width == 3.5 {
+        Some(NARROW.get_or_init(|| PhaseWeights::new(3.5)))
+    } else {
+        None
+    }
 }
 
 /// One shot's received waveform `w` (counts) through `group`: `mean` and `sd` are L1B's
@@ -404,13 +444,21 @@ fn cumulative_energy(sz: &[f64], top_q: usize, bot_q: usize, mean: f64) -> Vec<f
         c.push(run);
     }
     let total = c.last().copied().unwrap_or(0.0);
+    // The first index reaching a target never moves back as the target grows (total ≥ 0), so
+    // one sweep serves every p; a negative total (targets falling) scans from the start.
+    let mut j = 0;
     (0..=100)
         .map(|p| match p {
             0 => botloc,
             100 => top_q as f64 * SUBBIN,
             _ => {
                 let target = total * f64::from(p) / 100.0;
-                let j = c.iter().position(|&v| v >= target).unwrap_or(c.len());
+                if total < 0.0 {
+                    j = 0;
+                }
+                while j < c.len() && c[j] < target {
+                    j += 1;
+                }
                 botloc - SUBBIN - j.saturating_sub(1) as f64 * SUBBIN
             }
         })
