@@ -311,26 +311,15 @@ fn a_learned_response_file_is_used_by_name() {
         "{}",
         s["response"]
     );
-    assert_eq!(
-        std::fs::read(learned.join("returns.csv")).unwrap(),
-        std::fs::read(named.join("returns.csv")).unwrap()
-    );
+    same_returns(&learned, &named);
 
     // A missing file is refused naming the key.
-    let o = fwlidar(&[
-        "replay",
-        pls.to_str().unwrap(),
-        "--out",
-        dir.path().join("x").to_str().unwrap(),
-        "--set",
+    let e = refused(
+        &pls,
+        dir.path(),
         "pipeline.stages[2].response=\"nowhere.toml\"",
-    ]);
-    assert_eq!(o.status.code(), Some(2), "{}", text(&o.stderr));
-    assert!(
-        text(&o.stderr).contains("pipeline.stages[2].response"),
-        "{}",
-        text(&o.stderr)
     );
+    assert!(e.contains("pipeline.stages[2].response"), "{e}");
 }
 
 /// `compare` refuses what it cannot compare, naming the file.
@@ -406,23 +395,37 @@ fn the_deconvolve_stage_uses_the_learned_response() {
     );
     let s = replay(&pls, &named, &["output.returns=true", &set]);
     assert_eq!(s["stages"][1]["sent"], 1000);
-    assert_eq!(
-        std::fs::read(learned.join("returns.csv")).unwrap(),
-        std::fs::read(named.join("returns.csv")).unwrap()
-    );
+    same_returns(&learned, &named);
 
-    let o = fwlidar(&[
-        "replay",
-        pls.to_str().unwrap(),
-        "--out",
-        dir.path().join("x").to_str().unwrap(),
-        "--set",
+    let e = refused(
+        &pls,
+        dir.path(),
         "pipeline.stages[1].kernel={ response = \"nowhere.toml\" }",
-    ]);
-    assert_eq!(o.status.code(), Some(2), "{}", text(&o.stderr));
-    let e = text(&o.stderr);
+    );
     assert!(
         e.contains("kernel.response") && e.contains("nowhere.toml"),
         "{e}"
     );
+}
+
+/// The two replays' `returns.csv` are byte for byte the same.
+fn same_returns(a: &Path, b: &Path) {
+    assert_eq!(
+        std::fs::read(a.join("returns.csv")).unwrap(),
+        std::fs::read(b.join("returns.csv")).unwrap()
+    );
+}
+
+/// A replay of `input` with `set` is refused as a usage error (exit 2); its stderr.
+fn refused(input: &Path, dir: &Path, set: &str) -> String {
+    let o = fwlidar(&[
+        "replay",
+        input.to_str().unwrap(),
+        "--out",
+        dir.join("x").to_str().unwrap(),
+        "--set",
+        set,
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o.stderr));
+    text(&o.stderr)
 }
