@@ -273,13 +273,7 @@ fn a_learned_response_file_is_used_by_name() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("q680i.toml");
     let pls = fixture(RIEGL_PLS);
-    let o = fwlidar(&[
-        "response",
-        "learn",
-        pls.to_str().unwrap(),
-        "--out",
-        file.to_str().unwrap(),
-    ]);
+    let o = learn_response(&pls, &file);
     assert!(o.status.success(), "{}", text(&o.stderr));
     let said = text(&o.stdout);
     assert!(
@@ -288,13 +282,7 @@ fn a_learned_response_file_is_used_by_name() {
     );
     let svg = std::fs::read_to_string(file.with_extension("svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("FWHM"), "{svg}");
-    let again = fwlidar(&[
-        "response",
-        "learn",
-        pls.to_str().unwrap(),
-        "--out",
-        file.to_str().unwrap(),
-    ]);
+    let again = learn_response(&pls, &file);
     assert_eq!(again.status.code(), Some(2));
     assert!(text(&again.stderr).contains("never written over"));
 
@@ -380,13 +368,7 @@ fn the_deconvolve_stage_uses_the_learned_response() {
     assert_eq!(s["pulses_out"], 1000);
 
     let file = dir.path().join("r.toml");
-    let o = fwlidar(&[
-        "response",
-        "learn",
-        pls.to_str().unwrap(),
-        "--out",
-        file.to_str().unwrap(),
-    ]);
+    let o = learn_response(&pls, &file);
     assert!(o.status.success(), "{}", text(&o.stderr));
     let named = dir.path().join("named");
     let set = format!(
@@ -428,4 +410,15 @@ fn refused(input: &Path, dir: &Path, set: &str) -> String {
     ]);
     assert_eq!(o.status.code(), Some(2), "{}", text(&o.stderr));
     text(&o.stderr)
+}
+
+/// `fwlidar response learn INPUT --out FILE`.
+fn learn_response(input: &Path, file: &Path) -> std::process::Output {
+    fwlidar(&[
+        "response",
+        "learn",
+        input.to_str().unwrap(),
+        "--out",
+        file.to_str().unwrap(),
+    ])
 }
